@@ -1,0 +1,65 @@
+"""The operator CLI, ``rig`` (typer).
+
+Each subsystem registers its commands from its own module, so the modules
+stay independent: ``rig.commands.trial`` (run, info, export, import, recover),
+``rig.commands.analysis`` (identify, stribeck, stability, reproduce),
+``rig.commands.diagnose`` (diagnose), ``rig.commands.hardware`` (devices,
+loop-bench). A module that is missing is simply not registered.
+"""
+
+from __future__ import annotations
+
+import importlib
+
+import typer
+
+from rig import __version__
+
+app = typer.Typer(
+    name="rig",
+    help=(
+        "Run friction trials on a servohydraulic double-shear rig (Dupont & Dunlap 1995), "
+        "simulated or real; log them to MCAP; identify rate-and-state friction; "
+        "diagnose what the model of the rig gets wrong."
+    ),
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_show_locals=False,
+)
+
+COMMAND_MODULES = (
+    "rig.commands.trial",
+    "rig.commands.analysis",
+    "rig.commands.diagnose",
+    "rig.commands.hardware",
+)
+
+
+def _version(value: bool):
+    if value:
+        typer.echo(f"rig {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(version: bool = typer.Option(False, "--version", callback=_version, is_eager=True,
+                                       help="Print the version and exit.")):
+    """rig: friction trials, logging, identification and diagnosis."""
+
+
+for _name in COMMAND_MODULES:
+    try:
+        _mod = importlib.import_module(_name)
+    except ModuleNotFoundError as exc:  # subsystem not installed/written yet
+        if exc.name != _name:
+            raise
+        continue
+    _mod.register(app)
+
+
+def main() -> None:
+    app()
+
+
+if __name__ == "__main__":
+    main()

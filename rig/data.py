@@ -1,0 +1,319 @@
+"""Measured trial data: the in-memory record and the CSV interchange format.
+
+The CSV format is ``../shared/specs/measured-data.md`` (version 1), kept to the
+letter: ``# rig-trial-csv: 1`` first, ``# key: value`` metadata lines, a header
+with at least ``time_s``, ``position_um``, ``friction_N``; optional
+``normal_1_N``, ``normal_2_N``, ``position_ref_um``, ``valve_cmd``; extra
+columns kept. Bad input raises :class:`DataFormatError` naming the file, the
+line and what is wrong; a trailing partial line is a warning.
+
+:class:`TrialData` is what every analysis (identify, stribeck, diagnose)
+consumes, whether it came from a CSV or from the rig's MCAP log
+(:func:`load_trial` dispatches on the suffix).
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import os
+import tempfile
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+CSV_MAGIC = "rig-trial-csv"
+CSV_VERSION = "1"
+REQUIRED_COLUMNS = ("time_s", "position_um", "friction_N")
+OPTIONAL_COLUMNS = ("normal_1_N", "normal_2_N", "position_ref_um", "valve_cmd")
+STANDARD_COLUMNS = REQUIRED_COLUMNS + OPTIONAL_COLUMNS
+
+
+class DataFormatError(ValueError):
+    """A data file breaks its format. ``str()`` names the file, the line and the fault."""
+
+    def __init__(self, path: str | os.PathLike, line: int | None, message: str):
+        self.path = str(path)
+        self.line = line
+        self.message = message
+        where = f"{self.path}, line {line}" if line is not None else self.path
+        super().__init__(f"{where}: {message}")
+
+
+class PartialLineWarning(UserWarning):
+    """The file ends with an incomplete row (cut off mid-write); it was ignored."""
+
+
+@dataclass
+class TrialData:
+    """One trial's samples, in the measured-data units (s, µm, N).
+
+    ``normal_force_N`` is the nominal per-rider normal force: the
+    ``normal_force_N`` metadata when present, else the median of
+    ``(normal_1_N + normal_2_N) / 2`` (measured-data.md).
+    ``events`` are the rig log's events (``{"t_s": float, "kind": str, ...}``),
+    empty for CSV input.
+    """
+
+    time_s: np.ndarray
+    position_um: np.ndarray
+    friction_N: np.ndarray
+    normal_1_N: np.ndarray | None = None
+    normal_2_N: np.ndarray | None = None
+    position_ref_um: np.ndarray | None = None
+    valve_cmd: np.ndarray | None = None
+    extra: dict[str, np.ndarray] = field(default_factory=dict)
+    metadata: dict[str, str] = field(default_factory=dict)
+    events: list[dict] = field(default_factory=list)
+    source: str = ""
+    warnings: list[str] = field(default_factory=list)
+
+    def __len__(self) -> int:
+        return int(self.time_s.size)
+
+    @property
+    def has_normals(self) -> bool:
+        return self.normal_1_N is not None and self.normal_2_N is not None
+
+    @property
+    def normal_force_N(self) -> float:
+        """Nominal per-rider normal force N (N)."""
+        value = self.metadata.get("normal_force_N")
+        if value is not None:
+            try:
+                v = float(value)
+                if math.isfinite(v) and v > 0:
+                    return v
+            except ValueError:
+                pass
+        if self.has_normals:
+            return float(np.median((self.normal_1_N + self.normal_2_N) / 2.0))
+        raise ValueError(
+            f"{self.source or 'trial'}: no normal_force_N metadata and no normal columns; "
+            "the nominal normal force is unknown"
+        )
+
+    @property
+    def total_normal_N(self) -> np.ndarray:
+        """Sum of both rider normal forces per sample (N); twice the nominal without normal columns."""
+        if self.has_normals:
+            return self.normal_1_N + self.normal_2_N
+        return np.full(self.time_s.shape, 2.0 * self.normal_force_N)
+
+    @property
+    def mu(self) -> np.ndarray:
+        """Friction coefficient of one interface, friction / (normal_1 + normal_2) (measured-data.md)."""
+        return self.friction_N / self.total_normal_N
+
+    def columns(self) -> dict[str, np.ndarray]:
+        """All present columns in the CSV's canonical order (standard first, then extra)."""
+        out: dict[str, np.ndarray] = {}
+        for name in STANDARD_COLUMNS:
+            arr = getattr(self, name)
+            if arr is not None:
+                out[name] = arr
+        out.update(self.extra)
+        return out
+
+    def select(self, mask: np.ndarray) -> "TrialData":
+        """A copy holding only the samples where ``mask`` is true."""
+        def pick(a):
+            return None if a is None else np.asarray(a)[mask]
+        return TrialData(
+            time_s=self.time_s[mask], position_um=self.position_um[mask], friction_N=self.friction_N[mask],
+            normal_1_N=pick(self.normal_1_N), normal_2_N=pick(self.normal_2_N),
+            position_ref_um=pick(self.position_ref_um), valve_cmd=pick(self.valve_cmd),
+            extra={k: v[mask] for k, v in self.extra.items()}, metadata=dict(self.metadata),
+            events=list(self.events), source=self.source, warnings=list(self.warnings),
+        )
+
+
+def _parse_float(text: str, path, lineno: int, column: str) -> float:
+    s = text.strip()
+    try:
+        return float(s)
+    except ValueError:
+        raise DataFormatError(path, lineno, f"column '{column}': non-numeric value {s!r}") from None
+
+
+def read_csv(path: str | os.PathLike) -> TrialData:
+    """Read a measured-data CSV (version 1). Raises :class:`DataFormatError` on bad input.
+
+    A trailing partial row is dropped with a :class:`PartialLineWarning` (also
+    recorded in ``TrialData.warnings``).
+    """
+    path = Path(path)
+    try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise DataFormatError(path, None, f"cannot read file: {exc.strerror or exc}") from None
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = raw[: exc.start].count(b"\n") + 1
+        raise DataFormatError(path, line, "not valid UTF-8") from None
+    ends_with_newline = text.endswith("\n") or text.endswith("\r")
+    lines = text.splitlines()
+    if not lines:
+        raise DataFormatError(path, 1, "empty file (expected '# rig-trial-csv: 1' on the first line)")
+    first = lines[0].strip()
+    if not first.startswith("#") or first.lstrip("#").strip().replace(" ", "") != f"{CSV_MAGIC}:{CSV_VERSION}":
+        raise DataFormatError(path, 1, f"first line must be '# {CSV_MAGIC}: {CSV_VERSION}', found {lines[0][:60]!r}")
+
+    metadata: dict[str, str] = {}
+    i = 1
+    while i < len(lines) and lines[i].lstrip().startswith("#"):
+        body = lines[i].lstrip()[1:].strip()
+        if ":" in body:
+            key, value = body.split(":", 1)
+            metadata[key.strip()] = value.strip()
+        elif body:
+            metadata.setdefault("comment", "")
+            metadata["comment"] = (metadata["comment"] + " " + body).strip()
+        i += 1
+    if i >= len(lines) or not lines[i].strip():
+        raise DataFormatError(path, i + 1, "missing header row (column names) after the metadata lines")
+    header_lineno = i + 1
+    names = [c.strip() for c in lines[i].split(",")]
+    if len(set(names)) != len(names):
+        dup = sorted({n for n in names if names.count(n) > 1})
+        raise DataFormatError(path, header_lineno, f"duplicate column name(s): {', '.join(dup)}")
+    missing = [c for c in REQUIRED_COLUMNS if c not in names]
+    if missing:
+        raise DataFormatError(path, header_lineno,
+                              f"missing required column(s): {', '.join(missing)} (header has: {', '.join(names)})")
+
+    ncol = len(names)
+    rows: list[list[float]] = []
+    file_warnings: list[str] = []
+    data_lines = lines[i + 1:]
+    for k, line in enumerate(data_lines):
+        lineno = header_lineno + 1 + k
+        if not line.strip():
+            continue
+        fields = line.split(",")
+        is_last = k == len(data_lines) - 1
+        if len(fields) != ncol:
+            if is_last and not ends_with_newline and len(fields) < ncol:
+                msg = f"{path}, line {lineno}: trailing partial line ignored (file cut off mid-write)"
+                warnings.warn(msg, PartialLineWarning, stacklevel=2)
+                file_warnings.append(msg)
+                break
+            raise DataFormatError(path, lineno, f"expected {ncol} fields, found {len(fields)}")
+        try:
+            values = [float(f) for f in fields]
+        except ValueError:
+            if is_last and not ends_with_newline:
+                # a number cut in half can still parse; one that does not is a partial line
+                msg = f"{path}, line {lineno}: trailing partial line ignored (file cut off mid-write)"
+                warnings.warn(msg, PartialLineWarning, stacklevel=2)
+                file_warnings.append(msg)
+                break
+            for name, f in zip(names, fields):
+                _parse_float(f, path, lineno, name)
+            raise  # pragma: no cover - _parse_float raised above
+        rows.append(values)
+    if not rows:
+        raise DataFormatError(path, header_lineno, "empty data: no rows after the header")
+
+    table = np.asarray(rows, dtype=float)
+    cols = {name: table[:, j] for j, name in enumerate(names)}
+    first_data = header_lineno + 1
+    # line numbers of the kept rows (blank lines skipped)
+    row_lines = [header_lineno + 1 + k for k, ln in enumerate(data_lines) if ln.strip()][: len(rows)]
+    for name in REQUIRED_COLUMNS:
+        bad = np.flatnonzero(~np.isfinite(cols[name]))
+        if bad.size:
+            raise DataFormatError(path, row_lines[bad[0]], f"column '{name}': NaN or infinite value")
+    t = cols["time_s"]
+    dt = np.diff(t)
+    bad = np.flatnonzero(~(dt > 0))
+    if bad.size:
+        j = bad[0] + 1
+        raise DataFormatError(path, row_lines[j],
+                              f"time_s not strictly increasing ({t[j - 1]!r} then {t[j]!r})")
+    del first_data
+
+    def opt(name):
+        return cols.get(name)
+
+    extra = {n: cols[n] for n in names if n not in STANDARD_COLUMNS}
+    return TrialData(
+        time_s=t, position_um=cols["position_um"], friction_N=cols["friction_N"],
+        normal_1_N=opt("normal_1_N"), normal_2_N=opt("normal_2_N"),
+        position_ref_um=opt("position_ref_um"), valve_cmd=opt("valve_cmd"),
+        extra=extra, metadata=metadata, source=str(path), warnings=file_warnings,
+    )
+
+
+def _fmt(x: float) -> str:
+    if not math.isfinite(x):
+        return "nan"
+    return repr(float(x)) if abs(x) >= 1e15 or (x != 0 and abs(x) < 1e-6) else f"{x:.9g}"
+
+
+def write_csv(trial: TrialData, path: str | os.PathLike) -> Path:
+    """Write ``trial`` as a measured-data CSV (version 1), atomically.
+
+    The file appears complete or not at all (written to a temporary file in the
+    same directory, then renamed).
+    """
+    path = Path(path)
+    cols = trial.columns()
+    buf = io.StringIO()
+    buf.write(f"# {CSV_MAGIC}: {CSV_VERSION}\n")
+    meta = dict(trial.metadata)
+    meta.pop(CSV_MAGIC, None)
+    if "normal_force_N" not in meta:
+        try:
+            meta["normal_force_N"] = f"{trial.normal_force_N:g}"
+        except ValueError:
+            pass
+    for key, value in meta.items():
+        value = str(value).replace("\r", " ").replace("\n", " ")
+        buf.write(f"# {key}: {value}\n")
+    names = list(cols)
+    buf.write(",".join(names) + "\n")
+    table = np.column_stack([np.asarray(cols[n], dtype=float) for n in names])
+    for row in table:
+        buf.write(",".join(_fmt(v) for v in row) + "\n")
+    atomic_write_text(path, buf.getvalue())
+    return path
+
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
+    """Write ``data`` to ``path`` so that the file is complete or absent, never half-written."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
+
+
+def atomic_write_text(path: str | os.PathLike, text: str) -> None:
+    atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def load_trial(path: str | os.PathLike) -> TrialData:
+    """Load a trial from a measured-data ``.csv`` or a rig ``.mcap`` log."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix == ".csv":
+        return read_csv(path)
+    if suffix == ".mcap":
+        from rig.log import read_trial  # the MCAP reader lives with the writer
+
+        return read_trial(path)
+    raise DataFormatError(path, None, f"unknown data file type {suffix!r} (expected .csv or .mcap)")
