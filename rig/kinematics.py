@@ -98,11 +98,12 @@ def velocity_local_poly(t_s: np.ndarray, x_um: np.ndarray, window_s: float | Non
     return _local_poly(t, x, 0.5 * float(window_s), int(min(max(order, 1), 2)))
 
 
-def velocity_for_steps(t_s: np.ndarray, x_um: np.ndarray, slip_window_um: float = 1.0,
-                       min_window_s: float = 0.04, max_window_s: float = 2.0) -> np.ndarray:
+def velocity_for_steps(t_s: np.ndarray, x_um: np.ndarray, slip_window_um: float = 5.0,
+                       min_window_s: float = 0.1, max_window_s: float = 4.0) -> np.ndarray:
     """Velocity with a window sized for a slip of about ``slip_window_um`` at the local speed.
 
-    A first pass with a long window gives the speed; the final window is
+    A first pass with a long window gives the speed (5 µm of slip keeps the 0.076 µm
+    quantization and ±0.25 µm noise below about 2 % of v at 25 Hz while resolving L ~ 20 µm); the final window is
     ``slip_window_um / v`` clipped to [min, max] seconds, so that fast sliding keeps
     time resolution and slow sliding averages the LVDT's quantization out.
     """
