@@ -1,0 +1,209 @@
+"""The ``hardware`` section of a rig profile (pydantic), validated by the hardware code.
+
+A :class:`rig.profile.RigProfile` carries ``hardware: dict | None`` free-form; this
+module turns it into a :class:`HardwareConfig` with one clear error naming the
+field (:func:`parse_hardware`). The section describes the three devices of the
+rig of Dupont & Dunlap (1995, section 3) and how the real-time loop guards them:
+
+* ``loadcells``: the conditioner of the friction load cell (top of the fixture,
+  +-0.25 N) and the two normal-force load cells in series with the riders
+  (+-0.6 N), read over Modbus TCP or RTU in one request;
+* ``lvdt``: the LVDT conditioner (5 mm stroke, 0.076 µm quantization step)
+  streaming frames over a serial line (format in :mod:`drivers.lvdt`);
+* ``valve``: the servovalve controller on a CAN bus (setpoint every tick,
+  enable/disable, status with fault bits and heartbeat; :mod:`drivers.valve`);
+* ``interlocks``: limits and staleness thresholds checked every tick;
+* ``realtime``: scheduling of the loop process;
+* ``emulators``: whether ``rig run --hardware`` starts the emulators itself.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class ChannelCal(_Strict):
+    """One load-cell channel: ``force_N = raw * scale + offset - tare_N``.
+
+    ``address`` is the first register of the value (absolute Modbus address).
+    ``raw`` is the float32 or the scaled integer read from the conditioner.
+    """
+
+    address: int = Field(ge=0, le=65535)
+    scale: float = 1.0
+    offset: float = 0.0
+    tare_N: float = 0.0
+
+
+class LoadCellConfig(_Strict):
+    """Modbus conditioner of the three load cells; one request reads every channel."""
+
+    transport: Literal["tcp", "rtu"] = "tcp"
+    host: str = "127.0.0.1"
+    port: int = Field(default=502, ge=1, le=65535)
+    serial_port: str | None = None
+    baudrate: int = 115200
+    device_id: int = Field(default=1, ge=0, le=247)
+    register_type: Literal["input", "holding"] = "input"
+    encoding: Literal["float32", "int16", "int32"] = "float32"
+    word_order: Literal["big", "little"] = "big"
+    timeout_s: float = Field(default=0.005, gt=0)
+    counter_address: int | None = Field(default=0, ge=0, le=65535,
+                                        description="uint16 sample counter (staleness); None: none")
+    status_address: int | None = Field(default=1, ge=0, le=65535,
+                                       description="uint16 status word (bit0 overload)")
+    friction: ChannelCal = ChannelCal(address=2)
+    normal_1: ChannelCal = ChannelCal(address=4)
+    normal_2: ChannelCal = ChannelCal(address=6)
+
+    @model_validator(mode="after")
+    def _check(self):
+        if self.transport == "rtu" and not self.serial_port:
+            raise ValueError("transport 'rtu' needs serial_port")
+        return self
+
+    @property
+    def words_per_value(self) -> int:
+        return 1 if self.encoding == "int16" else 2
+
+    @property
+    def address_text(self) -> str:
+        if self.transport == "tcp":
+            return f"modbus-tcp://{self.host}:{self.port} unit {self.device_id}"
+        return f"modbus-rtu:{self.serial_port}@{self.baudrate} unit {self.device_id}"
+
+    def span(self) -> tuple[int, int]:
+        """(first address, count) of the single request covering every register used."""
+        addrs = [self.friction.address, self.normal_1.address, self.normal_2.address]
+        ends = [a + self.words_per_value for a in addrs]
+        for a in (self.counter_address, self.status_address):
+            if a is not None:
+                addrs.append(a)
+                ends.append(a + 1)
+        first = min(addrs)
+        return first, max(ends) - first
+
+
+class LvdtConfig(_Strict):
+    """Serial LVDT conditioner streaming position frames (:mod:`drivers.lvdt`)."""
+
+    port: str = "/dev/ttyUSB0"
+    baudrate: int = 921600
+    um_per_count: float = Field(default=0.076, gt=0, description="paper: 0.076 µm step")
+    offset_um: float = 0.0
+    invert: bool = False
+
+    @property
+    def address_text(self) -> str:
+        return f"serial:{self.port}@{self.baudrate}"
+
+
+class ValveConfig(_Strict):
+    """Servovalve controller on CAN (:mod:`drivers.valve`)."""
+
+    interface: Literal["udp_multicast", "virtual", "socketcan"] = "socketcan"
+    channel: str = "can0"
+    port: int | None = Field(default=None, description="udp_multicast UDP port")
+    node_id: int = Field(default=1, ge=1, le=127)
+    heartbeat_timeout_s: float = Field(default=0.05, gt=0)
+
+    @property
+    def address_text(self) -> str:
+        extra = f":{self.port}" if self.port else ""
+        return f"can-{self.interface}:{self.channel}{extra} node {self.node_id}"
+
+
+class InterlockConfig(_Strict):
+    """Trip thresholds, checked every tick (:mod:`rig.hardware.interlocks`).
+
+    Stroke limits default to the profile's stroke when not given (the paper's
+    LVDT and actuator allow 5 mm).
+    """
+
+    stroke_min_um: float | None = None
+    stroke_max_um: float | None = None
+    friction_max_N: float = 200.0
+    normal_min_N: float = 5.0
+    normal_max_N: float = 500.0
+    stale_s: float = Field(default=0.005, gt=0, description="sensor data older than this trips")
+    max_checksum_errors: int = Field(default=50, ge=0, description="serial frames rejected in a run")
+    max_modbus_errors: int = Field(default=3, ge=1, description="consecutive exceptions/timeouts")
+    max_can_errors: int = Field(default=3, ge=1, description="consecutive CAN send errors")
+    max_consecutive_late: int = Field(default=10, ge=1,
+                                      description="run of cycles more than late_threshold_s late")
+    late_threshold_s: float = 0.001
+    max_following_error_um: float | None = Field(default=None,
+                                                 description="|x_ref - x| trip; None: off")
+    stop_hold_s: float = Field(default=0.2, ge=0, description="time logged in the safe state")
+
+
+class RealtimeConfig(_Strict):
+    sched_fifo: bool = True
+    priority: int = Field(default=80, ge=1, le=99)
+    spin_s: float = Field(default=50e-6, ge=0, description="spin before deadline (not under FIFO)")
+    cpu: int | None = Field(default=None, description="pin the loop process to this CPU")
+    block_ticks: int = Field(default=100, ge=1)
+
+
+class EmulatorConfig(_Strict):
+    """Emulators (drivers.emulators) started by ``rig run --hardware`` when ``autostart``."""
+
+    autostart: bool = False
+    seed: int = 1
+    lubricant: str | None = Field(default=None, description="None: the trial's lubricant")
+    normal_force_N: float | None = None
+    sched_fifo: bool = True
+    priority: int = Field(default=70, ge=1, le=99)
+    status_period_s: float = 0.01
+    watchdog_s: float = Field(default=0.02, gt=0, description="valve nulls after this silence")
+    run_dir: str = "/tmp/rig-emulated"
+
+
+class HardwareConfig(_Strict):
+    loadcells: LoadCellConfig
+    lvdt: LvdtConfig
+    valve: ValveConfig
+    interlocks: InterlockConfig = InterlockConfig()
+    realtime: RealtimeConfig = RealtimeConfig()
+    emulators: EmulatorConfig = EmulatorConfig()
+
+
+class HardwareConfigError(ValueError):
+    """The hardware section is missing or wrong; the message names where."""
+
+
+def parse_hardware(section: dict | None, where: str = "hardware") -> HardwareConfig:
+    """Validate a profile's free-form ``hardware`` section; one clear error naming the field."""
+    if section is None:
+        raise HardwareConfigError(f"{where}: the profile has no 'hardware' section")
+    if isinstance(section, HardwareConfig):
+        return section
+    try:
+        return HardwareConfig.model_validate(section)
+    except ValidationError as exc:
+        msgs = []
+        for err in exc.errors():
+            loc = ".".join(str(p) for p in err["loc"])
+            msgs.append(f"{where}.{loc}: {err['msg']}")
+        raise HardwareConfigError("; ".join(msgs)) from None
+
+
+def hardware_of_profile(profile, where: str | None = None) -> HardwareConfig:
+    """The :class:`HardwareConfig` of a RigProfile (or of a plain dict holding ``hardware``)."""
+    section = profile.get("hardware") if isinstance(profile, dict) else getattr(profile, "hardware", None)
+    name = where or str(getattr(profile, "source_path", None) or "profile")
+    return parse_hardware(section, where=f"{name}: hardware")
+
+
+def load_hardware_yaml(path: str | Path) -> HardwareConfig:
+    import yaml
+
+    data = yaml.safe_load(Path(path).read_text())
+    return parse_hardware((data or {}).get("hardware"), where=f"{path}: hardware")

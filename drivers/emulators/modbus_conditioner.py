@@ -1,0 +1,132 @@
+"""Load-cell conditioner emulator: a pymodbus 3.16 server (TCP, or RTU over a pty bridge).
+
+The register map is the driver's (:mod:`drivers.loadcells`), from the same
+:class:`LoadCellConfig`. Values change on every read, so they are filled in by
+the ``SimDevice(action=...)`` hook from the latest plant sample (a subclassed
+datablock's ``getValues`` is ignored by pymodbus 3.16). The emulator stores
+*raw* values: ``raw = (force_N - offset) / scale`` (tare is the host's business).
+
+Faults (``self.faults``): ``slow_s`` (answer after a delay), ``silent`` (never
+answer), ``exception`` (Modbus exception 4, device failure), ``freeze_counter``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+
+from drivers.config import LoadCellConfig
+from drivers.loadcells import CHANNELS, encode_value
+
+
+class ModbusConditionerEmulator:
+    def __init__(self, cfg: LoadCellConfig, rtu_server_port: str | None = None):
+        """``rtu_server_port``: for RTU, the serial port the *server* opens (the
+        other end of the pty bridge from ``cfg.serial_port``)."""
+        self.cfg = cfg
+        self.rtu_server_port = rtu_server_port
+        self.forces = [0.0, 0.0, 0.0]
+        self.counter = 0
+        self.status = 0
+        self.faults: dict = {}
+        self.n_requests = 0
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._server = None
+        self._thread: threading.Thread | None = None
+        self._ready = threading.Event()
+        self._error: BaseException | None = None
+        first, count = cfg.span()
+        self._size = max(first + count, 8) + 1
+
+    # -- values from the plant -------------------------------------------------------
+    def update(self, friction_N: float, normal_1_N: float, normal_2_N: float) -> None:
+        self.forces = [friction_N, normal_1_N, normal_2_N]
+        if not self.faults.get("freeze_counter"):
+            self.counter = (self.counter + 1) & 0xFFFF
+
+    def registers(self) -> dict[int, int]:
+        """Address -> register value for the current sample (what a read returns)."""
+        c = self.cfg
+        out: dict[int, int] = {}
+        for ch, f in zip(CHANNELS, self.forces):
+            cal = getattr(c, ch)
+            raw = (f - cal.offset) / cal.scale
+            for k, w in enumerate(encode_value(raw, c.encoding, c.word_order)):
+                out[cal.address + k] = w
+        if c.counter_address is not None:
+            out[c.counter_address] = self.counter
+        if c.status_address is not None:
+            out[c.status_address] = self.status
+        return out
+
+    async def _action(self, function_code, start_address, address, count, registers, set_values):
+        from pymodbus.constants import ExcCodes
+
+        self.n_requests += 1
+        f = self.faults
+        if f.get("silent"):
+            await asyncio.sleep(3600)
+        if f.get("slow_s"):
+            await asyncio.sleep(float(f["slow_s"]))
+        if f.get("exception"):
+            return ExcCodes.DEVICE_FAILURE
+        for addr, val in self.registers().items():
+            i = addr - start_address
+            if 0 <= i < len(registers):
+                registers[i] = val
+        return None
+
+    # -- server --------------------------------------------------------------------
+    def start(self, timeout_s: float = 5.0) -> None:
+        self._thread = threading.Thread(target=self._run, name="modbus-emulator", daemon=True)
+        self._thread.start()
+        if not self._ready.wait(timeout_s):
+            raise RuntimeError(f"Modbus emulator did not start ({self.cfg.address_text})")
+        if self._error:
+            raise RuntimeError(f"Modbus emulator failed: {self._error}")
+
+    def _run(self):
+        from pymodbus.framer import FramerType
+        from pymodbus.server import ModbusSerialServer, ModbusTcpServer
+        from pymodbus.simulator import DataType, SimData, SimDevice
+
+        loop = asyncio.new_event_loop()
+        self._loop = loop
+        asyncio.set_event_loop(loop)
+        c = self.cfg
+        dev = SimDevice(c.device_id,
+                        simdata=[SimData(0, count=self._size, values=0, datatype=DataType.REGISTERS)],
+                        action=self._action)
+
+        async def main():
+            try:
+                if c.transport == "tcp":
+                    self._server = ModbusTcpServer(dev, address=(c.host, c.port))
+                else:
+                    self._server = ModbusSerialServer(dev, framer=FramerType.RTU,
+                                                      port=self.rtu_server_port,
+                                                      baudrate=c.baudrate, timeout=1)
+                await self._server.serve_forever(background=True)
+            except BaseException as exc:  # noqa: BLE001
+                self._error = exc
+                self._ready.set()
+                return
+            self._ready.set()
+            await self._server.serving
+
+        try:
+            loop.run_until_complete(main())
+        except BaseException as exc:  # noqa: BLE001
+            self._error = exc
+        finally:
+            self._ready.set()
+
+    def stop(self) -> None:
+        if self._loop is not None and self._server is not None:
+            fut = asyncio.run_coroutine_threadsafe(self._server.shutdown(), self._loop)
+            try:
+                fut.result(timeout=3)
+            except Exception:  # noqa: BLE001
+                pass
+        if self._thread is not None:
+            self._thread.join(timeout=3)

@@ -1,0 +1,344 @@
+"""The emulated rig: the three device emulators around one simulated plant.
+
+:class:`EmulatedRig` steps the plant (``rig.sim.SimRig.plant_step(valve_cmd)``)
+once per setpoint frame received from the controller, so that the emulated
+devices run in lock step with the real-time loop (tick k's setpoint moves the
+plant; tick k+1 reads the result, as in ``SimRig.run_blocks``). When setpoints
+stop, the valve emulator's watchdog nulls the output and the plant free-runs at
+the loop rate with a null command, so the sensors keep streaming.
+
+:func:`start_emulator_process` runs it in its own process (the GIL) and
+returns an :class:`EmulatorHandle` (``inject(device, fault, value)``,
+``stop()``).
+"""
+
+from __future__ import annotations
+
+import math
+import multiprocessing as mp
+import os
+import signal
+import time
+from pathlib import Path
+
+from drivers.config import HardwareConfig, parse_hardware
+from drivers.emulators.lvdt_streamer import LvdtStreamer
+from drivers.emulators.modbus_conditioner import ModbusConditionerEmulator
+from drivers.emulators.pty import PtyBridge
+from drivers.emulators.valve_controller import ValveControllerEmulator
+
+SENSOR_KEYS = ("position_um", "friction_N", "normal_1_N", "normal_2_N")
+
+
+class IntegratorPlant:
+    """A stand-in plant for driver tests: the valve command is a velocity.
+
+    ``x += cmd * v_full_um_s * dt``; friction = ``mu * N * sign(v)`` (both
+    interfaces), constant normal forces. Deterministic.
+    """
+
+    def __init__(self, dt_s: float = 1e-3, v_full_um_s: float = 1000.0, normal_N: float = 100.0,
+                 mu: float = 0.1, x0_um: float = 0.0):
+        self.dt_s, self.v_full_um_s, self.normal_N, self.mu = dt_s, v_full_um_s, normal_N, mu
+        self.x_um = x0_um
+        self.t_s = 0.0
+
+    def plant_step(self, valve_cmd: float) -> dict:
+        v = valve_cmd * self.v_full_um_s
+        self.x_um += v * self.dt_s
+        self.t_s += self.dt_s
+        f = 2.0 * self.mu * self.normal_N * (1.0 if v > 0 else -1.0 if v < 0 else 0.0)
+        return {"position_um": self.x_um, "friction_N": f, "normal_1_N": self.normal_N,
+                "normal_2_N": self.normal_N}
+
+
+def sim_plant(profile, lubricant: str | None = None, normal_force_N: float | None = None,
+              seed: int = 1):
+    """The simulated rig (S's ``SimRig``) as the emulators' plant."""
+    from rig.sim import SimRig
+
+    lub = lubricant or "paraffin"
+    model = profile.friction_model(lub)
+    kwargs = {"seed": seed}
+    if normal_force_N is not None:
+        kwargs["normal_force_N"] = normal_force_N
+    return SimRig(profile, model, **kwargs)
+
+
+class EmulatedRig:
+    """Modbus conditioner + LVDT streamer + valve controller around one plant."""
+
+    def __init__(self, hw: HardwareConfig, plant, period_s: float = 1e-3):
+        self.hw = hw
+        self.plant = plant
+        self.period_s = period_s
+        em = hw.emulators
+        Path(em.run_dir).mkdir(parents=True, exist_ok=True)
+        self.bridge = None
+        rtu_server_port = None
+        if hw.loadcells.transport == "rtu":
+            rtu_server_port = hw.loadcells.serial_port + ".server"
+        self.modbus = ModbusConditionerEmulator(hw.loadcells, rtu_server_port=rtu_server_port)
+        self.lvdt = LvdtStreamer(hw.lvdt)
+        self.valve = ValveControllerEmulator(hw.valve, watchdog_s=em.watchdog_s,
+                                             status_period_s=em.status_period_s)
+        self.last = {k: 0.0 for k in SENSOR_KEYS}
+        self.steps = 0
+        self.free_steps = 0
+        self.lock_steps = 0
+        self.running = False
+
+    def start(self) -> None:
+        if self.hw.loadcells.transport == "rtu":
+            self.bridge = PtyBridge(self.hw.loadcells.serial_port,
+                                    self.hw.loadcells.serial_port + ".server")
+        self.lvdt.start()
+        self.valve.start()
+        self.modbus.start()
+        self.step(0.0)
+
+    def stop(self) -> None:
+        self.running = False
+        self.modbus.stop()
+        self.valve.stop()
+        self.lvdt.stop()
+        if self.bridge is not None:
+            self.bridge.close()
+
+    def step(self, cmd: float) -> None:
+        out = self.plant.plant_step(float(cmd))
+        vals = {k: float(out[k]) for k in SENSOR_KEYS}
+        self.last = vals
+        self.steps += 1
+        self.modbus.update(vals["friction_N"], vals["normal_1_N"], vals["normal_2_N"])
+        self.lvdt.send(vals["position_um"])
+
+    def inject(self, device: str, fault: str, value=True) -> None:
+        """Set (value) or clear (None/False) a fault on 'loadcells', 'lvdt' or 'valve'."""
+        if device == "lvdt" and fault == "vanish":
+            if value:
+                self.lvdt.vanish()
+            return
+        target = {"loadcells": self.modbus, "lvdt": self.lvdt, "valve": self.valve}[device]
+        if value is None or value is False:
+            target.faults.pop(fault, None)
+        else:
+            target.faults[fault] = value
+
+    def run(self, should_stop=lambda: False, on_idle=None, max_s: float | None = None) -> None:
+        """Serve until ``should_stop()``: lock step on setpoints, free-run when they stop."""
+        self.running = True
+        valve = self.valve
+        dt = self.period_s
+        t_start = time.monotonic()
+        next_free = t_start + dt
+        next_idle = t_start
+        while self.running:
+            now = time.monotonic()
+            if now >= next_idle:
+                next_idle = now + 0.005
+                if on_idle is not None:
+                    on_idle()
+                if should_stop() or (max_s is not None and now - t_start > max_s):
+                    break
+            wd = valve.watchdog_tripped(now)
+            if wd:
+                timeout = max(0.0, min(next_free, next_idle) - now)
+            else:
+                timeout = max(0.0, min(valve.last_setpoint_t + valve.watchdog_s, next_idle) - now)
+            msg = valve.recv(timeout)
+            now = time.monotonic()
+            kind = valve.handle(msg, now)
+            if kind == "setpoint":
+                self.step(valve.output(now))
+                self.lock_steps += 1
+                next_free = now + dt
+            elif valve.watchdog_tripped(now) and now >= next_free:
+                self.step(0.0)
+                self.free_steps += 1
+                next_free += dt
+                if next_free < now:
+                    next_free = now + dt  # skip, don't bunch
+            valve.maybe_status(now)
+        self.running = False
+
+
+# -- its own process -------------------------------------------------------------------
+
+def _set_pdeathsig():
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL("libc.so.6", use_errno=True)
+        libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except Exception:  # noqa: BLE001
+        pass
+
+
+def _emulator_main(hw_dict, profile, lubricant, normal_force_N, seed, conn, plant_kind):
+    _set_pdeathsig()
+    hw = parse_hardware(hw_dict)
+    stop = {"flag": False}
+
+    def _term(*_):
+        stop["flag"] = True
+
+    signal.signal(signal.SIGTERM, _term)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        if plant_kind == "integrator":
+            plant = IntegratorPlant()
+        else:
+            plant = sim_plant(profile, lubricant, normal_force_N, seed)
+            plant.plant_step(0.0)  # compile (numba) before serving
+        rig = EmulatedRig(hw, plant, 1.0 / _rate_of(profile))
+        if hw.emulators.sched_fifo:
+            try:
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(hw.emulators.priority))
+            except (OSError, AttributeError):
+                pass
+        rig.start()
+    except BaseException as exc:  # noqa: BLE001
+        conn.send(("error", f"{type(exc).__name__}: {exc}"))
+        return
+    conn.send(("ready", None))
+
+    def on_idle():
+        while conn.poll():
+            try:
+                req = conn.recv()
+            except EOFError:
+                stop["flag"] = True
+                return
+            op = req[0]
+            if op == "inject":
+                rig.inject(*req[1:])
+                conn.send(("ok", None))
+            elif op == "stats":
+                conn.send(("stats", {"steps": rig.steps, "lock_steps": rig.lock_steps,
+                                     "free_steps": rig.free_steps, "last": rig.last,
+                                     "valve_enabled": rig.valve.enabled,
+                                     "valve_output": rig.valve.output(time.monotonic()),
+                                     "valve_watchdog": rig.valve.watchdog_tripped(time.monotonic()),
+                                     "n_setpoints": rig.valve.n_setpoints,
+                                     "modbus_requests": rig.modbus.n_requests,
+                                     "lvdt_sent": rig.lvdt.sent}))
+            elif op == "stop":
+                stop["flag"] = True
+
+    try:
+        rig.run(should_stop=lambda: stop["flag"], on_idle=on_idle)
+    finally:
+        rig.stop()
+        try:
+            conn.send(("stopped", None))
+        except Exception:  # noqa: BLE001
+            pass
+
+
+def _rate_of(profile) -> float:
+    try:
+        return float(profile.loop.rate_hz)
+    except AttributeError:
+        return 1000.0
+
+
+class EmulatorError(RuntimeError):
+    pass
+
+
+class EmulatorHandle:
+    def __init__(self, proc, conn):
+        self.proc = proc
+        self.conn = conn
+
+    def _call(self, *req, timeout: float = 2.0):
+        self.conn.send(req)
+        if not self.conn.poll(timeout):
+            raise EmulatorError(f"emulator did not answer {req[0]!r}")
+        return self.conn.recv()[1]
+
+    def inject(self, device: str, fault: str, value=True):
+        return self._call("inject", device, fault, value)
+
+    def stats(self) -> dict:
+        return self._call("stats")
+
+    def stop(self, timeout: float = 5.0) -> None:
+        if self.proc.is_alive():
+            try:
+                self.conn.send(("stop",))
+            except (OSError, BrokenPipeError):
+                pass
+            self.proc.join(timeout)
+        if self.proc.is_alive():
+            self.proc.terminate()
+            self.proc.join(2)
+        if self.proc.is_alive():
+            self.proc.kill()
+            self.proc.join(1)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.stop()
+
+
+def start_emulator_process(hw: HardwareConfig | dict, profile=None, lubricant: str | None = None,
+                           normal_force_N: float | None = None, seed: int | None = None,
+                           plant: str = "sim", timeout_s: float = 60.0) -> EmulatorHandle:
+    """Start the emulated rig in its own process; returns when its devices answer."""
+    hw = parse_hardware(hw) if not isinstance(hw, HardwareConfig) else hw
+    ctx = mp.get_context("spawn")
+    parent, child = ctx.Pipe()
+    em = hw.emulators
+    proc = ctx.Process(target=_emulator_main, name="rig-emulator", daemon=True,
+                       args=(hw.model_dump(), profile, lubricant or em.lubricant,
+                             normal_force_N if normal_force_N is not None else em.normal_force_N,
+                             em.seed if seed is None else seed, child, plant))
+    proc.start()
+    t_end = time.monotonic() + timeout_s
+    while not parent.poll(0.05):
+        if not proc.is_alive():
+            raise EmulatorError(f"emulator process exited (code {proc.exitcode}) before it was ready")
+        if time.monotonic() > t_end:
+            proc.kill()
+            raise EmulatorError(f"emulators did not start within {timeout_s:g} s")
+    kind, payload = parent.recv()
+    if kind != "ready":
+        proc.join(2)
+        raise EmulatorError(f"emulators failed to start: {payload}")
+    return EmulatorHandle(proc, parent)
+
+
+__all__ = ["EmulatedRig", "IntegratorPlant", "start_emulator_process", "EmulatorHandle",
+           "EmulatorError", "sim_plant", "math"]
+
+
+def free_tcp_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def emulated_hardware(run_dir: str | os.PathLike, transport: str = "tcp",
+                      modbus_port: int | None = None, can_port: int | None = None,
+                      **overrides) -> HardwareConfig:
+    """A hardware section pointing at emulators private to ``run_dir`` (free ports)."""
+    run_dir = str(run_dir)
+    can_port = can_port or (40000 + (os.getpid() * 7 + int(time.time() * 1000)) % 20000)
+    d = {
+        "loadcells": {"transport": transport, "host": "127.0.0.1",
+                      "port": modbus_port or free_tcp_port(),
+                      "serial_port": f"{run_dir}/loadcells-rtu" if transport == "rtu" else None,
+                      "timeout_s": 0.01},
+        "lvdt": {"port": f"{run_dir}/lvdt", "baudrate": 921600},
+        "valve": {"interface": "udp_multicast", "channel": "239.74.163.2", "port": can_port},
+        "emulators": {"autostart": True, "run_dir": run_dir},
+    }
+    for k, v in overrides.items():
+        d.setdefault(k, {}).update(v)
+    return parse_hardware(d)

@@ -1,0 +1,185 @@
+"""Load-cell conditioner over Modbus TCP or RTU (pymodbus 3.16.1, pinned).
+
+Register map of the conditioner (defaults of :class:`drivers.config.LoadCellConfig`;
+every address is configurable, input or holding registers):
+
+=======  ==============================================================
+address  content
+=======  ==============================================================
+0        uint16 sample counter (increments with every new conversion)
+1        uint16 status word (bit0 overload, bit1 sensor fault)
+2-3      friction channel (float32 or int32, word order configurable)
+4-5      normal force 1 (rider 1)
+6-7      normal force 2 (rider 2)
+=======  ==============================================================
+
+With ``encoding: int16`` each channel is one register (signed). One read
+request covers every register used (:meth:`LoadCellConfig.span`), so the
+three forces come from the same conversion. Calibration per channel:
+``force_N = raw * scale + offset - tare_N``; :meth:`LoadCellReader.tare`
+takes the current readings as the new zeros (Dupont & Dunlap 1995, section 3:
+friction +-0.25 N, normal forces +-0.6 N).
+
+Staleness: the age of the data is the time since the sample counter last
+changed (or since the last good read if there is no counter).
+"""
+
+from __future__ import annotations
+
+import struct
+import time
+
+from drivers.config import LoadCellConfig
+from drivers.errors import DeviceError
+
+DEVICE = "load-cell conditioner"
+CHANNELS = ("friction", "normal_1", "normal_2")
+
+
+def decode_value(regs: list[int], encoding: str, word_order: str) -> float:
+    """Decode one channel from its registers (exact: float32 / int32 / int16)."""
+    if encoding == "int16":
+        return float(struct.unpack(">h", struct.pack(">H", regs[0]))[0])
+    hi, lo = (regs[0], regs[1]) if word_order == "big" else (regs[1], regs[0])
+    raw = struct.pack(">HH", hi, lo)
+    return float(struct.unpack(">f" if encoding == "float32" else ">i", raw)[0])
+
+
+def encode_value(value: float, encoding: str, word_order: str) -> list[int]:
+    """Inverse of :func:`decode_value` (used by the emulator and the tests)."""
+    if encoding == "int16":
+        v = max(-32768, min(32767, int(round(value))))
+        return [struct.unpack(">H", struct.pack(">h", v))[0]]
+    if encoding == "float32":
+        raw = struct.pack(">f", value)
+    else:
+        v = max(-(2**31), min(2**31 - 1, int(round(value))))
+        raw = struct.pack(">i", v)
+    hi, lo = struct.unpack(">HH", raw)
+    return [hi, lo] if word_order == "big" else [lo, hi]
+
+
+class LoadCellReader:
+    """Reads friction, normal 1 and normal 2 (N) in one Modbus request."""
+
+    def __init__(self, cfg: LoadCellConfig):
+        self.cfg = cfg
+        self.address = cfg.address_text
+        self._first, self._count = cfg.span()
+        self._client = None
+        self._last_counter: int | None = None
+        self._last_change_t = 0.0
+        self.n_reads = 0
+        self.n_errors = 0
+        self.consecutive_errors = 0
+        self.status = 0
+        self.counter = 0
+
+    # -- lifecycle -----------------------------------------------------------------
+    def connect(self) -> None:
+        from pymodbus.client import ModbusSerialClient, ModbusTcpClient
+        from pymodbus.framer import FramerType
+
+        c = self.cfg
+        if c.transport == "tcp":
+            self._client = ModbusTcpClient(c.host, port=c.port, timeout=c.timeout_s, retries=0,
+                                           reconnect_delay=0)
+        else:
+            self._client = ModbusSerialClient(c.serial_port, framer=FramerType.RTU,
+                                              baudrate=c.baudrate, timeout=c.timeout_s,
+                                              retries=0, reconnect_delay=0)
+        try:
+            ok = self._client.connect()
+        except Exception as exc:  # noqa: BLE001 - any transport failure
+            raise DeviceError(DEVICE, self.address, f"cannot connect: {exc}") from exc
+        if not ok:
+            raise DeviceError(DEVICE, self.address, "cannot connect (refused or no such port)")
+        self._last_change_t = time.monotonic()
+
+    def close(self) -> None:
+        if self._client is not None:
+            try:
+                self._client.close()
+            except Exception:  # noqa: BLE001
+                pass
+            self._client = None
+
+    # -- reading -------------------------------------------------------------------
+    def read_raw(self) -> list[int]:
+        """One request for every register used; DeviceError on timeout/exception/loss."""
+        if self._client is None:
+            raise DeviceError(DEVICE, self.address, "not connected")
+        c = self.cfg
+        try:
+            if c.register_type == "input":
+                rr = self._client.read_input_registers(self._first, count=self._count,
+                                                       device_id=c.device_id)
+            else:
+                rr = self._client.read_holding_registers(self._first, count=self._count,
+                                                         device_id=c.device_id)
+        except Exception as exc:  # noqa: BLE001 - ModbusIOException, ConnectionException, OSError
+            self._error()
+            raise DeviceError(DEVICE, self.address, f"no answer: {exc}") from exc
+        if rr.isError():
+            self._error()
+            code = getattr(rr, "exception_code", None)
+            raise DeviceError(DEVICE, self.address, f"Modbus exception response (code {code})",
+                              kind="protocol")
+        regs = list(rr.registers)
+        if len(regs) < self._count:
+            self._error()
+            raise DeviceError(DEVICE, self.address,
+                              f"short response: {len(regs)} of {self._count} registers",
+                              kind="protocol")
+        self.consecutive_errors = 0
+        self.n_reads += 1
+        return regs
+
+    def _error(self):
+        self.n_errors += 1
+        self.consecutive_errors += 1
+
+    def _value(self, regs: list[int], ch: str) -> float:
+        cal = getattr(self.cfg, ch)
+        i = cal.address - self._first
+        raw = decode_value(regs[i:i + self.cfg.words_per_value], self.cfg.encoding,
+                           self.cfg.word_order)
+        return raw * cal.scale + cal.offset - cal.tare_N
+
+    def read(self, now: float | None = None) -> tuple[float, float, float]:
+        """(friction_N, normal_1_N, normal_2_N), calibrated and tared."""
+        regs = self.read_raw()
+        now = time.monotonic() if now is None else now
+        c = self.cfg
+        if c.counter_address is not None:
+            cnt = regs[c.counter_address - self._first]
+            if cnt != self._last_counter:
+                self._last_counter = cnt
+                self._last_change_t = now
+            self.counter = cnt
+        else:
+            self._last_change_t = now
+        if c.status_address is not None:
+            self.status = regs[c.status_address - self._first]
+        return (self._value(regs, "friction"), self._value(regs, "normal_1"),
+                self._value(regs, "normal_2"))
+
+    def age_s(self, now: float | None = None) -> float:
+        """Time since the conditioner last produced a new sample."""
+        now = time.monotonic() if now is None else now
+        return now - self._last_change_t
+
+    def tare(self, n: int = 20) -> dict[str, float]:
+        """Average ``n`` readings and make them the zeros (sets each channel's ``tare_N``)."""
+        sums = [0.0, 0.0, 0.0]
+        for _ in range(n):
+            vals = self.read()
+            for k in range(3):
+                sums[k] += vals[k]
+            time.sleep(0.001)
+        out = {}
+        for k, ch in enumerate(CHANNELS):
+            cal = getattr(self.cfg, ch)
+            cal.tare_N = cal.tare_N + sums[k] / n
+            out[ch] = cal.tare_N
+        return out
