@@ -190,6 +190,14 @@ class TrialLogWriter:
         self.last_t_s = 0.0
         self.closed = False
         self.status: str | None = None
+        self._pending: list[dict] = []
+        # running figures for the end-of-trial summary
+        self.sum_err2_um2 = 0.0
+        self.max_abs_err_um = 0.0
+        self.n_err = 0
+        self.sum_friction_N = 0.0
+        self.sum_mu = 0.0
+        self.n_friction = 0
         trial = {"software_version": __version__, "started_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(),
                  "loop_rate_hz": self.loop_rate_hz, "raw_rate_hz": self.raw_rate_hz,
                  "decimated_rate_hz": self.decimated_rate_hz}
@@ -257,7 +265,57 @@ class TrialLogWriter:
                 self._add(LOG25_TOPIC, rec["t_s"], _dumps(rec))
         self.ticks += n
         self.last_t_s = float(t[-1])
+        self._running_stats(arrays)
+        if self._pending:
+            self._emit_pending(self.last_t_s + 0.5 / self.loop_rate_hz)
         self._maybe_flush()
+
+    def _running_stats(self, a: dict[str, np.ndarray]) -> None:
+        if "position_ref_um" in a and "position_um" in a:
+            e = a["position_ref_um"] - a["position_um"]
+            e = e[np.isfinite(e)]
+            if e.size:
+                self.sum_err2_um2 += float(e @ e)
+                self.max_abs_err_um = max(self.max_abs_err_um, float(np.abs(e).max()))
+                self.n_err += e.size
+        if "friction_N" in a:
+            f = a["friction_N"]
+            ok = np.isfinite(f)
+            self.sum_friction_N += float(f[ok].sum())
+            self.n_friction += int(ok.sum())
+            if "normal_1_N" in a and "normal_2_N" in a:
+                mu = f / (a["normal_1_N"] + a["normal_2_N"])
+                self.sum_mu += float(np.nansum(mu[ok]))
+
+    @property
+    def tracking_error_rms_um(self) -> float:
+        """RMS of position_ref_um - position_um over everything logged (µm)."""
+        return math.sqrt(self.sum_err2_um2 / self.n_err) if self.n_err else float("nan")
+
+    @property
+    def mean_friction_N(self) -> float:
+        return self.sum_friction_N / self.n_friction if self.n_friction else float("nan")
+
+    @property
+    def mean_mu(self) -> float:
+        return self.sum_mu / self.n_friction if self.n_friction else float("nan")
+
+    def schedule_events(self, events: Iterable[dict]) -> None:
+        """Queue planned events (``{t_s, kind, ...}``); each is logged once a block reaches its time.
+
+        An interrupted trial therefore logs only the events it actually reached.
+        """
+        self._pending.extend(sorted((dict(e) for e in events), key=lambda e: e["t_s"]))
+        self._pending.sort(key=lambda e: e["t_s"])
+
+    def _emit_pending(self, t_until: float) -> None:
+        k = 0
+        while k < len(self._pending) and self._pending[k]["t_s"] <= t_until:
+            e = dict(self._pending[k])
+            self.event(e.pop("t_s"), e.pop("kind"), **e)
+            k += 1
+        if k:
+            del self._pending[:k]
 
     def event(self, t_s: float, kind: str, **data: Any) -> None:
         """Log an event ``{t_s, kind, **data}`` (segment boundaries, steps, levels, markers)."""
