@@ -1,0 +1,225 @@
+"""The rig's controller: digital PID on position error plus a 500 Hz dither (paper, section 3).
+
+"A digital PID controller operates on position error. The derivative term is
+approximated using the backward difference method. The integral term is computed as
+the scaled sum of prior values. [...] The PID output is combined with a 500 Hz dither
+sinusoid. A dither amplitude [of] 0.1 percent of the PID output reduced the effects of
+servovalve stiction [...]. The control loop operates at 1 kHz." (Dupont & Dunlap 1995)
+
+Units: error in µm, PID output (force demand) in N, gains ``kp_N_per_um``,
+``ki_N_per_um_s``, ``kd_N_s_per_um``. At tick n, with e_n = clamp(x_ref,n - x_n):
+
+    P_n = kp e_n
+    I_n = ki dt sum_{k<n} e_k        (prior errors only; anti-windup below)
+    D_n = kd (e_n - e_{n-1}) / dt    (backward difference; 0 at the first tick)
+    u_n = clamp(bias + P_n + I_n + D_n, ±output_max_N)
+
+in the order of LinuxCNC's ``pid.c``: error; integral (the prior error e_{n-1} is added
+only if the output was not saturated in the direction of that error at the previous
+tick, and the integral term is clamped to ±integral_max_N); derivative; output clamp;
+saturated flag.
+
+Dither: d_n = a_n cos(2 pi f_d n dt). At f_d = 500 Hz and 1 kHz, cos(pi n) = (-1)^n (a
+sine would be zero at every tick and never reach the valve). Amplitude a_n =
+``dither_amplitude_fraction`` times either the low-passed |PID output| (time constant
+``dither_smoothing_s``; "0.1 percent of the PID output", the default) or the full scale
+force (``dither_reference: full_scale``).
+
+Valve command: v_n = clamp((u_n + d_n) / full_scale_force_N, ±1).
+
+The step is one ``@njit`` function on parameter/state arrays (:func:`controller_step`)
+shared by the numba closed loop of :mod:`rig.sim` and by the Python hardware loop
+through :class:`PID` / :class:`Controller`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+# controller parameter vector
+C_KP = 0
+C_KI = 1
+C_KD = 2
+C_DT = 3
+C_IMAX = 4     # clamp on |integral term| (N)
+C_OMAX = 5     # clamp on |PID output| (N)
+C_EMAX = 6     # clamp on |error| (µm)
+C_BIAS = 7     # N
+C_FFS = 8      # full-scale force (N): valve command = demand / FFS
+C_DFREQ = 9    # dither frequency (Hz)
+C_DFRAC = 10   # dither amplitude fraction
+C_DMODE = 11   # 0: fraction of low-passed |PID output|; 1: fraction of full scale
+C_DALPHA = 12  # exp(-dt / dither_smoothing_s)
+N_CPAR = 13
+
+# controller state vector
+K_SUM = 0      # sum of prior errors times dt (µm s)
+K_PREV_E = 1   # previous error (µm)
+K_SAT = 2      # saturation sign of the previous output (-1, 0, +1)
+K_FIRST = 3    # 1.0 until the first step
+K_AMP = 4      # low-passed |PID output| (N)
+K_N = 5        # tick counter
+N_CSTATE = 6
+
+
+def make_controller_params(kp_N_per_um: float, ki_N_per_um_s: float, kd_N_s_per_um: float, dt_s: float,
+                           integral_max_N: float = 500.0, output_max_N: float = 1e4, error_max_um: float = 1e9,
+                           bias_N: float = 0.0, full_scale_force_N: float = 1e4, dither_frequency_hz: float = 500.0,
+                           dither_amplitude_fraction: float = 0.001, dither_reference: str = "pid_output",
+                           dither_smoothing_s: float = 0.05) -> np.ndarray:
+    """Pack controller parameters (physical units) for :func:`controller_step`."""
+    c = np.zeros(N_CPAR)
+    c[C_KP] = kp_N_per_um
+    c[C_KI] = ki_N_per_um_s
+    c[C_KD] = kd_N_s_per_um
+    c[C_DT] = dt_s
+    c[C_IMAX] = integral_max_N
+    c[C_OMAX] = output_max_N
+    c[C_EMAX] = error_max_um
+    c[C_BIAS] = bias_N
+    c[C_FFS] = full_scale_force_N
+    c[C_DFREQ] = dither_frequency_hz
+    c[C_DFRAC] = dither_amplitude_fraction
+    if dither_reference not in ("pid_output", "full_scale"):
+        raise ValueError(f"dither_reference must be 'pid_output' or 'full_scale', not {dither_reference!r}")
+    c[C_DMODE] = 0.0 if dither_reference == "pid_output" else 1.0
+    c[C_DALPHA] = math.exp(-dt_s / dither_smoothing_s) if dither_smoothing_s > 0 else 0.0
+    return c
+
+
+def controller_params_from_profile(profile) -> np.ndarray:
+    """Controller parameter vector from a :class:`rig.profile.RigProfile`."""
+    c = profile.controller
+    return make_controller_params(
+        c.kp_N_per_um, c.ki_N_per_um_s, c.kd_N_s_per_um, profile.dt_s, c.integral_max_N, profile.output_max_N,
+        c.error_max_um, c.bias_N, profile.actuator.full_scale_force_N, c.dither_frequency_hz,
+        c.dither_amplitude_fraction, c.dither_reference, c.dither_smoothing_s)
+
+
+def new_controller_state() -> np.ndarray:
+    s = np.zeros(N_CSTATE)
+    s[K_FIRST] = 1.0
+    return s
+
+
+@njit(cache=True)
+def pid_step(c, s, x_ref_um, x_meas_um):
+    """One PID tick (LinuxCNC order). Returns (output_N, p_N, i_N, d_N); updates ``s``."""
+    dt = c[C_DT]
+    e = x_ref_um - x_meas_um
+    emax = c[C_EMAX]
+    if e > emax:
+        e = emax
+    elif e < -emax:
+        e = -emax
+    if s[K_FIRST] > 0.5:
+        s[K_PREV_E] = e
+        s[K_FIRST] = 0.0
+    else:
+        # integral: add the prior error unless the output was saturated in its direction
+        e_prev = s[K_PREV_E]
+        if s[K_SAT] * e_prev <= 0.0:
+            s[K_SUM] += e_prev * dt
+        ki = c[C_KI]
+        if ki > 0.0:
+            smax = c[C_IMAX] / ki
+            if s[K_SUM] > smax:
+                s[K_SUM] = smax
+            elif s[K_SUM] < -smax:
+                s[K_SUM] = -smax
+    p = c[C_KP] * e
+    i = c[C_KI] * s[K_SUM]
+    d = c[C_KD] * (e - s[K_PREV_E]) / dt
+    out = c[C_BIAS] + p + i + d
+    omax = c[C_OMAX]
+    if out > omax:
+        out = omax
+        s[K_SAT] = 1.0
+    elif out < -omax:
+        out = -omax
+        s[K_SAT] = -1.0
+    else:
+        s[K_SAT] = 0.0
+    s[K_PREV_E] = e
+    return out, p, i, d
+
+
+@njit(cache=True)
+def dither_step(c, s, pid_out_N):
+    """Dither value (N) for this tick: a_n cos(2 pi f n dt); advances the tick counter."""
+    alpha = c[C_DALPHA]
+    s[K_AMP] = alpha * s[K_AMP] + (1.0 - alpha) * abs(pid_out_N)
+    if c[C_DMODE] > 0.5:
+        amp = c[C_DFRAC] * c[C_FFS]
+    else:
+        amp = c[C_DFRAC] * s[K_AMP]
+    n = s[K_N]
+    s[K_N] = n + 1.0
+    f = c[C_DFREQ]
+    if f <= 0.0 or amp == 0.0:
+        return 0.0
+    ph = f * c[C_DT] * n
+    ph = ph - math.floor(ph)  # keep the phase exact for long runs
+    return amp * math.cos(2.0 * math.pi * ph)
+
+
+@njit(cache=True)
+def controller_step(c, s, x_ref_um, x_meas_um):
+    """PID + dither -> valve command. Returns (valve_cmd, p_N, i_N, d_N, dither_N)."""
+    out, p, i, d = pid_step(c, s, x_ref_um, x_meas_um)
+    dz = dither_step(c, s, out)
+    v = (out + dz) / c[C_FFS]
+    if v > 1.0:
+        v = 1.0
+    elif v < -1.0:
+        v = -1.0
+    return v, p, i, d, dz
+
+
+class PID:
+    """Python wrapper of :func:`pid_step` for the hardware loop (state kept in an array)."""
+
+    def __init__(self, kp_N_per_um: float, ki_N_per_um_s: float, kd_N_s_per_um: float, dt_s: float = 1e-3,
+                 integral_max_N: float = 500.0, output_max_N: float = 1e4, error_max_um: float = 1e9,
+                 bias_N: float = 0.0):
+        self.params = make_controller_params(kp_N_per_um, ki_N_per_um_s, kd_N_s_per_um, dt_s, integral_max_N,
+                                             output_max_N, error_max_um, bias_N, dither_amplitude_fraction=0.0)
+        self.state = new_controller_state()
+
+    def reset(self) -> None:
+        self.state[:] = new_controller_state()
+
+    @property
+    def saturated(self) -> bool:
+        return self.state[K_SAT] != 0.0
+
+    def step(self, x_ref_um: float, x_meas_um: float) -> tuple[float, float, float, float]:
+        """Returns (output_N, p_N, i_N, d_N)."""
+        return pid_step(self.params, self.state, float(x_ref_um), float(x_meas_um))
+
+
+class Controller:
+    """PID + dither + valve scaling, as the hardware loop and the simulated rig use it."""
+
+    def __init__(self, params: np.ndarray):
+        self.params = np.asarray(params, dtype=float).copy()
+        self.state = new_controller_state()
+
+    @classmethod
+    def from_profile(cls, profile) -> "Controller":
+        return cls(controller_params_from_profile(profile))
+
+    def reset(self) -> None:
+        self.state[:] = new_controller_state()
+
+    @property
+    def saturated(self) -> bool:
+        return self.state[K_SAT] != 0.0
+
+    def step(self, x_ref_um: float, x_meas_um: float) -> dict:
+        """One tick: {'valve_cmd', 'pid_p', 'pid_i', 'pid_d', 'dither'} (forces in N)."""
+        v, p, i, d, dz = controller_step(self.params, self.state, float(x_ref_um), float(x_meas_um))
+        return {"valve_cmd": v, "pid_p": p, "pid_i": i, "pid_d": d, "dither": dz}

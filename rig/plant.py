@@ -1,0 +1,345 @@
+"""Numba kernels of the simulated servohydraulic double-shear friction rig.
+
+Units: position µm, velocity µm/s, force N, time s, mass kg, stiffness N/µm (= MN/m).
+The equations (docs/sim.md has the full derivation):
+
+Servovalve (first-order spool, optional stiction band ``b`` in command units):
+    tau_v dx_sp/dt = u* - x_sp,   u* = u if b = 0, else the spool only moves when
+    |u - x_sp| > b and then towards u -/+ b (a play/stiction band the dither overcomes).
+Actuator (load pressure p_L = F_a / A_p, leakage C_L, bulk modulus beta):
+    dF_a/dt = (F_fs x_sp - F_a) / tau_L - k_h v_a,
+    k_h = 4 beta A_p^2 / V_t,  tau_L = V_t / (4 beta C_L);  static gain of a blocked
+    actuator: F_a = F_fs x_sp, so the position loop acts as a stiffness kp (eq. 8).
+Moving mass (piston + grip + test piece):
+    m dv_a/dt = F_a - F_s - c_a v_a,  dx_a/dt = v_a.
+Series compliance between actuator and interface, massless (quasi-static): test piece
+k_tp, optional ``finite_stiffness`` k_ext between the LVDT point and the interface,
+fixture + friction load cell k_fx: 1/k_m = 1/k_tp + 1/k_ext + 1/k_fx,
+    dF_s/dt = k_m (v_a - v_s),
+with v_s the slip velocity of the interfaces and F_s the force in the chain, equal to
+the friction force of the double-shear fixture (massless interface):
+    F_s = mu(v_s, theta) (N_1 + N_2)        (eq. 5 via rig.friction, regularised)
+The LVDT point (unstressed test piece next to the interfaces) is x_t = x_a - F_s / k_tp.
+Normal forces from soft rider springs k_r on test-piece faces with taper and waviness:
+    N_i = N_i0 + k_r h_i(x_t),  h_i = s_i (x_t - x_home)/1000 + a_i sin(2 pi x_t / lambda_i + phi_i).
+
+Integration per substep h: spool exact (zero-order hold); (F_a, v_a) trapezoidal; F_s
+implicit in the slip velocity: the unknown v_s is the mean slip velocity over the
+substep, found from the scalar force balance P + Q v_s = (N_1 + N_2) mu(v_s) by a
+Newton iteration in mu that converges monotonically (no NaN at v_s -> 0, sticking is
+the v_s ~ 0 solution); the state theta is then advanced exactly over the slip
+``v_s h`` (rig.friction.advance_state). Sensors: first-order low-passes sampled at each
+tick, plus Gaussian noise, LVDT quantisation and range.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from rig.friction import (P_A, P_AMP, P_MU0, P_PHASE, P_STATE_ON, P_V0, P_VREG, P_WAVE, P_WEAR, S_SLIP,
+                          S_THETA, S_THETA2, advance_state, mu_regularized)
+from rig.control import controller_step
+
+# ---------------------------------------------------------------------------
+# plant parameter vector
+# ---------------------------------------------------------------------------
+Q_H = 0          # substep (s)
+Q_NSUB = 1       # substeps per tick
+Q_DT = 2         # tick (s)
+Q_AV = 3         # exp(-h / tau_v)
+Q_STIC = 4       # spool stiction band (command units)
+Q_FFS = 5        # full-scale force (N)
+Q_TAUL = 6       # leakage time constant (s)
+Q_KH = 7         # hydraulic stiffness (N/µm)
+Q_MKG = 8        # moving mass (kg)
+Q_CA = 9         # seal damping (N s/µm)
+Q_CTP = 10       # 1/k_tp (µm/N)
+Q_CEXT = 11      # 1/k_ext (µm/N), finite_stiffness extension (0 = none)
+Q_CFX = 12       # 1/k_fx (µm/N)
+Q_KM = 13        # series stiffness (N/µm)
+Q_K = 14         # 9 entries: inverse of the substep's linear system (row major)
+Q_QV = 23        # 3 entries: sensitivity of (F_a, v_a, F_s) to v_s
+Q_N10 = 26       # nominal normal force rider 1 (N)
+Q_N20 = 27
+Q_KR = 28        # rider spring stiffness (N/µm)
+Q_TAP1 = 29      # face taper (µm/mm)
+Q_TAP2 = 30
+Q_WA1 = 31       # waviness amplitude (µm)
+Q_WA2 = 32
+Q_WL1 = 33       # waviness wavelength (µm)
+Q_WL2 = 34
+Q_WP1 = 35       # waviness phase (rad)
+Q_WP2 = 36
+Q_XORG = 37      # position where the taper is zero (µm)
+Q_LV_A = 38      # LVDT low-pass exp(-dt/tau)
+Q_LV_SIG = 39
+Q_LV_Q = 40
+Q_LV_MIN = 41
+Q_LV_MAX = 42
+Q_FL_A = 43      # friction load cell
+Q_FL_SIG = 44
+Q_NL_A = 45      # normal load cells
+Q_NL_SIG = 46
+Q_SL_ON = 47     # sensor_lag extension on
+Q_SL_A = 48      # exp(-dt/tau_s)
+Q_DRIFT = 49     # force_offset_drift (N/s)
+Q_DELAY = 50     # delay in ticks (steady_state baseline: >= 1)
+Q_STEADY = 51    # 1: steady_state baseline (mu_ss of a delayed velocity + tiny direct effect)
+Q_AREG = 52      # that direct effect (1)
+Q_VFLOOR = 53    # floor on |v| in mu_ss (µm/s)
+N_QPAR = 54
+
+# ---------------------------------------------------------------------------
+# plant state vector
+# ---------------------------------------------------------------------------
+Z_XA = 0         # actuator position (µm)
+Z_VA = 1         # actuator velocity (µm/s)
+Z_FA = 2         # actuator force (N)
+Z_FS = 3         # force in the compliant chain = friction force (N)
+Z_XSP = 4        # spool position (command units)
+Z_VS = 5         # slip velocity of the last substep (µm/s)
+Z_MU = 6         # friction coefficient of the last substep
+Z_XT = 7         # LVDT point, true (µm)
+Z_N1 = 8         # true normal forces (N)
+Z_N2 = 9
+Z_LVF = 10       # filter states
+Z_SLF = 11
+Z_FLF = 12
+Z_N1F = 13
+Z_N2F = 14
+Z_TICK = 15      # ticks since reset
+Z_RPOS = 16      # ring-buffer position
+Z_DELTA = 17     # signed slip since reset (µm)
+N_ZSTATE = 18
+
+
+@njit(cache=True)
+def normal_forces(q, x_t):
+    """True normal forces (N) of riders 1 and 2 at LVDT-point position ``x_t``."""
+    dx_mm = (x_t - q[Q_XORG]) * 1e-3
+    h1 = q[Q_TAP1] * dx_mm + q[Q_WA1] * math.sin(2.0 * math.pi * x_t / q[Q_WL1] + q[Q_WP1])
+    h2 = q[Q_TAP2] * dx_mm + q[Q_WA2] * math.sin(2.0 * math.pi * x_t / q[Q_WL2] + q[Q_WP2])
+    n1 = q[Q_N10] + q[Q_KR] * h1
+    n2 = q[Q_N20] + q[Q_KR] * h2
+    if n1 < 0.0:
+        n1 = 0.0
+    if n2 < 0.0:
+        n2 = 0.0
+    return n1, n2
+
+
+@njit(cache=True)
+def friction_law_delayed(q, fp, fs, v_del, x_t):
+    """(base, a) for a steady_state baseline with the delayed velocity ``v_del``."""
+    v0 = fp[P_V0]
+    extra = fs[S_THETA2]
+    if fp[P_AMP] != 0.0:
+        extra += fp[P_AMP] * math.sin(2.0 * math.pi * x_t / fp[P_WAVE] + fp[P_PHASE])
+    if fp[P_WEAR] != 0.0:
+        extra += fp[P_WEAR] * fs[S_SLIP] * 1e-3
+    if fp[P_STATE_ON] > 0.5:
+        return fp[P_MU0] + fs[S_THETA] + extra, fp[P_A]
+    vd = max(abs(v_del), q[Q_VFLOOR])
+    lv = math.log(vd / v0)
+    areg = q[Q_AREG]
+    return fp[P_MU0] + extra + (fp[P_A] - areg) * lv, areg
+
+
+@njit(cache=True)
+def _v_of_mu(mu, base, a, v0, vreg):
+    """Inverse of R (mu >= 0): slip speed and d v / d mu."""
+    if a > 0.0:
+        e1 = math.exp((mu - base) / a)
+        e2 = math.exp((-mu - base) / a)
+        return v0 * (e1 - e2), v0 / a * (e1 + e2)
+    b = base if base > 1e-9 else 1e-9
+    m = mu / b
+    if m >= 1.0:
+        m = 1.0 - 1e-16
+    r = 1.0 - m * m
+    sr = math.sqrt(r)
+    return vreg * m / sr, vreg / b / (r * sr)
+
+
+@njit(cache=True)
+def solve_slip(p2, q2, ntot, base, a, v0, vreg):
+    """Solve p2 + q2 v = ntot mu(v) for the slip velocity v (q2 < 0). Returns (v, mu).
+
+    h(mu) = |p2| - |q2| v(mu) - ntot mu is decreasing and concave for mu >= 0, so Newton
+    from an upper bound of the root converges monotonically. Upper bounds: |p2|/ntot
+    (friction alone) and R(|p2|/|q2|) (the chain relaxed completely).
+    """
+    qq = -q2
+    if qq <= 0.0:
+        qq = 1e-300
+    if ntot <= 0.0:
+        return p2 / qq, 0.0
+    c = abs(p2)
+    if c == 0.0:
+        return 0.0, 0.0
+    sgn = 1.0 if p2 > 0.0 else -1.0
+    vmax = c / qq
+    b = base
+    if a <= 0.0 and b < 1e-9:
+        b = 1e-9
+    mu_b = mu_regularized(vmax, b, 0.0, a, v0, vreg)
+    mu = c / ntot
+    if mu_b < mu:
+        mu = mu_b
+    for _ in range(100):
+        v, dv = _v_of_mu(mu, b, a, v0, vreg)
+        h = c - qq * v - ntot * mu
+        hp = -qq * dv - ntot
+        mu_new = mu - h / hp
+        if mu_new < 0.0:
+            mu_new = 0.0
+        if abs(mu_new - mu) <= 1e-15 + 1e-13 * mu:
+            mu = mu_new
+            break
+        mu = mu_new
+    v, dv = _v_of_mu(mu, b, a, v0, vreg)
+    return sgn * v, sgn * mu
+
+
+@njit(cache=True)
+def plant_advance(q, fp, fs, st, ring, u):
+    """Advance the plant by one tick with valve command ``u`` held (zero-order hold)."""
+    u = min(1.0, max(-1.0, u))
+    nsub = int(q[Q_NSUB])
+    h = q[Q_H]
+    tau = q[Q_TAUL]
+    kh = q[Q_KH]
+    g = h * 1e6 / q[Q_MKG]
+    ca = q[Q_CA]
+    km = q[Q_KM]
+    ffs = q[Q_FFS]
+    v0 = fp[P_V0]
+    vreg = fp[P_VREG]
+    steady = q[Q_STEADY] > 0.5
+    nr = ring.shape[0]
+    rpos = int(st[Z_RPOS])
+    v_del = ring[(rpos + 1) % nr]
+    n1 = st[Z_N1]
+    n2 = st[Z_N2]
+    ntot = n1 + n2
+    for _ in range(nsub):
+        # spool
+        xsp = st[Z_XSP]
+        stic = q[Q_STIC]
+        target = u
+        if stic > 0.0:
+            e = u - xsp
+            if abs(e) <= stic:
+                target = xsp
+            elif e > 0.0:
+                target = u - stic
+            else:
+                target = u + stic
+        xsp_new = target + (xsp - target) * q[Q_AV]
+        xbar = 0.5 * (xsp + xsp_new)
+        st[Z_XSP] = xsp_new
+        fa = st[Z_FA]
+        va = st[Z_VA]
+        fsp = st[Z_FS]
+        r0 = fa * (1.0 - 0.5 * h / tau) - 0.5 * h * kh * va + h * ffs * xbar / tau
+        r1 = va * (1.0 - 0.5 * g * ca) + 0.5 * g * (fa - fsp)
+        r2 = fsp + 0.5 * h * km * va
+        p0 = q[Q_K + 0] * r0 + q[Q_K + 1] * r1 + q[Q_K + 2] * r2
+        p1 = q[Q_K + 3] * r0 + q[Q_K + 4] * r1 + q[Q_K + 5] * r2
+        p2 = q[Q_K + 6] * r0 + q[Q_K + 7] * r1 + q[Q_K + 8] * r2
+        x_t = st[Z_XT]
+        if steady:
+            base, a = friction_law_delayed(q, fp, fs, v_del, x_t)
+        else:
+            base, a = friction_law_delayed(q, fp, fs, 0.0, x_t)
+        vs, mu = solve_slip(p2, q[Q_QV + 2], ntot, base, a, v0, vreg)
+        va_new = p1 + q[Q_QV + 1] * vs
+        st[Z_FA] = p0 + q[Q_QV + 0] * vs
+        st[Z_FS] = p2 + q[Q_QV + 2] * vs
+        st[Z_XA] += 0.5 * h * (va + va_new)
+        st[Z_VA] = va_new
+        st[Z_VS] = vs
+        st[Z_MU] = mu
+        st[Z_DELTA] += vs * h
+        advance_state(fp, fs, vs, h)
+        st[Z_XT] = st[Z_XA] - st[Z_FS] * q[Q_CTP]
+    # end of tick: ring buffer, normal forces, sensor filters
+    rpos = (rpos + 1) % nr
+    ring[rpos] = st[Z_VS]
+    st[Z_RPOS] = rpos
+    n1, n2 = normal_forces(q, st[Z_XT])
+    st[Z_N1] = n1
+    st[Z_N2] = n2
+    a_l = q[Q_LV_A]
+    st[Z_LVF] = a_l * st[Z_LVF] + (1.0 - a_l) * st[Z_XT]
+    f_in = st[Z_FS]
+    if q[Q_SL_ON] > 0.5:
+        a_s = q[Q_SL_A]
+        st[Z_SLF] = a_s * st[Z_SLF] + (1.0 - a_s) * f_in
+        f_in = st[Z_SLF]
+    a_f = q[Q_FL_A]
+    st[Z_FLF] = a_f * st[Z_FLF] + (1.0 - a_f) * f_in
+    a_n = q[Q_NL_A]
+    st[Z_N1F] = a_n * st[Z_N1F] + (1.0 - a_n) * n1
+    st[Z_N2F] = a_n * st[Z_N2F] + (1.0 - a_n) * n2
+    st[Z_TICK] += 1.0
+
+
+@njit(cache=True)
+def plant_sample(q, st, z0, z1, z2, z3):
+    """Sensor readings at the current tick given four standard-normal draws.
+
+    Returns (position_um, friction_N, normal_1_N, normal_2_N)."""
+    x = st[Z_LVF] + q[Q_LV_SIG] * z0
+    qs = q[Q_LV_Q]
+    if qs > 0.0:
+        x = math.floor(x / qs + 0.5) * qs
+    if x < q[Q_LV_MIN]:
+        x = q[Q_LV_MIN]
+    elif x > q[Q_LV_MAX]:
+        x = q[Q_LV_MAX]
+    t = st[Z_TICK] * q[Q_DT]
+    f = st[Z_FLF] + q[Q_FL_SIG] * z1 + q[Q_DRIFT] * t
+    n1 = st[Z_N1F] + q[Q_NL_SIG] * z2
+    n2 = st[Z_N2F] + q[Q_NL_SIG] * z3
+    return x, f, n1, n2
+
+
+# rows of the closed-loop output array (order of the block-dict keys)
+BLOCK_KEYS = ("t_s", "position_ref_um", "position_um", "friction_N", "normal_1_N", "normal_2_N", "valve_cmd",
+              "pid_p", "pid_i", "pid_d", "dither", "true_position_um", "true_velocity_um_s", "true_mu")
+N_OUT = len(BLOCK_KEYS)
+
+
+@njit(cache=True)
+def run_closed_loop(q, fp, fs, st, ring, c, cs, xref, i0, noise, j0, out, k0, count):
+    """``count`` closed-loop ticks: sample sensors, controller (rig.control), advance plant.
+
+    Reads ``xref[i0:]`` and ``noise[j0:]`` (n x 4 standard normals), writes ``out[:, k0:]``
+    (rows in the order of BLOCK_KEYS). Returns ``count``."""
+    dt = q[Q_DT]
+    for k in range(count):
+        lv, fr, n1, n2 = plant_sample(q, st, noise[j0 + k, 0], noise[j0 + k, 1], noise[j0 + k, 2],
+                                      noise[j0 + k, 3])
+        xr = xref[i0 + k]
+        v, p, i, d, dz = controller_step(c, cs, xr, lv)
+        o = k0 + k
+        out[0, o] = st[Z_TICK] * dt
+        out[1, o] = xr
+        out[2, o] = lv
+        out[3, o] = fr
+        out[4, o] = n1
+        out[5, o] = n2
+        out[6, o] = v
+        out[7, o] = p
+        out[8, o] = i
+        out[9, o] = d
+        out[10, o] = dz
+        out[11, o] = st[Z_XT]
+        out[12, o] = st[Z_VS]
+        out[13, o] = st[Z_MU]
+        plant_advance(q, fp, fs, st, ring, v)
+    return count
