@@ -126,7 +126,13 @@ class EmulatedRig:
             target.faults[fault] = value
 
     def run(self, should_stop=lambda: False, on_idle=None, max_s: float | None = None) -> None:
-        """Serve until ``should_stop()``: lock step on setpoints, free-run when they stop."""
+        """Serve until ``should_stop()``.
+
+        The plant steps once per setpoint frame (lock step with the controller);
+        when the next setpoint is more than half a period late, the plant steps on
+        its own clock with the held command (zero-order hold, as a real plant keeps
+        moving), and after ``watchdog_s`` without setpoints with the valve nulled.
+        """
         self.running = True
         valve = self.valve
         dt = self.period_s
@@ -141,20 +147,16 @@ class EmulatedRig:
                     on_idle()
                 if should_stop() or (max_s is not None and now - t_start > max_s):
                     break
-            wd = valve.watchdog_tripped(now)
-            if wd:
-                timeout = max(0.0, min(next_free, next_idle) - now)
-            else:
-                timeout = max(0.0, min(valve.last_setpoint_t + valve.watchdog_s, next_idle) - now)
+            timeout = max(0.0, min(next_free, next_idle) - now)
             msg = valve.recv(timeout)
             now = time.monotonic()
             kind = valve.handle(msg, now)
             if kind == "setpoint":
                 self.step(valve.output(now))
                 self.lock_steps += 1
-                next_free = now + dt
-            elif valve.watchdog_tripped(now) and now >= next_free:
-                self.step(0.0)
+                next_free = now + 1.5 * dt
+            elif now >= next_free:
+                self.step(valve.output(now))
                 self.free_steps += 1
                 next_free += dt
                 if next_free < now:
@@ -176,7 +178,12 @@ def _set_pdeathsig():
 
 
 def _emulator_main(hw_dict, profile, lubricant, normal_force_N, seed, conn, plant_kind):
+    import logging
+    import sys
+
     _set_pdeathsig()
+    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
+    sys.setswitchinterval(1e-4)  # the Modbus server thread must not wait 5 ms for the GIL
     hw = parse_hardware(hw_dict)
     stop = {"flag": False}
 
@@ -223,6 +230,14 @@ def _emulator_main(hw_dict, profile, lubricant, normal_force_N, seed, conn, plan
                                      "n_setpoints": rig.valve.n_setpoints,
                                      "modbus_requests": rig.modbus.n_requests,
                                      "lvdt_sent": rig.lvdt.sent}))
+            elif op == "reset":
+                x0, v0 = req[1], req[2]
+                if hasattr(rig.plant, "reset"):
+                    rig.plant.reset(x0, v0)
+                else:
+                    rig.plant.x_um = x0
+                rig.step(0.0)
+                conn.send(("ok", None))
             elif op == "stop":
                 stop["flag"] = True
 
@@ -263,6 +278,10 @@ class EmulatorHandle:
 
     def stats(self) -> dict:
         return self._call("stats")
+
+    def reset_plant(self, x0_um: float, v_init_um_s: float | None = None):
+        """Put the simulated test piece at rest at ``x0_um`` (the rig being homed)."""
+        return self._call("reset", float(x0_um), v_init_um_s)
 
     def stop(self, timeout: float = 5.0) -> None:
         if self.proc.is_alive():
