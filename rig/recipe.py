@@ -182,7 +182,10 @@ class LogRates(_Strict):
     decimated_rate_hz: Positive = Field(25.0, description="Rate of the per-sample channel (the paper logged at 25 Hz).")
     block_s: Positive = Field(0.1, description="Duration covered by one raw block message (s).")
     raw_encoding: Literal["base64", "json"] = Field(
-        "base64", description="Arrays of a raw block: base64 of little-endian float64 (fast) or JSON lists.")
+        "base64", description="Arrays of a raw block: base64 of little-endian floats (fast) or JSON lists.")
+    raw_dtype: Literal["float64", "float32"] = Field(
+        "float64", description="Precision of the base64 raw arrays (t_s is always float64); float32 halves "
+                               "the file and the logging cost.")
 
 
 class Recipe(_Strict):

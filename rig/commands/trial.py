@@ -146,32 +146,26 @@ def run_sim_trial(plan, recipe, profile, writer, progress: Callable | None = Non
     writer.event(0.0, "trial_start", recipe=recipe.name, lubricant=lubricant, normal_force_N=nf, seed=seed,
                  duration_s=plan.duration_s, n_ticks=plan.n_ticks, backend="sim")
     t_wall0 = time.perf_counter()
+    dt_half = 0.5 / plan.loop_rate_hz
     next_stats = stats_every_s
-    win_err2 = 0.0
-    win_n = 0
-    win_sat = 0
-    win_ticks = 0
-    win_wall0 = t_wall0
+    # window of the loop statistics: differences of the writer's running sums
+    w0 = (t_wall0, writer.ticks, writer.sum_err2_um2, writer.n_err, writer.n_valve_saturated)
     t_last = 0.0
     try:
         for block in rig.run_blocks(plan.x_ref_um, block_ticks=block_ticks):
             writer.write_block(block)
-            t = block["t_s"]
-            t_last = float(t[-1])
-            e = block["position_ref_um"] - block["position_um"]
-            win_err2 += float(e @ e)
-            win_n += e.size
-            win_sat += int(np.count_nonzero(np.abs(block["valve_cmd"]) >= 1.0))
-            win_ticks += t.size
-            if t_last >= next_stats - 0.5 / plan.loop_rate_hz:
+            t_last = float(block["t_s"][-1])
+            if t_last >= next_stats - dt_half:
                 now = time.perf_counter()
-                dw = now - win_wall0
+                dw = now - w0[0]
+                ticks = writer.ticks - w0[1]
+                n_err = writer.n_err - w0[3]
                 writer.loop_stats(t_last, {
-                    "ticks": win_ticks, "wall_s": dw, "ticks_per_s": win_ticks / dw if dw > 0 else None,
-                    "realtime_factor": (win_ticks / plan.loop_rate_hz) / dw if dw > 0 else None,
-                    "tracking_error_rms_um": math.sqrt(win_err2 / win_n) if win_n else None,
-                    "valve_saturated_fraction": win_sat / win_ticks if win_ticks else None})
-                win_err2, win_n, win_sat, win_ticks, win_wall0 = 0.0, 0, 0, 0, now
+                    "ticks": ticks, "wall_s": dw, "ticks_per_s": ticks / dw if dw > 0 else None,
+                    "realtime_factor": (ticks / plan.loop_rate_hz) / dw if dw > 0 else None,
+                    "tracking_error_rms_um": math.sqrt((writer.sum_err2_um2 - w0[2]) / n_err) if n_err else None,
+                    "valve_saturated_fraction": (writer.n_valve_saturated - w0[4]) / ticks if ticks else None})
+                w0 = (now, writer.ticks, writer.sum_err2_um2, writer.n_err, writer.n_valve_saturated)
                 next_stats += stats_every_s
             if progress is not None:
                 progress(t_last)
@@ -318,7 +312,7 @@ def run_command(
                                     decimated_rate_hz=recipe.log.decimated_rate_hz,
                                     raw_rate_hz=recipe.log.raw_rate_hz, metadata=meta,
                                     recipe_yaml=recipe.source_text, recipe=recipe_json, profile=profile_json,
-                                    raw_encoding=recipe.log.raw_encoding)
+                                    raw_encoding=recipe.log.raw_encoding, raw_dtype=recipe.log.raw_dtype)
         except OSError as exc:
             _fail(f"cannot write {path}: {exc.strerror or exc}", EXIT_FAILURE)
         title = f"trial {k + 1}/{len(paths)} " if len(paths) > 1 else ""
