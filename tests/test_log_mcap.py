@@ -1,0 +1,227 @@
+"""The MCAP trial log: round trip, the 25 Hz channel, layout, flushing, truncation and recovery."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+
+from rig.data import DataFormatError
+from rig.log import (BLOCK_KEYS, EVENTS_TOPIC, LOG25_TOPIC, RAW_TOPIC, STATS_TOPIC, TrialLogWriter, read_metadata,
+                     read_trial, recover, trial_info)
+
+
+def make_blocks(n_blocks=50, n=100, rate=1000.0, seed=0):
+    rng = np.random.default_rng(seed)
+    out = []
+    for b in range(n_blocks):
+        t = (b * n + np.arange(n)) / rate
+        blk = {k: rng.normal(size=n) * 10 for k in BLOCK_KEYS}
+        blk["t_s"] = t
+        blk["position_ref_um"] = 500 + 2.0 * t
+        blk["position_um"] = blk["position_ref_um"] + rng.normal(size=n) * 0.1
+        blk["normal_1_N"] = 100 + rng.normal(size=n)
+        blk["normal_2_N"] = 100 + rng.normal(size=n)
+        blk["friction_N"] = 20 + rng.normal(size=n)
+        out.append(blk)
+    return out
+
+
+def concat(blocks):
+    return {k: np.concatenate([b[k] for b in blocks]) for k in blocks[0]}
+
+
+def write_log(path, blocks, **kw):
+    w = TrialLogWriter(path, metadata={"lubricant": "boundary", "normal_force_N": 100.0, "seed": 7,
+                                       "recipe": "unit"},
+                       recipe_yaml="name: unit\n", recipe={"name": "unit"}, profile={"name": "p"}, **kw)
+    for i, b in enumerate(blocks):
+        w.write_block(b)
+        if i == 10:
+            w.event(float(b["t_s"][0]), "velocity_step", v1_um_s=1.0, v2_um_s=2.0, x_um=np.float64(501.0))
+            w.loop_stats(float(b["t_s"][-1]), {"ticks": 1100, "realtime_factor": np.float64(200.0),
+                                               "bad": float("nan")})
+    return w
+
+
+def test_round_trip_raw_and_25hz(tmp_path):
+    blocks = make_blocks()
+    path = tmp_path / "t.mcap"
+    w = write_log(path, blocks)
+    w.close()
+    ref = concat(blocks)
+
+    raw = read_trial(path, channel="raw")
+    assert len(raw) == 5000
+    for k in BLOCK_KEYS:
+        got = raw.time_s if k == "t_s" else (getattr(raw, k, None) if k in (
+            "position_um", "friction_N", "normal_1_N", "normal_2_N", "position_ref_um", "valve_cmd") else raw.extra[k])
+        assert np.array_equal(got, ref[k]), k          # bit-exact (base64 float64)
+    assert set(raw.extra) == set(BLOCK_KEYS) - {"t_s", "position_um", "friction_N", "normal_1_N", "normal_2_N",
+                                                "position_ref_um", "valve_cmd"}
+
+    dec = read_trial(path)  # default: the 25 Hz channel
+    assert dec.metadata["channel"] == "25hz"
+    assert len(dec) == 5000 // 40
+    assert np.array_equal(dec.time_s, ref["t_s"][::40])
+    assert np.array_equal(dec.friction_N, ref["friction_N"][::40])
+    assert np.array_equal(dec.valve_cmd, ref["valve_cmd"][::40])
+    assert dec.extra == {}
+
+    # events and metadata come along
+    kinds = [e["kind"] for e in dec.events]
+    assert "velocity_step" in kinds and kinds[0] == "log_start" and kinds[-1] == "log_end"
+    step = next(e for e in dec.events if e["kind"] == "velocity_step")
+    assert step["v2_um_s"] == 2.0 and step["x_um"] == 501.0 and step["t_s"] == pytest.approx(1.0)
+    assert dec.metadata["lubricant"] == "boundary" and dec.normal_force_N == 100.0
+    assert dec.metadata["seed"] == "7" and dec.metadata["status"] == "completed"
+    assert dec.metadata["software_version"]
+    meta = read_metadata(path)
+    assert json.loads(meta["recipe"]["json"]) == {"name": "unit"}
+    assert json.loads(meta["rig_profile"]["json"]) == {"name": "p"}
+
+
+def test_layout_schemas_chunks_index(tmp_path):
+    path = tmp_path / "t.mcap"
+    write_log(path, make_blocks(), chunk_size=64_000).close()
+    with open(path, "rb") as fh:
+        reader = make_reader(fh)
+        summary = reader.get_summary()
+        topics = {c.topic: c for c in summary.channels.values()}
+        assert set(topics) == {RAW_TOPIC, LOG25_TOPIC, EVENTS_TOPIC, STATS_TOPIC}
+        for c in topics.values():
+            assert c.message_encoding == "json"
+            assert summary.schemas[c.schema_id].encoding == "jsonschema"
+            json.loads(summary.schemas[c.schema_id].data)
+        assert len(summary.chunk_indexes) > 1
+        assert all(ci.compression == "zstd" for ci in summary.chunk_indexes)
+        assert all(ci.message_index_offsets for ci in summary.chunk_indexes)  # message index kept
+        counts = summary.statistics.channel_message_counts
+        by_topic = {topics_c.topic: counts[cid] for cid, topics_c in summary.channels.items()}
+        assert by_topic[RAW_TOPIC] == 50 and by_topic[LOG25_TOPIC] == 125
+        # the 25 Hz channel: log_time is the sample time, one plain JSON object per sample
+        msgs = list(reader.iter_messages(topics=[LOG25_TOPIC]))
+        for _, _, m in msgs[:5]:
+            d = json.loads(m.data)
+            assert m.log_time == round(d["t_s"] * 1e9)
+            assert set(d) == {"t_s", "position_um", "friction_N", "normal_1_N", "normal_2_N", "position_ref_um",
+                              "valve_cmd"}
+        names = [a.name for a in reader.iter_attachments()]
+        assert names == ["recipe.yaml"]
+        stats = [json.loads(m.data) for _, _, m in reader.iter_messages(topics=[STATS_TOPIC])]
+        assert stats[0]["bad"] is None and stats[0]["realtime_factor"] == 200.0
+
+
+def test_json_raw_encoding_and_nan(tmp_path):
+    blocks = make_blocks(5)
+    blocks[1]["friction_N"][3] = np.nan
+    blocks[1]["valve_cmd"][20] = np.inf  # tick 120: also the 4th 25 Hz sample
+    path = tmp_path / "j.mcap"
+    write_log(path, blocks, raw_encoding="json").close()
+    raw = read_trial(path, "raw")
+    ref = concat(blocks)
+    assert np.isnan(raw.friction_N[103]) and np.isnan(raw.valve_cmd[120])
+    ok = np.isfinite(ref["friction_N"])
+    assert np.array_equal(raw.friction_N[ok], ref["friction_N"][ok])
+    dec = read_trial(path, "25hz")
+    assert np.isnan(dec.valve_cmd[3]) and np.isnan(dec.valve_cmd).sum() == 1
+
+
+def test_float32_raw_dtype(tmp_path):
+    blocks = make_blocks(5)
+    path = tmp_path / "f.mcap"
+    write_log(path, blocks, raw_dtype="float32").close()
+    raw = read_trial(path, "raw")
+    ref = concat(blocks)
+    assert np.array_equal(raw.time_s, ref["t_s"])  # time stays float64
+    assert np.array_equal(raw.friction_N, ref["friction_N"].astype(np.float32).astype(float))
+
+
+def test_decimation_continues_across_odd_blocks(tmp_path):
+    """The 25 Hz samples are every 40th loop tick, whatever the block sizes."""
+    ref = concat(make_blocks(10))
+    path = tmp_path / "o.mcap"
+    w = TrialLogWriter(path)
+    edges = [0, 37, 100, 101, 333, 640, 1000]
+    for a, b in zip(edges[:-1], edges[1:]):
+        w.write_block({k: v[a:b] for k, v in ref.items()})
+    w.close()
+    dec = read_trial(path)
+    assert np.array_equal(dec.time_s, ref["t_s"][:1000:40])
+
+
+def test_flush_makes_data_survive_a_crash(tmp_path):
+    blocks = make_blocks(30)
+    path = tmp_path / "c.mcap"
+    w = write_log(path, blocks, flush_interval_s=0.0)  # flush (close chunk + fsync) after every block
+    w.abort()  # crash: no footer, no summary
+    with pytest.raises(DataFormatError, match="rig recover"):
+        read_trial(path)
+    info = trial_info(path)
+    assert not info["complete"] and info["damage"]
+    raw_count = next(c["messages"] for c in info["channels"] if c["topic"] == RAW_TOPIC)
+    assert raw_count == 30  # nothing lost
+
+
+def test_recover_truncated_mid_chunk(tmp_path):
+    blocks = make_blocks(200)
+    full = tmp_path / "full.mcap"
+    write_log(full, blocks, chunk_size=100_000).close()
+    with open(full, "rb") as fh:
+        chunks = make_reader(fh).get_summary().chunk_indexes
+    assert len(chunks) >= 4
+    victim = chunks[len(chunks) // 2]
+    cut = victim.chunk_start_offset + victim.chunk_length // 2  # in the middle of a chunk
+    data = full.read_bytes()[:cut]
+    bad = tmp_path / "cut.mcap"
+    bad.write_bytes(data)
+
+    with pytest.raises(DataFormatError, match="rig recover"):
+        read_trial(bad)
+    fixed = tmp_path / "fixed.mcap"
+    res = recover(bad, fixed)
+    assert res["error"] and not res["complete_before"]
+    raw = read_trial(fixed, "raw")
+    ref = concat(blocks)
+    n = len(raw)
+    assert 0 < n < 20000 and n % 100 == 0
+    assert np.array_equal(raw.friction_N, ref["friction_N"][:n])  # the complete chunks, intact
+    assert raw.metadata["recovered"] == "true"
+    assert raw.metadata["lubricant"] == "boundary"  # the original metadata kept
+    info = trial_info(fixed)
+    assert info["recovered"] and info["complete"]
+    assert info["metadata"]["recovery"]["recovered_from"] == str(bad)
+    assert info["attachments"][0]["name"] == "recipe.yaml"
+    assert not list(tmp_path.glob(".*.tmp"))  # no temporary file left
+
+
+def test_recover_refuses_garbage(tmp_path):
+    p = tmp_path / "g.mcap"
+    p.write_bytes(b"not an mcap at all")
+    with pytest.raises(DataFormatError):
+        recover(p, tmp_path / "out.mcap")
+    assert not (tmp_path / "out.mcap").exists()
+
+
+def test_context_manager_marks_interrupted(tmp_path):
+    path = tmp_path / "i.mcap"
+    with pytest.raises(KeyboardInterrupt):
+        with TrialLogWriter(path) as w:
+            for b in make_blocks(3):
+                w.write_block(b)
+            raise KeyboardInterrupt
+    tr = read_trial(path, "raw")
+    assert len(tr) == 300 and tr.metadata["status"] == "interrupted"
+
+
+def test_scheduled_events_logged_when_reached(tmp_path):
+    path = tmp_path / "e.mcap"
+    w = TrialLogWriter(path)
+    w.schedule_events([{"t_s": 0.25, "kind": "a"}, {"t_s": 0.05, "kind": "b"}, {"t_s": 9.0, "kind": "never"}])
+    for b in make_blocks(3):
+        w.write_block(b)
+    w.close("interrupted")
+    kinds = [e["kind"] for e in read_trial(path).events]
+    assert kinds == ["log_start", "b", "a", "log_end"]
