@@ -499,7 +499,11 @@ def _read_stream(path: Path) -> _Content:
                 elif isinstance(rec, Footer):
                     c.complete = True
         except Exception as exc:  # the damaged point: keep everything before it
-            c.error = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
+            name = type(exc).__name__
+            if name == "EndOfFile":
+                c.error = "file ends in the middle of a record (truncated)"
+            else:
+                c.error = f"{name}: {exc}" if str(exc) else name
     if c.header is None and c.error:
         raise DataFormatError(path, None, f"not an MCAP file ({c.error})")
     return c

@@ -1,0 +1,160 @@
+"""CLI: rig export / import / info / recover, and the CSV spec's bad inputs (no partial output)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from rig.cli import app
+from rig.data import read_csv
+from rig.log import BLOCK_KEYS, TrialLogWriter, read_trial
+
+runner = CliRunner()
+
+
+def out_text(res) -> str:
+    text = res.output
+    try:
+        text += res.stderr
+    except (ValueError, AttributeError):
+        pass
+    return text
+
+
+@pytest.fixture()
+def small_log(tmp_path):
+    rng = np.random.default_rng(3)
+    path = tmp_path / "trial.mcap"
+    w = TrialLogWriter(path, metadata={"lubricant": "paraffin", "normal_force_N": 100.0, "seed": 1},
+                       flush_interval_s=0.0)  # one chunk per block
+    for b in range(20):
+        t = (b * 100 + np.arange(100)) / 1000.0
+        blk = {k: rng.normal(size=100) for k in BLOCK_KEYS}
+        blk.update(t_s=t, position_ref_um=500 + t, position_um=500 + t + 0.01 * rng.normal(size=100),
+                   friction_N=20 + rng.normal(size=100), normal_1_N=100 + rng.normal(size=100),
+                   normal_2_N=100 + rng.normal(size=100))
+        w.write_block(blk)
+    w.event(0.5, "velocity_step", v1_um_s=1.0, v2_um_s=2.0)
+    w.close()
+    return path
+
+
+def test_export_25hz_matches_spec(small_log, tmp_path):
+    csv = tmp_path / "out.csv"
+    res = runner.invoke(app, ["export", str(small_log), "--csv", str(csv)])
+    assert res.exit_code == 0, out_text(res)
+    lines = csv.read_text().splitlines()
+    assert lines[0] == "# rig-trial-csv: 1"
+    header = next(ln for ln in lines if not ln.startswith("#"))
+    assert header.split(",") == ["time_s", "position_um", "friction_N", "normal_1_N", "normal_2_N",
+                                 "position_ref_um", "valve_cmd"]
+    assert "# normal_force_N: 100.0" in lines and "# lubricant: paraffin" in lines
+    tr = read_csv(csv)
+    ref = read_trial(small_log, "25hz")
+    assert len(tr) == 50
+    for name in ("time_s", "position_um", "friction_N", "normal_1_N", "normal_2_N", "position_ref_um", "valve_cmd"):
+        assert np.allclose(getattr(tr, name), getattr(ref, name), rtol=1e-8, atol=1e-12), name
+
+
+def test_export_raw_keeps_extra_columns(small_log, tmp_path):
+    csv = tmp_path / "raw.csv"
+    res = runner.invoke(app, ["export", str(small_log), "--csv", str(csv), "--rate", "raw"])
+    assert res.exit_code == 0, out_text(res)
+    tr = read_csv(csv)
+    assert len(tr) == 2000 and "true_mu" in tr.extra and "pid_p" in tr.extra
+    res = runner.invoke(app, ["export", str(small_log), "--csv", str(tmp_path / "n.csv"), "--rate", "raw",
+                              "--no-extra"])
+    assert res.exit_code == 0 and read_csv(tmp_path / "n.csv").extra == {}
+
+
+def test_csv_round_trip_export_import_export(small_log, tmp_path):
+    a, b = tmp_path / "a.csv", tmp_path / "b.csv"
+    imp = tmp_path / "imported.mcap"
+    assert runner.invoke(app, ["export", str(small_log), "--csv", str(a)]).exit_code == 0
+    res = runner.invoke(app, ["import", str(a), "--out", str(imp)])
+    assert res.exit_code == 0, out_text(res)
+    assert runner.invoke(app, ["export", str(imp), "--csv", str(b)]).exit_code == 0
+    data_a = [ln for ln in a.read_text().splitlines() if not ln.startswith("#")]
+    data_b = [ln for ln in b.read_text().splitlines() if not ln.startswith("#")]
+    assert data_a == data_b  # identical columns and values
+    tr = read_trial(imp, "raw")
+    assert tr.metadata["lubricant"] == "paraffin" and tr.metadata["imported_from"] == str(a)
+
+
+GOOD_HEAD = "# rig-trial-csv: 1\n# normal_force_N: 100\n"
+
+
+@pytest.mark.parametrize("body,line,what", [
+    ("time_s,position_um\n0,1\n", 3, "missing required column"),
+    ("time_s,position_um,friction_N\n0,1,2\n0.04,abc,2\n", 5, "non-numeric"),
+    ("time_s,position_um,friction_N\n0,1,2\n0.04,1,2\n0.04,1,2\n", 6, "not strictly increasing"),
+    ("time_s,position_um,friction_N\n0,1,2\n0.04,1,nan\n", 5, "NaN"),
+    ("time_s,position_um,friction_N\n", 3, "empty data"),
+])
+def test_import_bad_input_one_error_no_output(tmp_path, body, line, what):
+    src = tmp_path / "bad.csv"
+    src.write_text(GOOD_HEAD + body)
+    out = tmp_path / "bad.mcap"
+    res = runner.invoke(app, ["import", str(src), "--out", str(out)])
+    assert res.exit_code == 2
+    text = out_text(res)
+    assert str(src) in text and f"line {line}" in text and what in text
+    assert not out.exists()
+    assert list(tmp_path.iterdir()) == [src]  # no temporary file either
+
+
+def test_import_empty_file(tmp_path):
+    src = tmp_path / "empty.csv"
+    src.write_text("")
+    res = runner.invoke(app, ["import", str(src), "--out", str(tmp_path / "e.mcap")])
+    assert res.exit_code == 2 and "empty" in out_text(res)
+    assert not (tmp_path / "e.mcap").exists()
+
+
+def test_import_partial_trailing_line_is_a_warning(tmp_path):
+    src = tmp_path / "cut.csv"
+    src.write_text(GOOD_HEAD + "time_s,position_um,friction_N\n0,1,2\n0.04,2,3\n0.08,3")
+    out = tmp_path / "cut.mcap"
+    res = runner.invoke(app, ["import", str(src), "--out", str(out)])
+    assert res.exit_code == 0
+    assert "warning" in out_text(res) and "partial" in out_text(res)
+    tr = read_trial(out, "raw")
+    assert len(tr) == 2 and np.array_equal(tr.position_um, [1.0, 2.0])
+
+
+def test_info_and_recover_cli(small_log, tmp_path):
+    res = runner.invoke(app, ["info", str(small_log)])
+    assert res.exit_code == 0, out_text(res)
+    text = out_text(res)
+    for topic in ("/raw", "/log25", "/events", "/loop_stats"):
+        assert topic in text
+    assert "complete" in text and "recovered: no" in text and "velocity_step" in text
+
+    data = small_log.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: len(data) * 2 // 3])
+    res = runner.invoke(app, ["info", str(cut)])
+    assert res.exit_code == 0 and "TRUNCATED" in out_text(res)
+    res = runner.invoke(app, ["export", str(cut), "--csv", str(tmp_path / "x.csv")])
+    assert res.exit_code == 2 and "rig recover" in out_text(res)
+    assert not (tmp_path / "x.csv").exists()
+
+    fixed = tmp_path / "fixed.mcap"
+    res = runner.invoke(app, ["recover", str(cut), "--out", str(fixed)])
+    assert res.exit_code == 0, out_text(res)
+    res = runner.invoke(app, ["info", str(fixed)])
+    assert res.exit_code == 0 and "recovered from" in out_text(res)
+    assert read_trial(fixed).metadata["recovered"] == "true"
+
+
+@pytest.mark.parametrize("cmd", ["run", "info", "export", "import", "recover"])
+def test_help_is_complete(cmd):
+    res = runner.invoke(app, [cmd, "--help"])
+    assert res.exit_code == 0
+    text = res.output
+    expected = {"run": ["--sim", "--hardware", "--lubricant", "--out", "--profile", "--friction-model", "--seed"],
+                "info": ["--events", "--json"], "export": ["--csv", "--rate"], "import": ["--out"],
+                "recover": ["--out"]}[cmd]
+    for opt in expected:
+        assert opt in text, (cmd, opt)
