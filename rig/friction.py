@@ -183,7 +183,14 @@ def mu_of(p, s, v_um_s, x_um):
     theta_total = s[S_THETA2]
     if p[P_STATE_ON] > 0.5:
         theta_total += s[S_THETA]
-    mu = mu_regularized(v_um_s, theta_total, p[P_MU0], p[P_A], p[P_V0], p[P_VREG])
+    if p[P_STATE_ON] < 0.5 and p[P_A] < 0.0:
+        # steady_state baseline with a negative slope c (P_A): mu = mu0 + c ln(v/V0) (+ theta2),
+        # the log argument held at v_reg near v = 0 and a smooth sign as in the A = 0 case
+        av = max(abs(v_um_s), p[P_VREG])
+        base = p[P_MU0] + theta_total + p[P_A] * math.log(av / p[P_V0])
+        mu = base * v_um_s / math.sqrt(v_um_s * v_um_s + p[P_VREG] * p[P_VREG])
+    else:
+        mu = mu_regularized(v_um_s, theta_total, p[P_MU0], p[P_A], p[P_V0], p[P_VREG])
     extra = 0.0
     if p[P_AMP] != 0.0:
         extra += p[P_AMP] * math.sin(2.0 * math.pi * x_um / p[P_WAVE] + p[P_PHASE])

@@ -1,0 +1,324 @@
+"""Kinematics and a decimated fitting grid from a measured record (diagnosis.md, "Notation").
+
+The interface slips with the LVDT (``delta = x``) unless an extension says
+otherwise, so velocity and slip come from the measured position. The LVDT is
+quantized (0.076 µm) and noisy (±0.25 µm) and the record may be unevenly
+sampled with gaps, so:
+
+1. raw samples are pooled onto a *kinematic grid* of at least 10 ms (sums of
+   friction, friction², normals and position kept, so no information on the
+   friction side is thrown away: the within-cell scatter is pure noise for the
+   model, see :class:`Grid`);
+2. position is smoothed by an *edge-preserving local line*: for every grid
+   point a straight line is fitted to the position over a window ending at,
+   starting at and centred on the point, and the fit with the smallest
+   residual is kept. A velocity step therefore stays a step (the window never
+   straddles the kink when a clean side exists) while steady sliding averages
+   the quantization out. The window spans about ``slip_window_um`` of slip
+   (3 µm: ±0.03 µm/s at 1 µm/s and 25 Hz), clipped to [0.2, 4] s;
+3. where ``position_ref_um`` is logged, the commanded position carries the
+   sharp shape of the trajectory and only the small tracking error
+   ``x - x_ref`` is smoothed, which keeps the velocity steps sharp;
+4. the grid is then merged into adaptive *fit bins*: long bins (up to 1 s or
+   1 µm of slip) while the velocity is steady, short bins growing
+   geometrically after every velocity change, never across a hold-out block
+   boundary. Fits run on the bins (weighted by sample count); the sum of
+   squares of the raw samples is recovered exactly as bin residual + within-bin
+   scatter, so hold-out RMS and BIC refer to the raw samples.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from numba import njit
+
+from rig.data import TrialData
+
+KIN_DT_MIN_S = 0.01
+
+
+@njit(cache=True)
+def _line_fit(t, x, lo, hi, tc):
+    """Least-squares line x = a + b (t - tc) over [lo, hi]; returns a, b, residual mean square."""
+    m = hi - lo + 1
+    if m < 3:
+        return np.nan, np.nan, np.inf
+    s1 = 0.0
+    st = 0.0
+    stt = 0.0
+    sx = 0.0
+    stx = 0.0
+    for k in range(lo, hi + 1):
+        d = t[k] - tc
+        s1 += 1.0
+        st += d
+        stt += d * d
+        sx += x[k]
+        stx += d * x[k]
+    den = s1 * stt - st * st
+    if den <= 0.0:
+        return np.nan, np.nan, np.inf
+    b = (s1 * stx - st * sx) / den
+    a = (sx - b * st) / s1
+    r = 0.0
+    for k in range(lo, hi + 1):
+        e = x[k] - a - b * (t[k] - tc)
+        r += e * e
+    return a, b, r / (m - 2)
+
+
+@njit(cache=True)
+def edge_preserving_line(t, x, half):
+    """Smoothed position and velocity: best of left, right and centred line fits (see module doc)."""
+    n = t.shape[0]
+    xs = np.empty(n)
+    vs = np.empty(n)
+    lo_l = 0
+    lo_c = 0
+    hi_c = 0
+    hi_r = 0
+    for i in range(n):
+        w = half[i]
+        # left window [t_i - 2w, t_i]
+        while t[lo_l] < t[i] - 2.0 * w:
+            lo_l += 1
+        while lo_l > 0 and t[lo_l - 1] >= t[i] - 2.0 * w:
+            lo_l -= 1
+        while t[lo_c] < t[i] - w:
+            lo_c += 1
+        while lo_c > 0 and t[lo_c - 1] >= t[i] - w:
+            lo_c -= 1
+        if hi_c < i:
+            hi_c = i
+        while hi_c + 1 < n and t[hi_c + 1] <= t[i] + w:
+            hi_c += 1
+        while hi_c > i and t[hi_c] > t[i] + w:
+            hi_c -= 1
+        if hi_r < i:
+            hi_r = i
+        while hi_r + 1 < n and t[hi_r + 1] <= t[i] + 2.0 * w:
+            hi_r += 1
+        while hi_r > i and t[hi_r] > t[i] + 2.0 * w:
+            hi_r -= 1
+        best_r = np.inf
+        best_a = x[i]
+        best_b = 0.0
+        a, b, r = _line_fit(t, x, lo_c, hi_c, t[i])
+        if r < best_r:
+            best_r, best_a, best_b = r, a, b
+        m_c = hi_c - lo_c + 1
+        # one-sided windows only when (nearly) full: a short window's scatter is no evidence
+        if i - lo_l + 1 >= 0.8 * m_c and i - lo_l + 1 >= 5:
+            a, b, r = _line_fit(t, x, lo_l, i, t[i])
+            if r < best_r * 0.999:
+                best_r, best_a, best_b = r, a, b
+        if hi_r - i + 1 >= 0.8 * m_c and hi_r - i + 1 >= 5:
+            a, b, r = _line_fit(t, x, i, hi_r, t[i])
+            if r < best_r * 0.999:
+                best_r, best_a, best_b = r, a, b
+        if not np.isfinite(best_r):
+            # too few points: difference to a neighbour
+            j = i + 1 if i + 1 < n else i - 1
+            best_a = x[i]
+            best_b = (x[j] - x[i]) / (t[j] - t[i])
+        xs[i] = best_a
+        vs[i] = best_b
+    return xs, vs
+
+
+@njit(cache=True)
+def _make_bins(t, v, block, dt_max, slip_res, rel_v, growth, dt_min_first):
+    """Adaptive fit bins over the kinematic grid (see module doc). Returns bin start indices."""
+    n = t.shape[0]
+    starts = np.empty(n + 1, dtype=np.int64)
+    nb = 0
+    starts[0] = 0
+    nb = 1
+    j0 = 0
+    prev_len = dt_min_first
+    for j in range(1, n):
+        dur = t[j] - t[j0]
+        vs = abs(v[j0])
+        lim = dt_max
+        if vs > 1e-9:
+            lim = min(lim, slip_res / vs)
+        lim = min(lim, growth * prev_len)
+        vel_change = abs(v[j] - v[j0]) > rel_v * max(abs(v[j0]), 0.05) + 0.02
+        if block[j] != block[j0] or dur > lim or vel_change:
+            starts[nb] = j
+            nb += 1
+            if vel_change:
+                prev_len = dt_min_first
+            else:
+                prev_len = max(t[j] - t[j0], dt_min_first)
+            j0 = j
+    starts[nb] = n
+    return starts[: nb + 1]
+
+
+@dataclass
+class Grid:
+    """Binned record on which models are fitted (all arrays per bin).
+
+    ``F_mean`` mean measured friction (N), ``count`` raw samples in the bin,
+    ``ss_within`` the raw samples' sum of squares about the bin mean (N²), so
+    that the raw-sample SSE of a model constant over the bin is
+    ``count * (F_mean - pred)² + ss_within``.
+    """
+
+    t: np.ndarray
+    x: np.ndarray
+    v: np.ndarray
+    F_mean: np.ndarray
+    N_tot: np.ndarray
+    count: np.ndarray
+    ss_within: np.ndarray
+    block: np.ndarray
+    N_nom: float
+    t0: float
+    has_normals: bool
+    normals_vary: bool
+    noise_N: float
+    # kinematic grid (finer), for plots and screening
+    kin: dict = field(default_factory=dict)
+
+    @property
+    def n_raw(self) -> int:
+        return int(self.count.sum())
+
+    def holdout_mask(self) -> np.ndarray:
+        return (self.block % 2) == 1
+
+    def fit_mask(self) -> np.ndarray:
+        return (self.block % 2) == 0
+
+
+def _robust_noise(y: np.ndarray) -> float:
+    """White-noise level from successive differences (robust MAD), N."""
+    d = np.diff(np.asarray(y, dtype=float))
+    if d.size < 4:
+        return float(np.std(y)) if y.size else 0.0
+    mad = np.median(np.abs(d - np.median(d)))
+    return float(mad / 0.6745 / math.sqrt(2.0))
+
+
+def _servo_fit(t, xr, x):
+    """The load point's response to the commanded position as a critically damped 2nd-order lag.
+
+    Returns (tau_s, modelled position) or (None, None) when the measured position does not follow the
+    reference that way (rms misfit over 3x the LVDT noise, or a trend between them).
+    """
+    from rig.friction import lowpass_uneven
+
+    def model(tau):
+        if tau <= 0:
+            m = xr.copy()
+        else:
+            m = lowpass_uneven(t, lowpass_uneven(t, xr, tau), tau)
+        off = float(np.median(x - m))
+        return m + off
+
+    taus = [0.0] + list(np.exp(np.linspace(np.log(0.002), np.log(1.0), 24)))
+    sse = []
+    for tau in taus:
+        m = model(tau)
+        sse.append(float(np.mean((x - m) ** 2)))
+    k = int(np.argmin(sse))
+    tau = taus[k]
+    m = model(tau)
+    noise = _robust_noise(x)
+    rms = math.sqrt(sse[k])
+    if rms > 3.0 * max(noise, 0.05) + 0.1:
+        return None, None
+    return tau, m
+
+
+def prepare(trial: TrialData, n_blocks: int = 20, slip_window_um: float = 3.0,
+            bin_dt_max_s: float = 1.0, bin_slip_um: float = 1.0) -> Grid:
+    """Kinematic grid + adaptive fit bins + hold-out blocks from a trial (see module doc)."""
+    t_raw = np.asarray(trial.time_s, dtype=float)
+    if t_raw.size < 20:
+        raise ValueError(f"{trial.source or 'trial'}: too few samples ({t_raw.size}) to diagnose")
+    t0 = float(t_raw[0])
+    tr = t_raw - t0
+    F = np.asarray(trial.friction_N, dtype=float)
+    x_raw = np.asarray(trial.position_um, dtype=float)
+    N_nom = float(trial.normal_force_N)
+    Ntot = np.asarray(trial.total_normal_N, dtype=float)
+    noise_N = _robust_noise(F)
+
+    # 1. kinematic grid cells
+    dt_med = float(np.median(np.diff(tr)))
+    cell = max(KIN_DT_MIN_S, dt_med * 0.999)
+    if dt_med >= KIN_DT_MIN_S:
+        idx = np.arange(tr.size)
+    else:
+        idx = np.floor(tr / cell).astype(np.int64)
+        _, idx = np.unique(idx, return_inverse=True)
+    ncell = int(idx.max()) + 1
+    cnt = np.bincount(idx, minlength=ncell).astype(float)
+
+    def cmean(y):
+        return np.bincount(idx, weights=y, minlength=ncell) / cnt
+
+    tk = cmean(tr)
+    xk = cmean(x_raw)
+    Fs = np.bincount(idx, weights=F, minlength=ncell)
+    F2s = np.bincount(idx, weights=F * F, minlength=ncell)
+    Nk = cmean(Ntot)
+
+    # 2./3. kinematics
+    use_ref = trial.position_ref_um is not None and np.all(np.isfinite(trial.position_ref_um))
+    v_rough = np.gradient(xk, tk) if tk.size > 2 else np.zeros_like(tk)
+    # rough speed over ~2 s for the window length
+    k2 = max(1, int(round(2.0 / max(np.median(np.diff(tk)), 1e-6))))
+    if tk.size > 2 * k2 + 1:
+        ker = np.ones(2 * k2 + 1) / (2 * k2 + 1)
+        v_s = np.convolve(v_rough, ker, mode="same") / np.convolve(np.ones_like(v_rough), ker, mode="same")
+    else:
+        v_s = np.full_like(tk, (xk[-1] - xk[0]) / max(tk[-1] - tk[0], 1e-9))
+    half = 0.5 * np.clip(slip_window_um / np.maximum(np.abs(v_s), 0.05), 0.2, 4.0)
+    servo_tau = None
+    if use_ref:
+        xr = cmean(np.asarray(trial.position_ref_um, dtype=float))
+        servo_tau, xm = _servo_fit(tk, xr, xk)
+        if servo_tau is None:
+            use_ref = False
+    if use_ref:
+        es, ev = edge_preserving_line(tk, xk - xm, half)
+        xs = xm + es
+        vs = np.gradient(xm, tk) + ev
+    else:
+        xs, vs = edge_preserving_line(tk, xk, half)
+
+    # 4. blocks and bins
+    T = float(tk[-1] - tk[0]) if tk.size > 1 else 1.0
+    blk_k = np.minimum((tk - tk[0]) / (T / n_blocks), n_blocks - 1).astype(np.int64)
+    dtk = float(np.median(np.diff(tk)))
+    starts = _make_bins(tk, vs, blk_k, bin_dt_max_s, bin_slip_um, 0.02, 1.3, max(dtk, 0.02))
+    seg = np.repeat(np.arange(starts.size - 1), np.diff(starts))
+    nb = starts.size - 1
+    bc = np.bincount(seg, weights=cnt, minlength=nb)
+
+    def bmean_w(y):  # weighted by raw count
+        return np.bincount(seg, weights=y * cnt, minlength=nb) / bc
+
+    Fsum = np.bincount(seg, weights=Fs, minlength=nb)
+    F2sum = np.bincount(seg, weights=F2s, minlength=nb)
+    Fm = Fsum / bc
+    ssw = np.maximum(F2sum - Fsum * Fm, 0.0)
+    tb = bmean_w(tk)
+    xb = bmean_w(xs)
+    vb = bmean_w(vs)
+    Nb = bmean_w(Nk)
+    blk = blk_k[starts[:-1]]
+    normals_vary = False
+    if trial.has_normals:
+        nstd = float(np.std(Nk))
+        normals_vary = nstd > 0.0
+    return Grid(t=tb, x=xb, v=vb, F_mean=Fm, N_tot=Nb, count=bc, ss_within=ssw, block=blk, N_nom=N_nom,
+                t0=t0, has_normals=trial.has_normals, normals_vary=normals_vary, noise_N=noise_N,
+                kin={"t": tk, "x": xs, "v": vs, "F": Fs / cnt, "N": Nk, "count": cnt, "x_meas": xk})
