@@ -153,6 +153,8 @@ def _v_of_mu(mu, base, a, v0, vreg):
     """Inverse of R (mu >= 0): slip speed and d v / d mu."""
     if a > 0.0:
         e1 = math.exp((mu - base) / a)
+        if mu > 20.0 * a:  # exp(-2 mu / a) < 4e-18: the backward term is negligible
+            return v0 * e1, v0 / a * e1
         e2 = math.exp((-mu - base) / a)
         return v0 * (e1 - e2), v0 / a * (e1 + e2)
     b = base if base > 1e-9 else 1e-9
@@ -170,7 +172,8 @@ def solve_slip(p2, q2, ntot, base, a, v0, vreg):
 
     h(mu) = |p2| - |q2| v(mu) - ntot mu is decreasing and concave for mu >= 0, so Newton
     from an upper bound of the root converges monotonically. Upper bounds: |p2|/ntot
-    (friction alone) and R(|p2|/|q2|) (the chain relaxed completely).
+    (friction alone) and R(|p2|/|q2|) (the chain relaxed completely), the second only
+    needed (and computed) when the first lies far out on the exponential.
     """
     qq = -q2
     if qq <= 0.0:
@@ -181,26 +184,36 @@ def solve_slip(p2, q2, ntot, base, a, v0, vreg):
     if c == 0.0:
         return 0.0, 0.0
     sgn = 1.0 if p2 > 0.0 else -1.0
-    vmax = c / qq
     b = base
-    if a <= 0.0 and b < 1e-9:
-        b = 1e-9
-    mu_b = mu_regularized(vmax, b, 0.0, a, v0, vreg)
     mu = c / ntot
-    if mu_b < mu:
-        mu = mu_b
-    for _ in range(100):
+    if a > 0.0:
+        if (mu - b) / a > 20.0:
+            mu_b = mu_regularized(c / qq, b, 0.0, a, v0, vreg)
+            if mu_b < mu:
+                mu = mu_b
+        tol = 1e-7 * a
+    else:
+        if b < 1e-9:
+            b = 1e-9
+        if mu > 0.999 * b:
+            mu_b = mu_regularized(c / qq, b, 0.0, a, v0, vreg)
+            if mu_b < mu:
+                mu = mu_b
+        tol = 1e-10 * b
+    for _ in range(200):
         v, dv = _v_of_mu(mu, b, a, v0, vreg)
         h = c - qq * v - ntot * mu
         hp = -qq * dv - ntot
-        mu_new = mu - h / hp
-        if mu_new < 0.0:
-            mu_new = 0.0
-        if abs(mu_new - mu) <= 1e-15 + 1e-13 * mu:
-            mu = mu_new
+        dmu = h / hp
+        mu -= dmu
+        if mu < 0.0:
+            mu = 0.0
+        if abs(dmu) <= tol:
+            # quadratic convergence: the error left is ~ dmu^2 / a, below 1e-14 a
             break
-        mu = mu_new
-    v, dv = _v_of_mu(mu, b, a, v0, vreg)
+    v -= dv * dmu  # v at the final mu, to first order (dmu is below the tolerance)
+    if v < 0.0:
+        v = 0.0
     return sgn * v, sgn * mu
 
 

@@ -1,0 +1,125 @@
+"""PID and dither of rig.control against hand-computed values (paper, section 3)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from rig.control import PID, Controller, controller_step, make_controller_params, new_controller_state
+
+
+def test_pid_terms_hand_computed():
+    # kp = 2 N/µm, ki = 10 N/(µm s), kd = 0.01 N s/µm, dt = 1 ms
+    pid = PID(2.0, 10.0, 0.01, dt_s=1e-3, integral_max_N=1e6, output_max_N=1e6)
+    errors = [1.0, 3.0, -2.0, 0.5]
+    outs = [pid.step(e, 0.0) for e in errors]
+    # tick 0: P = 2, I = 0 (no prior errors), D = 0 (no previous error)
+    assert outs[0] == pytest.approx((2.0, 2.0, 0.0, 0.0))
+    # tick 1: P = 6, I = ki dt (1) = 0.01, D = kd (3 - 1)/dt = 20
+    assert outs[1][1:] == pytest.approx((6.0, 0.01, 20.0))
+    assert outs[1][0] == pytest.approx(26.01)
+    # tick 2: I = 10 * 1e-3 * (1 + 3) = 0.04, D = 0.01 * (-5) / 1e-3 = -50
+    assert outs[2][1:] == pytest.approx((-4.0, 0.04, -50.0))
+    # tick 3: I = 0.01 * (1 + 3 - 2) = 0.02 (prior errors only), D = 0.01 * 2.5 / 1e-3 = 25
+    assert outs[3][1:] == pytest.approx((1.0, 0.02, 25.0))
+
+
+def test_pid_measured_position_sign():
+    pid = PID(1.0, 0.0, 0.0)
+    out, p, i, d = pid.step(10.0, 7.5)  # error = ref - measured = 2.5 µm
+    assert p == pytest.approx(2.5) and out == pytest.approx(2.5)
+
+
+def test_pid_output_clamp_and_saturated_flag():
+    pid = PID(100.0, 0.0, 0.0, output_max_N=50.0)
+    out, p, _, _ = pid.step(1.0, 0.0)
+    assert p == pytest.approx(100.0)
+    assert out == pytest.approx(50.0) and pid.saturated
+    out, *_ = pid.step(-1.0, 0.0)
+    assert out == pytest.approx(-50.0) and pid.saturated
+    out, *_ = pid.step(0.1, 0.0)
+    assert out == pytest.approx(10.0) and not pid.saturated
+
+
+def test_pid_anti_windup_stops_integrating_while_saturated():
+    pid = PID(10.0, 100.0, 0.0, dt_s=1e-3, output_max_N=5.0, integral_max_N=1e6)
+    for _ in range(1000):
+        pid.step(1.0, 0.0)  # P alone (10 N) saturates: the integral must not grow
+    _, _, i_sat, _ = pid.step(1.0, 0.0)
+    # the output saturated from the first tick on, so no error entered the sum
+    assert i_sat == 0.0
+    # an error of the opposite sign (output no longer saturated) integrates
+    pid.step(-0.1, 0.0)
+    _, _, i2, _ = pid.step(-0.1, 0.0)
+    assert i2 == pytest.approx(-100.0 * 1e-3 * 0.1)
+    # unsaturated, the integral after 1001 prior errors is 100 * 1e-3 * 1001
+    free = PID(10.0, 100.0, 0.0, dt_s=1e-3, output_max_N=1e9, integral_max_N=1e9)
+    for _ in range(1001):
+        free.step(1.0, 0.0)
+    assert free.step(1.0, 0.0)[2] == pytest.approx(100.0 * 1e-3 * 1001)
+
+
+def test_pid_integral_clamp():
+    pid = PID(0.0, 1000.0, 0.0, dt_s=1e-3, integral_max_N=3.0, output_max_N=1e9)
+    for _ in range(100):
+        out, _, i, _ = pid.step(1.0, 0.0)
+    assert i == pytest.approx(3.0) and out == pytest.approx(3.0)
+
+
+def test_pid_reset():
+    pid = PID(1.0, 1.0, 1.0)
+    for _ in range(5):
+        pid.step(1.0, 0.0)
+    pid.reset()
+    assert pid.step(2.0, 0.0) == pytest.approx((2.0, 2.0, 0.0, 0.0))
+
+
+def _run_controller(c, n, err_fn):
+    s = new_controller_state()
+    out = np.empty((n, 5))
+    for k in range(n):
+        out[k] = controller_step(c, s, err_fn(k), 0.0)
+    return out
+
+
+def test_dither_is_500hz_at_01_percent_of_pid_output_in_valve_command():
+    ffs = 1000.0
+    c = make_controller_params(2.0, 0.0, 0.0, 1e-3, full_scale_force_N=ffs, output_max_N=ffs,
+                               dither_frequency_hz=500.0, dither_amplitude_fraction=1e-3,
+                               dither_reference="pid_output", dither_smoothing_s=0.05)
+    n = 4096
+    out = _run_controller(c, n, lambda k: 10.0)  # constant PID output 20 N
+    valve = out[:, 0]
+    # steady part: valve = 20/1000 +- 0.001 * 20 / 1000 alternating
+    tail = valve[2048:]
+    spec = np.abs(np.fft.rfft(tail - tail.mean())) / tail.size
+    freqs = np.fft.rfftfreq(tail.size, d=1e-3)
+    k = int(np.argmax(spec))
+    assert freqs[k] == pytest.approx(500.0)
+    # at Nyquist the rfft bin holds the full amplitude (cos(pi n) = +-1)
+    assert spec[k] == pytest.approx(1e-3 * 20.0 / ffs, rel=1e-3)
+    assert spec[:k].max() < 1e-3 * spec[k]
+    assert tail.mean() == pytest.approx(20.0 / ffs, rel=1e-4)
+    # the dither reaches the valve at every tick (not sin(pi n) = 0)
+    assert np.all(np.abs(out[2048:, 4]) == pytest.approx(0.02, rel=1e-3))
+
+
+def test_dither_full_scale_mode_and_valve_saturation():
+    c = make_controller_params(1e6, 0.0, 0.0, 1e-3, full_scale_force_N=100.0, output_max_N=1e9,
+                               dither_amplitude_fraction=1e-3, dither_reference="full_scale")
+    out = _run_controller(c, 10, lambda k: 0.0)
+    assert np.allclose(np.abs(out[:, 4]), 0.1)  # 0.1 % of 100 N
+    assert np.allclose(out[:, 0], out[:, 4] / 100.0)
+    sat = _run_controller(c, 4, lambda k: 1.0)  # 1e6 N demand: valve saturates at +1
+    assert np.all(sat[:, 0] == 1.0)
+
+
+def test_controller_wrapper_matches_kernel():
+    c = make_controller_params(0.5, 5.0, 0.003, 1e-3)
+    ctl = Controller(c)
+    s = new_controller_state()
+    rng = np.random.default_rng(0)
+    for e in rng.normal(size=50):
+        d = ctl.step(e, 0.0)
+        ref = controller_step(c, s, e, 0.0)
+        assert (d["valve_cmd"], d["pid_p"], d["pid_i"], d["pid_d"], d["dither"]) == ref
