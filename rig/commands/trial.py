@@ -281,13 +281,20 @@ def run_command(
         return
 
     run_hw = None
+    aborted_types: tuple = (KeyboardInterrupt,)
     if hardware is not None:
         try:
-            from rig.hardware.runner import run_hardware_trial as run_hw  # noqa: F811
+            from rig.hardware import runner as hw_runner
         except ModuleNotFoundError as exc:
-            if exc.name and exc.name.startswith("rig.hardware"):
+            if exc.name and (exc.name == "rig.hardware" or exc.name.startswith("rig.hardware.")):
                 _fail("hardware support is not installed (rig.hardware.runner is missing); use --sim", EXIT_FAILURE)
             raise
+        run_hw = getattr(hw_runner, "run_hardware_trial", None)
+        if run_hw is None:
+            _fail("rig.hardware.runner has no run_hardware_trial(); hardware support incomplete", EXIT_FAILURE)
+        aborted = getattr(hw_runner, "HardwareTrialAborted", None)
+        if isinstance(aborted, type):
+            aborted_types = (KeyboardInterrupt, aborted)
 
     out = out or Path("out") / f"{recipe.name}.mcap"
     if out.suffix.lower() != ".mcap":
@@ -326,7 +333,7 @@ def run_command(
                 else:
                     result = run_sim_trial(plan, recipe, profile, writer, prog, friction_model=fm,
                                            seed=trial_seed, normal_force_N=recipe.normal_force_N)
-        except KeyboardInterrupt:
+        except aborted_types:
             status = "interrupted"
             exit_code = EXIT_INTERRUPTED
         except Exception as exc:  # a failure while running: keep what was logged
