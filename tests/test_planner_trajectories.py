@@ -158,3 +158,14 @@ def test_start_position_adds_an_approach():
     assert p.segments[0]["index"] == -1 and p.segments[0]["kind"] == "move"
     assert p.segments[1]["x_start_um"] == pytest.approx(1000.0)
     assert p.x_ref_um[0] == pytest.approx(500.0)
+
+
+def test_default_speed_limit_and_hardware_stroke_interlocks():
+    prof = {"loop": {"rate_hz": 1000}, "stroke": {"min_um": 0, "max_um": 5000, "home_um": 500},
+            "hardware": {"interlocks": {"stroke_max_um": 3000}}}
+    r = recipe("  - kind: move\n    position_um: 3500\n    speed_um_s: 100\n")
+    with pytest.raises(PlanError, match=r"outside the stroke \[0, 3000\]"):
+        compile_recipe(r, prof)
+    r = recipe("  - kind: move\n    position_um: 3500\n    speed_um_s: 1500\n")
+    with pytest.raises(PlanError, match="planner's default"):
+        compile_recipe(r, {"stroke": {"home_um": 500}})

@@ -35,6 +35,9 @@ import numpy as np
 from rig.recipe import Hold, Move, Recipe, RunIn, SteppedPass, VelocitySteps
 
 MAX_PLAN_DURATION_S = 8 * 3600.0
+# Used when the rig profile gives no actuator.max_speed_um_s: 1 mm/s, five times the paper's
+# fastest velocity (200 µm/s, section 4) -- an assumption, not a property of the sim plant.
+DEFAULT_MAX_SPEED_UM_S = 1000.0
 _EPS_UM = 1e-9
 
 
@@ -63,10 +66,11 @@ class RigLimits:
     loop_rate_hz: float = 1000.0
     stroke_min_um: float = 0.0
     stroke_max_um: float = 5000.0
-    max_speed_um_s: float = math.inf
+    max_speed_um_s: float = DEFAULT_MAX_SPEED_UM_S
     max_accel_um_s2: float = math.inf
     initial_position_um: float = 0.0
     source: str = "defaults"
+    max_speed_note: str = ""
 
 
 def _get(obj: Any, *names: str, default=None):
@@ -111,16 +115,25 @@ def rig_limits(profile: Any) -> RigLimits:
         lo = float(hi) - (5000.0 if length is None else float(length))
     elif hi is None:
         hi = float(lo) + (5000.0 if length is None else float(length))
+    # a hardware profile's interlocks may narrow the stroke (rig.hardware.interlocks)
+    hw_lo = _get(profile, "hardware.interlocks.stroke_min_um")
+    hw_hi = _get(profile, "hardware.interlocks.stroke_max_um")
+    if hw_lo is not None:
+        lo = max(float(lo), float(hw_lo))
+    if hw_hi is not None:
+        hi = min(float(hi), float(hw_hi))
     vmax = _get(profile, "actuator.max_speed_um_s", "actuator.max_velocity_um_s", "actuator.v_max_um_s",
-                "limits.max_speed_um_s", default=math.inf)
+                "limits.max_speed_um_s", "hardware.interlocks.max_speed_um_s", default=DEFAULT_MAX_SPEED_UM_S)
     amax = _get(profile, "actuator.max_accel_um_s2", "actuator.max_acceleration_um_s2",
                 "limits.max_accel_um_s2", default=math.inf)
     x0 = _get(profile, "initial_position_um", "stroke.initial_position_um", "stroke.home_um",
               "actuator.initial_position_um", "plant.initial_position_um", default=0.0)
     src = _get(profile, "source_path", "path", "name", default="profile")
+    note = "" if vmax is not DEFAULT_MAX_SPEED_UM_S else \
+        "; the planner's default: the profile sets no actuator.max_speed_um_s"
     return RigLimits(loop_rate_hz=rate, stroke_min_um=float(lo), stroke_max_um=float(hi),
                      max_speed_um_s=float(vmax), max_accel_um_s2=float(amax),
-                     initial_position_um=float(x0), source=str(src))
+                     initial_position_um=float(x0), source=str(src), max_speed_note=note)
 
 
 # ---------------------------------------------------------------------------
@@ -338,7 +351,7 @@ def compile_recipe(recipe: Recipe, profile: Any = None) -> Plan:
         asked = _segment_speeds(seg)
         if asked > lim.max_speed_um_s:
             fail(f"speed {asked:g} µm/s exceeds the actuator's maximum {lim.max_speed_um_s:g} µm/s "
-                 f"(profile {lim.source})")
+                 f"(profile {lim.source}{lim.max_speed_note})")
 
         row0 = len(b.rows)
         t_start, x_start = b.t, b.x
