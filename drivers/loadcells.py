@@ -74,6 +74,7 @@ class LoadCellReader:
         self.consecutive_errors = 0
         self.status = 0
         self.counter = 0
+        self.reads_since_new = 0  # reads (loop ticks) without a new sample
 
     # -- lifecycle -----------------------------------------------------------------
     def connect(self) -> None:
@@ -119,6 +120,7 @@ class LoadCellReader:
                                                          device_id=c.device_id)
         except Exception as exc:  # noqa: BLE001 - ModbusIOException, ConnectionException, OSError
             self._error()
+            self._resync()
             raise DeviceError(DEVICE, self.address, f"no answer: {exc}") from exc
         if rr.isError():
             self._error()
@@ -134,6 +136,14 @@ class LoadCellReader:
         self.consecutive_errors = 0
         self.n_reads += 1
         return regs
+
+    def _resync(self) -> None:
+        """After a timeout, drop the connection so a late answer cannot be taken for the next one."""
+        try:
+            self._client.close()
+            self._client.connect()
+        except Exception:  # noqa: BLE001 - reported by the next read
+            pass
 
     def _error(self):
         self.n_errors += 1
@@ -156,6 +166,9 @@ class LoadCellReader:
             if cnt != self._last_counter:
                 self._last_counter = cnt
                 self._last_change_t = now
+                self.reads_since_new = 0
+            else:
+                self.reads_since_new += 1
             self.counter = cnt
         else:
             self._last_change_t = now

@@ -105,6 +105,7 @@ class LvdtReader:
         self.status = 0
         self.seq = -1
         self.last_frame_t = 0.0
+        self.polls_since_frame = 0  # polls (loop ticks) without a new good frame
 
     def connect(self) -> None:
         import serial
@@ -138,9 +139,13 @@ class LvdtReader:
         except Exception as exc:  # noqa: BLE001 - port vanished
             raise DeviceError(DEVICE, self.address, f"port lost: {exc}") from exc
         if not data:
+            self.polls_since_frame += 1
             return 0
         frames = self.parser.feed(data)
-        if frames:
+        if not frames:
+            self.polls_since_frame += 1
+        else:
+            self.polls_since_frame = 0
             seq, counts, status = frames[-1]
             pos = counts * self.cfg.um_per_count
             self.position_um = (-pos if self.cfg.invert else pos) + self.cfg.offset_um

@@ -96,6 +96,7 @@ class ValveController:
         self.send_errors = 0
         self.consecutive_send_errors = 0
         self.bus_error_frames = 0
+        self.polls_since_status = 0
 
     def connect(self) -> None:
         try:
@@ -161,6 +162,9 @@ class ValveController:
                 n += 1
         if n:
             self.last_status_t = time.monotonic() if now is None else now
+            self.polls_since_status = 0
+        else:
+            self.polls_since_status += 1
         return n
 
     def wait_status(self, timeout_s: float = 0.5) -> None:

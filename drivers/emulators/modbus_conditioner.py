@@ -19,8 +19,44 @@ from drivers.config import LoadCellConfig
 from drivers.loadcells import CHANNELS, encode_value
 
 
+FAULT_KEYS = ("slow_s", "silent", "exception", "freeze_counter")
+
+
+class SharedSample:
+    """Forces, counter, status and faults in shared memory, so the server can run in its
+    own process (no GIL shared with the plant). Seqlock: ``seq`` is odd while writing."""
+
+    def __init__(self, ctx):
+        self.vals = ctx.Array("d", 6, lock=False)    # seq, f, n1, n2, counter, status
+        self.faults = ctx.Array("d", len(FAULT_KEYS), lock=False)
+
+    def write(self, forces, counter, status):
+        v = self.vals
+        v[0] += 1
+        v[1], v[2], v[3] = forces
+        v[4] = counter
+        v[5] = status
+        v[0] += 1
+
+    def read(self):
+        v = self.vals
+        for _ in range(100):
+            s0 = v[0]
+            out = ([v[1], v[2], v[3]], int(v[4]), int(v[5]))
+            if s0 == v[0] and int(s0) % 2 == 0:
+                return out
+        return out
+
+    def set_fault(self, key, value):
+        self.faults[FAULT_KEYS.index(key)] = 0.0 if value in (None, False) else float(value)
+
+    def fault_dict(self) -> dict:
+        return {k: self.faults[i] for i, k in enumerate(FAULT_KEYS) if self.faults[i]}
+
+
 class ModbusConditionerEmulator:
-    def __init__(self, cfg: LoadCellConfig, rtu_server_port: str | None = None):
+    def __init__(self, cfg: LoadCellConfig, rtu_server_port: str | None = None,
+                 shared: SharedSample | None = None):
         """``rtu_server_port``: for RTU, the serial port the *server* opens (the
         other end of the pty bridge from ``cfg.serial_port``)."""
         self.cfg = cfg
@@ -29,6 +65,7 @@ class ModbusConditionerEmulator:
         self.counter = 0
         self.status = 0
         self.faults: dict = {}
+        self.shared = shared
         self.n_requests = 0
         self._loop: asyncio.AbstractEventLoop | None = None
         self._server = None
@@ -48,6 +85,8 @@ class ModbusConditionerEmulator:
         """Address -> register value for the current sample (what a read returns)."""
         c = self.cfg
         out: dict[int, int] = {}
+        if self.shared is not None:
+            self.forces, self.counter, self.status = self.shared.read()
         for ch, f in zip(CHANNELS, self.forces):
             cal = getattr(c, ch)
             raw = (f - cal.offset) / cal.scale
@@ -63,7 +102,7 @@ class ModbusConditionerEmulator:
         from pymodbus.constants import ExcCodes
 
         self.n_requests += 1
-        f = self.faults
+        f = self.faults if self.shared is None else self.shared.fault_dict()
         if f.get("silent"):
             await asyncio.sleep(3600)
         if f.get("slow_s"):
@@ -130,3 +169,45 @@ class ModbusConditionerEmulator:
                 pass
         if self._thread is not None:
             self._thread.join(timeout=3)
+
+
+def modbus_server_main(cfg_dict, shared: SharedSample, rtu_server_port, fifo_priority, conn):
+    """Entry of the Modbus server process (started by :class:`drivers.emulators.rig.EmulatedRig`)."""
+    import logging
+    import os
+    import signal
+    import sys
+    import time
+
+    from drivers.emulators.rig import _set_pdeathsig
+
+    _set_pdeathsig()
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
+    sys.setswitchinterval(1e-4)
+    if fifo_priority:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(fifo_priority))
+        except (OSError, AttributeError):
+            pass
+    em = ModbusConditionerEmulator(LoadCellConfig.model_validate(cfg_dict), rtu_server_port, shared)
+    try:
+        em.start()
+    except Exception as exc:  # noqa: BLE001
+        conn.send(("error", str(exc)))
+        return
+    conn.send(("ready", None))
+    stop = {"flag": False}
+    signal.signal(signal.SIGTERM, lambda *_: stop.update(flag=True))
+    while not stop["flag"]:
+        if conn.poll(0.1):
+            try:
+                req = conn.recv()
+            except EOFError:
+                break
+            if req[0] == "stats":
+                conn.send(("stats", em.n_requests))
+            elif req[0] == "stop":
+                break
+    em.stop()
+    del time

@@ -23,7 +23,9 @@ from pathlib import Path
 
 from drivers.config import HardwareConfig, parse_hardware
 from drivers.emulators.lvdt_streamer import LvdtStreamer
-from drivers.emulators.modbus_conditioner import ModbusConditionerEmulator
+from drivers.emulators.modbus_conditioner import (
+    ModbusConditionerEmulator, SharedSample, modbus_server_main,
+)
 from drivers.emulators.pty import PtyBridge
 from drivers.emulators.valve_controller import ValveControllerEmulator
 
@@ -65,10 +67,26 @@ def sim_plant(profile, lubricant: str | None = None, normal_force_N: float | Non
     return SimRig(profile, model, **kwargs)
 
 
+class _RemoteModbus:
+    """The plant side of a Modbus server running in its own process."""
+
+    def __init__(self, shared: SharedSample):
+        self.shared = shared
+        self.counter = 0
+        self.status = 0
+        self.n_requests = 0
+        self.faults: dict = {}
+
+    def update(self, friction_N, normal_1_N, normal_2_N):
+        if not self.shared.faults[3]:  # freeze_counter
+            self.counter = (self.counter + 1) & 0xFFFF
+        self.shared.write((friction_N, normal_1_N, normal_2_N), self.counter, self.status)
+
+
 class EmulatedRig:
     """Modbus conditioner + LVDT streamer + valve controller around one plant."""
 
-    def __init__(self, hw: HardwareConfig, plant, period_s: float = 1e-3):
+    def __init__(self, hw: HardwareConfig, plant, period_s: float = 1e-3, modbus_process: bool = False):
         self.hw = hw
         self.plant = plant
         self.period_s = period_s
@@ -78,7 +96,15 @@ class EmulatedRig:
         rtu_server_port = None
         if hw.loadcells.transport == "rtu":
             rtu_server_port = hw.loadcells.serial_port + ".server"
-        self.modbus = ModbusConditionerEmulator(hw.loadcells, rtu_server_port=rtu_server_port)
+        self.rtu_server_port = rtu_server_port
+        self.modbus_process = modbus_process
+        self._mb_proc = self._mb_conn = None
+        if modbus_process:
+            self.shared = SharedSample(mp.get_context("spawn"))
+            self.modbus = _RemoteModbus(self.shared)
+        else:
+            self.shared = None
+            self.modbus = ModbusConditionerEmulator(hw.loadcells, rtu_server_port=rtu_server_port)
         self.lvdt = LvdtStreamer(hw.lvdt)
         self.valve = ValveControllerEmulator(hw.valve, watchdog_s=em.watchdog_s,
                                              status_period_s=em.status_period_s)
@@ -86,6 +112,9 @@ class EmulatedRig:
         self.steps = 0
         self.free_steps = 0
         self.lock_steps = 0
+        self.max_gap_s = 0.0   # longest time between two plant steps while serving
+        self.gaps_over_5ms = 0
+        self._last_step_t = None
         self.running = False
 
     def start(self) -> None:
@@ -94,18 +123,50 @@ class EmulatedRig:
                                     self.hw.loadcells.serial_port + ".server")
         self.lvdt.start()
         self.valve.start()
-        self.modbus.start()
+        if self.modbus_process:
+            ctx = mp.get_context("spawn")
+            self._mb_conn, child = ctx.Pipe()
+            em = self.hw.emulators
+            self._mb_proc = ctx.Process(target=modbus_server_main, name="rig-emulator-modbus", daemon=True,
+                                        args=(self.hw.loadcells.model_dump(), self.shared,
+                                              self.rtu_server_port,
+                                              em.priority if em.sched_fifo else 0, child))
+            self._mb_proc.start()
+            if not self._mb_conn.poll(30):
+                raise RuntimeError("Modbus emulator process did not start")
+            kind, payload = self._mb_conn.recv()
+            if kind != "ready":
+                raise RuntimeError(f"Modbus emulator failed: {payload}")
+        else:
+            self.modbus.start()
         self.step(0.0)
 
     def stop(self) -> None:
         self.running = False
-        self.modbus.stop()
+        if self._mb_proc is not None:
+            try:
+                self._mb_conn.send(("stop",))
+            except OSError:
+                pass
+            self._mb_proc.join(3)
+            if self._mb_proc.is_alive():
+                self._mb_proc.kill()
+        else:
+            self.modbus.stop()
         self.valve.stop()
         self.lvdt.stop()
         if self.bridge is not None:
             self.bridge.close()
 
     def step(self, cmd: float) -> None:
+        now = time.monotonic()
+        if self._last_step_t is not None and self.running:
+            gap = now - self._last_step_t
+            if gap > self.max_gap_s:
+                self.max_gap_s = gap
+            if gap > 0.005:
+                self.gaps_over_5ms += 1
+        self._last_step_t = now
         out = self.plant.plant_step(float(cmd))
         vals = {k: float(out[k]) for k in SENSOR_KEYS}
         self.last = vals
@@ -118,6 +179,9 @@ class EmulatedRig:
         if device == "lvdt" and fault == "vanish":
             if value:
                 self.lvdt.vanish()
+            return
+        if device == "loadcells" and self.shared is not None:
+            self.shared.set_fault(fault, value)
             return
         target = {"loadcells": self.modbus, "lvdt": self.lvdt, "valve": self.valve}[device]
         if value is None or value is False:
@@ -198,7 +262,7 @@ def _emulator_main(hw_dict, profile, lubricant, normal_force_N, seed, conn, plan
         else:
             plant = sim_plant(profile, lubricant, normal_force_N, seed)
             plant.plant_step(0.0)  # compile (numba) before serving
-        rig = EmulatedRig(hw, plant, 1.0 / _rate_of(profile))
+        rig = EmulatedRig(hw, plant, 1.0 / _rate_of(profile), modbus_process=True)
         if hw.emulators.sched_fifo:
             try:
                 os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(hw.emulators.priority))
@@ -229,7 +293,9 @@ def _emulator_main(hw_dict, profile, lubricant, normal_force_N, seed, conn, plan
                                      "valve_watchdog": rig.valve.watchdog_tripped(time.monotonic()),
                                      "n_setpoints": rig.valve.n_setpoints,
                                      "modbus_requests": rig.modbus.n_requests,
-                                     "lvdt_sent": rig.lvdt.sent}))
+                                     "lvdt_sent": rig.lvdt.sent, "max_gap_s": rig.max_gap_s,
+                                     "gaps_over_5ms": rig.gaps_over_5ms,
+                                     "lvdt_overflow": rig.lvdt.overflow}))
             elif op == "reset":
                 x0, v0 = req[1], req[2]
                 if hasattr(rig.plant, "reset"):
@@ -312,7 +378,8 @@ def start_emulator_process(hw: HardwareConfig | dict, profile=None, lubricant: s
     ctx = mp.get_context("spawn")
     parent, child = ctx.Pipe()
     em = hw.emulators
-    proc = ctx.Process(target=_emulator_main, name="rig-emulator", daemon=True,
+    # not a daemon: it starts the Modbus server process; stopped by the handle (atexit too)
+    proc = ctx.Process(target=_emulator_main, name="rig-emulator", daemon=False,
                        args=(hw.model_dump(), profile, lubricant or em.lubricant,
                              normal_force_N if normal_force_N is not None else em.normal_force_N,
                              em.seed if seed is None else seed, child, plant))
@@ -328,7 +395,11 @@ def start_emulator_process(hw: HardwareConfig | dict, profile=None, lubricant: s
     if kind != "ready":
         proc.join(2)
         raise EmulatorError(f"emulators failed to start: {payload}")
-    return EmulatorHandle(proc, parent)
+    handle = EmulatorHandle(proc, parent)
+    import atexit
+
+    atexit.register(handle.stop, 2.0)
+    return handle
 
 
 __all__ = ["EmulatedRig", "IntegratorPlant", "start_emulator_process", "EmulatorHandle",

@@ -38,8 +38,11 @@ class Trip:
 
 class Interlocks:
     def __init__(self, cfg: InterlockConfig, stroke_min_um: float, stroke_max_um: float,
-                 heartbeat_timeout_s: float):
+                 heartbeat_timeout_s: float, period_s: float = 1e-3):
         self.cfg = cfg
+        # stale = older than stale_s AND no new data over that many loop ticks, so that a
+        # stall of the whole machine (the loop itself late) is not taken for a dead device
+        self.stale_ticks = max(2, int(round(cfg.stale_s / period_s)))
         self.x_min = cfg.stroke_min_um if cfg.stroke_min_um is not None else stroke_min_um
         self.x_max = cfg.stroke_max_um if cfg.stroke_max_um is not None else stroke_max_um
         self.hb_timeout = heartbeat_timeout_s
@@ -61,11 +64,11 @@ class Interlocks:
             self.late_run = 0
         # stale data
         a = lvdt.age_s(now)
-        if a > c.stale_s:
+        if a > c.stale_s and lvdt.polls_since_frame >= self.stale_ticks:
             return Trip("stale_position", f"no LVDT frame from {lvdt.address} for {a * 1e3:.1f} ms",
                         t_s, {"age_s": a, "limit_s": c.stale_s})
         a = loadcells.age_s(now)
-        if a > c.stale_s:
+        if a > c.stale_s and loadcells.reads_since_new >= self.stale_ticks:
             return Trip("stale_forces", f"load-cell sample counter at {loadcells.address} "
                         f"unchanged for {a * 1e3:.1f} ms", t_s, {"age_s": a, "limit_s": c.stale_s})
         # serial checksum errors per second
@@ -90,7 +93,7 @@ class Interlocks:
                         f"(code 0x{valve.fault_code:04x})", t_s,
                         {"status_bits": valve.status_bits, "fault_code": valve.fault_code})
         a = valve.heartbeat_age_s(now)
-        if a > self.hb_timeout:
+        if a > self.hb_timeout and valve.polls_since_status >= self.stale_ticks:
             return Trip("valve_heartbeat", f"no status frame from the servovalve controller at "
                         f"{valve.address} for {a * 1e3:.1f} ms", t_s,
                         {"age_s": a, "limit_s": self.hb_timeout})

@@ -43,6 +43,7 @@ class _Block:
         self.late = np.empty(n)
         self.period = np.empty(n)
         self.exec = np.empty(n)
+        self.t_modbus = np.empty(n)
         self.i = 0
         self.skipped = 0
 
@@ -50,7 +51,8 @@ class _Block:
         i = self.i
         blk = {k: v[:i].copy() for k, v in self.a.items()}
         tim = {"late_s": self.late[:i].copy(), "period_s": self.period[:i].copy(),
-               "exec_s": self.exec[:i].copy(), "skipped": self.skipped}
+               "exec_s": self.exec[:i].copy(), "modbus_s": self.t_modbus[:i].copy(),
+               "skipped": self.skipped}
         self.i = 0
         self.skipped = 0
         return blk, tim
@@ -97,7 +99,7 @@ def _run(hw_dict, profile, x_ref, out_q, abort_flag, stop_req, options):
     lv = LvdtReader(hw.lvdt)
     va = ValveController(hw.valve)
     smin, smax = _stroke_of(profile)
-    il = Interlocks(hw.interlocks, smin, smax, hw.valve.heartbeat_timeout_s)
+    il = Interlocks(hw.interlocks, smin, smax, hw.valve.heartbeat_timeout_s, period)
     devices = []
     try:
         for dev in (lc, lv, va):
@@ -144,6 +146,14 @@ def _run(hw_dict, profile, x_ref, out_q, abort_flag, stop_req, options):
     out_q.put(("event", 0.0, "loop_start", {"sched": rt_info["sched"], "note": rt_info["note"]}))
 
     stop_k = n_ticks
+    try:
+        lv.poll()
+        va.poll()
+    except DeviceError:
+        pass
+    lv.polls_since_frame = 0
+    lc.reads_since_new = 0
+    va.polls_since_status = 0
     pacer.start()
     prev_wake = float("nan")
     mono = time.monotonic
@@ -166,12 +176,14 @@ def _run(hw_dict, profile, x_ref, out_q, abort_flag, stop_req, options):
             x = lv.position_um
         except DeviceError as exc:
             dev_trip = il.device_error(t_s, exc, err_counts)
+        c1 = perf()
         try:
             f, n1, n2 = lc.read(wake)
             err_counts["modbus"] = 0
         except DeviceError as exc:
             err_counts["modbus"] += 1
             dev_trip = dev_trip or il.device_error(t_s, exc, err_counts)
+        blk.t_modbus[blk.i] = perf() - c1
         try:
             va.poll(wake)
         except DeviceError as exc:

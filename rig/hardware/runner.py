@@ -130,6 +130,9 @@ def run_hardware_trial(plan, recipe, profile, writer, progress=None, *, emulator
                 blk, tim = msg[1], msg[2]
                 writer.write_block(blk)
                 stats.add(tim["late_s"], tim["period_s"], tim["exec_s"], tim["skipped"])
+                if "modbus_s" in tim and tim["modbus_s"].size:
+                    stats.modbus_max_s = max(getattr(stats, "modbus_max_s", 0.0), float(tim["modbus_s"].max()))
+                    stats.modbus_slow = getattr(stats, "modbus_slow", 0) + int((tim["modbus_s"] > 1e-3).sum())
                 t_last = float(blk["t_s"][-1])
                 if t_last >= next_stats - 0.5 / rate_hz:
                     w = stats.window()
@@ -160,6 +163,8 @@ def run_hardware_trial(plan, recipe, profile, writer, progress=None, *, emulator
         if own_emulator is not None:
             own_emulator.stop()
     final = stats.final()
+    final["modbus_max_us"] = getattr(stats, "modbus_max_s", 0.0) * 1e6
+    final["modbus_over_1ms"] = getattr(stats, "modbus_slow", 0)
     summary["timing"] = final
     summary["realtime"] = info.get("realtime")
     if final.get("n"):

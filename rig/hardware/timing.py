@@ -212,6 +212,8 @@ def format_stats(s: dict, title: str = "loop timing") -> str:
         f"max {s.get('period_max_us', float('nan')):8.1f} µs   jitter {s.get('jitter_us', float('nan')):8.1f} µs",
         f"  exec      p50 {s['exec_p50_us']:8.1f} µs   p99 {s['exec_p99_us']:8.1f} µs   "
         f"max {s['exec_max_us']:8.1f} µs",
+        (f"  Modbus request max {s['modbus_max_us']:8.1f} µs, {s['modbus_over_1ms']} over 1 ms\n"
+         if "modbus_max_us" in s else "") +
         f"  late > 100 µs: {s['late_over_100us']}   > 500 µs: {s['late_over_500us']}   "
         f"> 1 ms: {s['late_over_1000us']}",
     ]
