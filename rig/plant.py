@@ -86,10 +86,10 @@ Q_NL_SIG = 46
 Q_SL_ON = 47     # sensor_lag extension on
 Q_SL_A = 48      # exp(-dt/tau_s)
 Q_DRIFT = 49     # force_offset_drift (N/s)
-Q_DELAY = 50     # delay in ticks (steady_state baseline: >= 1)
-Q_STEADY = 51    # 1: steady_state baseline (mu_ss of a delayed velocity + tiny direct effect)
-Q_AREG = 52      # that direct effect (1)
-Q_VFLOOR = 53    # floor on |v| in mu_ss (µm/s)
+Q_DELAY = 50     # time_delay in ticks (0 = none)
+Q_STEADY = 51    # 1: memoryless model on an interface with mass (time_delay, or slope <= 0)
+Q_MIH = 52       # interface mass / substep, in N s/µm (m_i 1e-6 / h)
+Q_SPARE = 53
 N_QPAR = 54
 
 # ---------------------------------------------------------------------------
@@ -132,9 +132,16 @@ def normal_forces(q, x_t):
 
 
 @njit(cache=True)
-def friction_law_delayed(q, fp, fs, v_del, x_t):
-    """(base, a) for a steady_state baseline with the delayed velocity ``v_del``."""
-    v0 = fp[P_V0]
+def friction_law(q, fp, fs, x_t, v_mag):
+    """(base, a) of mu(v) = sign(v) R(|v|) at LVDT-point position ``x_t``.
+
+    Rate-and-state models (and steady_state ones with a positive slope): R = a asinh(|v|/(2
+    V0) e^{base/a}) (a > 0) or a smooth sign of height ``base`` (a = 0), with the state(s),
+    the position-periodic and the wear terms (rig.friction.mu_of) folded into ``base``.
+    Memoryless models on the interface mass (Q_STEADY): a = 0 and base = mu_ss(v_mag), the
+    log argument held at v_reg near 0 (as rig.friction.mu_of does), ``v_mag`` being the
+    delayed (time_delay) or the previous substep's slip velocity.
+    """
     extra = fs[S_THETA2]
     if fp[P_AMP] != 0.0:
         extra += fp[P_AMP] * math.sin(2.0 * math.pi * x_t / fp[P_WAVE] + fp[P_PHASE])
@@ -142,10 +149,42 @@ def friction_law_delayed(q, fp, fs, v_del, x_t):
         extra += fp[P_WEAR] * fs[S_SLIP] * 1e-3
     if fp[P_STATE_ON] > 0.5:
         return fp[P_MU0] + fs[S_THETA] + extra, fp[P_A]
-    vd = max(abs(v_del), q[Q_VFLOOR])
-    lv = math.log(vd / v0)
-    areg = q[Q_AREG]
-    return fp[P_MU0] + extra + (fp[P_A] - areg) * lv, areg
+    if q[Q_STEADY] < 0.5:
+        return fp[P_MU0] + extra, fp[P_A]
+    vd = max(abs(v_mag), fp[P_VREG])
+    return fp[P_MU0] + extra + fp[P_A] * math.log(vd / fp[P_V0]), 0.0
+
+
+@njit(cache=True)
+def solve_slip_mass(p2, q2, ntot, base, vreg, mih, v_old):
+    """Interface with mass m_i: solve m_i (v - v_old)/h = p2 + q2 v - ntot base s(v) for v,
+    s(v) = v / sqrt(v^2 + v_reg^2) (backward Euler; the left side minus the right is
+    increasing in v, so the root is unique). Safeguarded Newton. Returns (v, mu)."""
+    k = mih - q2
+    rhs = mih * v_old + p2
+    b = base if base > 0.0 else 0.0
+    nb = ntot * b
+    lo = (rhs - nb) / k
+    hi = (rhs + nb) / k
+    v = min(max(v_old, lo), hi)
+    vr2 = vreg * vreg
+    for _ in range(200):
+        r2 = v * v + vr2
+        sr = math.sqrt(r2)
+        g = k * v - rhs + nb * v / sr
+        if g > 0.0:
+            hi = v
+        else:
+            lo = v
+        gp = k + nb * vr2 / (r2 * sr)
+        vn = v - g / gp
+        if not (lo < vn < hi):
+            vn = 0.5 * (lo + hi)
+        if abs(vn - v) <= 1e-13 * (abs(v) + vreg):
+            v = vn
+            break
+        v = vn
+    return v, b * v / math.sqrt(v * v + vr2)
 
 
 @njit(cache=True)
@@ -234,6 +273,7 @@ def plant_advance(q, fp, fs, st, ring, u):
     steady = q[Q_STEADY] > 0.5
     nr = ring.shape[0]
     rpos = int(st[Z_RPOS])
+    delayed = q[Q_DELAY] > 0.5
     v_del = ring[(rpos + 1) % nr]
     n1 = st[Z_N1]
     n2 = st[Z_N2]
@@ -265,10 +305,11 @@ def plant_advance(q, fp, fs, st, ring, u):
         p2 = q[Q_K + 6] * r0 + q[Q_K + 7] * r1 + q[Q_K + 8] * r2
         x_t = st[Z_XT]
         if steady:
-            base, a = friction_law_delayed(q, fp, fs, v_del, x_t)
+            base, a = friction_law(q, fp, fs, x_t, v_del if delayed else st[Z_VS])
+            vs, mu = solve_slip_mass(p2, q[Q_QV + 2], ntot, base, vreg, q[Q_MIH], st[Z_VS])
         else:
-            base, a = friction_law_delayed(q, fp, fs, 0.0, x_t)
-        vs, mu = solve_slip(p2, q[Q_QV + 2], ntot, base, a, v0, vreg)
+            base, a = friction_law(q, fp, fs, x_t, 0.0)
+            vs, mu = solve_slip(p2, q[Q_QV + 2], ntot, base, a, v0, vreg)
         va_new = p1 + q[Q_QV + 1] * vs
         st[Z_FA] = p0 + q[Q_QV + 0] * vs
         st[Z_FS] = p2 + q[Q_QV + 2] * vs

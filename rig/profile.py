@@ -176,9 +176,9 @@ class SimConfig(_Strict):
     substeps: int = Field(2, ge=1, le=1000, description="plant integration substeps per loop tick")
     initial_creep_um_s: float = Field(0.01, gt=0,
                                       description="state at steady state for this speed when starting at rest")
-    delay_direct_effect_mu: float = Field(
-        1e-4, gt=0, description="small direct effect that keeps a steady_state/time_delay model well posed")
-    velocity_floor_um_s: float = Field(1e-3, gt=0, description="floor on |v| in mu_ss(v) of steady_state models")
+    interface_mass_kg: float = Field(
+        0.2, gt=0, description="mass at the interface, used only for memoryless (steady_state) friction models "
+                               "with a delay or a negative slope, which are ill-posed on a massless interface")
 
 
 class RigProfile(_Strict):

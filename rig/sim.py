@@ -21,8 +21,10 @@ Friction-model extensions applied here (the sensor/fixture side, diagnosis.md):
 100 Hz filter), ``force_offset_drift`` (rate_N_per_s * t added to the measured
 friction), ``normal_force_variation`` (friction is always mu (N1 + N2), and the normal
 forces always vary), ``finite_stiffness`` (a compliance between the LVDT point and the
-interface), ``time_delay`` (steady_state baseline: mu_ss of the slip velocity delay_s
-ago, from a ring buffer, plus a tiny direct effect). The friction-law extensions
+interface), ``time_delay`` (steady_state baseline: |mu| = mu_ss of the slip velocity
+delay_s ago, from a ring buffer, the direction that of the current velocity; such a
+memoryless law, like one with a negative slope, is ill posed on a massless interface,
+so these models get the interface mass ``sim.interface_mass_kg``, see docs/sim.md). The friction-law extensions
 (second state, aging, wear, position-periodic) are in rig.friction's kernels.
 """
 
@@ -114,18 +116,18 @@ def build_plant_params(profile: RigProfile, model: FrictionModel, normal_force_N
         q[pl.Q_SL_A] = math.exp(-dt / tau_s) if tau_s > 0 else 0.0
     if "force_offset_drift" in model.extensions:
         q[pl.Q_DRIFT] = model.get("rate_N_per_s", 0.0)
+    # memoryless (steady_state) models with a delay or a negative slope need inertia at the
+    # interface (eq. 9 of Hess & Soom has it); a positive slope alone is well posed massless
     steady = not model.has_state
-    q[pl.Q_STEADY] = 1.0 if steady else 0.0
-    delay_ticks = 1
-    if "time_delay" in model.extensions:
-        if steady:
-            delay_ticks = max(1, int(round(model.get("delay_s", 0.0) / dt)))
-        else:
-            warnings.warn("time_delay applies to a steady_state baseline only (diagnosis.md); ignored for rate_state",
-                          stacklevel=3)
-    q[pl.Q_DELAY] = delay_ticks
-    q[pl.Q_AREG] = profile.sim.delay_direct_effect_mu
-    q[pl.Q_VFLOOR] = profile.sim.velocity_floor_um_s
+    delayed = "time_delay" in model.extensions
+    if delayed and not steady:
+        warnings.warn("time_delay applies to a steady_state baseline only (diagnosis.md); ignored for rate_state",
+                      stacklevel=3)
+        delayed = False
+    use_mass = steady and (delayed or model.get("c_mu") <= 0.0)
+    q[pl.Q_STEADY] = 1.0 if use_mass else 0.0
+    q[pl.Q_DELAY] = max(1, int(round(model.get("delay_s", 0.0) / dt))) if delayed else 0
+    q[pl.Q_MIH] = profile.sim.interface_mass_kg * 1e-6 / h
     return q
 
 
@@ -159,7 +161,7 @@ class SimRig:
         self.cs = new_controller_state()
         self.st = np.zeros(pl.N_ZSTATE)
         self.fs = np.zeros(N_STATE)
-        self.ring = np.zeros(int(self.q[pl.Q_DELAY]) + 1)
+        self.ring = np.zeros(max(1, int(self.q[pl.Q_DELAY])))  # slip velocity of the last `delay` ticks
         self._rng = np.random.Generator(np.random.PCG64(seed))
         self._page = np.zeros((0, 4))
         self._cursor = 0
