@@ -78,7 +78,11 @@ class LoadCellReader:
 
     # -- lifecycle -----------------------------------------------------------------
     def connect(self) -> None:
+        import logging
+
         from pymodbus.client import ModbusSerialClient, ModbusTcpClient
+
+        logging.getLogger("pymodbus").setLevel(logging.CRITICAL)  # failures are raised as DeviceError
         from pymodbus.framer import FramerType
 
         c = self.cfg

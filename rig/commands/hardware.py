@@ -1,0 +1,240 @@
+"""Hardware commands: ``rig devices check``, ``rig emulate``, ``rig loop-bench``.
+
+``rig devices check --hardware PROFILE [--start-emulators]`` connects to every
+device of the profile's ``hardware`` section, reads each once and says what
+answered (and where). ``rig emulate PROFILE`` serves the emulated devices in
+the foreground until Ctrl-C. ``rig loop-bench`` runs the 1 kHz loop against
+the emulators holding position and prints a LinuxCNC-style latency report.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import time
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Optional
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+console = Console()
+err_console = Console(stderr=True)
+
+DEFAULT_EMULATED = Path("config/rigs/emulated.yaml")
+
+
+def _fail(msg: str, code: int = 2):
+    err_console.print(f"[bold red]error:[/] {msg}", highlight=False)
+    raise typer.Exit(code)
+
+
+def _load(profile_path: Path):
+    from drivers.config import HardwareConfigError, hardware_of_profile
+    from rig.profile import ProfileError, load_profile
+
+    try:
+        profile = load_profile(profile_path)
+    except ProfileError as exc:
+        _fail(str(exc))
+    try:
+        hw = hardware_of_profile(profile, where=str(profile_path))
+    except HardwareConfigError as exc:
+        _fail(str(exc))
+    return profile, hw
+
+
+def check_devices(hw) -> list[dict]:
+    """Connect to each device, read it once; one row per device (never raises)."""
+    from drivers.errors import DeviceError
+    from drivers.loadcells import LoadCellReader
+    from drivers.lvdt import LvdtReader
+    from drivers.valve import ValveController
+
+    rows = []
+    lc = LoadCellReader(hw.loadcells)
+    try:
+        lc.connect()
+        f, n1, n2 = lc.read()
+        rows.append({"device": "load cells", "address": lc.address, "ok": True,
+                     "reading": f"friction {f:.3f} N, normal 1 {n1:.3f} N, normal 2 {n2:.3f} N, "
+                                f"counter {lc.counter}, status 0x{lc.status:04x}"})
+    except DeviceError as exc:
+        rows.append({"device": "load cells", "address": lc.address, "ok": False, "reading": exc.message})
+    finally:
+        lc.close()
+    lv = LvdtReader(hw.lvdt)
+    try:
+        lv.connect()
+        lv.wait_frame(0.5)
+        rows.append({"device": "LVDT", "address": lv.address, "ok": True,
+                     "reading": f"position {lv.position_um:.3f} µm, seq {lv.seq}, status 0x{lv.status:02x}"})
+    except DeviceError as exc:
+        rows.append({"device": "LVDT", "address": lv.address, "ok": False, "reading": exc.message})
+    finally:
+        lv.close()
+    va = ValveController(hw.valve)
+    try:
+        va.connect()
+        va.wait_status(max(0.2, 4 * hw.valve.heartbeat_timeout_s))
+        rows.append({"device": "servovalve", "address": va.address, "ok": True,
+                     "reading": f"status 0x{va.status_bits:02x} (enabled {va.enabled}, fault {va.fault}), "
+                                f"heartbeat {va.heartbeat}, output {va.output:+.4f}"})
+    except DeviceError as exc:
+        rows.append({"device": "servovalve", "address": va.address, "ok": False, "reading": exc.message})
+    finally:
+        va.close()
+    return rows
+
+
+def devices_check(
+    hardware: Path = typer.Option(..., "--hardware", metavar="PROFILE", help="Rig profile with a hardware section."),
+    start_emulators: bool = typer.Option(False, "--start-emulators",
+                                         help="Start the emulated devices first (drivers/emulators)."),
+    as_json: bool = typer.Option(False, "--json", help="Print the result as JSON."),
+):
+    """Connect to every device, read each once, say what answered. Exit 1 if any did not."""
+    profile, hw = _load(hardware)
+    emu = None
+    if start_emulators:
+        from drivers.emulators.rig import EmulatorError, start_emulator_process
+
+        try:
+            emu = start_emulator_process(hw, profile)
+        except EmulatorError as exc:
+            _fail(str(exc), 1)
+    try:
+        rows = check_devices(hw)
+    finally:
+        if emu is not None:
+            emu.stop()
+    if as_json:
+        typer.echo(json.dumps(rows, indent=2))
+    else:
+        tab = Table(title=f"devices of {hardware}")
+        for col in ("device", "address", "answered", "reading"):
+            tab.add_column(col, overflow="fold")
+        for r in rows:
+            tab.add_row(r["device"], r["address"], "[green]yes[/]" if r["ok"] else "[red]NO[/]", r["reading"])
+        console.print(tab)
+    if not all(r["ok"] for r in rows):
+        raise typer.Exit(1)
+
+
+def emulate(
+    profile_path: Path = typer.Argument(..., metavar="PROFILE", help="Rig profile with a hardware section."),
+    lubricant: str = typer.Option("boundary", "--lubricant", help="Friction of the simulated plant."),
+    seconds: Optional[float] = typer.Option(None, "--seconds", help="Stop after this long (default: Ctrl-C)."),
+):
+    """Serve the emulated devices of PROFILE (Modbus, LVDT pty, CAN valve) until Ctrl-C."""
+    from drivers.emulators.rig import EmulatorError, start_emulator_process
+
+    profile, hw = _load(profile_path)
+    try:
+        emu = start_emulator_process(hw, profile, lubricant=lubricant)
+    except EmulatorError as exc:
+        _fail(str(exc), 1)
+    console.print(f"emulators up: {hw.loadcells.address_text}; {hw.lvdt.address_text}; "
+                  f"{hw.valve.address_text}. Ctrl-C stops.", highlight=False)
+    t0 = time.monotonic()
+    try:
+        while seconds is None or time.monotonic() - t0 < seconds:
+            time.sleep(0.2)
+            if not emu.proc.is_alive():
+                _fail("the emulator process died", 1)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        st = emu.stats() if emu.proc.is_alive() else {}
+        emu.stop()
+    console.print(f"stopped; plant steps {st.get('steps')}, Modbus requests {st.get('modbus_requests')}, "
+                  f"LVDT frames {st.get('lvdt_sent')}", highlight=False)
+
+
+class _NullWriter:
+    """A writer that only counts (loop-bench logs nothing)."""
+
+    ticks = 0
+    last_t_s = 0.0
+
+    def __init__(self):
+        self.stats = []
+        self.events = []
+
+    def schedule_events(self, events):
+        pass
+
+    def write_block(self, block):
+        self.ticks += len(block["t_s"])
+        self.last_t_s = float(block["t_s"][-1])
+
+    def event(self, t_s, kind, **data):
+        self.events.append({"t_s": t_s, "kind": kind, **data})
+
+    def loop_stats(self, t_s, stats):
+        self.stats.append((t_s, stats))
+
+
+def loop_bench(seconds: float = 60.0, profile_path: Path = DEFAULT_EMULATED, out_json: Path | None = None,
+               echo=print) -> dict:
+    """Run the loop holding position against the (emulated) devices; return the final statistics."""
+    import numpy as np
+
+    from drivers.config import hardware_of_profile
+    from rig.hardware.runner import run_hardware_trial
+    from rig.profile import load_profile
+
+    profile = load_profile(profile_path)
+    hw = hardware_of_profile(profile)
+    rate = float(profile.loop.rate_hz)
+    x = np.full(int(round(seconds * rate)), float(profile.stroke.home_um))
+    plan = SimpleNamespace(x_ref_um=x, loop_rate_hz=rate, duration_s=seconds, events=[])
+    recipe = SimpleNamespace(name="loop-bench", lubricant="boundary", normal_force_N=None, seed=1)
+    load_before = os.getloadavg()
+    t0 = time.time()
+    summary = run_hardware_trial(plan, recipe, profile, _NullWriter(), echo=lambda *a, **k: None)
+    res = dict(summary["timing"])
+    res.update(seconds=seconds, loadavg_before=load_before, loadavg_after=os.getloadavg(),
+               started_utc=time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime(t0)),
+               realtime=summary.get("realtime"), cpus=os.cpu_count(), emulated=hw.emulators.autostart,
+               modbus=summary.get("modbus"), lvdt=summary.get("lvdt"), can=summary.get("can"))
+    if out_json:
+        Path(out_json).write_text(json.dumps(res, indent=2, default=str))
+    return res
+
+
+def loop_bench_command(
+    seconds: float = typer.Option(60.0, "--seconds", help="How long to run the loop."),
+    hardware: Path = typer.Option(DEFAULT_EMULATED, "--hardware", metavar="PROFILE",
+                                  help="Rig profile (default: the emulated rig; its emulators are started)."),
+    out_json: Optional[Path] = typer.Option(None, "--json", help="Also write the figures to this JSON file."),
+):
+    """Run the 1 kHz loop holding position against the devices; print jitter, lateness, misses."""
+    from rig.hardware.runner import HardwareTrialFailed
+    from rig.hardware.timing import format_stats
+
+    _load(hardware)
+    try:
+        res = loop_bench(seconds, hardware, out_json)
+    except HardwareTrialFailed as exc:
+        _fail(f"the loop stopped: {exc}", 1)
+    console.print(format_stats(res, f"loop-bench {seconds:g} s"), highlight=False)
+    rt = res.get("realtime") or {}
+    console.print(f"  scheduling {rt.get('sched')} (priority {rt.get('priority')}) {rt.get('note') or ''}; "
+                  f"load average before {res['loadavg_before'][0]:.2f}, after {res['loadavg_after'][0]:.2f} "
+                  f"on {res['cpus']} CPUs", highlight=False)
+    target_ok = res.get("late_p99_us", 1e9) < 100 and res.get("late_over_1000us", 1) == 0
+    console.print(f"  target (p99 lateness < 100 µs, no cycle > 1 ms late): "
+                  f"{'[green]met[/]' if target_ok else '[yellow]not met[/]'}")
+    sys.stdout.flush()
+
+
+def register(app: typer.Typer) -> None:
+    devices_app = typer.Typer(help="The rig's devices (load cells, LVDT, servovalve).", no_args_is_help=True)
+    devices_app.command("check")(devices_check)
+    app.add_typer(devices_app, name="devices")
+    app.command("emulate")(emulate)
+    app.command("loop-bench")(loop_bench_command)
