@@ -1,0 +1,153 @@
+"""Load-cell driver against the pymodbus emulator over real transports (TCP, RTU over ptys)."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+
+from drivers.config import LoadCellConfig
+from drivers.emulators.modbus_conditioner import ModbusConditionerEmulator
+from drivers.emulators.pty import PtyBridge
+from drivers.emulators.rig import free_tcp_port
+from drivers.errors import DeviceError
+from drivers.loadcells import LoadCellReader, decode_value, encode_value
+
+
+def test_register_encoding_exact():
+    # 1.0f = 0x3F800000: big word order -> [0x3F80, 0x0000], little -> swapped
+    assert encode_value(1.0, "float32", "big") == [0x3F80, 0x0000]
+    assert encode_value(1.0, "float32", "little") == [0x0000, 0x3F80]
+    assert encode_value(-2, "int32", "big") == [0xFFFF, 0xFFFE]
+    assert encode_value(-2, "int16", "big") == [0xFFFE]
+    assert decode_value([0xC2F6, 0xE979], "float32", "big") == pytest.approx(-123.456, abs=1e-4)
+    assert decode_value([0xE979, 0xC2F6], "float32", "little") == pytest.approx(-123.456, abs=1e-4)
+    assert decode_value([0x0001, 0x0000], "int32", "little") == 1.0
+
+
+def _serve(cfg, **kw):
+    em = ModbusConditionerEmulator(cfg, **kw)
+    em.start()
+    return em
+
+
+@pytest.fixture
+def tcp_cfg():
+    return LoadCellConfig(transport="tcp", host="127.0.0.1", port=free_tcp_port(), timeout_s=0.05)
+
+
+def test_tcp_float32_one_request_exact_registers_and_calibration(tcp_cfg):
+    cfg = LoadCellConfig.model_validate({**tcp_cfg.model_dump(),
+                                         "friction": {"address": 2, "scale": 2.0, "offset": 1.0}})
+    em = _serve(cfg)
+    try:
+        em.update(-12.5, 101.25, 98.75)  # forces in N (the emulator stores raw = (F - offset)/scale)
+        rd = LoadCellReader(cfg)
+        rd.connect()
+        regs = rd.read_raw()
+        assert em.n_requests == 1  # one request covers counter, status and the three channels
+        assert regs[0] == em.counter and regs[1] == 0
+        assert regs[2:4] == encode_value(-6.75, "float32", "big")
+        assert regs[4:8] == encode_value(101.25, "float32", "big") + encode_value(98.75, "float32", "big")
+        f, n1, n2 = rd.read()
+        assert (f, n1, n2) == pytest.approx((-12.5, 101.25, 98.75), abs=1e-5)
+        # tare: the current readings become the zeros
+        tares = rd.tare(n=3)
+        assert tares["normal_1"] == pytest.approx(101.25, abs=1e-5)
+        assert rd.read() == pytest.approx((0.0, 0.0, 0.0), abs=1e-5)
+        rd.close()
+    finally:
+        em.stop()
+
+
+def test_tcp_int16_scaled_little_endian_holding(tcp_cfg):
+    cfg = LoadCellConfig.model_validate({
+        **tcp_cfg.model_dump(), "encoding": "int16", "register_type": "holding", "word_order": "little",
+        "counter_address": 10, "status_address": None,
+        "friction": {"address": 11, "scale": 0.01}, "normal_1": {"address": 12, "scale": 0.01},
+        "normal_2": {"address": 13, "scale": 0.01}})
+    assert cfg.span() == (10, 4)
+    em = _serve(cfg)
+    try:
+        em.update(3.21, 100.0, -0.5)
+        rd = LoadCellReader(cfg)
+        rd.connect()
+        assert rd.read_raw()[1:] == [321, 10000, 0xFFCE]
+        assert rd.read() == pytest.approx((3.21, 100.0, -0.5))
+        rd.close()
+    finally:
+        em.stop()
+
+
+def test_exception_slow_silent_and_recovery(tcp_cfg):
+    em = _serve(tcp_cfg)
+    rd = LoadCellReader(tcp_cfg)
+    try:
+        rd.connect()
+        rd.read()
+        em.faults["exception"] = True
+        with pytest.raises(DeviceError) as ei:
+            rd.read()
+        assert "exception" in str(ei.value) and f"127.0.0.1:{tcp_cfg.port}" in str(ei.value)
+        assert ei.value.kind == "protocol"
+        em.faults.clear()
+        em.faults["slow_s"] = 0.2  # slower than the 50 ms timeout
+        t0 = time.monotonic()
+        with pytest.raises(DeviceError) as ei:
+            rd.read()
+        assert time.monotonic() - t0 < 0.15
+        assert "load-cell conditioner" in str(ei.value) and "no answer" in str(ei.value)
+        em.faults.clear()
+        time.sleep(0.25)
+        # a late answer must not be taken for the next one (the driver reconnects)
+        em.update(7.0, 100.0, 100.0)
+        assert rd.read()[0] == pytest.approx(7.0)
+        assert rd.consecutive_errors == 0 and rd.n_errors == 2
+        # frozen sample counter: the data ages
+        em.faults["freeze_counter"] = True
+        rd.read()
+        time.sleep(0.03)
+        em.update(8.0, 100.0, 100.0)
+        rd.read()
+        assert rd.reads_since_new >= 1 and rd.age_s() >= 0.03
+    finally:
+        rd.close()
+        em.stop()
+
+
+def test_connection_refused_names_device_and_address():
+    port = free_tcp_port()
+    rd = LoadCellReader(LoadCellConfig(port=port, timeout_s=0.05))
+    with pytest.raises(DeviceError) as ei:
+        rd.connect()
+    assert f"load-cell conditioner at modbus-tcp://127.0.0.1:{port}" in str(ei.value)
+
+
+def test_server_lost_mid_run(tcp_cfg):
+    em = _serve(tcp_cfg)
+    rd = LoadCellReader(tcp_cfg)
+    rd.connect()
+    rd.read()
+    em.stop()
+    with pytest.raises(DeviceError) as ei:
+        for _ in range(3):
+            rd.read()
+    assert str(tcp_cfg.port) in str(ei.value)
+    rd.close()
+
+
+def test_rtu_over_bridged_ptys(tmp_path):
+    cfg = LoadCellConfig(transport="rtu", serial_port=str(tmp_path / "lc"), baudrate=115200,
+                         timeout_s=0.2, device_id=3)
+    bridge = PtyBridge(cfg.serial_port, cfg.serial_port + ".server")
+    em = _serve(cfg, rtu_server_port=cfg.serial_port + ".server")
+    rd = LoadCellReader(cfg)
+    try:
+        em.update(1.5, 99.0, 101.0)
+        rd.connect()
+        assert rd.read() == pytest.approx((1.5, 99.0, 101.0))
+        assert "modbus-rtu" in rd.address
+    finally:
+        rd.close()
+        em.stop()
+        bridge.close()
