@@ -155,6 +155,8 @@ class SimRig:
         self.dt_s = profile.dt_s
         self.rate_hz = profile.loop.rate_hz
         self.normal_force_N = profile.normal.nominal_force_N if normal_force_N is None else float(normal_force_N)
+        if not (math.isfinite(self.normal_force_N) and self.normal_force_N > 0):
+            raise ValueError(f"normal_force_N must be positive and finite, got {normal_force_N!r}")
         self.q = build_plant_params(profile, friction_model, normal_force_N)
         self.fp = friction_model.to_array()
         self.c = controller_params_from_profile(profile)
@@ -221,6 +223,11 @@ class SimRig:
             raise ValueError("x_ref_um contains NaN or infinite values")
         if block_ticks < 1:
             raise ValueError("block_ticks must be >= 1")
+        lv = self.profile.sensors.lvdt
+        lo, hi = float(xref.min()), float(xref.max())
+        if lo < lv.min_um or hi > lv.max_um:
+            raise ValueError(f"x_ref_um spans {lo:g}..{hi:g} µm, outside the LVDT range "
+                             f"{lv.min_um:g}..{lv.max_um:g} µm of profile '{self.profile.name}'")
         n = xref.size
         if reset:
             k = min(n - 1, int(round(0.1 * self.rate_hz)))

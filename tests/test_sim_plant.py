@@ -177,3 +177,23 @@ def test_normal_forces_vary_along_the_test_piece(profile):
         sm = np.convolve(r[k], np.ones(500) / 500, mode="valid")
         rel = (sm.max() - sm.min()) / sm.mean()
         assert 0.002 < rel < 0.05, (k, rel)  # varies, within the paper's 5 %
+
+
+def test_bad_inputs_raise_clear_errors(profile):
+    with pytest.raises(ValueError, match="normal_force_N"):
+        SimRig(profile, "boundary", normal_force_N=0.0)
+    with pytest.raises(ValueError, match="unknown lubricant"):
+        SimRig(profile, "graphite")
+    rig = SimRig(profile, "boundary")
+    with pytest.raises(ValueError, match="outside the LVDT range"):
+        next(rig.run_blocks(np.array([100.0, 6000.0])))
+    with pytest.raises(ValueError, match="NaN"):
+        next(rig.run_blocks(np.array([100.0, np.nan])))
+    with pytest.raises(ValueError, match="finite"):
+        rig.plant_step(float("nan"))
+
+
+def test_normal_force_override(profile):
+    rig = SimRig(profile, "boundary", normal_force_N=50.0, seed=0)
+    d = rig.plant_step(0.0)
+    assert d["true_normal_1_N"] + d["true_normal_2_N"] == pytest.approx(100.0, rel=0.01)
