@@ -67,7 +67,8 @@ def test_repeatable_for_a_seed_and_independent_of_block_size(profile):
 
 
 def test_no_nan_at_zero_velocity_and_while_holding(profile):
-    for lub in ("dry", "paraffin", "boundary"):
+    a_zero = FrictionModel(params={"mu0": 0.12, "A_mu": 0.0, "B_mu": 0.0111, "L_um": 22.4})  # Table 2 paraffin
+    for lub in ("dry", "paraffin", "boundary", a_zero):
         rig = SimRig(profile, lub, seed=0)
         d = _hold(rig, 200, valve=0.0)  # at rest, no force: v = 0 exactly
         assert np.all(np.isfinite(np.column_stack([d[k] for k in d])))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from rig.friction import TABLE2
@@ -21,7 +22,12 @@ def test_sim_yaml_loads_with_paper_values(repo_root):
     assert p.fixture.test_piece_stiffness_N_per_um >= 1.0 and p.fixture.fixture_stiffness_N_per_um >= 10.0
     for name, row in TABLE2.items():
         lp = p.lubricants[name]
-        assert (lp.A_mu, lp.B_mu, lp.L_um) == pytest.approx((row["A_mu"][0], row["B_mu"][0], row["L_um"][0]))
+        assert (lp.B_mu, lp.L_um) == pytest.approx((row["B_mu"][0], row["L_um"][0]))
+        # paraffin: Table 2's A = 0.0* means "below the load-cell noise" -> a small A is used
+        assert lp.A_mu == pytest.approx(row["A_mu"][0], abs=1e-4 if name != "paraffin" else 3e-4)
+        # a velocity-step jump 2 N A ln 10 below the ±0.25 N noise for paraffin
+        if name == "paraffin":
+            assert 0 < 2 * 100 * lp.A_mu * np.log(10) < 0.25
         fm = p.friction_model(name)
         assert fm.get("B_mu") == pytest.approx(row["B_mu"][0])
         assert fm.mu_ss(1.0) == pytest.approx(lp.mu0)
