@@ -206,7 +206,8 @@ def _profile_dict(profile) -> dict:
 
 
 def run_command(
-    recipe_path: Path = typer.Argument(..., help="Recipe YAML (config/recipes/*.yaml).", show_default=False),
+    recipe_path: Path = typer.Argument(..., help="Recipe YAML (config/recipes/*.yaml).", show_default=False,
+                                     metavar="RECIPE"),
     sim: bool = typer.Option(False, "--sim", help="Run on the simulated rig (rig.sim.SimRig)."),
     hardware: Optional[Path] = typer.Option(None, "--hardware", metavar="PROFILE",
                                             help="Run on the real rig described by this hardware profile YAML "
@@ -234,6 +235,8 @@ def run_command(
     in the error), the profile, the friction model, and the compiled reference
     against the stroke and the actuator's speed. Ctrl-C stops the run, finishes
     the MCAP with what was logged (status 'interrupted') and exits with 130.
+
+    Exit status: 0 done; 2 bad input (nothing written); 1 failure while running; 130 interrupted.
     """
     from rig.log import TrialLogWriter
     from rig.recipe import LUBRICANTS, RecipeError, load_recipe
@@ -358,7 +361,7 @@ def run_command(
 # ---------------------------------------------------------------------------
 
 def info_command(
-    path: Path = typer.Argument(..., help="Trial log (.mcap).", show_default=False),
+    path: Path = typer.Argument(..., help="Trial log (.mcap).", show_default=False, metavar="FILE.mcap"),
     events: int = typer.Option(20, "--events", "-n", help="How many events to list (0: none, -1: all)."),
     as_json: bool = typer.Option(False, "--json", help="Print everything as JSON instead of tables."),
 ):
@@ -421,7 +424,7 @@ class Rate(str, Enum):
 
 
 def export_command(
-    path: Path = typer.Argument(..., help="Trial log (.mcap).", show_default=False),
+    path: Path = typer.Argument(..., help="Trial log (.mcap).", show_default=False, metavar="TRIAL.mcap"),
     csv: Path = typer.Option(..., "--csv", help="CSV file to write (measured-data format, version 1).",
                              show_default=False),
     rate: Rate = typer.Option(Rate.r25, "--rate", help="'25': the decimated per-sample channel (the paper's "
@@ -452,7 +455,7 @@ def export_command(
 
 
 def import_command(
-    path: Path = typer.Argument(..., help="Measured-data CSV (version 1).", show_default=False),
+    path: Path = typer.Argument(..., help="Measured-data CSV (version 1).", show_default=False, metavar="IN.csv"),
     out: Path = typer.Option(..., "--out", "-o", help="Trial log to write (.mcap).", show_default=False),
 ):
     """Import a measured-data CSV into a trial log (MCAP), atomically.
@@ -462,6 +465,7 @@ def import_command(
     exit status 2, and no output file. A trailing partial line is a warning; the
     complete rows before it are imported. Every row goes to both the raw and
     the per-sample channel; the CSV metadata to the 'trial' metadata record.
+    Exit status: 0 done, 2 bad input.
     """
     from rig.data import DataFormatError, PartialLineWarning, read_csv
     from rig.log import write_trial_data
@@ -485,7 +489,8 @@ def import_command(
 
 
 def recover_command(
-    path: Path = typer.Argument(..., help="Damaged or truncated trial log (.mcap).", show_default=False),
+    path: Path = typer.Argument(..., help="Damaged or truncated trial log (.mcap).", show_default=False,
+                                metavar="FILE.mcap"),
     out: Path = typer.Option(..., "--out", "-o", help="Readable trial log to write (.mcap).", show_default=False),
 ):
     """Rewrite a truncated trial log (e.g. after a crash; no footer) into a readable one.
