@@ -246,6 +246,9 @@ def _emulator_main(hw_dict, profile, lubricant, normal_force_N, seed, conn, plan
     import sys
 
     _set_pdeathsig()
+    from rig.hardware.timing import set_process_name
+
+    set_process_name("rig-emulator")
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
     sys.setswitchinterval(1e-4)  # the Modbus server thread must not wait 5 ms for the GIL
     hw = parse_hardware(hw_dict)

@@ -28,7 +28,7 @@ from drivers.loadcells import LoadCellReader
 from drivers.lvdt import LvdtReader
 from drivers.valve import ValveController
 from rig.hardware.interlocks import Interlocks, Trip
-from rig.hardware.timing import Pacer, set_pdeathsig, setup_realtime
+from rig.hardware.timing import Pacer, set_pdeathsig, set_process_name, setup_realtime
 
 DEVICE_TRIPS = ("device_lost", "modbus_errors", "can_bus_errors", "stale_forces", "stale_position",
                 "valve_heartbeat")
@@ -68,6 +68,7 @@ def _stroke_of(profile) -> tuple[float, float]:
 def loop_main(hw_dict, profile, x_ref_um, out_q, abort_flag, options=None):
     """Entry point of the loop process. ``abort_flag``: a shared ``multiprocessing.Value('i')``."""
     options = options or {}
+    set_process_name("rig-rt-loop")
     set_pdeathsig(signal.SIGTERM)
     stop_req = {"why": None}
 
@@ -162,6 +163,7 @@ def _run(hw_dict, profile, x_ref, out_q, abort_flag, stop_req, options):
         status = "tripped"
         stopping = True
         stop_k = 0
+        out_q.put(("event", 0.0, "interlock", trip.as_dict()))
     while True:
         k, dl, wake = pacer.wait()
         if k >= stop_k:

@@ -39,6 +39,15 @@ def _prctl(option: int, arg: int) -> bool:
         return False
 
 
+def set_process_name(name: str) -> bool:
+    """Set the kernel's name of this process (``/proc/PID/comm``, 15 bytes: PR_SET_NAME)."""
+    try:
+        libc = ctypes.CDLL("libc.so.6", use_errno=True)
+        return libc.prctl(15, ctypes.c_char_p(name.encode()[:15]), 0, 0, 0) == 0
+    except Exception:  # noqa: BLE001
+        return False
+
+
 def set_pdeathsig(sig: int) -> bool:
     """Deliver ``sig`` to this process when its parent dies (PR_SET_PDEATHSIG)."""
     return _prctl(1, sig)

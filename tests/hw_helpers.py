@@ -1,0 +1,55 @@
+"""Helpers for the hardware tests: a private copy of the emulated profile (free ports, tmp paths)."""
+
+from __future__ import annotations
+
+import os
+import random
+from pathlib import Path
+
+import yaml
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _deep_update(d: dict, u: dict) -> dict:
+    for k, v in u.items():
+        if isinstance(v, dict) and isinstance(d.get(k), dict):
+            _deep_update(d[k], v)
+        else:
+            d[k] = v
+    return d
+
+
+def private_profile(tmp_path: Path, autostart: bool = True, **hw_overrides) -> Path:
+    """config/rigs/emulated.yaml with its devices moved to free ports and ``tmp_path``."""
+    from drivers.emulators.rig import free_tcp_port
+
+    data = yaml.safe_load((REPO / "config/rigs/emulated.yaml").read_text())
+    hw = data["hardware"]
+    hw["loadcells"]["port"] = free_tcp_port()
+    hw["lvdt"]["port"] = str(tmp_path / "lvdt")
+    rnd = random.Random(os.getpid() ^ hash(str(tmp_path)))
+    hw["valve"]["port"] = rnd.randrange(40000, 60000)
+    hw["emulators"]["run_dir"] = str(tmp_path)
+    hw["emulators"]["autostart"] = autostart
+    _deep_update(hw, hw_overrides)
+    path = tmp_path / "rig.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+def find_child(ppid: int, comm: str) -> int | None:
+    """PID of a descendant of ``ppid`` whose kernel name is ``comm``."""
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            if (d / "comm").read_text().strip() != comm:
+                continue
+            stat = (d / "stat").read_text()
+            parent = int(stat.rsplit(")", 1)[1].split()[1])
+        except OSError:
+            continue
+        if parent == ppid:
+            return int(d.name)
+    return None
