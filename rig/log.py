@@ -212,6 +212,7 @@ class TrialLogWriter:
         self.max_abs_err_um = 0.0
         self.n_err = 0
         self.sum_friction_N = 0.0
+        self.sum_abs_friction_N = 0.0
         self.sum_mu = 0.0
         self.n_friction = 0
         self.n_valve_saturated = 0
@@ -317,11 +318,13 @@ class TrialLogWriter:
             smu = float((f / (n1 + n2)).sum()) if n1 is not None and n2 is not None else float("nan")
             if math.isfinite(sf):
                 self.sum_friction_N += sf
+                self.sum_abs_friction_N += float(np.abs(f).sum())
                 self.n_friction += f.size
                 self.sum_mu += smu
             else:
                 ok = np.isfinite(f)
                 self.sum_friction_N += float(f[ok].sum())
+                self.sum_abs_friction_N += float(np.abs(f[ok]).sum())
                 self.n_friction += int(ok.sum())
                 if n1 is not None and n2 is not None:
                     self.sum_mu += float(np.nansum((f / (n1 + n2))[ok]))
@@ -337,6 +340,11 @@ class TrialLogWriter:
     @property
     def mean_friction_N(self) -> float:
         return self.sum_friction_N / self.n_friction if self.n_friction else float("nan")
+
+    @property
+    def mean_abs_friction_N(self) -> float:
+        """Mean |friction| (N): the sliding friction level whatever the direction."""
+        return self.sum_abs_friction_N / self.n_friction if self.n_friction else float("nan")
 
     @property
     def mean_mu(self) -> float:

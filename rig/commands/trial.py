@@ -186,7 +186,8 @@ def _summary_table(result: dict, writer, out: Path, status: str) -> Table:
     tab.add_row("loop ticks", f"{ticks} ({ticks / wall:,.0f} ticks/s, {dur / wall:.1f}x real time)"
                 if wall and wall > 0 else str(ticks))
     tab.add_row("tracking error rms", f"{writer.tracking_error_rms_um:.3f} µm (max {writer.max_abs_err_um:.2f} µm)")
-    tab.add_row("mean friction", f"{writer.mean_friction_N:.3f} N (mu {writer.mean_mu:.4f})")
+    tab.add_row("mean friction", f"{writer.mean_friction_N:.3f} N (mu {writer.mean_mu:.4f}); "
+                                 f"mean |friction| {writer.mean_abs_friction_N:.3f} N")
     size = out.stat().st_size if out.exists() else 0
     tab.add_row("file written", f"{out} ({size / 1e6:.2f} MB)")
     return tab
@@ -348,7 +349,8 @@ def run_command(
         wall = result["wall_s"]
         writer.close(status, wall_s=wall, ticks_per_s=writer.ticks / wall if wall > 0 else 0.0,
                      realtime_factor=writer.last_t_s / wall if wall > 0 else 0.0,
-                     tracking_error_rms_um=writer.tracking_error_rms_um, mean_friction_N=writer.mean_friction_N)
+                     tracking_error_rms_um=writer.tracking_error_rms_um, mean_friction_N=writer.mean_friction_N,
+                     mean_abs_friction_N=writer.mean_abs_friction_N)
         console.print(_summary_table(result, writer, path, status))
         if exit_code:
             if status == "interrupted":
