@@ -225,3 +225,30 @@ def test_scheduled_events_logged_when_reached(tmp_path):
     w.close("interrupted")
     kinds = [e["kind"] for e in read_trial(path).events]
     assert kinds == ["log_start", "b", "a", "log_end"]
+
+
+def test_flush_at_least_every_second_of_wall_time(tmp_path, monkeypatch):
+    import rig.log as log_mod
+
+    clock = [1000.0]
+    monkeypatch.setattr(log_mod.time, "monotonic", lambda: clock[0])
+    blocks = make_blocks(6)
+
+    def raw_on_disk(path):
+        return next(c["messages"] for c in trial_info(path)["channels"] if c["topic"] == RAW_TOPIC)
+
+    a = tmp_path / "a.mcap"
+    w = TrialLogWriter(a)  # default flush_interval_s = 1.0
+    for b in blocks:
+        w.write_block(b)  # all within the same wall-clock second
+    w.abort()
+    assert raw_on_disk(a) == 0  # still in the open chunk: a crash now would lose < 1 s
+
+    b_path = tmp_path / "b.mcap"
+    w = TrialLogWriter(b_path)
+    for b in blocks[:5]:
+        w.write_block(b)
+    clock[0] += 1.01  # a second of wall time later
+    w.write_block(blocks[5])
+    w.abort()
+    assert raw_on_disk(b_path) == 6  # flushed (chunk closed + fsync) on the first block after 1 s
