@@ -131,6 +131,15 @@ def build_plant_params(profile: RigProfile, model: FrictionModel, normal_force_N
     return q
 
 
+def initial_velocity_um_s(x_ref_um, rate_hz: float, creep_um_s: float) -> float:
+    """Speed for the initial friction state of a run: the reference's mean speed over its
+    first 0.1 s, or ``creep_um_s`` if that is slower (a run starting with a hold)."""
+    x = np.asarray(x_ref_um, dtype=float)
+    k = min(x.size - 1, int(round(0.1 * rate_hz)))
+    v0 = abs(x[k] - x[0]) * rate_hz / k if k > 0 else 0.0
+    return v0 if v0 > creep_um_s else creep_um_s
+
+
 class SimRig:
     """Simulated servohydraulic double-shear friction rig (plant + controller).
 
@@ -215,7 +224,8 @@ class SimRig:
 
         Each block is a dict of numpy arrays (keys BLOCK_KEYS) covering ``block_ticks`` ticks
         (the last may be shorter). With ``reset`` (default), the run starts at rest at
-        ``x_ref[0]`` (see the module docstring)."""
+        ``x_ref[0]`` (see the module docstring). The reference is checked here, before any
+        block is produced (ValueError)."""
         xref = np.ascontiguousarray(x_ref_um, dtype=np.float64)
         if xref.ndim != 1 or xref.size == 0:
             raise ValueError("x_ref_um must be a non-empty 1-D array")
@@ -228,12 +238,13 @@ class SimRig:
         if lo < lv.min_um or hi > lv.max_um:
             raise ValueError(f"x_ref_um spans {lo:g}..{hi:g} µm, outside the LVDT range "
                              f"{lv.min_um:g}..{lv.max_um:g} µm of profile '{self.profile.name}'")
+        return self._blocks(xref, block_ticks, reset, chunk_ticks)
+
+    def _blocks(self, xref: np.ndarray, block_ticks: int, reset: bool, chunk_ticks: int) -> Iterator[dict]:
         n = xref.size
         if reset:
-            k = min(n - 1, int(round(0.1 * self.rate_hz)))
-            v0 = abs(xref[k] - xref[0]) / (k * self.dt_s) if k > 0 else 0.0
-            creep = self.profile.sim.initial_creep_um_s
-            self.reset(float(xref[0]), v0 if v0 > creep else creep)
+            self.reset(float(xref[0]),
+                       initial_velocity_um_s(xref, self.rate_hz, self.profile.sim.initial_creep_um_s))
         chunk = max(block_ticks, (max(chunk_ticks, block_ticks) // block_ticks) * block_ticks)
         i = 0
         while i < n:
