@@ -187,6 +187,23 @@ def multistart(grid: Grid, baseline: str, extensions: list[str], starts: list[di
     best = None
     for i in order:
         r = fit(grid, baseline, extensions, starts[i], max_nfev=max_nfev)
-        if best is None or r.sse_fit < best.sse_fit:
+        r.extra["at_bound"] = at_bound(r.params)
+        if best is None or (r.extra["at_bound"], r.sse_fit) < (best.extra["at_bound"], best.sse_fit):
             best = r
     return best
+
+
+def at_bound(params: dict) -> bool:
+    """True when a fitted parameter sits on its bound (the fit then stands in for something else)."""
+    for nm, v in params.items():
+        if nm in LOG_PARAMS:
+            lo, hi = LOG_PARAMS[nm]
+            if v <= lo * 1.01 or v >= hi / 1.01:
+                return True
+        elif nm in LIN_PARAMS and nm not in ("mu0",):
+            sc, lo, hi = LIN_PARAMS[nm]
+            if nm == "A_mu" and v <= 1e-9:
+                continue
+            if v <= lo + 1e-3 * sc or v >= hi - 1e-3 * sc:
+                return True
+    return False
