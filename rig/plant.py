@@ -90,7 +90,11 @@ Q_DELAY = 50     # time_delay in ticks (0 = none)
 Q_STEADY = 51    # 1: memoryless model on an interface with mass (time_delay, or slope <= 0)
 Q_MIH = 52       # interface mass / substep, in N s/µm (m_i 1e-6 / h)
 Q_SPARE = 53
-N_QPAR = 54
+Q_LV_G = 54      # (1 - a) tau / dt of each filter: exact response to a ramp within the tick
+Q_FL_G = 55
+Q_NL_G = 56
+Q_SL_G = 57
+N_QPAR = 58
 
 # ---------------------------------------------------------------------------
 # plant state vector
@@ -258,9 +262,21 @@ def solve_slip(p2, q2, ntot, base, a, v0, vreg):
 
 
 @njit(cache=True)
+def _lowpass(y, u_old, u_new, a, g):
+    """tau dy/dt = u - y over one tick for u linear from u_old to u_new; a = exp(-dt/tau),
+    g = (1 - a) tau / dt (as rig.friction.lowpass_uneven)."""
+    return a * y + (1.0 - g) * u_new + (g - a) * u_old
+
+
+@njit(cache=True)
 def plant_advance(q, fp, fs, st, ring, u):
     """Advance the plant by one tick with valve command ``u`` held (zero-order hold)."""
     u = min(1.0, max(-1.0, u))
+    x_old = st[Z_XT]
+    f_old = st[Z_FS]
+    slf_old = st[Z_SLF]
+    n1_old = st[Z_N1]
+    n2_old = st[Z_N2]
     nsub = int(q[Q_NSUB])
     h = q[Q_H]
     tau = q[Q_TAUL]
@@ -328,18 +344,17 @@ def plant_advance(q, fp, fs, st, ring, u):
     n1, n2 = normal_forces(q, st[Z_XT])
     st[Z_N1] = n1
     st[Z_N2] = n2
-    a_l = q[Q_LV_A]
-    st[Z_LVF] = a_l * st[Z_LVF] + (1.0 - a_l) * st[Z_XT]
+    # first-order analog filters, exact for an input linear over the tick
+    st[Z_LVF] = _lowpass(st[Z_LVF], x_old, st[Z_XT], q[Q_LV_A], q[Q_LV_G])
+    f_in_old = f_old
     f_in = st[Z_FS]
     if q[Q_SL_ON] > 0.5:
-        a_s = q[Q_SL_A]
-        st[Z_SLF] = a_s * st[Z_SLF] + (1.0 - a_s) * f_in
+        st[Z_SLF] = _lowpass(st[Z_SLF], f_old, f_in, q[Q_SL_A], q[Q_SL_G])
+        f_in_old = slf_old
         f_in = st[Z_SLF]
-    a_f = q[Q_FL_A]
-    st[Z_FLF] = a_f * st[Z_FLF] + (1.0 - a_f) * f_in
-    a_n = q[Q_NL_A]
-    st[Z_N1F] = a_n * st[Z_N1F] + (1.0 - a_n) * n1
-    st[Z_N2F] = a_n * st[Z_N2F] + (1.0 - a_n) * n2
+    st[Z_FLF] = _lowpass(st[Z_FLF], f_in_old, f_in, q[Q_FL_A], q[Q_FL_G])
+    st[Z_N1F] = _lowpass(st[Z_N1F], n1_old, n1, q[Q_NL_A], q[Q_NL_G])
+    st[Z_N2F] = _lowpass(st[Z_N2F], n2_old, n2, q[Q_NL_A], q[Q_NL_G])
     st[Z_TICK] += 1.0
 
 

@@ -99,21 +99,24 @@ def build_plant_params(profile: RigProfile, model: FrictionModel, normal_force_N
     q[pl.Q_WP1], q[pl.Q_WP2] = nm.face_waviness_phase_rad
     q[pl.Q_XORG] = profile.stroke.home_um
     s = profile.sensors
-    q[pl.Q_LV_A] = math.exp(-2.0 * math.pi * s.lvdt.cutoff_hz * dt)
     q[pl.Q_LV_SIG] = s.lvdt.noise_sigma_um
     q[pl.Q_LV_Q] = s.lvdt.quantization_um
     q[pl.Q_LV_MIN] = s.lvdt.min_um
     q[pl.Q_LV_MAX] = s.lvdt.max_um
-    q[pl.Q_FL_A] = math.exp(-2.0 * math.pi * s.friction_load_cell.cutoff_hz * dt)
     q[pl.Q_FL_SIG] = s.friction_load_cell.noise_sigma_N
-    q[pl.Q_NL_A] = math.exp(-2.0 * math.pi * s.normal_load_cells.cutoff_hz * dt)
     q[pl.Q_NL_SIG] = s.normal_load_cells.noise_sigma_N
+    for ia, ig, fc in ((pl.Q_LV_A, pl.Q_LV_G, s.lvdt.cutoff_hz), (pl.Q_FL_A, pl.Q_FL_G, s.friction_load_cell.cutoff_hz),
+                       (pl.Q_NL_A, pl.Q_NL_G, s.normal_load_cells.cutoff_hz)):
+        tau_f = 1.0 / (2.0 * math.pi * fc)
+        q[ia] = math.exp(-dt / tau_f)
+        q[ig] = (1.0 - q[ia]) * tau_f / dt
     if "sensor_lag" in model.extensions:
         tau_s = model.get("tau_s", 0.0)
         if tau_s < 0:
             raise ValueError("sensor_lag needs tau_s >= 0")
         q[pl.Q_SL_ON] = 1.0
         q[pl.Q_SL_A] = math.exp(-dt / tau_s) if tau_s > 0 else 0.0
+        q[pl.Q_SL_G] = (1.0 - q[pl.Q_SL_A]) * tau_s / dt
     if "force_offset_drift" in model.extensions:
         q[pl.Q_DRIFT] = model.get("rate_N_per_s", 0.0)
     # memoryless (steady_state) models with a delay or a negative slope need inertia at the

@@ -216,3 +216,13 @@ def test_simulated_mu_is_the_shared_friction_model(profile, extensions, tmp_path
     mu_fwd = mu_series(fm.to_array(), r["t_s"], r["true_velocity_um_s"], r["true_position_um"], 1.0)
     diff = np.abs(mu_fwd - r["true_mu"])[10000:]  # after the initial loading
     assert diff.max() < 2e-5  # 2 % of A; the step's jump is 2.5e-3
+
+
+def test_lvdt_filter_lag_is_the_100hz_time_constant(profile):
+    """A ramp through a first-order 100 Hz filter lags by tau = 1/(2 pi 100 Hz) = 1.59 ms."""
+    v = 100.0
+    x = 500.0 + v * np.arange(20000) / 1000.0
+    r = SimRig(profile, "boundary", seed=2).run(x)
+    lag_um = (r["true_position_um"] - r["position_um"])[5000:].mean()
+    tau = 1.0 / (2 * np.pi * profile.sensors.lvdt.cutoff_hz)
+    assert lag_um == pytest.approx(v * tau, abs=0.01)
