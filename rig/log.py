@@ -161,6 +161,115 @@ def _list_or_null(a: np.ndarray) -> list:
     return lst
 
 
+class _Sink:
+    """Owns the mcap Writer and the file: adds messages/metadata, flushes (+fsync), finishes."""
+
+    def __init__(self, writer: Writer, fh, fsync: bool):
+        self.w = writer
+        self.fh = fh
+        self.fsync = fsync
+
+    def messages(self, items: list) -> None:
+        add = self.w.add_message
+        for cid, ns, payload, seq in items:
+            add(cid, log_time=ns, data=payload, publish_time=ns, sequence=seq)
+
+    def metadata(self, name: str, data: dict) -> None:
+        self.w.add_metadata(name, data)
+
+    def flush(self) -> None:
+        w = self.w
+        if hasattr(w, "flush"):
+            w.flush()
+        else:  # mcap < 1.2
+            w._Writer__finalize_chunk()  # type: ignore[attr-defined]
+            w._Writer__flush()  # type: ignore[attr-defined]
+        self._sync()
+
+    def _sync(self) -> None:
+        self.fh.flush()
+        if self.fsync:
+            try:
+                os.fsync(self.fh.fileno())
+            except OSError:
+                pass
+
+    def finish(self) -> None:
+        self.w.finish()
+        self._sync()
+        self.fh.close()
+
+    def abort(self) -> None:
+        self.fh.close()
+
+
+class _ThreadedSink:
+    """Runs a :class:`_Sink` in a background thread, in order.
+
+    The chunk compression (zstd releases the GIL) and the file I/O overlap the
+    loop and the encoding in the caller's thread. A bounded queue keeps the
+    backlog small (a crash still loses at most the last flush interval plus a
+    few blocks); an error in the thread is raised in the caller at the next call.
+    """
+
+    _STOP = object()
+
+    def __init__(self, sink: _Sink, maxsize: int = 64):
+        import queue
+        import threading
+
+        self._sink = sink
+        self._q: "queue.Queue" = queue.Queue(maxsize=maxsize)
+        self._exc: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, name="rig-log-writer", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while True:
+            item = self._q.get()
+            if item is self._STOP:
+                return
+            fn, args = item
+            if self._exc is not None:
+                continue  # drain after a failure
+            try:
+                fn(*args)
+            except BaseException as exc:  # reported to the caller
+                self._exc = exc
+
+    def _put(self, fn, *args) -> None:
+        if self._exc is not None:
+            raise RuntimeError(f"the log writer thread failed: {self._exc!r}") from self._exc
+        self._q.put((fn, args))
+
+    def messages(self, items: list) -> None:
+        self._put(self._sink.messages, items)
+
+    def metadata(self, name: str, data: dict) -> None:
+        self._put(self._sink.metadata, name, data)
+
+    def flush(self) -> None:
+        self._put(self._sink.flush)
+
+    def _stop(self, last) -> None:
+        self._q.put((last, ()))
+        self._q.put(self._STOP)
+        while True:  # a second Ctrl-C must not leave the file unfinished
+            try:
+                self._thread.join()
+                break
+            except KeyboardInterrupt:
+                continue
+        if self._exc is not None:
+            raise RuntimeError(f"the log writer thread failed: {self._exc!r}") from self._exc
+
+    def finish(self) -> None:
+        self._stop(self._sink.finish)
+
+    def abort(self) -> None:
+        self._stop(self._sink.abort)
+
+
 class TrialLogWriter:
     """Writes one trial to an MCAP file (see the module docstring for the layout).
 
@@ -169,6 +278,10 @@ class TrialLogWriter:
     ``add_metadata(name, dict)``; ``close(status=...)`` writes the ``trial_end``
     record and the summary. Usable as a context manager (an exception marks the
     trial ``failed``, KeyboardInterrupt ``interrupted``).
+
+    ``threaded`` (default): the mcap writer (chunk compression, file I/O,
+    fsync) runs in a background thread, fed in order through a bounded queue;
+    the caller's thread only encodes.
     """
 
     def __init__(self, path: str | os.PathLike, *, loop_rate_hz: float = 1000.0,
@@ -176,7 +289,7 @@ class TrialLogWriter:
                  metadata: dict[str, Any] | None = None, recipe_yaml: str | None = None,
                  recipe: dict | None = None, profile: dict | None = None,
                  raw_encoding: str = "base64", raw_dtype: str = "float64", flush_interval_s: float = 1.0,
-                 chunk_size: int = 1 << 20, fsync: bool = True):
+                 chunk_size: int = 1 << 20, fsync: bool = True, threaded: bool = True):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.loop_rate_hz = float(loop_rate_hz)
@@ -231,6 +344,9 @@ class TrialLogWriter:
             now = time.time_ns()
             self._w.add_attachment(create_time=now, log_time=0, name="recipe.yaml",
                                    media_type="application/yaml", data=recipe_yaml.encode("utf-8"))
+        self._batch: list = []
+        sink = _Sink(self._w, self._fh, fsync)
+        self._sink = _ThreadedSink(sink) if threaded else sink
         # the first chunk carries the schemas and channels: get it on disk now
         self.event(0.0, "log_start")
         self.flush()
@@ -239,9 +355,13 @@ class TrialLogWriter:
     def _add(self, topic: str, t_s: float, payload: bytes) -> None:
         seq = self._seq[topic]
         self._seq[topic] = seq + 1
-        ns = _ns(t_s)
-        self._w.add_message(self._chan[topic], log_time=ns, data=payload, publish_time=ns, sequence=seq)
+        self._batch.append((self._chan[topic], _ns(t_s), payload, seq))
         self.counts[topic] += 1
+
+    def _send(self) -> None:
+        if self._batch:
+            batch, self._batch = self._batch, []
+            self._sink.messages(batch)
 
     def write_block(self, block: dict[str, np.ndarray]) -> None:
         """Log one block of loop samples (all keys as arrays of equal length; ``t_s`` required)."""
@@ -295,6 +415,7 @@ class TrialLogWriter:
         self._running_stats(arrays)
         if self._pending and self._pending[0]["t_s"] <= self.last_t_s + 0.5 / self.loop_rate_hz:
             self._emit_pending(self.last_t_s + 0.5 / self.loop_rate_hz)
+        self._send()
         if time.monotonic() - self._last_flush >= self.flush_interval_s:
             self.flush()
 
@@ -358,7 +479,10 @@ class TrialLogWriter:
         self._pending.extend(sorted((dict(e) for e in events), key=lambda e: e["t_s"]))
         self._pending.sort(key=lambda e: e["t_s"])
 
+    _emitting = False
+
     def _emit_pending(self, t_until: float) -> None:
+        self._emitting = True
         k = 0
         while k < len(self._pending) and self._pending[k]["t_s"] <= t_until:
             e = dict(self._pending[k])
@@ -366,12 +490,15 @@ class TrialLogWriter:
             k += 1
         if k:
             del self._pending[:k]
+        self._emitting = False
 
     def event(self, t_s: float, kind: str, **data: Any) -> None:
         """Log an event ``{t_s, kind, **data}`` (segment boundaries, steps, levels, markers)."""
         rec = {"t_s": float(t_s), "kind": str(kind)}
         rec.update(_jsonable({k: v for k, v in data.items() if k not in ("t_s", "kind")}))
         self._add(EVENTS_TOPIC, t_s, _dumps(rec))
+        if not self._emitting:
+            self._send()
 
     def loop_stats(self, t_s: float, stats: dict[str, Any]) -> None:
         """Log loop statistics (numbers) at time ``t_s``."""
@@ -382,24 +509,18 @@ class TrialLogWriter:
             v = _jsonable(v)
             rec[str(k)] = v if isinstance(v, (int, float)) or v is None else None
         self._add(STATS_TOPIC, t_s, _dumps(rec))
+        self._send()
 
     def add_metadata(self, name: str, data: dict[str, Any]) -> None:
-        self._w.add_metadata(name, {str(k): _meta_str(v) for k, v in data.items()})
+        self._send()
+        self._sink.metadata(name, {str(k): _meta_str(v) for k, v in data.items()})
 
     def flush(self) -> None:
-        """Close the chunk in progress, write it and fsync: everything logged so far survives a crash."""
-        w = self._w
-        if hasattr(w, "flush"):
-            w.flush()
-        else:  # mcap < 1.2
-            w._Writer__finalize_chunk()  # type: ignore[attr-defined]
-            w._Writer__flush()  # type: ignore[attr-defined]
-        self._fh.flush()
-        if self._fsync:
-            try:
-                os.fsync(self._fh.fileno())
-            except OSError:
-                pass
+        """Close the chunk in progress, write it and fsync: everything logged so far survives a crash.
+
+        With the writer thread, the flush is queued behind what was logged before it."""
+        self._send()
+        self._sink.flush()
         self._last_flush = time.monotonic()
 
     _last_flush = 0.0
@@ -415,22 +536,17 @@ class TrialLogWriter:
                "ended_utc": _dt.datetime.now(_dt.timezone.utc).isoformat()}
         end.update(summary)
         self.event(self.last_t_s, "log_end", status=status)
-        self._w.add_metadata("trial_end", {k: _meta_str(v) for k, v in end.items()})
-        self._w.finish()
-        self._fh.flush()
-        if self._fsync:
-            try:
-                os.fsync(self._fh.fileno())
-            except OSError:
-                pass
-        self._fh.close()
+        self.add_metadata("trial_end", end)
         self.closed = True
+        self._sink.finish()
 
     def abort(self) -> None:
-        """Close the file handle without finishing (simulates a crash; used by tests)."""
+        """Stop without finishing: what was flushed stays, the open chunk is lost (simulates a crash;
+        used by tests)."""
         if not self.closed:
-            self._fh.close()
+            self._batch = []
             self.closed = True
+            self._sink.abort()
 
     def __enter__(self) -> "TrialLogWriter":
         return self

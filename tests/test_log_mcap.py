@@ -46,10 +46,11 @@ def write_log(path, blocks, **kw):
     return w
 
 
-def test_round_trip_raw_and_25hz(tmp_path):
+@pytest.mark.parametrize("threaded", [True, False])
+def test_round_trip_raw_and_25hz(tmp_path, threaded):
     blocks = make_blocks()
     path = tmp_path / "t.mcap"
-    w = write_log(path, blocks)
+    w = write_log(path, blocks, threaded=threaded)
     w.close()
     ref = concat(blocks)
 
@@ -152,10 +153,11 @@ def test_decimation_continues_across_odd_blocks(tmp_path):
     assert np.array_equal(dec.time_s, ref["t_s"][:1000:40])
 
 
-def test_flush_makes_data_survive_a_crash(tmp_path):
+@pytest.mark.parametrize("threaded", [True, False])
+def test_flush_makes_data_survive_a_crash(tmp_path, threaded):
     blocks = make_blocks(30)
     path = tmp_path / "c.mcap"
-    w = write_log(path, blocks, flush_interval_s=0.0)  # flush (close chunk + fsync) after every block
+    w = write_log(path, blocks, flush_interval_s=0.0, threaded=threaded)  # flush (close chunk + fsync) after every block
     w.abort()  # crash: no footer, no summary
     with pytest.raises(DataFormatError, match="rig recover"):
         read_trial(path)
@@ -252,3 +254,11 @@ def test_flush_at_least_every_second_of_wall_time(tmp_path, monkeypatch):
     w.write_block(blocks[5])
     w.abort()
     assert raw_on_disk(b_path) == 6  # flushed (chunk closed + fsync) on the first block after 1 s
+
+
+def test_writer_thread_error_surfaces(tmp_path):
+    w = TrialLogWriter(tmp_path / "e.mcap")
+    w._sink._sink.w = None  # break the sink: the next write fails in the thread
+    w.write_block(make_blocks(1)[0])
+    with pytest.raises(RuntimeError, match="log writer thread failed"):
+        w.close()

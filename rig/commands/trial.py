@@ -347,10 +347,14 @@ def run_command(
                               highlight=False)
         result.setdefault("wall_s", time.perf_counter() - t0)
         wall = result["wall_s"]
-        writer.close(status, wall_s=wall, ticks_per_s=writer.ticks / wall if wall > 0 else 0.0,
-                     realtime_factor=writer.last_t_s / wall if wall > 0 else 0.0,
-                     tracking_error_rms_um=writer.tracking_error_rms_um, mean_friction_N=writer.mean_friction_N,
-                     mean_abs_friction_N=writer.mean_abs_friction_N)
+        try:
+            writer.close(status, wall_s=wall, ticks_per_s=writer.ticks / wall if wall > 0 else 0.0,
+                         realtime_factor=writer.last_t_s / wall if wall > 0 else 0.0,
+                         tracking_error_rms_um=writer.tracking_error_rms_um,
+                         mean_friction_N=writer.mean_friction_N, mean_abs_friction_N=writer.mean_abs_friction_N)
+        except Exception as exc:  # e.g. disk full: the file cannot be finished
+            _fail(f"cannot finish {path}: {exc}; `rig recover {path} --out FIXED.mcap` keeps what reached "
+                  f"the disk", EXIT_FAILURE)
         console.print(_summary_table(result, writer, path, status))
         if exit_code:
             if status == "interrupted":
