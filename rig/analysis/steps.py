@@ -1,0 +1,259 @@
+"""Velocity steps in a record: from the log's events when present, else from the data.
+
+Detection from the data works on the LVDT position only, so it is robust to
+friction noise, handles steps up and down, and uneven sampling and gaps:
+
+1. a velocity with a window of about ``slip_window_um`` of slip at the local
+   speed (:func:`rig.kinematics.velocity_for_steps`) sets, for every sample,
+   a left and a right window (also ``slip_window_um`` of slip, clipped to
+   [``min_points`` samples, ``max_window_s``]);
+2. straight lines fitted to the position in both windows (prefix sums, O(n))
+   give the velocities just before and just after each sample;
+   ``r = ln(v_right / v_left)`` peaks at a step;
+3. peaks with ``|r| > ln(min_ratio)`` that are the largest within their windows
+   are steps; each is refined to the intersection of the straight lines fitted
+   to the position before and after it (the *effective step*: the time at
+   which an ideal, instantaneous velocity step would have left the position
+   history unchanged far from the step).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+
+VELOCITY_KEYS = ("v2_um_s", "v_um_s", "velocity_um_s", "target_v_um_s", "v_to_um_s", "to_um_s")
+
+
+@dataclass
+class Step:
+    """One velocity step. ``i`` is the first sample at or after the effective step time."""
+
+    t_s: float          # effective step time (intersection of the two position lines)
+    t_nominal_s: float  # event time or detected peak
+    i: int
+    v1_um_s: float
+    v2_um_s: float
+    x_um: float         # position at the effective step
+    pre: tuple[int, int]    # sample range [lo, hi) of the segment before (after the previous step)
+    post: tuple[int, int]   # sample range [lo, hi) of the segment after (up to the next step)
+    source: str = "data"    # "events" or "data"
+
+    @property
+    def direction(self) -> str:
+        return "up" if self.v2_um_s > self.v1_um_s else "down"
+
+
+def line_fit(t: np.ndarray, x: np.ndarray) -> tuple[float, float]:
+    """Least-squares straight line x = a + b t; returns (a, b)."""
+    if t.size < 2:
+        return (float(x[0]) if x.size else math.nan), math.nan
+    tm = t.mean()
+    xm = x.mean()
+    dt = t - tm
+    den = float(np.dot(dt, dt))
+    b = float(np.dot(dt, x - xm) / den) if den > 0 else math.nan
+    return float(xm - b * tm), b
+
+
+@njit(cache=True)
+def _side_slopes(t, x, half_l, half_r, min_pts):
+    """Slopes of lines fitted left [t-hl, t) and right [t, t+hr) of each sample (sample
+    count at least ``min_pts`` on each side when available)."""
+    n = t.shape[0]
+    # prefix sums with a local origin for accuracy
+    t0 = t[0]
+    x0 = x[0]
+    c1 = np.zeros(n + 1)
+    ct = np.zeros(n + 1)
+    cx = np.zeros(n + 1)
+    ctt = np.zeros(n + 1)
+    ctx = np.zeros(n + 1)
+    for k in range(n):
+        tk = t[k] - t0
+        xk = x[k] - x0
+        c1[k + 1] = c1[k] + 1.0
+        ct[k + 1] = ct[k] + tk
+        cx[k + 1] = cx[k] + xk
+        ctt[k + 1] = ctt[k] + tk * tk
+        ctx[k + 1] = ctx[k] + tk * xk
+    vl = np.full(n, np.nan)
+    vr = np.full(n, np.nan)
+    lo = 0
+    for i in range(n):
+        # left window [lo, i)
+        lo = i
+        while lo > 0 and (t[i] - t[lo - 1] <= half_l[i] or i - lo < min_pts):
+            lo -= 1
+        hi = i
+        while hi < n and (t[hi] - t[i] < half_r[i] or hi - i < min_pts):
+            hi += 1
+        for side in range(2):
+            a = lo if side == 0 else i
+            b = i if side == 0 else hi
+            m = c1[b] - c1[a]
+            if m < 3:
+                continue
+            st = ct[b] - ct[a]
+            sx = cx[b] - cx[a]
+            stt = ctt[b] - ctt[a]
+            stx = ctx[b] - ctx[a]
+            den = m * stt - st * st
+            if den <= 0:
+                continue
+            s = (m * stx - st * sx) / den
+            if side == 0:
+                vl[i] = s
+            else:
+                vr[i] = s
+    return vl, vr
+
+
+def _thin(t: np.ndarray, x: np.ndarray, min_dt: float = 0.02):
+    """Block-average a densely sampled record to about ``min_dt`` (detection only)."""
+    dtm = float(np.median(np.diff(t))) if t.size > 1 else 1.0
+    k = int(min_dt / dtm) if dtm > 0 else 1
+    if k <= 1:
+        return t, x, np.arange(t.size)
+    m = (t.size // k) * k
+    tb = t[:m].reshape(-1, k).mean(axis=1)
+    xb = x[:m].reshape(-1, k).mean(axis=1)
+    idx = np.arange(0, m, k) + k // 2
+    return tb, xb, idx
+
+
+def _steps_from_events(trial, min_ratio: float) -> list[tuple[float, float | None]]:
+    """(time, new velocity or None) for every event that announces a velocity change."""
+    out = []
+    for ev in trial.events or []:
+        kind = str(ev.get("kind", "")).lower()
+        if "t_s" not in ev:
+            continue
+        v_new = None
+        for key in VELOCITY_KEYS:
+            if key in ev and ev[key] is not None:
+                try:
+                    v_new = float(ev[key])
+                except (TypeError, ValueError):
+                    v_new = None
+                break
+        if v_new is None and not ("step" in kind and "velocity" in kind):
+            continue
+        out.append((float(ev["t_s"]), v_new))
+    out.sort()
+    # keep changes only
+    kept = []
+    last_v = None
+    for tk, vk in out:
+        if vk is not None and last_v is not None and last_v > 0 and vk > 0 and \
+                abs(math.log(vk / last_v)) < math.log(min_ratio):
+            last_v = vk
+            continue
+        kept.append((tk, vk))
+        if vk is not None:
+            last_v = vk
+    return kept
+
+
+def detect_steps(trial, *, use_events: bool = True, min_ratio: float = 1.25, slip_window_um: float = 8.0,
+                 min_points: int = 8, max_window_s: float = 30.0, guard_s: float = 0.6,
+                 fit_span_s: float = 60.0) -> list[Step]:
+    """Velocity steps of ``trial`` (a :class:`rig.data.TrialData`), sorted in time."""
+    t = np.asarray(trial.time_s, dtype=float)
+    x = np.asarray(trial.position_um, dtype=float)
+    source = "data"
+    times: list[float] = []
+    if use_events and trial.events:
+        ev = _steps_from_events(trial, min_ratio)
+        times = [tk for tk, _ in ev if t[0] < tk < t[-1]]
+        if times:
+            source = "events"
+    if not times:
+        times = _detect_times(t, x, min_ratio=min_ratio, slip_window_um=slip_window_um,
+                              min_points=min_points, max_window_s=max_window_s)
+    return _refine(t, x, times, source=source, guard_s=guard_s, fit_span_s=fit_span_s, min_ratio=min_ratio)
+
+
+def _detect_times(t, x, *, min_ratio, slip_window_um, min_points, max_window_s) -> list[float]:
+    if t.size < 4 * min_points:
+        return []
+    tb, xb, _ = _thin(t, x)
+    dtm = float(np.median(np.diff(tb)))
+    # pass 1: side slopes over a fixed number of samples give the speed on each side
+    nfix = np.full(tb.size, 2.0 * min_points * dtm)
+    vl0, vr0 = _side_slopes(tb, xb, nfix, nfix, 2 * min_points)
+    vl0 = np.where(np.isfinite(vl0), vl0, vr0)
+    vr0 = np.where(np.isfinite(vr0), vr0, vl0)
+    # pass 2: each side's window holds about slip_window_um of slip at that side's speed
+    half_l = np.clip(slip_window_um / np.maximum(np.abs(vl0), 1e-3), min_points * dtm, max_window_s)
+    half_r = np.clip(slip_window_um / np.maximum(np.abs(vr0), 1e-3), min_points * dtm, max_window_s)
+    for _ in range(2):
+        vl, vr = _side_slopes(tb, xb, half_l, half_r, min_points)
+        vl = np.where(np.isfinite(vl), vl, vl0)
+        vr = np.where(np.isfinite(vr), vr, vr0)
+        half_l = np.clip(slip_window_um / np.maximum(np.abs(vl), 1e-3), min_points * dtm, max_window_s)
+        half_r = np.clip(slip_window_um / np.maximum(np.abs(vr), 1e-3), min_points * dtm, max_window_s)
+    vl, vr = _side_slopes(tb, xb, half_l, half_r, min_points)
+    v = 0.5 * (vl0 + vr0)
+    floor = max(0.02 * float(np.nanmedian(np.abs(v))), 1e-3)
+    ok = np.isfinite(vl) & np.isfinite(vr) & (vl > floor) & (vr > floor)
+    r = np.zeros(tb.size)
+    r[ok] = np.log(vr[ok] / vl[ok])
+    thr = math.log(min_ratio)
+    cand = np.flatnonzero(np.abs(r) > thr)
+    times = []
+    if cand.size == 0:
+        return times
+    # group contiguous runs of candidates (same sign), take the peak of each
+    order = cand
+    groups = np.split(order, np.flatnonzero((np.diff(order) > 1) | (np.diff(np.sign(r[order])) != 0)) + 1)
+    peaks = []
+    for g in groups:
+        j = g[np.argmax(np.abs(r[g]))]
+        peaks.append(j)
+    # non-maximum suppression within the smaller of the two windows
+    peaks.sort(key=lambda j: -abs(r[j]))
+    chosen: list[int] = []
+    for j in peaks:
+        w = min(half_l[j], half_r[j])
+        if all(abs(tb[j] - tb[c]) > w for c in chosen):
+            chosen.append(j)
+    chosen.sort()
+    return [float(tb[j]) for j in chosen]
+
+
+def _refine(t, x, times, *, source, guard_s, fit_span_s, min_ratio) -> list[Step]:
+    steps: list[Step] = []
+    times = sorted(times)
+    bounds = [t[0] - 1.0] + list(times) + [t[-1] + 1.0]
+    for k, tk in enumerate(times):
+        t_prev, t_next = bounds[k], bounds[k + 2]
+        pre_lo = np.searchsorted(t, t_prev + guard_s)
+        pre_hi = np.searchsorted(t, tk - guard_s)
+        post_lo = np.searchsorted(t, tk + guard_s)
+        post_hi = np.searchsorted(t, t_next - guard_s)
+        # local line fits (velocity may drift over long segments)
+        a_lo = max(pre_lo, np.searchsorted(t, tk - fit_span_s))
+        b_hi = min(post_hi, np.searchsorted(t, tk + fit_span_s))
+        if pre_hi - a_lo < 3 or b_hi - post_lo < 3:
+            continue
+        a1, v1 = line_fit(t[a_lo:pre_hi], x[a_lo:pre_hi])
+        a2, v2 = line_fit(t[post_lo:b_hi], x[post_lo:b_hi])
+        if not (np.isfinite(v1) and np.isfinite(v2)) or v1 <= 0 or v2 <= 0:
+            continue
+        if abs(math.log(v2 / v1)) < math.log(min_ratio) * 0.8:
+            continue
+        ts = (a2 - a1) / (v1 - v2)
+        if not (t[pre_hi - 1] - guard_s <= ts <= t[post_lo] + guard_s):
+            ts = tk
+        xs = a1 + v1 * ts
+        i = int(np.searchsorted(t, ts))
+        steps.append(Step(t_s=float(ts), t_nominal_s=float(tk), i=i, v1_um_s=float(v1), v2_um_s=float(v2),
+                          x_um=float(xs), pre=(int(np.searchsorted(t, t_prev)) if k > 0 else 0, i),
+                          post=(i, int(np.searchsorted(t, t_next)) if k + 1 < len(times) else t.size),
+                          source=source))
+    return steps
