@@ -28,15 +28,17 @@ implicit in the slip velocity: the unknown v_s is the mean slip velocity over th
 substep, found from the scalar force balance P + Q v_s = (N_1 + N_2) mu(v_s) by a
 Newton iteration in mu that converges monotonically (no NaN at v_s -> 0, sticking is
 the v_s ~ 0 solution); the state theta is then advanced exactly over the slip
-``v_s h`` (rig.friction.advance_state). Sensors: first-order low-passes sampled at each
-tick, plus Gaussian noise, LVDT quantisation and range.
+``v_s h`` (rig.friction.advance_state). Memoryless friction models (steady_state with
+time_delay or a slope <= 0) are ill posed on a massless interface and get an interface
+mass instead (:func:`solve_slip_mass`). Sensors: first-order low-passes (exact for a
+ramp within the tick) sampled at each tick, plus Gaussian noise, LVDT quantisation and
+range.
 """
 
 from __future__ import annotations
 
 import math
 
-import numpy as np
 from numba import njit
 
 from rig.friction import (P_A, P_AMP, P_MU0, P_PHASE, P_STATE_ON, P_V0, P_VREG, P_WAVE, P_WEAR, S_SLIP,
