@@ -5,7 +5,8 @@ Runs the paper's velocity-step recipe (config/recipes/velocity-steps.yaml, about
 
   1. without logging (the closed loop alone, blocks of 100 ticks),
   2. with the trial log (rig.log.TrialLogWriter: raw blocks base64 float64, the
-     25 Hz channel, events, loop statistics, fsync'd flushes every second),
+     25 Hz channel, events, loop statistics, fsync'd flushes every second), with
+     the mcap writer in its background thread (default) and in the caller's thread,
   3. the same with float32 raw arrays (recipe log.raw_dtype: float32),
   4. the whole `rig run ... --sim -q` command in a fresh process (startup included),
 
@@ -74,9 +75,10 @@ def main(argv=None) -> int:
             n += blk["t_s"].size
         return n
 
-    def with_log(dtype):
+    def with_log(dtype, threaded=True):
         def run():
             w = TrialLogWriter(tmp / f"bench_{dtype}.mcap", loop_rate_hz=plan.loop_rate_hz, raw_dtype=dtype,
+                               threaded=threaded,
                                metadata={"lubricant": recipe.lubricant, "normal_force_N": recipe.normal_force_N},
                                recipe_yaml=recipe.source_text, recipe=recipe.model_dump(mode="json"),
                                profile=profile.model_dump(mode="json"))
@@ -88,6 +90,7 @@ def main(argv=None) -> int:
     results = {"recipe": args.recipe, "simulated_s": sim_s, "ticks": plan.n_ticks, "plan_compile_s": t_plan}
     rows = [("sim only (no log)", "sim_only", sim_only),
             ("sim + MCAP log (float64 raw)", "log_float64", with_log("float64")),
+            ("  same, writer in caller thread", "log_float64_unthreaded", with_log("float64", threaded=False)),
             ("sim + MCAP log (float32 raw)", "log_float32", with_log("float32"))]
     for label, key, fn in rows:
         r = _measure(fn, args.repeat)
