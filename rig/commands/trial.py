@@ -199,6 +199,19 @@ def _trial_paths(out: Path, n: int) -> list[Path]:
     return [out.with_name(f"{out.stem}-{k + 1:02d}{out.suffix}") for k in range(n)]
 
 
+def _git_describe() -> str:
+    """The repository's commit (and '-dirty'), for the trial metadata; '' outside a git checkout."""
+    import subprocess
+
+    repo = Path(__file__).resolve().parents[2]
+    try:
+        out = subprocess.run(["git", "-C", str(repo), "describe", "--always", "--dirty", "--abbrev=12"],
+                             capture_output=True, text=True, timeout=3)
+        return out.stdout.strip() if out.returncode == 0 else ""
+    except (OSError, subprocess.SubprocessError):
+        return ""
+
+
 def _profile_dict(profile) -> dict:
     try:
         return profile.model_dump(mode="json")
@@ -307,6 +320,7 @@ def run_command(
     base_seed = recipe.seed if seed is None else seed
     recipe_json = recipe.model_dump(mode="json")
     profile_json = _profile_dict(profile)
+    git_commit = _git_describe()
     exit_code = 0
     for k, path in enumerate(paths):
         trial_seed = base_seed + k
@@ -315,7 +329,7 @@ def run_command(
                 "trials": len(paths), "profile": str(ppath), "profile_name": getattr(profile, "name", ""),
                 "backend": "hardware" if hardware is not None else "sim",
                 "friction_model": str(friction_model) if friction_model else f"profile:{recipe.lubricant}",
-                "plan_duration_s": plan.duration_s}
+                "plan_duration_s": plan.duration_s, "git_commit": git_commit}
         if fm is not None:
             meta["friction_model_json"] = fm.model_dump_json()
         try:
