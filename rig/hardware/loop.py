@@ -108,7 +108,7 @@ def _run(hw_dict, profile, x_ref, out_q, abort_flag, stop_req, options):
             devices.append(dev)
         va.wait_status(max(0.2, 4 * hw.valve.heartbeat_timeout_s))
         lv.wait_frame(0.5)
-        lc.read()
+        first_forces = lc.read()
     except DeviceError as exc:
         for d in devices:
             d.close()
@@ -132,7 +132,8 @@ def _run(hw_dict, profile, x_ref, out_q, abort_flag, stop_req, options):
     hold_ref = None
     stopping = False  # null + disabled (trip / end)
     err_counts = {"modbus": 0, "can": 0}
-    x = f = n1 = n2 = float("nan")
+    x = lv.position_um
+    f, n1, n2 = first_forces
     send_pending = False
 
     va.enable()
