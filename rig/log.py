@@ -594,28 +594,42 @@ class _Content:
         self.complete = False
         self.error: str | None = None
         self.header = None
+        self.counts: dict[int, int] = {}
+        self.t_range: dict[int, tuple[int, int]] = {}
 
     def topic_of(self, msg: Message) -> str:
         ch = self.channels.get(msg.channel_id)
         return ch.topic if ch else f"#{msg.channel_id}"
 
 
-def _read_stream(path: Path) -> _Content:
-    """Read every record up to the end or the damaged point (never raises for damage)."""
+def _read_stream(path: Path, topics: set[str] | None = None) -> _Content:
+    """Read every record up to the end or the damaged point (never raises for damage).
+
+    ``topics``: keep only these channels' messages (all when None); every
+    message is still counted in ``c.counts`` with its time range in ``c.t_range``.
+    """
     from mcap.records import Footer, Header
 
     c = _Content()
+    keep_ids: set[int] = set()
     with open(path, "rb") as fh:
         try:
             for rec in StreamReader(fh, record_size_limit=1 << 31).records:
-                if isinstance(rec, Header):
+                if isinstance(rec, Message):
+                    cid = rec.channel_id
+                    c.counts[cid] = c.counts.get(cid, 0) + 1
+                    lo, hi = c.t_range.get(cid, (rec.log_time, rec.log_time))
+                    c.t_range[cid] = (min(lo, rec.log_time), max(hi, rec.log_time))
+                    if topics is None or cid in keep_ids:
+                        c.messages.append(rec)
+                elif isinstance(rec, Header):
                     c.header = rec
                 elif isinstance(rec, Schema):
                     c.schemas[rec.id] = rec
                 elif isinstance(rec, Channel):
                     c.channels[rec.id] = rec
-                elif isinstance(rec, Message):
-                    c.messages.append(rec)
+                    if topics is not None and rec.topic in topics:
+                        keep_ids.add(rec.id)
                 elif isinstance(rec, Metadata):
                     c.metadata.append(rec)
                 elif isinstance(rec, Attachment):
@@ -633,7 +647,7 @@ def _read_stream(path: Path) -> _Content:
     return c
 
 
-def _read_complete(path: Path) -> _Content:
+def _read_complete(path: Path, topics: set[str] | None = None) -> _Content:
     """Read a complete MCAP (with footer); a truncated one raises a DataFormatError naming ``rig recover``."""
     try:
         with open(path, "rb") as fh:
@@ -646,7 +660,7 @@ def _read_complete(path: Path) -> _Content:
     except Exception as exc:
         raise DataFormatError(path, None, f"damaged or truncated MCAP ({type(exc).__name__}: {exc}); "
                                           f"rewrite it with `rig recover {path} --out FIXED.mcap`") from None
-    c = _read_stream(path)
+    c = _read_stream(path, topics)
     if c.error or not c.complete:
         raise DataFormatError(path, None, f"damaged MCAP ({c.error or 'no footer'}); "
                                           f"rewrite it with `rig recover {path} --out FIXED.mcap`")
@@ -668,7 +682,7 @@ def _events(c: _Content) -> list[dict]:
 
 def read_metadata(path: str | os.PathLike) -> dict[str, dict[str, str]]:
     """All metadata records of a (complete) trial log, by record name."""
-    return _metadata_dict(_read_complete(Path(path)))
+    return _metadata_dict(_read_complete(Path(path), topics=set()))
 
 
 def _flat_metadata(records: dict[str, dict[str, str]], channel: str) -> dict[str, str]:
@@ -707,7 +721,7 @@ def read_trial(path: str | os.PathLike, channel: str = "25hz") -> TrialData:
         ch = "raw"
     else:
         raise ValueError(f"channel must be 'raw' or '25hz', not {channel!r}")
-    c = _read_complete(path)
+    c = _read_complete(path, topics={RAW_TOPIC if ch == "raw" else LOG25_TOPIC, EVENTS_TOPIC})
     records = _metadata_dict(c)
     if ch == "raw":
         cols: dict[str, list[np.ndarray]] = {}
@@ -753,16 +767,17 @@ def trial_info(path: str | os.PathLike) -> dict:
     path = Path(path)
     if not path.exists():
         raise DataFormatError(path, None, "no such file")
-    c = _read_stream(path)
+    c = _read_stream(path, topics={EVENTS_TOPIC})
     counts: dict[str, int] = {}
     t_min, t_max = None, None
-    for m in c.messages:
-        topic = c.topic_of(m)
-        counts[topic] = counts.get(topic, 0) + 1
+    for cid, n in c.counts.items():
+        chn = c.channels.get(cid)
+        topic = chn.topic if chn else f"#{cid}"
+        counts[topic] = counts.get(topic, 0) + n
         if topic in (RAW_TOPIC, LOG25_TOPIC):
-            t = m.log_time / 1e9
-            t_min = t if t_min is None else min(t_min, t)
-            t_max = t if t_max is None else max(t_max, t)
+            lo, hi = (v / 1e9 for v in c.t_range[cid])
+            t_min = lo if t_min is None else min(t_min, lo)
+            t_max = hi if t_max is None else max(t_max, hi)
     records = _metadata_dict(c)
     events = [json.loads(m.data) for m in c.messages if c.topic_of(m) == EVENTS_TOPIC]
     events.sort(key=lambda e: e["t_s"])

@@ -259,6 +259,7 @@ def test_flush_at_least_every_second_of_wall_time(tmp_path, monkeypatch):
 def test_writer_thread_error_surfaces(tmp_path):
     w = TrialLogWriter(tmp_path / "e.mcap")
     w._sink._sink.w = None  # break the sink: the next write fails in the thread
-    w.write_block(make_blocks(1)[0])
     with pytest.raises(RuntimeError, match="log writer thread failed"):
+        for b in make_blocks(3):  # raised at the next call after the failure, at the latest by close()
+            w.write_block(b)
         w.close()
