@@ -48,9 +48,8 @@ import math
 import os
 import tempfile
 import time
-import warnings
 from pathlib import Path
-from typing import Any, Iterable, Iterator
+from typing import Any, Iterable
 
 import numpy as np
 from mcap.reader import make_reader
