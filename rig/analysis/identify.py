@@ -327,17 +327,29 @@ def _mu_series_stiff(mu0, a, b, l_um, k_mu_per_um, t, v_lp, v_init):
     return out
 
 
-def _segment_velocity(t: np.ndarray, x: np.ndarray, steps: list[Step]) -> np.ndarray:
-    """Piecewise-constant load-point velocity: the line-fit slopes between steps."""
-    v = np.empty_like(t)
+def _segment_velocity(t: np.ndarray, x: np.ndarray, steps: list[Step], fallback: np.ndarray | None = None):
+    """Velocity that is the line-fit slope on each step's constant-velocity stretches
+    (before: ``v1``, after: ``v2``) and ``fallback`` (an estimator) elsewhere; and the mask
+    of those stretches (where the whole-record fit compares model and data)."""
+    v = np.array(fallback, dtype=float) if fallback is not None else np.full(t.size, np.nan)
+    mask = np.zeros(t.size, bool)
     if not steps:
-        v[:] = line_fit(t, x)[1]
-        return v
-    v[: steps[0].i] = steps[0].v1_um_s
-    for k, s in enumerate(steps):
-        end = steps[k + 1].i if k + 1 < len(steps) else t.size
-        v[s.i:end] = s.v2_um_s
-    return v
+        if fallback is None:
+            v[:] = line_fit(t, x)[1]
+        mask[:] = True
+        return v, mask
+    for s in steps:
+        v[s.pre[0]:s.i] = s.v1_um_s
+        v[s.i:s.post[1]] = s.v2_um_s
+        mask[s.pre[0]:s.post[1]] = True
+    if fallback is None:
+        # fill the gaps by the neighbouring stretch's velocity
+        idx = np.where(np.isfinite(v), np.arange(t.size), 0)
+        np.maximum.accumulate(idx, out=idx)
+        v = v[idx]
+        first = np.flatnonzero(np.isfinite(v))
+        v[: first[0]] = v[first[0]]
+    return v, mask
 
 
 def _block_mean(a: np.ndarray, k: int) -> np.ndarray:
@@ -373,21 +385,26 @@ def fit_whole_record(trial: TrialData, steps: list[Step] | None = None, *, stiff
     mu = np.asarray(trial.mu, dtype=float)
     if steps is None:
         steps = detect_steps(trial)
+    v_est = estimate_velocity(t, x, "local_poly" if velocity_method == "segments" else velocity_method)
     if stiffness or (velocity_method == "segments" and steps):
-        v = _segment_velocity(t, x, steps)
+        v, in_steps = _segment_velocity(t, x, steps, v_est)
         velocity_method = "segments"
     else:
-        v = estimate_velocity(t, x, "local_poly" if velocity_method == "segments" else velocity_method)
+        v = v_est
+        _, in_steps = _segment_velocity(t, x, steps, v_est)
     # decimate long records by block means (the state's time scale L/v is >> 0.1 s)
     if stiffness:
         max_points = min(max_points, 8000)
     k = int(math.ceil(t.size / max_points))
     if k > 1:
         t, x, mu, v = (_block_mean(a, k) for a in (t, x, mu, v))
-    sliding = v > 0.05 * max(float(np.median(np.abs(v))), 1e-6)
-    v_init = float(np.median(v[: max(5, min(50, v.size // 20))]))
-    if v_init <= 0:
-        v_init = float(np.median(np.abs(v)))
+        in_steps = _block_mean(in_steps.astype(float), k) > 0.999
+    # compare model and data on the steps' constant-velocity stretches (not on rests,
+    # returns or starts from rest, where the LVDT velocity is not the interface's)
+    sliding = in_steps & (v > 0.05 * max(float(np.median(np.abs(v))), 1e-6))
+    if sliding.sum() < 20:
+        sliding = v > 0.05 * max(float(np.median(np.abs(v))), 1e-6)
+    v_init = max(abs(float(np.median(v[: max(5, min(50, v.size // 20))]))), 0.01)
     t_rel = t - t[0]
 
     names = ["mu0", "A_mu", "B_mu", "L_um"] + (["k_mu_per_um"] if stiffness else []) + \
@@ -455,6 +472,7 @@ def fit_whole_record(trial: TrialData, steps: list[Step] | None = None, *, stiff
     free = np.ones(p, bool)
     if k_fixed is not None:
         free[4] = False
+    s2 = float(np.dot(r, r) / max(n - int(free.sum()), 1))
     err = np.zeros(p)
     try:
         Jf = J[:, free]
@@ -462,8 +480,7 @@ def fit_whole_record(trial: TrialData, steps: list[Step] | None = None, *, stiff
         err[free] = np.sqrt(np.maximum(np.diag(cov), 0.0))
     except np.linalg.LinAlgError:
         err[free] = np.nan
-    n_free = int(free.sum())
-    s2 = float(np.dot(r, r) / max(n - n_free, 1))
+
     rho = float(np.corrcoef(r[:-1], r[1:])[0, 1]) if n > 3 else 0.0
     rho = min(max(rho, 0.0), 0.999)
     infl = math.sqrt((1 + rho) / (1 - rho))

@@ -126,8 +126,8 @@ def _thin(t: np.ndarray, x: np.ndarray, min_dt: float = 0.02):
     return tb, xb, idx
 
 
-def _steps_from_events(trial, min_ratio: float) -> list[tuple[float, float | None]]:
-    """(time, new velocity or None) for every event that announces a velocity change."""
+def _steps_from_events(trial, min_ratio: float) -> list[tuple[float, dict]]:
+    """(time, event) for every event that announces a velocity change."""
     out = []
     for ev in trial.events or []:
         kind = str(ev.get("kind", "")).lower()
@@ -143,17 +143,21 @@ def _steps_from_events(trial, min_ratio: float) -> list[tuple[float, float | Non
                 break
         if v_new is None and not ("step" in kind and "velocity" in kind):
             continue
-        out.append((float(ev["t_s"]), v_new))
-    out.sort()
+        out.append((float(ev["t_s"]), v_new, ev))
+    out.sort(key=lambda e: e[0])
     # keep changes only
     kept = []
     last_v = None
-    for tk, vk in out:
-        if vk is not None and last_v is not None and last_v > 0 and vk > 0 and \
-                abs(math.log(vk / last_v)) < math.log(min_ratio):
+    for tk, vk, ev in out:
+        v_old = ev.get("v1_um_s", last_v)
+        if vk is not None and v_old is not None and v_old > 0 and vk > 0 and \
+                abs(math.log(vk / v_old)) < math.log(min_ratio):
             last_v = vk
             continue
-        kept.append((tk, vk))
+        if vk is not None and v_old is not None and (v_old <= 0 or vk <= 0):
+            last_v = vk
+            continue
+        kept.append((tk, ev))
         if vk is not None:
             last_v = vk
     return kept
@@ -167,15 +171,29 @@ def detect_steps(trial, *, use_events: bool = True, min_ratio: float = 1.25, sli
     x = np.asarray(trial.position_um, dtype=float)
     source = "data"
     times: list[float] = []
+    info = None
     if use_events and trial.events:
         ev = _steps_from_events(trial, min_ratio)
-        times = [tk for tk, _ in ev if t[0] < tk < t[-1]]
+        keep = [(tk, e) for tk, e in ev if t[0] < tk < t[-1]]
+        times = [tk for tk, _ in keep]
+        info = [e for _, e in keep]
         if times:
             source = "events"
     if not times:
         times = _detect_times(t, x, min_ratio=min_ratio, slip_window_um=slip_window_um,
                               min_points=min_points, max_window_s=max_window_s)
-    return _refine(t, x, times, source=source, guard_s=guard_s, fit_span_s=fit_span_s, min_ratio=min_ratio)
+    # refine; candidates rejected there (starts from rest, stops) must not limit their
+    # neighbours' segments, so refine again with the kept ones until nothing changes
+    for _ in range(4):
+        steps = _refine(t, x, times, source=source, guard_s=guard_s, fit_span_s=fit_span_s,
+                        min_ratio=min_ratio, info=info)
+        kept = {s.t_nominal_s for s in steps}
+        if len(kept) == len(times):
+            break
+        sel = [j for j, tk in enumerate(times) if tk in kept]
+        times = [times[j] for j in sel]
+        info = [info[j] for j in sel] if info else None
+    return steps
 
 
 def _detect_times(t, x, *, min_ratio, slip_window_um, min_points, max_window_s) -> list[float]:
@@ -219,41 +237,97 @@ def _detect_times(t, x, *, min_ratio, slip_window_um, min_points, max_window_s) 
     peaks.sort(key=lambda j: -abs(r[j]))
     chosen: list[int] = []
     for j in peaks:
-        w = min(half_l[j], half_r[j])
-        if all(abs(tb[j] - tb[c]) > w for c in chosen):
+        if all(abs(tb[j] - tb[c]) > max(half_l[c], half_r[c]) for c in chosen):
             chosen.append(j)
     chosen.sort()
     return [float(tb[j]) for j in chosen]
 
 
-def _refine(t, x, times, *, source, guard_s, fit_span_s, min_ratio) -> list[Step]:
+def _robust_sd(r: np.ndarray) -> float:
+    if r.size < 3:
+        return 0.0
+    return float(1.4826 * np.median(np.abs(r - np.median(r))))
+
+
+def _grow(t, x, lo, hi, lim_lo, lim_hi, backward: bool, tol_um: float):
+    """Extend the fit range [lo, hi) backward (or forward) up to the limit while the
+    position stays on the fitted straight line (a stop, a rest or another velocity ends
+    the segment). Returns (lo, hi, a, b)."""
+    for _ in range(30):
+        a, b = line_fit(t[lo:hi], x[lo:hi])
+        sd = _robust_sd(x[lo:hi] - (a + b * t[lo:hi]))
+        tol = max(tol_um, 5.0 * sd)
+        if backward:
+            if lo <= lim_lo:
+                break
+            n = hi - lo
+            c_lo = max(lim_lo, lo - 2 * n)
+            dev = np.abs(x[c_lo:lo] - (a + b * t[c_lo:lo]))[::-1]
+            bad = np.flatnonzero(dev > tol)
+            new_lo = lo - (bad[0] if bad.size else lo - c_lo)
+            if new_lo >= lo:
+                break
+            lo = new_lo
+        else:
+            if hi >= lim_hi:
+                break
+            n = hi - lo
+            c_hi = min(lim_hi, hi + 2 * n)
+            dev = np.abs(x[hi:c_hi] - (a + b * t[hi:c_hi]))
+            bad = np.flatnonzero(dev > tol)
+            new_hi = hi + (bad[0] if bad.size else c_hi - hi)
+            if new_hi <= hi:
+                break
+            hi = new_hi
+    a, b = line_fit(t[lo:hi], x[lo:hi])
+    return lo, hi, a, b
+
+
+def _refine(t, x, times, *, source, guard_s, fit_span_s, min_ratio, info=None, min_slip_um=10.0) -> list[Step]:
+    """Effective step times and the constant-velocity segment around each step."""
     steps: list[Step] = []
-    times = sorted(times)
+    order = np.argsort(times)
+    times = [times[j] for j in order]
+    info = [info[j] for j in order] if info else [None] * len(times)
     bounds = [t[0] - 1.0] + list(times) + [t[-1] + 1.0]
+    dtm = float(np.median(np.diff(t))) if t.size > 1 else 1.0
+    seeds = []
     for k, tk in enumerate(times):
+        ev = info[k] or {}
         t_prev, t_next = bounds[k], bounds[k + 2]
-        pre_lo = np.searchsorted(t, t_prev + guard_s)
-        pre_hi = np.searchsorted(t, tk - guard_s)
-        post_lo = np.searchsorted(t, tk + guard_s)
-        post_hi = np.searchsorted(t, t_next - guard_s)
-        # local line fits (velocity may drift over long segments)
-        a_lo = max(pre_lo, np.searchsorted(t, tk - fit_span_s))
-        b_hi = min(post_hi, np.searchsorted(t, tk + fit_span_s))
-        if pre_hi - a_lo < 3 or b_hi - post_lo < 3:
+        lim_lo = int(np.searchsorted(t, t_prev + guard_s))
+        lim_hi = int(np.searchsorted(t, t_next - guard_s))
+        t_post0 = max(tk, float(ev.get("ramp_end_s", tk))) + guard_s
+        if "t_end_s" in ev:
+            lim_hi = min(lim_hi, int(np.searchsorted(t, float(ev["t_end_s"]))))
+        if "slip_before_um" in ev and ev.get("v1_um_s"):
+            lim_lo = max(lim_lo, int(np.searchsorted(t, tk - float(ev["slip_before_um"]) / float(ev["v1_um_s"]))))
+        pre_hi = int(np.searchsorted(t, tk - guard_s))
+        post_lo = int(np.searchsorted(t, t_post0))
+        n0 = max(12, int(2.0 / dtm) if dtm > 0 else 12)
+        a_lo = max(lim_lo, pre_hi - n0)
+        b_hi = min(lim_hi, post_lo + n0)
+        if pre_hi - a_lo < 4 or b_hi - post_lo < 4:
             continue
-        a1, v1 = line_fit(t[a_lo:pre_hi], x[a_lo:pre_hi])
-        a2, v2 = line_fit(t[post_lo:b_hi], x[post_lo:b_hi])
+        a_lo, pre_hi, a1, v1 = _grow(t, x, a_lo, pre_hi, max(lim_lo, pre_hi - int(fit_span_s / dtm)), lim_hi,
+                                     True, 0.5)
+        post_lo, b_hi, a2, v2 = _grow(t, x, post_lo, b_hi, lim_lo, lim_hi, False, 0.5)
         if not (np.isfinite(v1) and np.isfinite(v2)) or v1 <= 0 or v2 <= 0:
             continue
         if abs(math.log(v2 / v1)) < math.log(min_ratio) * 0.8:
+            continue
+        # both sides must be steady sliding over some slip (a start from rest, a stop or a
+        # reversal is not a velocity step)
+        if (x[pre_hi - 1] - x[a_lo]) < min_slip_um or (x[b_hi - 1] - x[post_lo]) < min_slip_um \
+                or pre_hi - a_lo < 10 or b_hi - post_lo < 10:
             continue
         ts = (a2 - a1) / (v1 - v2)
         if not (t[pre_hi - 1] - guard_s <= ts <= t[post_lo] + guard_s):
             ts = tk
         xs = a1 + v1 * ts
         i = int(np.searchsorted(t, ts))
+        # the whole constant-velocity stretch after the step (the fit above may stop early)
+        _, seg_hi, _, _ = _grow(t, x, post_lo, b_hi, lim_lo, lim_hi, False, 0.5)
         steps.append(Step(t_s=float(ts), t_nominal_s=float(tk), i=i, v1_um_s=float(v1), v2_um_s=float(v2),
-                          x_um=float(xs), pre=(int(np.searchsorted(t, t_prev)) if k > 0 else 0, i),
-                          post=(i, int(np.searchsorted(t, t_next)) if k + 1 < len(times) else t.size),
-                          source=source))
+                          x_um=float(xs), pre=(a_lo, i), post=(i, max(seg_hi, i + 1)), source=source))
     return steps
