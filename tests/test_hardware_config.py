@@ -21,7 +21,7 @@ def test_emulated_profile_validates_and_matches_sim(repo_root):
     for d in (sim, emu):
         for k in ("name", "description", "hardware"):
             d.pop(k, None)
-    assert emu == sim, "config/rigs/emulated.yaml drifted from config/rigs/sim.yaml"
+    assert emu == sim, "emulated.yaml drifted from sim.yaml: run python -m drivers.emulators.make_profile"
 
 
 def test_smoke_recipe_validates_and_compiles(repo_root):
