@@ -408,7 +408,7 @@ def fit_baseline(grid: Grid, baseline: str) -> FitResult:
 def try_candidate(grid: Grid, cur: FitResult, cause: str, info: dict) -> Candidate:
     exts = list(cur.extensions) + [cause]
     starts = _candidate_starts(cause, cur, grid, info)
-    res = multistart(grid, cur.baseline, exts, starts, keep=min(3, len(starts)), max_nfev=200)
+    res = multistart(grid, cur.baseline, exts, starts, keep=min(2, len(starts)), max_nfev=120)
     gain = 100.0 * (cur.holdout_rms_N - res.holdout_rms_N) / cur.holdout_rms_N
     dbic = res.bic - cur.bic
     z = paired_z(grid, cur.pred, res.pred)

@@ -213,11 +213,20 @@ def _servo_fit(t, xr, x):
     """
     from rig.friction import lowpass_uneven
 
+    # the record starts in motion: pad the past with the initial commanded velocity, so the lag
+    # model starts in its steady tracking state rather than at rest
+    k = int(np.searchsorted(t, t[0] + 2.0)) + 2
+    v0 = float(np.polyfit(t[:k] - t[0], xr[:k], 1)[0]) if k >= 3 else 0.0
+    dtp = max(float(np.median(np.diff(t))), 1e-3)
+    tp = t[0] - dtp * np.arange(400, 0, -1)
+    tt = np.concatenate([tp, t])
+    xx = np.concatenate([xr[0] + v0 * (tp - t[0]), xr])
+
     def model(tau):
         if tau <= 0:
             m = xr.copy()
         else:
-            m = lowpass_uneven(t, lowpass_uneven(t, xr, tau), tau)
+            m = lowpass_uneven(tt, lowpass_uneven(tt, xx, tau), tau)[400:]
         off = float(np.median(x - m))
         return m + off
 
@@ -269,6 +278,11 @@ def prepare(trial: TrialData, n_blocks: int = 20, slip_window_um: float = 3.0,
     Fs = np.bincount(idx, weights=F, minlength=ncell)
     F2s = np.bincount(idx, weights=F * F, minlength=ncell)
     Nk = cmean(Ntot)
+    if trial.has_normals and tk.size > 5:
+        # the normal load cells' noise (±0.6 N) would otherwise enter mu (N1 + N2): centred 0.5 s mean
+        kk = max(1, int(round(0.25 / max(float(np.median(np.diff(tk))), 1e-6))))
+        ker = np.ones(2 * kk + 1)
+        Nk = np.convolve(Nk, ker, mode="same") / np.convolve(np.ones_like(Nk), ker, mode="same")
 
     # 2./3. kinematics
     use_ref = trial.position_ref_um is not None and np.all(np.isfinite(trial.position_ref_um))
@@ -280,7 +294,11 @@ def prepare(trial: TrialData, n_blocks: int = 20, slip_window_um: float = 3.0,
         v_s = np.convolve(v_rough, ker, mode="same") / np.convolve(np.ones_like(v_rough), ker, mode="same")
     else:
         v_s = np.full_like(tk, (xk[-1] - xk[0]) / max(tk[-1] - tk[0], 1e-9))
-    half = 0.5 * np.clip(slip_window_um / np.maximum(np.abs(v_s), 0.05), 0.2, 4.0)
+    # size the window by the slower side of any nearby velocity change (running minimum over ±2 s)
+    from scipy.ndimage import minimum_filter1d
+
+    v_min = minimum_filter1d(np.abs(v_s), size=2 * k2 + 1, mode="nearest")
+    half = 0.5 * np.clip(slip_window_um / np.maximum(v_min, 0.05), 0.2, 4.0)
     servo_tau = None
     if use_ref:
         xr = cmean(np.asarray(trial.position_ref_um, dtype=float))
@@ -288,7 +306,8 @@ def prepare(trial: TrialData, n_blocks: int = 20, slip_window_um: float = 3.0,
         if servo_tau is None:
             use_ref = False
     if use_ref:
-        es, ev = edge_preserving_line(tk, xk - xm, half)
+        # the reference carries the trajectory's shape; the tracking residual is nearly constant
+        es, ev = edge_preserving_line(tk, xk - xm, np.full_like(tk, 2.0))
         xs = xm + es
         vs = np.gradient(xm, tk) + ev
     else:
