@@ -120,3 +120,36 @@ def register(app: typer.Typer) -> None:
 
 def _optional(name: str):
     return globals().get(f"{name}_cmd")
+
+
+def stribeck_cmd(
+    data: list[Path] = typer.Argument(..., help="Stepped-velocity pass(es), .csv or .mcap."),
+    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the rig.stribeck/1 report here."),
+    plot: Optional[Path] = typer.Option(None, "--plot", help="Write a PNG like Figs. 6 and 7."),
+    events: bool = typer.Option(True, "--events/--no-events", help="Use the log's level events when present."),
+    window_um: float = typer.Option(50.0, "--window-um", help="Average over the last this many µm of each level."),
+):
+    """Steady-state friction per velocity level, up and down branches, and A - B by eq. (7)."""
+    from rig.analysis.stribeck import plot_stribeck, stribeck, write_json
+
+    trials = _load(data)
+    rep = stribeck(trials, use_events=events, window_um=window_um, names=[str(p) for p in data])
+    if not rep["levels"]:
+        _fail(f"{', '.join(map(str, data))}: no velocity levels found", 1)
+    table = Table(title=f"steady-state friction (last {window_um:g} µm of each level)")
+    for c in ("branch", "v (µm/s)", "mu", "sd over trials", "trials"):
+        table.add_column(c, justify="right")
+    for d in ("up", "down"):
+        for b in rep["branches"][d]:
+            table.add_row(d, _fmt(b["v_um_s"]), _fmt(b["mu"], 5), _fmt(b["mu_sd"], 2), str(b["n_trials"]))
+    console.print(table)
+    for key, label in (("fit", "all levels"), ("fit_up", "up branch"), ("fit_down", "down branch")):
+        f = rep[key]
+        console.print(f"eq. (7), {label}: A - B = {_fmt(f['A_minus_B'], 4)} ± {_fmt(f['A_minus_B_err'], 2)}, "
+                      f"mu0 = {_fmt(f['mu0'], 5)} (n={f['n']})")
+    if json_out:
+        write_json(rep, json_out)
+        console.print(f"wrote {json_out}")
+    if plot:
+        plot_stribeck(rep, plot)
+        console.print(f"wrote {plot}")

@@ -1,0 +1,175 @@
+"""Steady-state friction against velocity (the Stribeck curve), Dupont & Dunlap section 4.1.
+
+From a stepped-velocity pass (Fig. 5): the friction of each level is the mean of
+``mu`` over the last 50 µm of displacement at that velocity; levels come from the
+log's ``level`` events when present (their ``window_*`` times), else from the
+velocity steps detected in the data (:mod:`rig.analysis.steps`). Levels reached
+by an increase of velocity form the *up* branch, the others the *down* branch
+(kept apart, as in Fig. 6: friction after increases exceeded friction after
+decreases). Eq. (7), ``mu_ss = mu0 + (A - B) ln(v/V0)``, is fitted by least
+squares on the semi-log axes (Fig. 7), to all levels and to each branch; the
+errors are the regression's standard errors (residual variance times
+``(X^T X)^-1``).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from rig.analysis.identify import _r
+from rig.analysis.steps import detect_steps
+from rig.data import TrialData, atomic_write_text
+from rig.friction import V0_UM_S
+
+SCHEMA = "rig.stribeck/1"
+
+
+def levels_from_trial(trial: TrialData, *, use_events: bool = True, window_um: float = 50.0,
+                      min_ratio: float = 1.25) -> tuple[list[dict], str]:
+    t = np.asarray(trial.time_s, float)
+    x = np.asarray(trial.position_um, float)
+    mu = np.asarray(trial.mu, float)
+    out = []
+    evs = [e for e in (trial.events or []) if e.get("kind") == "level" and "v_um_s" in e] if use_events else []
+    if evs:
+        for e in evs:
+            if "window_t_start_s" in e and "window_t_end_s" in e:
+                t0, t1 = float(e["window_t_start_s"]), float(e["window_t_end_s"])
+            else:
+                t1 = float(e.get("t_end_s", e["t_s"]))
+                t0 = t1 - window_um / float(e["v_um_s"])
+            sel = (t >= t0) & (t <= t1)
+            if sel.sum() < 3:
+                continue
+            out.append(_level(t, x, mu, sel, float(e["v_um_s"]), e.get("direction")))
+        source = "events"
+    else:
+        steps = detect_steps(trial, use_events=False, min_ratio=min_ratio)
+        source = "data"
+        if not steps:
+            return [], source
+        # level k ends at step k (velocity v1); the last level ends at the last step's segment end
+        ends = [(s.pre[0], s.i, s.v1_um_s, s.x_um) for s in steps]
+        last = steps[-1]
+        ends.append((last.i, last.post[1], last.v2_um_s, float(x[last.post[1] - 1])))
+        for lo, hi, v, x_end in ends:
+            sel = np.zeros(t.size, bool)
+            sel[lo:hi] = True
+            sel &= (x >= x_end - window_um) & (x <= x_end)
+            if sel.sum() < 3:
+                continue
+            out.append(_level(t, x, mu, sel, v, None))
+    # branches: a level reached by an increase of velocity is 'up'
+    prev = None
+    for lv in out:
+        if lv["direction"] not in ("up", "down"):
+            lv["direction"] = "up" if prev is None or lv["v_um_s"] > prev else "down"
+        prev = lv["v_um_s"]
+    return out, source
+
+
+def _level(t, x, mu, sel, v_nom, direction):
+    tt, xx, mm = t[sel], x[sel], mu[sel]
+    dt = tt - tt.mean()
+    v_meas = float(np.dot(dt, xx - xx.mean()) / np.dot(dt, dt)) if np.dot(dt, dt) > 0 else math.nan
+    return {"v_um_s": float(v_nom), "v_measured_um_s": v_meas, "mu": float(mm.mean()),
+            "mu_sd": float(mm.std(ddof=1)) if mm.size > 1 else math.nan,
+            "mu_sem": float(mm.std(ddof=1) / math.sqrt(mm.size)) if mm.size > 1 else math.nan,
+            "n": int(mm.size), "t_start_s": float(tt[0]), "t_end_s": float(tt[-1]),
+            "x_start_um": float(xx[0]), "x_end_um": float(xx[-1]), "direction": direction}
+
+
+def fit_eq7(levels: list[dict]) -> dict:
+    """Least squares ``mu = mu0 + c ln(v/V0)``; ``c = A - B`` (eq. 7) with standard errors."""
+    v = np.array([lv["v_um_s"] for lv in levels], float)
+    m = np.array([lv["mu"] for lv in levels], float)
+    ok = v > 0
+    v, m = v[ok], m[ok]
+    n = v.size
+    if n < 2 or np.ptp(np.log(v)) == 0:
+        return {"n": int(n), "A_minus_B": None, "A_minus_B_err": None, "mu0": None, "mu0_err": None}
+    X = np.column_stack([np.ones(n), np.log(v / V0_UM_S)])
+    coef, *_ = np.linalg.lstsq(X, m, rcond=None)
+    r = m - X @ coef
+    dof = max(n - 2, 1)
+    s2 = float(r @ r) / dof
+    cov = np.linalg.inv(X.T @ X) * s2
+    err = np.sqrt(np.diag(cov))
+    sst = float(((m - m.mean()) ** 2).sum())
+    return {"n": int(n), "A_minus_B": _r(coef[1]), "A_minus_B_err": _r(err[1]) if n > 2 else None,
+            "mu0": _r(coef[0]), "mu0_err": _r(err[0]) if n > 2 else None,
+            "r2": _r(1 - float(r @ r) / sst) if sst > 0 else None, "rms_mu": _r(math.sqrt(float(r @ r) / n))}
+
+
+def stribeck(trials: list[TrialData], *, use_events: bool = True, window_um: float = 50.0,
+             names: list[str] | None = None) -> dict:
+    """Levels of every trial, the branch-averaged curves, and the eq. (7) fits."""
+    all_levels = []
+    sources = set()
+    for k, tr in enumerate(trials):
+        lv, src = levels_from_trial(tr, use_events=use_events, window_um=window_um)
+        sources.add(src)
+        for x in lv:
+            x["trial"] = k
+        all_levels += lv
+    branches = {}
+    for d in ("up", "down"):
+        sel = [lv for lv in all_levels if lv["direction"] == d]
+        vs = sorted({lv["v_um_s"] for lv in sel})
+        rows = []
+        for v in vs:
+            mus = [lv["mu"] for lv in sel if lv["v_um_s"] == v]
+            rows.append({"v_um_s": v, "mu": _r(np.mean(mus)), "n_trials": len(mus),
+                         "mu_sd": _r(np.std(mus, ddof=1)) if len(mus) > 1 else None})
+        branches[d] = rows
+    rep = {
+        "schema": SCHEMA,
+        "data": names if names and len(names) > 1 else (names[0] if names else trials[0].source),
+        "window_um": window_um,
+        "level_source": sorted(sources),
+        "levels": [{k: (_r(v) if isinstance(v, float) else v) for k, v in lv.items()} for lv in all_levels],
+        "branches": branches,
+        "fit": fit_eq7(all_levels),
+        "fit_up": fit_eq7([lv for lv in all_levels if lv["direction"] == "up"]),
+        "fit_down": fit_eq7([lv for lv in all_levels if lv["direction"] == "down"]),
+        "note": "eq. (7): mu_ss = mu0 + (A - B) ln(v/V0), V0 = 1 µm/s; A - B < 0 is a negative slope",
+    }
+    return rep
+
+
+def write_json(rep: dict, path) -> None:
+    atomic_write_text(path, json.dumps(rep, indent=2, allow_nan=False) + "\n")
+
+
+def plot_stribeck(rep: dict, path: str | Path) -> None:
+    """Fig. 6 (linear axes, branches apart) and Fig. 7 (semi-log with the eq. 7 fit)."""
+    from rig.analysis.plots import _plt, save
+
+    plt = _plt()
+    fig, axs = plt.subplots(1, 2, figsize=(12, 4.5))
+    for d, c, mk in (("up", "C3", "^"), ("down", "C0", "v")):
+        lv = [x for x in rep["levels"] if x["direction"] == d]
+        br = rep["branches"][d]
+        for ax in axs:
+            ax.plot([x["v_um_s"] for x in lv], [x["mu"] for x in lv], mk, color=c, alpha=0.35, ms=4)
+            ax.plot([b["v_um_s"] for b in br], [b["mu"] for b in br], "-" + mk, color=c,
+                    label=f"{d} branch (mean of {max([b['n_trials'] for b in br], default=0)} trials)")
+    f = rep["fit"]
+    if f.get("A_minus_B") is not None:
+        vv = np.logspace(np.log10(min(x["v_um_s"] for x in rep["levels"])),
+                         np.log10(max(x["v_um_s"] for x in rep["levels"])), 100)
+        axs[1].plot(vv, f["mu0"] + f["A_minus_B"] * np.log(vv), "k--",
+                    label=f"eq. 7: A-B = {f['A_minus_B']:.3g} ± {f['A_minus_B_err'] or float('nan'):.2g}")
+    axs[0].set_title("steady-state friction (cf. Fig. 6)")
+    axs[1].set_xscale("log")
+    axs[1].set_title("semi-log axes (cf. Fig. 7)")
+    for ax in axs:
+        ax.set_xlabel("velocity (µm/s)")
+        ax.set_ylabel(f"mu (mean over the last {rep['window_um']:g} µm of each level)")
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    save(fig, path)
