@@ -97,7 +97,9 @@ def run_hardware_trial(plan, recipe, profile, writer, progress=None, *, emulator
     def _on_signal(signum, _frame):
         signals["n"] += 1
         signals["name"] = signal.Signals(signum).name
-        abort.value = 1
+        abort.value = 1  # controlled stop: the loop holds, nulls, disables
+        if signals["n"] >= 3 and proc.is_alive():
+            proc.terminate()  # insisted: the loop stops now (the valve watchdog nulls the valve)
 
     old = {}
     for sig in (signal.SIGINT, signal.SIGTERM):
