@@ -169,7 +169,7 @@ def position_periodogram(grid: Grid, r: np.ndarray, lam_min: float = 8.0):
     span = float(x.max() - x.min())
     if span < 4 * lam_min:
         return None
-    lam_max = span / 3.0
+    lam_max = span / 5.0
     nf = int(min(3000, max(200, 4 * span / lam_min)))
     lam = np.exp(np.linspace(math.log(lam_min), math.log(lam_max), nf))
     w = 2 * math.pi / lam
@@ -430,7 +430,7 @@ def _plausible(cause: str, p: dict, grid: Grid) -> bool:
         return False
     if cause == "position_periodic":
         span = float(grid.x.max() - grid.x.min())
-        if p["wavelength_um"] > span / 2:
+        if p["wavelength_um"] > span / 5:
             return False
     return True
 

@@ -1,0 +1,50 @@
+"""The `rig diagnose` command: JSON report to the letter of diagnosis.md, PNG, model YAML, bad input."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+from typer.testing import CliRunner
+
+from rig.cli import app
+from rig.data import write_csv
+from rig.diagnosis.synth import SynthSpec, make_record, random_effect
+from rig.friction import FrictionModel
+
+
+def test_cli_report_plot_model(tmp_path):
+    rng = np.random.default_rng(3)
+    eff = {"position_periodic": random_effect("position_periodic", rng)}
+    trial, truth = make_record(SynthSpec(rate_hz=25.0, effects=eff, seed=3, duration_s=600.0, protocol="varied"))
+    csv = write_csv(trial, tmp_path / "trial.csv")
+    js, png, yml = tmp_path / "r.json", tmp_path / "r.png", tmp_path / "m.yaml"
+    res = CliRunner().invoke(app, ["diagnose", str(csv), "--json", str(js), "--plot", str(png),
+                                   "--model-out", str(yml)])
+    assert res.exit_code == 0, res.output
+    assert "position_periodic" in res.output
+    rep = json.loads(js.read_text())
+    assert set(rep) == {"schema", "data", "baseline", "findings", "unexplained", "model", "holdout_rms_N"}
+    assert rep["schema"] == "rig.diagnosis/1"
+    assert set(rep["baseline"]) == {"model", "params", "holdout_rms_N"}
+    f = rep["findings"][0]
+    assert set(f) == {"cause", "params", "evidence", "holdout_rms_N_before", "holdout_rms_N_after", "gain_pct",
+                      "delta_bic"}
+    assert set(f["params"]) == {"amplitude_mu", "wavelength_um"}
+    assert abs(f["gain_pct"] - 100 * (f["holdout_rms_N_before"] - f["holdout_rms_N_after"])
+               / f["holdout_rms_N_before"]) < 0.05
+    assert set(rep["model"]) == {"baseline", "extensions", "params"}
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    fm = FrictionModel.from_yaml(yml)
+    assert fm.extensions == rep["model"]["extensions"]
+    assert abs(fm.params["wavelength_um"] - truth["params"]["wavelength_um"]) < 0.25 * truth["params"]["wavelength_um"]
+
+
+def test_cli_bad_input(tmp_path):
+    bad = tmp_path / "bad.csv"
+    bad.write_text("# rig-trial-csv: 1\ntime_s,friction_N\n0,1\n")
+    js = tmp_path / "out.json"
+    res = CliRunner().invoke(app, ["diagnose", str(bad), "--json", str(js)])
+    assert res.exit_code != 0
+    assert "position_um" in res.output
+    assert not js.exists()
