@@ -137,3 +137,12 @@ def test_stroke_limit_trips_and_holds(rig_env):
     assert trip["values"]["position_um"] > 530.0 and trip["name"] == "stroke_limit"
     pos = w.col("position_um")
     assert pos.max() < 545.0  # stopped within a few hundred ms of travel
+
+
+def test_port_vanishes_mid_run_trips_device_lost(rig_env):
+    # last test of the module: the emulator's LVDT is gone afterwards
+    x = np.full(3000, 500.0)
+    exc, trip, w, _ = _run_with_fault(rig_env, x, lambda emu: emu.inject("lvdt", "vanish", True))
+    assert exc.summary["trip"]["name"] == "device_lost"
+    assert "LVDT conditioner at serial:" in trip["message"]
+    assert trip["values"]["address"].startswith("serial:")

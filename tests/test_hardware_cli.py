@@ -1,0 +1,50 @@
+"""`rig devices check` and `rig loop-bench` through the CLI."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+from hw_helpers import REPO, private_profile
+
+
+def _rig(*args, timeout=90):
+    return subprocess.run([sys.executable, "-m", "rig.cli", *map(str, args)], cwd=REPO,
+                          capture_output=True, text=True, timeout=timeout)
+
+
+def test_devices_check_with_and_without_emulators(tmp_path):
+    prof = private_profile(tmp_path)
+    r = _rig("devices", "check", "--hardware", prof, "--start-emulators", "--json")
+    assert r.returncode == 0, r.stdout + r.stderr
+    rows = json.loads(r.stdout)
+    assert [x["device"] for x in rows] == ["load cells", "LVDT", "servovalve"]
+    assert all(x["ok"] for x in rows)
+    assert "normal 1 " in rows[0]["reading"] and "position" in rows[1]["reading"]
+    # nothing listening: each device named with its address, exit 1
+    r = _rig("devices", "check", "--hardware", prof, "--json")
+    assert r.returncode == 1
+    rows = json.loads(r.stdout)
+    assert not any(x["ok"] for x in rows)
+    assert "modbus-tcp://127.0.0.1:" in rows[0]["address"] and "refused" in rows[0]["reading"]
+    assert str(tmp_path / "lvdt") in rows[1]["reading"]
+
+
+def test_devices_check_bad_profile(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text((REPO / "config/rigs/sim.yaml").read_text())  # hardware: null
+    r = _rig("devices", "check", "--hardware", bad)
+    assert r.returncode == 2
+    assert "no 'hardware' section" in r.stderr
+
+
+def test_loop_bench_short(tmp_path):
+    prof = private_profile(tmp_path)
+    out = tmp_path / "bench.json"
+    r = _rig("loop-bench", "--seconds", 2, "--hardware", prof, "--json", out)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "jitter" in r.stdout and "late > 100 µs" in r.stdout
+    res = json.loads(out.read_text())
+    assert res["n"] + res["skipped"] >= 1990 and res["late_p50_us"] < 1000
+    assert res["realtime"]["sched"] in ("SCHED_FIFO", "SCHED_OTHER")
