@@ -195,6 +195,9 @@ def growth_rate(v: np.ndarray, dt_rec: float, V0: float, dv0: float | None = Non
     a_early = float(d[e0:e1].max()) if e1 > e0 else float(d[0])
     a_late = float(d[l0:].max())
     span = ((l0 + n) / 2 - (e0 + e1) / 2) * dt_rec
+    if a_late > 0.5 * V0:
+        # stick-slip (or a large limit cycle): unstable whatever the early amplitude
+        return math.log(a_late / max(a_early, 1e-300)) / span if a_late > a_early else 1.0 / span
     if dv0:
         # growth that has already saturated (stick-slip) before the early window
         if a_late > 2.0 * dv0:
@@ -316,16 +319,21 @@ def full_rig_boundary(name: str, *, profile=None, ki_N_per_um_s: float | None = 
     T = 2 * math.pi / w
     dur = periods * T
     rate = prof.loop.rate_hz
+    f_ss = 2 * N * float(model.mu_ss(V0_um_s))
 
     def sim(kp):
-        ctrl = prof.controller.model_copy(update={"kp_N_per_um": kp, **({"ki_N_per_um_s": ki_N_per_um_s}
-                                                                        if ki_N_per_um_s is not None else {})})
+        # the PID's constant bias carries the steady friction (Fig. 1's spring is pre-loaded)
+        upd = {"kp_N_per_um": kp, "bias_N": f_ss}
+        if ki_N_per_um_s is not None:
+            upd["ki_N_per_um_s"] = ki_N_per_um_s
+        ctrl = prof.controller.model_copy(update=upd)
         p2 = prof.model_copy(update={"controller": ctrl})
         rig = SimRig(p2, model, seed=seed)
         n = int(dur * rate)
         x0 = prof.stroke.home_um
         xref = x0 + V0_um_s * np.arange(n) / rate
-        # a small perturbation: a 0.2 µm bump of the reference early on
+        # a small perturbation: a 0.2 µm bump of the reference early on (the start from rest
+        # under the bias force is another, brief one)
         xref = xref + 0.2 * np.exp(-((np.arange(n) / rate - 0.1 * T) / (0.02 * T)) ** 2)
         out = rig.run(xref)
         v = out["true_velocity_um_s"]
@@ -342,3 +350,53 @@ def full_rig_boundary(name: str, *, profile=None, ki_N_per_um_s: float | None = 
     return {"lubricant": name, "k_cr_eq8_N_per_um": k8, "k_cr_eq8_with_leak_N_per_um": k8_leak,
             "kv_leak_N_s_per_um": kv_leak, "ki_N_per_um_s": ki_N_per_um_s, "k_sim_N_per_um": kb,
             "rel_diff": (kb - k8) / k8 if kb else None, "runs": res["runs"], "model": "SimRig"}
+
+
+# ---------------------------------------------------------------------------
+# Report and map
+# ---------------------------------------------------------------------------
+def plot_map(checks: list[dict], analyses: dict, path) -> None:
+    """Stability map: growth rate of the velocity oscillation against kp for each checked
+    lubricant (simulated runs; growing = unstable), with eq. (8)'s k_cr and the simulated
+    boundary; and k_cr of eq. (8) against the derivative gain (the A = 0 divergence)."""
+    from rig.analysis.plots import _plt, save
+
+    plt = _plt()
+    n = max(1, len(checks))
+    fig, axs = plt.subplots(1, n + 1, figsize=(4.2 * (n + 1), 4))
+    axs = np.atleast_1d(axs)
+    for ax, c in zip(axs, checks):
+        for src, mk in (("fig1", "o"), ("SimRig", "s")):
+            runs = [r for r in c.get("runs", [])] if c.get("model") == src else []
+            if not runs:
+                continue
+            kp = np.array([r["kp_N_per_um"] for r in runs]) * 1e3
+            g = np.array([r["growth_rate_per_s"] for r in runs])
+            g = np.clip(g, -1e3, 1e3)
+            ax.scatter(kp[g > 0], g[g > 0], marker=mk, color="C3", label=f"growing ({src})")
+            ax.scatter(kp[g <= 0], g[g <= 0], marker=mk, color="C2", label=f"decaying ({src})")
+        ax.axvline(c["k_cr_eq8_N_per_um"] * 1e3, color="k", ls="--", label="eq. (8)")
+        if c.get("k_sim_N_per_um"):
+            ax.axvline(c["k_sim_N_per_um"] * 1e3, color="C1", ls=":", label="simulated boundary")
+        ax.axhline(0, color="0.6", lw=0.6)
+        ax.set_xscale("log")
+        ax.set_yscale("symlog", linthresh=1e-4)
+        ax.set_xlabel("kp (kN/m)")
+        ax.set_ylabel("envelope growth rate (1/s)")
+        rd = c.get("rel_diff")
+        ax.set_title(f"{c['lubricant']} ({c.get('model')}): sim/eq.8 - 1 = "
+                     f"{rd * 100:.2f} %" if rd is not None else c["lubricant"], fontsize=9)
+        ax.legend(fontsize=7)
+    ax = axs[-1]
+    kd = np.logspace(-6, -1, 200)
+    for name, a in analyses.items():
+        inp = a["inputs"]
+        k = [k_cr_eq8_N_per_um(inp["A_mu"], inp["B_mu"], inp["L_um"], inp["normal_force_N"], inp["mass_kg"], d,
+                               inp["V0_um_s"]) * 1e3 for d in kd]
+        ax.loglog(kd, k, label=name)
+    ax.set_xlabel("derivative gain kd (N s/µm)")
+    ax.set_ylabel("k_cr, eq. (8) (kN/m)")
+    ax.set_title("eq. (8) vs derivative gain (A = 0: k_cr -> inf as kd -> 0)", fontsize=9)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    save(fig, path)
