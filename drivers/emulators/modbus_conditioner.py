@@ -196,6 +196,10 @@ def modbus_server_main(cfg_dict, shared: SharedSample, rtu_server_port, fifo_pri
     except Exception as exc:  # noqa: BLE001
         conn.send(("error", str(exc)))
         return
+    import gc
+
+    gc.collect()
+    gc.freeze()
     conn.send(("ready", None))
     stop = {"flag": False}
     signal.signal(signal.SIGTERM, lambda *_: stop.update(flag=True))

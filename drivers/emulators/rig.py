@@ -275,6 +275,10 @@ def _emulator_main(hw_dict, profile, lubricant, normal_force_N, seed, conn, plan
     except BaseException as exc:  # noqa: BLE001
         conn.send(("error", f"{type(exc).__name__}: {exc}"))
         return
+    import gc
+
+    gc.collect()
+    gc.freeze()  # a full collection would scan numba's objects too (tens of ms)
     conn.send(("ready", None))
 
     def on_idle():

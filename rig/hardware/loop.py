@@ -16,6 +16,7 @@ disable), parent death (PR_SET_PDEATHSIG -> SIGTERM -> same as abort).
 
 from __future__ import annotations
 
+import gc
 import signal
 import time
 import traceback
@@ -156,6 +157,11 @@ def _run(hw_dict, profile, x_ref, out_q, abort_flag, stop_req, options):
     lv.polls_since_frame = 0
     lc.reads_since_new = 0
     va.polls_since_status = 0
+    # the cyclic GC would scan every object numba/numpy/pydantic created (tens of ms):
+    # freeze what exists and switch it off; the loop makes (almost) no reference cycles
+    gc.collect()
+    gc.freeze()
+    gc.disable()
     pacer.start()
     prev_wake = float("nan")
     mono = time.monotonic
