@@ -121,15 +121,32 @@ def _r(x, nd=6):
 def _fit_exp(delta: np.ndarray, mu: np.ndarray, mu2: float, l_max: float):
     """Least squares ``mu = mu2 + a exp(-delta/L)`` with mu2 fixed: a linear for each L,
     L by a bounded 1-D search on ln L. Returns (a, L, r2)."""
-    y = mu - mu2
     sst = float(np.sum((mu - mu.mean()) ** 2))
+    within = 0.0
+    wts = None
+    if delta.size > 4000:
+        # dense record: bin in slip (bins << L); SSE = sum n_b (ybar_b - model)^2 + within-bin SS
+        nb = 2000
+        lo_d, hi_d = float(delta.min()), float(delta.max())
+        idx = np.minimum(((delta - lo_d) / max(hi_d - lo_d, 1e-12) * nb).astype(np.int64), nb - 1)
+        cnt = np.bincount(idx, minlength=nb).astype(float)
+        sd = np.bincount(idx, delta, minlength=nb)
+        sm = np.bincount(idx, mu, minlength=nb)
+        smm = np.bincount(idx, mu * mu, minlength=nb)
+        ok = cnt > 0
+        cnt, sd, sm, smm = cnt[ok], sd[ok], sm[ok], smm[ok]
+        within = float(np.sum(smm - sm * sm / cnt))
+        delta, mu, wts = sd / cnt, sm / cnt, cnt
+    y = mu - mu2
+    w_ = np.ones_like(y) if wts is None else wts
 
     def sse_for(lnl):
         e = np.exp(-delta / math.exp(lnl))
-        ee = float(np.dot(e, e))
-        a = float(np.dot(e, y) / ee) if ee > 0 else 0.0
+        we = w_ * e
+        ee = float(np.dot(we, e))
+        a = float(np.dot(we, y) / ee) if ee > 0 else 0.0
         r = y - a * e
-        return float(np.dot(r, r)), a
+        return float(np.dot(w_ * r, r)) + within, a
 
     lo, hi = math.log(0.3), math.log(max(l_max, 1.0))
     grid = np.linspace(lo, hi, 25)
@@ -385,6 +402,14 @@ def fit_whole_record(trial: TrialData, steps: list[Step] | None = None, *, stiff
     mu = np.asarray(trial.mu, dtype=float)
     if steps is None:
         steps = detect_steps(trial)
+    if stiffness:
+        max_points = min(max_points, 8000)
+    # decimate long records by block means first (the state's time scale L/v is >> 0.1 s)
+    k = int(math.ceil(t.size / max_points))
+    if k > 1:
+        t, x, mu = (_block_mean(a, k) for a in (t, x, mu))
+        steps = [Step(s.t_s, s.t_nominal_s, min(s.i // k, t.size - 1), s.v1_um_s, s.v2_um_s, s.x_um,
+                      (s.pre[0] // k, s.i // k), (s.i // k, min(s.post[1] // k, t.size)), s.source) for s in steps]
     v_est = estimate_velocity(t, x, "local_poly" if velocity_method == "segments" else velocity_method)
     if stiffness or (velocity_method == "segments" and steps):
         v, in_steps = _segment_velocity(t, x, steps, v_est)
@@ -392,13 +417,6 @@ def fit_whole_record(trial: TrialData, steps: list[Step] | None = None, *, stiff
     else:
         v = v_est
         _, in_steps = _segment_velocity(t, x, steps, v_est)
-    # decimate long records by block means (the state's time scale L/v is >> 0.1 s)
-    if stiffness:
-        max_points = min(max_points, 8000)
-    k = int(math.ceil(t.size / max_points))
-    if k > 1:
-        t, x, mu, v = (_block_mean(a, k) for a in (t, x, mu, v))
-        in_steps = _block_mean(in_steps.astype(float), k) > 0.999
     # compare model and data on the steps' constant-velocity stretches (not on rests,
     # returns or starts from rest, where the LVDT velocity is not the interface's)
     sliding = in_steps & (v > 0.05 * max(float(np.median(np.abs(v))), 1e-6))

@@ -42,8 +42,9 @@ def plot_identification(idn, path: str | Path, max_steps: int = 9) -> None:
     gs = fig.add_gridspec(nrow, ncol)
     ax = fig.add_subplot(gs[0, :])
     tr = idn.trials[0]
-    t = tr.time_s
-    mu = tr.mu
+    step = max(1, tr.time_s.size // 50000)
+    t = tr.time_s[::step]
+    mu = tr.mu[::step]
     ax.plot(t, mu, ".", ms=1.5, color="0.5", label="measured mu")
     if idn.whole and idn.whole[0].get("_curve") is not None:
         tc, mc, _, _ = idn.whole[0]["_curve"]
@@ -53,7 +54,7 @@ def plot_identification(idn, path: str | Path, max_steps: int = 9) -> None:
     ax.set_xlabel("time (s)")
     ax.set_ylabel("mu = F / (N1 + N2)")
     ax2 = ax.twinx()
-    v = estimate_velocity(t, tr.position_um, idn.report.get("velocity_method", "local_poly"))
+    v = estimate_velocity(t, tr.position_um[::step], idn.report.get("velocity_method", "local_poly"))
     ax2.plot(t, v, "-", color="C2", lw=0.7, alpha=0.7)
     ax2.set_ylabel(f"velocity (µm/s, {idn.report.get('velocity_method')})", color="C2")
     ax2.set_yscale("symlog", linthresh=0.5)

@@ -182,10 +182,13 @@ def detect_steps(trial, *, use_events: bool = True, min_ratio: float = 1.25, sli
     if not times:
         times = _detect_times(t, x, min_ratio=min_ratio, slip_window_um=slip_window_um,
                               min_points=min_points, max_window_s=max_window_s)
-    # refine; candidates rejected there (starts from rest, stops) must not limit their
+    # refine (on a block-averaged copy of a dense record; indices mapped back after);
+    # candidates rejected there (starts from rest, stops) must not limit their
     # neighbours' segments, so refine again with the kept ones until nothing changes
+    tf, xf = t, x
+    tb, xb, _ = _thin(t, x)
     for _ in range(4):
-        steps = _refine(t, x, times, source=source, guard_s=guard_s, fit_span_s=fit_span_s,
+        steps = _refine(tb, xb, times, source=source, guard_s=guard_s, fit_span_s=fit_span_s,
                         min_ratio=min_ratio, info=info)
         kept = {s.t_nominal_s for s in steps}
         if len(kept) == len(times):
@@ -193,6 +196,13 @@ def detect_steps(trial, *, use_events: bool = True, min_ratio: float = 1.25, sli
         sel = [j for j, tk in enumerate(times) if tk in kept]
         times = [times[j] for j in sel]
         info = [info[j] for j in sel] if info else None
+    if tb is not tf:
+        def full(j):
+            return int(np.searchsorted(tf, tb[j] - 0.5 * (tb[1] - tb[0]))) if j < tb.size else tf.size
+        for s in steps:
+            s.i = int(np.searchsorted(tf, s.t_s))
+            s.pre = (full(s.pre[0]), s.i)
+            s.post = (s.i, full(s.post[1]))
     return steps
 
 
