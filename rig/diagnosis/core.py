@@ -125,7 +125,7 @@ def _chunks(grid: Grid, mask: np.ndarray, n: int = 60) -> np.ndarray:
 def paired_z(grid: Grid, before: np.ndarray, after: np.ndarray) -> float:
     """z of the hold-out SSE reduction, chunked in time (robust to correlated residuals)."""
     hm = grid.holdout_mask()
-    d = grid.count * ((grid.F_mean - before) ** 2 - (grid.F_mean - after) ** 2)
+    d = grid.w * ((grid.F_mean - before) ** 2 - (grid.F_mean - after) ** 2)
     ch = _chunks(grid, hm)
     nc = int(ch[hm].max()) + 1 if hm.any() else 0
     if nc < 3:
@@ -139,7 +139,7 @@ def paired_z(grid: Grid, before: np.ndarray, after: np.ndarray) -> float:
 
 def _wcorr_z(grid: Grid, r: np.ndarray, q: np.ndarray) -> tuple[float, float]:
     """Least-squares slope of r on q (weighted by count) and its z, chunk-robust."""
-    w = grid.count
+    w = grid.w
     qm = np.average(q, weights=w)
     rm = np.average(r, weights=w)
     qc = q - qm
@@ -173,11 +173,13 @@ def position_periodogram(grid: Grid, r: np.ndarray, lam_min: float = 8.0):
     nf = int(min(3000, max(200, 4 * span / lam_min)))
     lam = np.exp(np.linspace(math.log(lam_min), math.log(lam_max), nf))
     w = 2 * math.pi / lam
-    rr = r - np.average(r, weights=grid.count)
+    rr = r - np.average(r, weights=grid.w)
     # weight by count via repetition-free approximation: scale residual by sqrt(count)
-    sel = np.arange(x.size)
-    if x.size > 20000:
-        sel = np.linspace(0, x.size - 1, 20000).astype(int)
+    sel = np.flatnonzero(grid.sliding)
+    if sel.size < 20:
+        return None
+    if sel.size > 20000:
+        sel = sel[np.linspace(0, sel.size - 1, 20000).astype(int)]
     pw = lombscargle(x[sel], rr[sel], w, normalize=True)
     k = int(np.argmax(pw))
     # chance peak level for ~nf/ (oversampling) independent frequencies
@@ -200,10 +202,12 @@ def time_periodogram(grid: Grid, r: np.ndarray):
         return None
     nf = 3000
     P = np.exp(np.linspace(math.log(pmin), math.log(pmax), nf))
-    sel = np.arange(t.size)
-    if t.size > 20000:
-        sel = np.linspace(0, t.size - 1, 20000).astype(int)
-    rr = r - np.average(r, weights=grid.count)
+    sel = np.flatnonzero(grid.sliding)
+    if sel.size < 20:
+        return None
+    if sel.size > 20000:
+        sel = sel[np.linspace(0, sel.size - 1, 20000).astype(int)]
+    rr = r - np.average(r, weights=grid.w)
     pw = lombscargle(t[sel], rr[sel], 2 * math.pi / P, normalize=True)
     k = int(np.argmax(pw))
     return P, pw, float(P[k]), float(pw[k] * sel.size / 2.0 - math.log(nf))
@@ -218,7 +222,7 @@ def _steady_init(grid: Grid) -> dict:
         ok = np.ones_like(grid.v, bool)
     lv = np.log(np.maximum(grid.v[ok], 1e-3))
     mu = grid.F_mean[ok] / (2 * grid.N_nom)
-    w = grid.count[ok]
+    w = grid.w[ok]
     A = np.vstack([np.ones_like(lv), lv]).T * np.sqrt(w)[:, None]
     sol, *_ = np.linalg.lstsq(A, mu * np.sqrt(w), rcond=None)
     return {"mu0": float(sol[0]), "c_mu": float(sol[1])}
@@ -332,7 +336,7 @@ def screen(grid: Grid, cur: FitResult) -> tuple[list[str], dict]:
                 info["lam0"] = lam0
                 k = 2 * math.pi / lam0
                 X = np.vstack([np.sin(k * grid.x), np.cos(k * grid.x)]).T
-                co, *_ = np.linalg.lstsq(X * np.sqrt(grid.count)[:, None], r * np.sqrt(grid.count), rcond=None)
+                co, *_ = np.linalg.lstsq(X * np.sqrt(grid.w)[:, None], r * np.sqrt(grid.w), rcond=None)
                 info["amp0"] = float(np.hypot(*co) / (2 * grid.N_nom))
     return cands, info
 
@@ -500,7 +504,7 @@ def _binned_gain(grid: Grid, r: np.ndarray, q: np.ndarray, nb: int = 30):
         return 0.0, None, 0.0
     b = np.clip(np.searchsorted(qs, q, side="right") - 1, 0, qs.size - 2)
     nbin = qs.size - 1
-    w = grid.count
+    w = grid.w
     num = np.bincount(b[fm], weights=(w * r)[fm], minlength=nbin)
     den = np.bincount(b[fm], weights=w[fm], minlength=nbin)
     prof = np.where(den > 0, num / np.maximum(den, 1e-300), 0.0)
@@ -530,11 +534,11 @@ def find_unexplained(grid: Grid, cur: FitResult) -> list[dict]:
         k = 2 * math.pi / P0
         X = np.vstack([np.sin(k * grid.t), np.cos(k * grid.t)]).T
         fm = grid.fit_mask()
-        sw = np.sqrt(grid.count)
+        sw = np.sqrt(grid.w)
         co, *_ = np.linalg.lstsq((X * sw[:, None])[fm], (r * sw)[fm], rcond=None)
         fitv = X @ co
         hm = grid.holdout_mask()
-        w = grid.count
+        w = grid.w
         before = float(np.sum((w * r * r)[hm]) + grid.ss_within[hm].sum())
         after = float(np.sum((w * (r - fitv) ** 2)[hm]) + grid.ss_within[hm].sum())
         g = 100.0 * (math.sqrt(before) - math.sqrt(after)) / math.sqrt(before)

@@ -107,6 +107,9 @@ def _interp_delay(t, v, delay):
     return out
 
 
+VS = 1e-3  # µm/s, scale of the signed velocity variable of the stiffness solver
+
+
 @njit(cache=True)
 def _stiff_series(p, t, x, v, nfac, k, v_init):
     """Friction force with a spring ``k`` (N/µm) between the LVDT position ``x`` and the interface."""
@@ -114,7 +117,7 @@ def _stiff_series(p, t, x, v, nfac, k, v_init):
     out = np.empty(n)
     s = np.zeros(N_STATE)
     s2 = np.zeros(N_STATE)
-    v0 = max(abs(v_init), 1e-6)
+    v0 = v_init if abs(v_init) > 1e-6 else 1e-6
     init_state(p, s, v0)
     xi = x[0]
     F = mu_of(p, s, v0, xi) * nfac[0]
@@ -123,27 +126,26 @@ def _stiff_series(p, t, x, v, nfac, k, v_init):
     for i in range(1, n):
         dt = t[i] - t[i - 1]
         dx = x[i] - x[i - 1]
-        # root of g(u) = mu(e^u) N + k e^u dt - (F + k dx)
+        # root of g(u) = mu(v) N + k v dt - (F + k dx), v = VS sinh(u) (signed: stops and returns)
         rhs = F + k * dx
-        lo = math.log(1e-7)
-        hi = math.log(1e5)
-        u = math.log(max(vprev, 1e-6))
+        lo = -20.0
+        hi = 20.0
+        u = math.asinh(vprev / VS)
         g = 0.0
         for it in range(60):
-            vv = math.exp(u)
+            vv = VS * math.sinh(u)
             for q in range(N_STATE):
                 s2[q] = s[q]
             advance_state(p, s2, vv, dt)
             g = mu_of(p, s2, vv, xi + vv * dt) * nfac[i] + k * vv * dt - rhs
-            if abs(g) < 1e-10 * (1.0 + abs(rhs)):
+            if abs(g) < 1e-12 * (1.0 + abs(rhs)):
                 break
             if g > 0.0:
                 hi = u
             else:
                 lo = u
-            # numerical derivative in u
             du = 1e-6
-            vv2 = math.exp(u + du)
+            vv2 = VS * math.sinh(u + du)
             for q in range(N_STATE):
                 s2[q] = s[q]
             advance_state(p, s2, vv2, dt)
@@ -152,10 +154,10 @@ def _stiff_series(p, t, x, v, nfac, k, v_init):
             un = u - g / dg if dg > 0.0 else 0.5 * (lo + hi)
             if not (un > lo and un < hi):
                 un = 0.5 * (lo + hi)
-            if hi - lo < 1e-12:
+            if hi - lo < 1e-13:
                 break
             u = un
-        vv = math.exp(u)
+        vv = VS * math.sinh(u)
         advance_state(p, s, vv, dt)
         xi += vv * dt
         F = mu_of(p, s, vv, xi) * nfac[i]

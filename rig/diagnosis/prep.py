@@ -34,10 +34,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numba import njit
+from scipy.ndimage import minimum_filter1d
 
 from rig.data import TrialData
 
 KIN_DT_MIN_S = 0.01
+V_SLIDE_MIN_UM_S = 0.1
+STOP_GUARD_S = 3.0
 
 
 @njit(cache=True)
@@ -184,16 +187,32 @@ class Grid:
     noise_N: float
     # kinematic grid (finer), for plots and screening
     kin: dict = field(default_factory=dict)
+    slide_ok: np.ndarray | None = None
 
     @property
     def n_raw(self) -> int:
         return int(self.count.sum())
 
+    @property
+    def sliding(self) -> np.ndarray:
+        """Bins in forward sliding (v > V_SLIDE_MIN for ±STOP_GUARD_S): the only ones the models are held to.
+
+        At rest friction is statically indeterminate (whatever the loading holds), and the
+        catalogue's models are for unidirectional sliding (the paper's regime); stops, returns
+        and the starts from rest are still integrated through, but not fitted.
+        """
+        return self.slide_ok
+
+    @property
+    def w(self) -> np.ndarray:
+        """Raw-sample count of the sliding bins (0 elsewhere): the weights of every statistic."""
+        return self.count * self.sliding
+
     def holdout_mask(self) -> np.ndarray:
-        return (self.block % 2) == 1
+        return ((self.block % 2) == 1) & self.sliding
 
     def fit_mask(self) -> np.ndarray:
-        return (self.block % 2) == 0
+        return ((self.block % 2) == 0) & self.sliding
 
 
 def _robust_noise(y: np.ndarray) -> float:
@@ -295,8 +314,6 @@ def prepare(trial: TrialData, n_blocks: int = 20, slip_window_um: float = 3.0,
     else:
         v_s = np.full_like(tk, (xk[-1] - xk[0]) / max(tk[-1] - tk[0], 1e-9))
     # size the window by the slower side of any nearby velocity change (running minimum over ±2 s)
-    from scipy.ndimage import minimum_filter1d
-
     v_min = minimum_filter1d(np.abs(v_s), size=2 * k2 + 1, mode="nearest")
     half = 0.5 * np.clip(slip_window_um / np.maximum(v_min, 0.05), 0.2, 4.0)
     servo_tau = None
@@ -334,10 +351,16 @@ def prepare(trial: TrialData, n_blocks: int = 20, slip_window_um: float = 3.0,
     vb = bmean_w(vs)
     Nb = bmean_w(Nk)
     blk = blk_k[starts[:-1]]
+    # forward sliding, away from stops, starts from rest and returns
+    kg = max(1, int(round(STOP_GUARD_S / max(dtk, 1e-6))))
+    vmin_k = minimum_filter1d(vs, size=2 * kg + 1, mode="nearest")
+    slide_ok = np.minimum.reduceat(vmin_k, starts[:-1]) > V_SLIDE_MIN_UM_S
+    if slide_ok.sum() < 0.1 * slide_ok.size:  # a record with hardly any steady sliding: keep what slides
+        slide_ok = vb > V_SLIDE_MIN_UM_S
     normals_vary = False
     if trial.has_normals:
         nstd = float(np.std(Nk))
         normals_vary = nstd > 0.0
     return Grid(t=tb, x=xb, v=vb, F_mean=Fm, N_tot=Nb, count=bc, ss_within=ssw, block=blk, N_nom=N_nom,
                 t0=t0, has_normals=trial.has_normals, normals_vary=normals_vary, noise_N=noise_N,
-                kin={"t": tk, "x": xs, "v": vs, "F": Fs / cnt, "N": Nk, "count": cnt, "x_meas": xk})
+                slide_ok=slide_ok, kin={"t": tk, "x": xs, "v": vs, "F": Fs / cnt, "N": Nk, "count": cnt, "x_meas": xk})
