@@ -174,6 +174,17 @@ class EmulatedRig:
         self.modbus.update(vals["friction_N"], vals["normal_1_N"], vals["normal_2_N"])
         self.lvdt.send(vals["position_um"])
 
+    def modbus_requests(self) -> int:
+        if self._mb_proc is None:
+            return self.modbus.n_requests
+        try:
+            self._mb_conn.send(("stats",))
+            if self._mb_conn.poll(1.0):
+                return int(self._mb_conn.recv()[1])
+        except (OSError, EOFError):
+            pass
+        return -1
+
     def inject(self, device: str, fault: str, value=True) -> None:
         """Set (value) or clear (None/False) a fault on 'loadcells', 'lvdt' or 'valve'."""
         if device == "lvdt" and fault == "vanish":
@@ -299,7 +310,7 @@ def _emulator_main(hw_dict, profile, lubricant, normal_force_N, seed, conn, plan
                                      "valve_output": rig.valve.output(time.monotonic()),
                                      "valve_watchdog": rig.valve.watchdog_tripped(time.monotonic()),
                                      "n_setpoints": rig.valve.n_setpoints,
-                                     "modbus_requests": rig.modbus.n_requests,
+                                     "modbus_requests": rig.modbus_requests(),
                                      "lvdt_sent": rig.lvdt.sent, "max_gap_s": rig.max_gap_s,
                                      "gaps_over_5ms": rig.gaps_over_5ms,
                                      "lvdt_overflow": rig.lvdt.overflow}))
