@@ -48,3 +48,10 @@ def test_loop_bench_short(tmp_path):
     res = json.loads(out.read_text())
     assert res["n"] + res["skipped"] >= 995 and res["late_p50_us"] < 1000
     assert res["realtime"]["sched"] in ("SCHED_FIFO", "SCHED_OTHER")
+
+
+def test_run_without_devices_names_the_device(tmp_path):
+    prof = private_profile(tmp_path, autostart=False)
+    r = _rig("run", REPO / "config/recipes/smoke.yaml", "--hardware", prof, "--out", tmp_path / "x.mcap", "-q")
+    assert r.returncode == 1
+    assert "load-cell conditioner at modbus-tcp://127.0.0.1:" in r.stdout + r.stderr
