@@ -47,7 +47,7 @@ class MemWriter:
 @pytest.fixture(scope="module")
 def rig_env(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("hwloop")
-    path = private_profile(tmp, autostart=False, interlocks={"stroke_max_um": 530.0, "stale_s": 0.02})
+    path = private_profile(tmp, autostart=False, interlocks={"stroke_max_um": 530.0, "stale_s": 0.05})
     profile = load_profile(path)
     hw = hardware_of_profile(profile)
     h = start_emulator_process(hw, profile, lubricant="boundary", normal_force_N=100.0, seed=2)
