@@ -68,9 +68,9 @@ def test_smoke_hardware_matches_sim(tmp_path):
 def test_operator_abort_controlled_stop(tmp_path):
     prof = private_profile(tmp_path)
     out = tmp_path / "abort.mcap"
-    p = _rig("run", SMOKE, "--hardware", prof, "--out", out, "-q")
+    p = _rig("run", SMOKE, "--hardware", prof, "--out", out, "-q", start_new_session=True)
     _wait_for_ticks(out, p, 1.5)
-    p.send_signal(signal.SIGINT)
+    os.killpg(p.pid, signal.SIGINT)  # Ctrl-C at a terminal: the whole process group
     text = p.communicate(timeout=30)[0]
     assert p.returncode == 130, text
     tr = read_trial(out, channel="raw")  # finished MCAP: readable without recovery
