@@ -169,10 +169,10 @@ def fit_step(t: np.ndarray, x: np.ndarray, mu: np.ndarray, step: Step, *, window
              rise_guard_s: float = 0.5) -> StepResult:
     """Eqs. (10)-(12) for one step (see the module docstring)."""
     i0 = step.i
-    lo_pre = max(step.pre[0], i0 - pre_points)
-    # do not use the rise itself for mu1
-    hi_pre = int(np.searchsorted(t, step.t_s - 0.5 * rise_guard_s))
-    hi_pre = max(min(hi_pre, i0), lo_pre + 1)
+    # the pre_points samples before the step, not using the rise itself
+    hi_pre = min(int(np.searchsorted(t, step.t_s - 0.5 * rise_guard_s)), i0)
+    lo_pre = max(step.pre[0], hi_pre - pre_points)
+    hi_pre = max(hi_pre, lo_pre + 1)
     mu1 = float(np.mean(mu[lo_pre:hi_pre]))
     post_lo, post_hi = step.post
     tt = t[post_lo:post_hi]

@@ -259,36 +259,54 @@ def _robust_sd(r: np.ndarray) -> float:
     return float(1.4826 * np.median(np.abs(r - np.median(r))))
 
 
-def _grow(t, x, lo, hi, lim_lo, lim_hi, backward: bool, tol_um: float):
+def _first_run(bad: np.ndarray, run: int) -> int:
+    """Index of the first run of ``run`` consecutive True values (``bad.size`` if none)."""
+    if bad.size < run:
+        return bad.size
+    c = np.convolve(bad.astype(np.int64), np.ones(run, dtype=np.int64), mode="valid")
+    hit = np.flatnonzero(c == run)
+    return int(hit[0]) if hit.size else bad.size
+
+
+def _grow(t, x, lo, hi, lim_lo, lim_hi, backward: bool, tol_um: float, run: int = 5):
     """Extend the fit range [lo, hi) backward (or forward) up to the limit while the
     position stays on the fitted straight line (a stop, a rest or another velocity ends
-    the segment). Returns (lo, hi, a, b)."""
-    for _ in range(30):
-        a, b = line_fit(t[lo:hi], x[lo:hi])
-        sd = _robust_sd(x[lo:hi] - (a + b * t[lo:hi]))
-        tol = max(tol_um, 5.0 * sd)
+    the segment: ``run`` consecutive samples off the line by more than the noise and the
+    line's own extrapolation uncertainty). Returns (lo, hi, a, b)."""
+    for _ in range(60):
+        tt = t[lo:hi]
+        a, b = line_fit(tt, x[lo:hi])
+        sd = max(_robust_sd(x[lo:hi] - (a + b * tt)), 1e-3)
+        tc = float(tt.mean())
+        sb = sd * math.sqrt(12.0 / max(tt.size, 2)) / max(float(tt[-1] - tt[0]), 1e-9)
+        n = hi - lo
         if backward:
             if lo <= lim_lo:
                 break
-            n = hi - lo
-            c_lo = max(lim_lo, lo - 2 * n)
-            dev = np.abs(x[c_lo:lo] - (a + b * t[c_lo:lo]))[::-1]
-            bad = np.flatnonzero(dev > tol)
-            new_lo = lo - (bad[0] if bad.size else lo - c_lo)
-            if new_lo >= lo:
+            c_lo = max(lim_lo, lo - max(n // 2, run))
+            seg_t = t[c_lo:lo][::-1]
+            dev = np.abs(x[c_lo:lo][::-1] - (a + b * seg_t))
+            tol = max(tol_um, 5.0 * sd) + 4.0 * sb * np.abs(seg_t - tc)
+            j = _first_run(dev > tol, run)
+            if j == 0:
                 break
-            lo = new_lo
+            lo = lo - j
+            if j < seg_t.size:
+                break
         else:
             if hi >= lim_hi:
                 break
-            n = hi - lo
-            c_hi = min(lim_hi, hi + 2 * n)
-            dev = np.abs(x[hi:c_hi] - (a + b * t[hi:c_hi]))
-            bad = np.flatnonzero(dev > tol)
-            new_hi = hi + (bad[0] if bad.size else c_hi - hi)
+            c_hi = min(lim_hi, hi + max(n // 2, run))
+            seg_t = t[hi:c_hi]
+            dev = np.abs(x[hi:c_hi] - (a + b * seg_t))
+            tol = max(tol_um, 5.0 * sd) + 4.0 * sb * np.abs(seg_t - tc)
+            j = _first_run(dev > tol, run)
+            new_hi = hi + j
             if new_hi <= hi:
                 break
             hi = new_hi
+            if j < seg_t.size:
+                break
     a, b = line_fit(t[lo:hi], x[lo:hi])
     return lo, hi, a, b
 

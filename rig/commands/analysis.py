@@ -16,7 +16,7 @@ err_console = Console(stderr=True)
 
 
 def _fail(msg: str, code: int = 2):
-    err_console.print(f"[red]error:[/red] {msg}")
+    err_console.print(f"[red]error:[/red] {msg}", soft_wrap=True)
     raise typer.Exit(code)
 
 
