@@ -131,8 +131,6 @@ def run_sim_trial(plan, recipe, profile, writer, progress: Callable | None = Non
     simulated time. A KeyboardInterrupt propagates after logging an
     ``interrupted`` event (the caller closes the log).
     """
-    import numpy as np
-
     from rig.sim import SimRig
 
     lubricant = recipe.lubricant
