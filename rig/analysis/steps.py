@@ -165,7 +165,7 @@ def _steps_from_events(trial, min_ratio: float) -> list[tuple[float, dict]]:
 
 def detect_steps(trial, *, use_events: bool = True, min_ratio: float = 1.25, slip_window_um: float = 8.0,
                  min_points: int = 8, max_window_s: float = 30.0, guard_s: float = 0.6,
-                 fit_span_s: float = 60.0) -> list[Step]:
+                 fit_span_s: float = 300.0) -> list[Step]:
     """Velocity steps of ``trial`` (a :class:`rig.data.TrialData`), sorted in time."""
     t = np.asarray(trial.time_s, dtype=float)
     x = np.asarray(trial.position_um, dtype=float)
@@ -311,6 +311,33 @@ def _grow(t, x, lo, hi, lim_lo, lim_hi, backward: bool, tol_um: float, run: int 
     return lo, hi, a, b
 
 
+def _best_split(t: np.ndarray, x: np.ndarray, min_pts: int = 5) -> int:
+    """Index j that best splits (t, x) into two straight lines (least total squared error);
+    all splits at once from cumulative sums."""
+    n = t.size
+    if n < 2 * min_pts + 1:
+        return n // 2
+    tt = t - t.mean()
+    xx = x - x.mean()
+
+    def sse_prefix(tv, xv):
+        c1 = np.arange(1, tv.size + 1, dtype=float)
+        st, sx = np.cumsum(tv), np.cumsum(xv)
+        stt, sxx, stx = np.cumsum(tv * tv), np.cumsum(xv * xv), np.cumsum(tv * xv)
+        vt = stt - st * st / c1
+        vx = sxx - sx * sx / c1
+        cx = stx - st * sx / c1
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s = vx - np.where(vt > 0, cx * cx / vt, 0.0)
+        return s
+
+    left = sse_prefix(tt, xx)            # left[j-1]: SSE of [0, j)
+    right = sse_prefix(tt[::-1], xx[::-1])[::-1]  # right[j]: SSE of [j, n)
+    j = np.arange(min_pts, n - min_pts)
+    tot = left[j - 1] + right[j]
+    return int(j[np.argmin(tot)])
+
+
 def _refine(t, x, times, *, source, guard_s, fit_span_s, min_ratio, info=None, min_slip_um=10.0) -> list[Step]:
     """Effective step times and the constant-velocity segment around each step."""
     steps: list[Step] = []
@@ -323,6 +350,13 @@ def _refine(t, x, times, *, source, guard_s, fit_span_s, min_ratio, info=None, m
     for k, tk in enumerate(times):
         ev = info[k] or {}
         t_prev, t_next = bounds[k], bounds[k + 2]
+        if source == "data":
+            # re-centre a detected step on the best two-line split nearby (detection windows
+            # of unequal length can place the peak of ln(v_r/v_l) off the step)
+            w = min(30.0, 0.5 * (tk - t_prev), 0.5 * (t_next - tk))
+            j0, j1 = int(np.searchsorted(t, tk - w)), int(np.searchsorted(t, tk + w))
+            if j1 - j0 > 12:
+                tk = float(t[j0 + _best_split(t[j0:j1], x[j0:j1])])
         lim_lo = int(np.searchsorted(t, t_prev + guard_s))
         lim_hi = int(np.searchsorted(t, t_next - guard_s))
         t_post0 = max(tk, float(ev.get("ramp_end_s", tk))) + guard_s
@@ -356,6 +390,6 @@ def _refine(t, x, times, *, source, guard_s, fit_span_s, min_ratio, info=None, m
         i = int(np.searchsorted(t, ts))
         # the whole constant-velocity stretch after the step (the fit above may stop early)
         _, seg_hi, _, _ = _grow(t, x, post_lo, b_hi, lim_lo, lim_hi, False, 0.5)
-        steps.append(Step(t_s=float(ts), t_nominal_s=float(tk), i=i, v1_um_s=float(v1), v2_um_s=float(v2),
+        steps.append(Step(t_s=float(ts), t_nominal_s=float(times[k]), i=i, v1_um_s=float(v1), v2_um_s=float(v2),
                           x_um=float(xs), pre=(a_lo, i), post=(i, max(seg_hi, i + 1)), source=source))
     return steps
