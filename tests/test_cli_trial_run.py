@@ -229,3 +229,13 @@ def test_sigkill_then_recover(short_steps, tmp_path):
     assert np.allclose(np.diff(raw.time_s), 1e-3)  # contiguous: whole blocks, nothing missing in between
     counts = {c["topic"]: c["messages"] for c in trial_info(fixed)["channels"]}
     assert counts[LOG25_TOPIC] > 0 and counts[STATS_TOPIC] > 0 and counts[EVENTS_TOPIC] > 0
+
+
+def test_hardware_runner_absent_is_a_clear_error(short_steps, tmp_path, monkeypatch, repo_root):
+    monkeypatch.setitem(sys.modules, "rig.hardware.runner", None)  # import fails as if not written yet
+    out = tmp_path / "hw.mcap"
+    res = runner.invoke(app, ["run", str(short_steps), "--hardware", str(repo_root / "config" / "rigs" / "sim.yaml"),
+                              "--out", str(out)])
+    assert res.exit_code == 1
+    assert "hardware support is not installed" in out_text(res)
+    assert not out.exists()
