@@ -8,10 +8,15 @@
   `unexplained` following frequency: the small sawtooth after the step that the
   README mentions. Physically sensible: the load-point displacement is not the
   interface slip, and the sawtooth is not a catalogue cause.
-- giacomel-sepiolite-tr2 (0.2 -> 2 µm/s): the long transient that one state fits
-  badly (b < 0) is explained first by a second state variable, then by the
-  machine's stiffness: sensible (second state expected, and this is also a
-  load-point displacement).
+- giacomel-sepiolite-tr2 (0.2 -> 2 µm/s): one state fits the long transient badly
+  (b < 0). A second state variable alone passes (hold-out gain ~15 %), but the
+  machine's compliance (finite_stiffness, k ~ 500 kN/m, i.e. 0.0025 per µm in
+  friction units, typical of a rock-friction machine) explains more (~37 %) and is
+  named first; after it the single state still has b < 0, so a second state is
+  still what the physics suggests, but the joint fit of stiffness + two states
+  is unstable (k below the two-state critical stiffness) and does not pass the
+  hold-out test. Partly sensible: the displacement is the load point's, so
+  stiffness is expected; the second state is found only without stiffness.
 - giacomel-basalt-brava (3 -> 10 µm/s): one state fits with b < 0 at a huge L; a
   second, slow state improves the hold-out fit by a few %; a weak finding.
 """
@@ -43,10 +48,15 @@ def test_leeman_finite_stiffness_and_sawtooth(real_data_dir, tmp_path):
     assert 0.3 < rep["unexplained"][0]["period_s"] < 1.0
 
 
-def test_sepiolite_second_state(real_data_dir):
+def test_sepiolite_stiffness_then_still_negative_b(real_data_dir):
     d = diagnose(load_trial(real_data_dir / "giacomel-sepiolite-tr2.csv"))
     rep = d.report()
     assert rep["baseline"]["params"]["B_mu"] < 0  # one state fits badly (README)
+    cands = {c.cause: c for c in d.tried[0]}
+    # a second state does explain part of the long transient (accepted on its own) ...
+    assert cands["second_state_variable"].accepted and cands["second_state_variable"].gain_pct > 5
+    # ... but the machine's compliance explains more and is named first
     causes = [f["cause"] for f in rep["findings"]]
-    assert causes[0] == "second_state_variable"
+    assert causes[0] == "finite_stiffness"
+    assert 150.0 < rep["findings"][0]["params"]["stiffness_kN_per_m"] < 1500.0
     assert rep["holdout_rms_N"] < 0.8 * rep["baseline"]["holdout_rms_N"]

@@ -1,0 +1,73 @@
+"""Benchmarks of rig diagnose: speed on one-hour records, accuracy and false-finding rate over seeds.
+
+    python benchmarks/bench_diagnose.py speed        # 25 Hz and 1 kHz one-hour records
+    python benchmarks/bench_diagnose.py clean N      # false-finding rate over N clean records
+    python benchmarks/bench_diagnose.py accuracy N   # per cause: named and within 25 %, over N seeds
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+
+import numpy as np
+
+from rig.diagnosis import diagnose
+from rig.diagnosis.synth import SynthSpec, make_record, random_effect
+
+EFFECTS = ["second_state_variable", "aging_law", "sensor_lag", "finite_stiffness", "normal_force_variation",
+           "slip_wear_drift", "force_offset_drift", "position_periodic", "time_delay"]
+
+
+def speed():
+    for rate, budget in ((25.0, 20.0), (1000.0, 60.0)):
+        trial, _ = make_record(SynthSpec(rate_hz=rate, duration_s=3600.0, seed=1, protocol="varied"))
+        diagnose(trial.select(np.arange(len(trial)) < 2000))  # JIT warm-up
+        t0 = time.perf_counter()
+        d = diagnose(trial)
+        dt = time.perf_counter() - t0
+        print(f"speed: 1 h at {rate:g} Hz ({len(trial)} samples, {d.timings['n_bins']} fit bins): {dt:.1f} s "
+              f"(budget {budget:g} s) findings={[f['cause'] for f in d.findings]}")
+
+
+def clean(n):
+    bad = 0
+    for seed in range(n):
+        rate = (25.0, 100.0, 1000.0)[seed % 3]
+        proto = ("paper", "varied")[seed % 2]
+        trial, _ = make_record(SynthSpec(rate_hz=rate, duration_s=600.0, seed=1000 + seed, protocol=proto,
+                                         with_ref=bool(seed % 4 < 2)))
+        rep = diagnose(trial).report()
+        ff = [f["cause"] for f in rep["findings"]] + [u["follows"] for u in rep["unexplained"]]
+        bad += bool(ff)
+        print(f"clean seed {1000 + seed} {rate:g} Hz {proto}: {ff or 'nothing'}", flush=True)
+    print(f"false-finding rate: {bad}/{n} = {100.0 * bad / n:.1f} %")
+
+
+def accuracy(n):
+    for eff in EFFECTS:
+        ok = 0
+        named = 0
+        errs = []
+        for seed in range(n):
+            rng = np.random.default_rng(500 + seed)
+            base = "steady_state" if eff == "time_delay" else "rate_state"
+            rate = (25.0, 100.0)[seed % 2] if eff not in ("sensor_lag", "finite_stiffness") else 100.0
+            trial, truth = make_record(SynthSpec(rate_hz=rate, effects={eff: random_effect(eff, rng)},
+                                                 seed=500 + seed, duration_s=600.0, protocol="varied",
+                                                 baseline=base, with_ref=bool(seed % 2)))
+            rep = diagnose(trial, baseline=base).report()
+            if rep["findings"] and rep["findings"][0]["cause"] == eff:
+                named += 1
+                e = max((abs(v - truth["params"][k]) / abs(truth["params"][k])
+                         for k, v in rep["findings"][0]["params"].items()), default=0.0)
+                errs.append(e)
+                ok += e <= 0.25
+        print(f"{eff:24s} named {named}/{n}, within 25 %: {ok}/{n}, median worst-param error "
+              f"{100 * np.median(errs) if errs else float('nan'):.1f} %", flush=True)
+
+
+if __name__ == "__main__":
+    what = sys.argv[1] if len(sys.argv) > 1 else "speed"
+    n = int(sys.argv[2]) if len(sys.argv) > 2 else 10
+    {"speed": lambda: speed(), "clean": lambda: clean(n), "accuracy": lambda: accuracy(n)}[what]()
