@@ -116,9 +116,23 @@ def stribeck(trials: list[TrialData], *, use_events: bool = True, window_um: flo
         for x in lv:
             x["trial"] = k
         all_levels += lv
+    # levels measured in different trials (or detected from the data) differ slightly in
+    # velocity: cluster within 5 % and label each cluster by its median
+    vs_all = sorted(lv["v_um_s"] for lv in all_levels)
+    clusters: list[list[float]] = []
+    for v in vs_all:
+        if clusters and v <= clusters[-1][0] * 1.05:
+            clusters[-1].append(v)
+        else:
+            clusters.append([v])
+    for lv in all_levels:
+        for c in clusters:
+            if c[0] <= lv["v_um_s"] <= c[-1]:
+                lv["v_level_um_s"] = float(np.median(c))
+                break
     branches = {}
     for d in ("up", "down"):
-        sel = [lv for lv in all_levels if lv["direction"] == d]
+        sel = [dict(lv, v_um_s=lv["v_level_um_s"]) for lv in all_levels if lv["direction"] == d]
         vs = sorted({lv["v_um_s"] for lv in sel})
         rows = []
         for v in vs:
