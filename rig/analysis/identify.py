@@ -375,7 +375,7 @@ def _block_mean(a: np.ndarray, k: int) -> np.ndarray:
 
 
 def fit_whole_record(trial: TrialData, steps: list[Step] | None = None, *, stiffness: bool = False,
-                     velocity_method: str = "segments", max_points: int = 40000, trend: bool = False,
+                     velocity_method: str = "segments", max_points: int = 15000, trend: bool = False,
                      init: dict | None = None, k_fixed: float | None = None) -> dict:
     """Fit mu0, A, B, L (and the machine stiffness ``k``, and a linear drift) to the
     whole record by least squares (``scipy.optimize.least_squares``, trust region).
@@ -455,7 +455,7 @@ def fit_whole_record(trial: TrialData, steps: list[Step] | None = None, *, stiff
     mu00 = float(c[1])
     starts = []
     Ls = [float(init["L_um"])] if "L_um" in init and math.isfinite(init["L_um"]) else []
-    for L0 in (Ls + [Ls[0] / 3.0, Ls[0] * 3.0]) if Ls else [5.0, 20.0, 80.0]:
+    for L0 in Ls if Ls else [5.0, 20.0, 80.0]:
         q = [mu00, A0, B0, max(L0, 0.5)]
         if stiffness:
             q.append(float(init.get("k_mu_per_um", 0.005)))
@@ -480,6 +480,17 @@ def fit_whole_record(trial: TrialData, steps: list[Step] | None = None, *, stiff
             continue
         if best is None or res.cost < best.cost:
             best = res
+    if Ls and (best is None or not best.success):
+        for L0 in (Ls[0] / 3.0, Ls[0] * 3.0):
+            q0 = list(starts[0])
+            q0[3] = L0
+            q0 = np.clip(q0, np.array(lb) + 1e-12, np.array(ub) - 1e-12)
+            try:
+                res = least_squares(resid, q0, bounds=(lb, ub), x_scale="jac", method="trf", max_nfev=200)
+            except Exception:  # noqa: BLE001
+                continue
+            if best is None or res.cost < best.cost:
+                best = res
     if best is None:
         return {"ok": False, "reason": "least squares failed"}
     q = best.x

@@ -179,22 +179,32 @@ def detect_steps(trial, *, use_events: bool = True, min_ratio: float = 1.25, sli
         info = [e for _, e in keep]
         if times:
             source = "events"
+    strength = [1.0] * len(times)
     if not times:
-        times = _detect_times(t, x, min_ratio=min_ratio, slip_window_um=slip_window_um,
-                              min_points=min_points, max_window_s=max_window_s)
+        times, strength = _detect_times(t, x, min_ratio=min_ratio, slip_window_um=slip_window_um,
+                                        min_points=min_points, max_window_s=max_window_s)
     # refine (on a block-averaged copy of a dense record; indices mapped back after);
     # candidates rejected there (starts from rest, stops) must not limit their
     # neighbours' segments, so refine again with the kept ones until nothing changes
     tf, xf = t, x
     tb, xb, _ = _thin(t, x)
-    for _ in range(4):
+    steps = []
+    for _ in range(len(times) + 1):
         steps = _refine(tb, xb, times, source=source, guard_s=guard_s, fit_span_s=fit_span_s,
                         min_ratio=min_ratio, info=info)
         kept = {s.t_nominal_s for s in steps}
-        if len(kept) == len(times):
+        rejected = [j for j, tk in enumerate(times) if tk not in kept]
+        if not rejected:
             break
-        sel = [j for j, tk in enumerate(times) if tk in kept]
+        if source == "events":
+            drop = set(rejected)  # events are genuine; these are starts from rest and the like
+        else:
+            # a spurious candidate can make its genuine neighbour fail too: drop the weakest
+            # rejected candidate only, and refine again
+            drop = {min(rejected, key=lambda j: strength[j])}
+        sel = [j for j in range(len(times)) if j not in drop]
         times = [times[j] for j in sel]
+        strength = [strength[j] for j in sel]
         info = [info[j] for j in sel] if info else None
     if tb is not tf:
         def full(j):
@@ -208,7 +218,7 @@ def detect_steps(trial, *, use_events: bool = True, min_ratio: float = 1.25, sli
 
 def _detect_times(t, x, *, min_ratio, slip_window_um, min_points, max_window_s) -> list[float]:
     if t.size < 4 * min_points:
-        return []
+        return [], []
     tb, xb, _ = _thin(t, x)
     dtm = float(np.median(np.diff(tb)))
     # pass 1: side slopes over a fixed number of samples give the speed on each side
@@ -233,9 +243,8 @@ def _detect_times(t, x, *, min_ratio, slip_window_um, min_points, max_window_s) 
     r[ok] = np.log(vr[ok] / vl[ok])
     thr = math.log(min_ratio)
     cand = np.flatnonzero(np.abs(r) > thr)
-    times = []
     if cand.size == 0:
-        return times
+        return [], []
     # group contiguous runs of candidates (same sign), take the peak of each
     order = cand
     groups = np.split(order, np.flatnonzero((np.diff(order) > 1) | (np.diff(np.sign(r[order])) != 0)) + 1)
@@ -250,7 +259,7 @@ def _detect_times(t, x, *, min_ratio, slip_window_um, min_points, max_window_s) 
         if all(abs(tb[j] - tb[c]) > max(half_l[c], half_r[c]) for c in chosen):
             chosen.append(j)
     chosen.sort()
-    return [float(tb[j]) for j in chosen]
+    return [float(tb[j]) for j in chosen], [float(abs(r[j])) for j in chosen]
 
 
 def _robust_sd(r: np.ndarray) -> float:
