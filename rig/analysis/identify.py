@@ -344,7 +344,8 @@ def _mu_series_stiff(mu0, a, b, l_um, k_mu_per_um, t, v_lp, v_init):
     return out
 
 
-def _segment_velocity(t: np.ndarray, x: np.ndarray, steps: list[Step], fallback: np.ndarray | None = None):
+def _segment_velocity(t: np.ndarray, x: np.ndarray, steps: list[Step], fallback: np.ndarray | None = None,
+                      skip_um: float = 0.0):
     """Velocity that is the line-fit slope on each step's constant-velocity stretches
     (before: ``v1``, after: ``v2``) and ``fallback`` (an estimator) elsewhere; and the mask
     of those stretches (where the whole-record fit compares model and data)."""
@@ -358,7 +359,12 @@ def _segment_velocity(t: np.ndarray, x: np.ndarray, steps: list[Step], fallback:
     for s in steps:
         v[s.pre[0]:s.i] = s.v1_um_s
         v[s.i:s.post[1]] = s.v2_um_s
-        mask[s.pre[0]:s.post[1]] = True
+        # the first skip_um of a stretch may still carry the transient of what came before
+        # (a start from rest, a return): compare from there on, at most half the stretch
+        x0 = x[s.pre[0]]
+        skip = min(skip_um, 0.5 * (x[max(s.i - 1, s.pre[0])] - x0))
+        lo = s.pre[0] + int(np.searchsorted(x[s.pre[0]:s.i] - x0, skip)) if skip > 0 else s.pre[0]
+        mask[lo:s.post[1]] = True
     if fallback is None:
         # fill the gaps by the neighbouring stretch's velocity
         idx = np.where(np.isfinite(v), np.arange(t.size), 0)
@@ -411,12 +417,14 @@ def fit_whole_record(trial: TrialData, steps: list[Step] | None = None, *, stiff
         steps = [Step(s.t_s, s.t_nominal_s, min(s.i // k, t.size - 1), s.v1_um_s, s.v2_um_s, s.x_um,
                       (s.pre[0] // k, s.i // k), (s.i // k, min(s.post[1] // k, t.size)), s.source) for s in steps]
     v_est = estimate_velocity(t, x, "local_poly" if velocity_method == "segments" else velocity_method)
+    L_guess = float((init or {}).get("L_um", 20.0))
+    skip = 3.0 * (L_guess if math.isfinite(L_guess) and L_guess > 0 else 20.0)
     if stiffness or (velocity_method == "segments" and steps):
-        v, in_steps = _segment_velocity(t, x, steps, v_est)
+        v, in_steps = _segment_velocity(t, x, steps, v_est, skip_um=skip)
         velocity_method = "segments"
     else:
         v = v_est
-        _, in_steps = _segment_velocity(t, x, steps, v_est)
+        _, in_steps = _segment_velocity(t, x, steps, v_est, skip_um=skip)
     # compare model and data on the steps' constant-velocity stretches (not on rests,
     # returns or starts from rest, where the LVDT velocity is not the interface's)
     sliding = in_steps & (v > 0.05 * max(float(np.median(np.abs(v))), 1e-6))
