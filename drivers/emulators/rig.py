@@ -14,7 +14,6 @@ returns an :class:`EmulatorHandle` (``inject(device, fault, value)``,
 
 from __future__ import annotations
 
-import math
 import multiprocessing as mp
 import os
 import signal
@@ -421,7 +420,7 @@ def start_emulator_process(hw: HardwareConfig | dict, profile=None, lubricant: s
 
 
 __all__ = ["EmulatedRig", "IntegratorPlant", "start_emulator_process", "EmulatorHandle",
-           "EmulatorError", "sim_plant", "math"]
+           "EmulatorError", "sim_plant", "emulated_hardware", "free_tcp_port"]
 
 
 def free_tcp_port() -> int:

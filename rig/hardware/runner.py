@@ -16,7 +16,6 @@ dies (kill -9), the trial ends with what was received (at most one block,
 
 from __future__ import annotations
 
-import math
 import multiprocessing as mp
 import queue as queue_mod
 import signal
@@ -187,5 +186,4 @@ def run_hardware_trial(plan, recipe, profile, writer, progress=None, *, emulator
     return summary
 
 
-__all__ = ["run_hardware_trial", "HardwareTrialFailed", "HardwareTrialAborted", "start_loop_process",
-           "math"]
+__all__ = ["run_hardware_trial", "HardwareTrialFailed", "HardwareTrialAborted", "start_loop_process"]
