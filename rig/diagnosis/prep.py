@@ -334,7 +334,7 @@ def prepare(trial: TrialData, n_blocks: int = 20, slip_window_um: float = 3.0,
     T = float(tk[-1] - tk[0]) if tk.size > 1 else 1.0
     blk_k = np.minimum((tk - tk[0]) / (T / n_blocks), n_blocks - 1).astype(np.int64)
     dtk = float(np.median(np.diff(tk)))
-    starts = _make_bins(tk, vs, blk_k, bin_dt_max_s, bin_slip_um, 0.08, 1.3, max(dtk, 0.02))
+    starts = _make_bins(tk, vs, blk_k, bin_dt_max_s, bin_slip_um, 0.08, 1.1, max(dtk, 0.02))
     seg = np.repeat(np.arange(starts.size - 1), np.diff(starts))
     nb = starts.size - 1
     bc = np.bincount(seg, weights=cnt, minlength=nb)
