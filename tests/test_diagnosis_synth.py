@@ -98,3 +98,23 @@ def test_two_effects_both_found():
     mp = rep["model"]["params"]
     assert abs(mp["wavelength_um"] - truth["params"]["wavelength_um"]) < 0.25 * truth["params"]["wavelength_um"]
     assert abs(mp["rate_N_per_s"] - truth["params"]["rate_N_per_s"]) < 0.25 * abs(truth["params"]["rate_N_per_s"])
+
+
+def test_1khz_uneven_sampling_with_gaps():
+    """1 kHz, jittered sample times and gaps, no position_ref: slip wear drift found, within 25 %."""
+    rng = np.random.default_rng(31)
+    eff = {"slip_wear_drift": random_effect("slip_wear_drift", rng)}
+    trial, truth = make_record(SynthSpec(rate_hz=1000.0, effects=eff, seed=31, duration_s=600.0, protocol="varied",
+                                         with_ref=False, jitter=0.4, gaps=3))
+    assert np.ptp(np.diff(trial.time_s)) > 0.5  # gaps of a second or more
+    rep = diagnose(trial).report()
+    _check_found(rep, "slip_wear_drift", truth["params"])
+
+
+def test_25hz_jitter_gaps_periodic_without_ref():
+    rng = np.random.default_rng(32)
+    eff = {"position_periodic": random_effect("position_periodic", rng)}
+    trial, truth = make_record(SynthSpec(rate_hz=25.0, effects=eff, seed=32, duration_s=600.0, protocol="paper",
+                                         with_ref=False, jitter=0.4, gaps=4))
+    rep = diagnose(trial).report()
+    _check_found(rep, "position_periodic", truth["params"])
