@@ -46,17 +46,19 @@ import datetime as _dt
 import json
 import math
 import os
+import struct
 import tempfile
 import time
+import zlib
 from pathlib import Path
 from typing import Any, Iterable
 
 import numpy as np
-from mcap.reader import make_reader
+from mcap.data_stream import RecordBuilder
+from mcap.opcode import Opcode
+from mcap.records import (Attachment, AttachmentIndex, Channel, ChunkIndex, DataEnd, Footer, Header, Message,
+                          Metadata, MetadataIndex, Schema, Statistics, SummaryOffset)
 from numba import njit
-from mcap.records import Attachment, Channel, Message, Metadata, Schema
-from mcap.stream_reader import StreamReader
-from mcap.writer import CompressionType, Writer
 
 from rig import __version__
 from rig.data import DataFormatError, TrialData
@@ -71,6 +73,13 @@ BLOCK_KEYS = ("t_s", "position_ref_um", "position_um", "friction_N", "normal_1_N
               "pid_p", "pid_i", "pid_d", "dither", "true_position_um", "true_velocity_um_s", "true_mu")
 B64_ENCODING = "base64-f8le"
 B64_F4_ENCODING = "base64-f4le"  # float32 fields (t_s stays float64, base64-f8le, under "t_s")
+RAW_ENCODINGS = ("binary", "base64", "json")
+RAW_BINARY_ENCODING = "rig.columns.v1"  # message encoding of the /raw channel in the binary layout
+RAW_BINARY_MAGIC = b"RIGC"
+RAW_BINARY_LAYOUT = (
+    "b'RIGC', u32 LE header length H, H bytes of UTF-8 JSON header {t0_s, n, rate_hz, fields: [key, ...], "
+    "dtypes: ['<f8' | '<f4', ...]} padded with spaces so the columns start at a multiple of 8, then for each "
+    "key in order its n values as little-endian floats of its dtype (t_s always <f8)")
 
 _NUM_OR_NULL = {"type": ["number", "null"]}
 SCHEMAS: dict[str, dict] = {
@@ -202,29 +211,225 @@ def _block_stats(ref, pos, f, n1, n2, valve, acc):  # pragma: no cover - compile
             acc[7] += 1.0
 
 
-class _Sink:
-    """Owns the mcap Writer and the file: adds messages/metadata, flushes (+fsync), finishes."""
+_MAGIC = b"\x89MCAP0\r\n"
+# a Message record: opcode 0x05, record length, channel id, sequence, log_time, publish_time, then the data
+_MSG_HEAD = struct.Struct("<BQHIQQ")
+_MSG_HEAD_LEN = 22  # channel id + sequence + two times
 
-    def __init__(self, writer: Writer, fh, fsync: bool):
+
+class _McapFile:
+    """A minimal MCAP writer (https://mcap.dev/spec) for the trial log's hot path.
+
+    The file is standard MCAP, read by ``mcap``'s readers and Foxglove: header;
+    schemas and channels as records in the data section; messages in chunks
+    (``zstd`` at a chosen level, ``lz4`` or none) each followed by its message
+    indexes; metadata and attachments between chunks; then a summary section
+    (schemas, channels, statistics, chunk / attachment / metadata indexes,
+    summary offsets) and the footer. The records other than messages and chunks
+    are serialised by ``mcap.records``. Compared to ``mcap.writer.Writer`` it adds
+    a batch of messages in one call (one ``struct`` pack per message instead of
+    a dozen Python calls) and lets the compression level be chosen: noisy
+    float64 loop data gains almost nothing from zstd's default level 3 over
+    level 1, at twice the CPU time.
+    """
+
+    def __init__(self, fh, *, compression: str = "zstd", level: int = 1, chunk_size: int = 1 << 20,
+                 crc: bool = True):
+        self.fh = fh
+        self.pos = 0
+        if compression == "zstd":
+            import zstandard
+            self._compress = zstandard.ZstdCompressor(level=level).compress
+        elif compression == "lz4":
+            import lz4.frame
+            self._compress = lambda data: lz4.frame.compress(data, compression_level=level)
+        elif compression in ("", "none"):
+            compression, self._compress = "", None
+        else:
+            raise ValueError(f"compression must be 'zstd', 'lz4' or 'none', not {compression!r}")
+        self.compression = compression
+        self._comp_b = struct.pack("<I", len(compression)) + compression.encode()
+        self.chunk_size = int(chunk_size)
+        self.crc = crc
+        self.schemas: list = []
+        self.channels: list = []
+        self.chunk_indexes: list = []
+        self.attachment_indexes: list = []
+        self.metadata_indexes: list = []
+        self.channel_counts: dict[int, int] = {}
+        self.message_count = 0
+        self.t_start: int | None = None
+        self.t_end = 0
+        self._reset_chunk()
+
+    def _reset_chunk(self) -> None:
+        self._parts: list = []
+        self._len = 0
+        self._index: dict[int, list] = {}
+        self._c_start: int | None = None
+        self._c_end = 0
+
+    def _write(self, data: bytes) -> None:
+        self.fh.write(data)
+        self.pos += len(data)
+
+    def _record(self, rec) -> tuple[int, int]:
+        rb = RecordBuilder()
+        rec.write(rb)
+        data = rb.end()
+        offset = self.pos
+        self._write(data)
+        return offset, len(data)
+
+    def start(self, profile: str, library: str) -> None:
+        self._write(_MAGIC)
+        self._record(Header(profile=profile, library=library))
+
+    def add_schema(self, name: str, encoding: str, data: bytes) -> int:
+        s = Schema(id=len(self.schemas) + 1, name=name, encoding=encoding, data=data)
+        self.schemas.append(s)
+        self._record(s)
+        return s.id
+
+    def add_channel(self, topic: str, message_encoding: str, schema_id: int, metadata: dict | None = None) -> int:
+        c = Channel(id=len(self.channels) + 1, topic=topic, message_encoding=message_encoding,
+                    schema_id=schema_id, metadata=dict(metadata or {}))
+        self.channels.append(c)
+        self.channel_counts[c.id] = 0
+        self._record(c)
+        return c.id
+
+    def add_messages(self, items) -> None:
+        """``items``: ``(channel_id, log_time_ns, data, sequence)``; publish_time = log_time."""
+        pack = _MSG_HEAD.pack
+        parts = self._parts
+        index = self._index
+        counts = self.channel_counts
+        off = self._len
+        lo = self._c_start
+        hi = self._c_end
+        for cid, ns, data, seq in items:
+            head = pack(5, _MSG_HEAD_LEN + len(data), cid, seq, ns, ns)
+            ix = index.get(cid)
+            if ix is None:
+                ix = index[cid] = []
+            ix.append((ns, off))
+            parts.append(head)
+            parts.append(data)
+            off += 31 + len(data)
+            counts[cid] += 1
+            if lo is None or ns < lo:
+                lo = ns
+            if ns > hi:
+                hi = ns
+        self.message_count += len(items)
+        self._len = off
+        self._c_start = lo
+        self._c_end = hi
+        if off >= self.chunk_size:
+            self._finalize_chunk()
+
+    def add_metadata(self, name: str, data: dict[str, str]) -> None:
+        offset, length = self._record(Metadata(name=name, metadata=data))
+        self.metadata_indexes.append(MetadataIndex(offset=offset, length=length, name=name))
+
+    def add_attachment(self, create_time: int, log_time: int, name: str, media_type: str, data: bytes) -> None:
+        offset, length = self._record(Attachment(create_time=create_time, log_time=log_time, name=name,
+                                                 media_type=media_type, data=data))
+        self.attachment_indexes.append(AttachmentIndex(offset=offset, length=length, log_time=log_time,
+                                                       create_time=create_time, data_size=len(data), name=name,
+                                                       media_type=media_type))
+
+    def _finalize_chunk(self) -> None:
+        if not self._parts:
+            return
+        raw = b"".join(self._parts)
+        comp = self._compress(raw) if self._compress is not None else raw
+        crc = zlib.crc32(raw) if self.crc else 0
+        start, end = self._c_start or 0, self._c_end
+        # Chunk record: start, end, uncompressed size, uncompressed crc, compression, records (u64 length)
+        body = struct.pack("<QQQI", start, end, len(raw), crc) + self._comp_b + struct.pack("<Q", len(comp))
+        chunk_offset = self.pos
+        self._write(struct.pack("<BQ", 0x06, len(body) + len(comp)) + body)
+        self._write(comp)
+        chunk_length = self.pos - chunk_offset
+        mi_offsets: dict[int, int] = {}
+        mi_start = self.pos
+        for cid, entries in self._index.items():
+            # Message Index record: channel id, then (log_time, offset) pairs as a u32-length-prefixed array
+            mi_offsets[cid] = self.pos
+            flat = [v for pair in entries for v in pair]
+            self._write(struct.pack("<BQHI%dQ" % len(flat), 0x07, 6 + 8 * len(flat), cid, 8 * len(flat), *flat))
+        self.chunk_indexes.append(ChunkIndex(
+            message_start_time=start, message_end_time=end, chunk_start_offset=chunk_offset,
+            chunk_length=chunk_length, message_index_offsets=mi_offsets, message_index_length=self.pos - mi_start,
+            compression=self.compression, compressed_size=len(comp), uncompressed_size=len(raw)))
+        if self.t_start is None or start < self.t_start:
+            self.t_start = start
+        self.t_end = max(self.t_end, end)
+        self._reset_chunk()
+
+    def flush(self) -> None:
+        """Close the chunk in progress and write everything to the file object (no fsync)."""
+        self._finalize_chunk()
+        self.fh.flush()
+
+    def finish(self) -> None:
+        """Last chunk, data end, summary section, footer, closing magic."""
+        self._finalize_chunk()
+        self._record(DataEnd(data_section_crc=0))
+        summary_start = self.pos
+        rb = RecordBuilder()
+        offsets = []
+
+        def group(opcode, records):
+            g0 = rb.count
+            for r in records:
+                r.write(rb)
+            if rb.count > g0:
+                offsets.append(SummaryOffset(group_opcode=opcode, group_start=summary_start + g0,
+                                             group_length=rb.count - g0))
+
+        stats = Statistics(message_count=self.message_count, schema_count=len(self.schemas),
+                           channel_count=len(self.channels), attachment_count=len(self.attachment_indexes),
+                           metadata_count=len(self.metadata_indexes), chunk_count=len(self.chunk_indexes),
+                           message_start_time=self.t_start or 0, message_end_time=self.t_end,
+                           channel_message_counts={k: v for k, v in self.channel_counts.items() if v})
+        group(Opcode.SCHEMA, self.schemas)
+        group(Opcode.CHANNEL, self.channels)
+        group(Opcode.STATISTICS, [stats])
+        group(Opcode.CHUNK_INDEX, self.chunk_indexes)
+        group(Opcode.ATTACHMENT_INDEX, self.attachment_indexes)
+        group(Opcode.METADATA_INDEX, self.metadata_indexes)
+        summary_offset_start = summary_start + rb.count
+        for o in offsets:
+            o.write(rb)
+        summary = rb.end()
+        crc = zlib.crc32(summary)
+        crc = zlib.crc32(struct.pack("<BQQQ", Opcode.FOOTER, 20, summary_start, summary_offset_start), crc)
+        self._write(summary)
+        self._record(Footer(summary_start=summary_start, summary_offset_start=summary_offset_start,
+                            summary_crc=crc))
+        self._write(_MAGIC)
+        self.fh.flush()
+
+
+class _Sink:
+    """Owns the MCAP writer and the file: adds messages/metadata, flushes (+fsync), finishes."""
+
+    def __init__(self, writer: _McapFile, fh, fsync: bool):
         self.w = writer
         self.fh = fh
         self.fsync = fsync
 
     def messages(self, items: list) -> None:
-        add = self.w.add_message
-        for cid, ns, payload, seq in items:
-            add(cid, log_time=ns, data=payload, publish_time=ns, sequence=seq)
+        self.w.add_messages(items)
 
     def metadata(self, name: str, data: dict) -> None:
         self.w.add_metadata(name, data)
 
     def flush(self) -> None:
-        w = self.w
-        if hasattr(w, "flush"):
-            w.flush()
-        else:  # mcap < 1.2
-            w._Writer__finalize_chunk()  # type: ignore[attr-defined]
-            w._Writer__flush()  # type: ignore[attr-defined]
+        self.w.flush()
         self._sync()
 
     def _sync(self) -> None:
@@ -329,8 +534,9 @@ class TrialLogWriter:
                  decimated_rate_hz: float = 25.0, raw_rate_hz: float | None = None,
                  metadata: dict[str, Any] | None = None, recipe_yaml: str | None = None,
                  recipe: dict | None = None, profile: dict | None = None,
-                 raw_encoding: str = "base64", raw_dtype: str = "float64", flush_interval_s: float = 1.0,
-                 chunk_size: int = 1 << 20, fsync: bool = True, threaded: bool = True):
+                 raw_encoding: str = "binary", raw_dtype: str = "float64", flush_interval_s: float = 1.0,
+                 chunk_size: int = 1 << 20, fsync: bool = True, threaded: bool = True,
+                 compression: str = "zstd", compression_level: int = 1):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.loop_rate_hz = float(loop_rate_hz)
@@ -338,22 +544,32 @@ class TrialLogWriter:
         self.decimated_rate_hz = float(decimated_rate_hz)
         self._raw_every = max(1, int(round(self.loop_rate_hz / self.raw_rate_hz)))
         self._dec_every = max(1, int(round(self.loop_rate_hz / self.decimated_rate_hz)))
-        if raw_encoding not in ("base64", "json"):
-            raise ValueError(f"raw_encoding must be 'base64' or 'json', not {raw_encoding!r}")
-        self._raw_b64 = raw_encoding == "base64"
+        if raw_encoding not in RAW_ENCODINGS:
+            raise ValueError(f"raw_encoding must be one of {', '.join(RAW_ENCODINGS)}, not {raw_encoding!r}")
+        self.raw_encoding = raw_encoding
         if raw_dtype not in ("float64", "float32"):
             raise ValueError(f"raw_dtype must be 'float64' or 'float32', not {raw_dtype!r}")
         self._raw_dtype = np.dtype("<f8" if raw_dtype == "float64" else "<f4")
         self._raw_enc_name = B64_ENCODING if raw_dtype == "float64" else B64_F4_ENCODING
+        self._col_head: tuple | None = None  # (keys, cached header tail) of the binary raw blocks
         self.flush_interval_s = float(flush_interval_s)
         self._fsync = fsync
         self._fh = open(self.path, "wb")
-        self._w = Writer(self._fh, chunk_size=chunk_size, compression=CompressionType.ZSTD)
+        try:
+            self._w = _McapFile(self._fh, compression=compression, level=compression_level, chunk_size=chunk_size)
+        except BaseException:
+            self._fh.close()
+            raise
         self._w.start(profile=MCAP_PROFILE, library=f"rig {__version__}")
         self._chan: dict[str, int] = {}
         for topic, schema_name in TOPICS:
-            sid = self._w.register_schema(schema_name, "jsonschema", _dumps(SCHEMAS[schema_name]))
-            self._chan[topic] = self._w.register_channel(topic, "json", sid)
+            if topic == RAW_TOPIC and raw_encoding == "binary":
+                # no schema: the message encoding names the documented binary layout
+                self._chan[topic] = self._w.add_channel(topic, RAW_BINARY_ENCODING, 0,
+                                                        {"layout": RAW_BINARY_LAYOUT})
+                continue
+            sid = self._w.add_schema(schema_name, "jsonschema", _dumps(SCHEMAS[schema_name]))
+            self._chan[topic] = self._w.add_channel(topic, "json", sid)
         self._seq: dict[str, int] = {t: 0 for t, _ in TOPICS}
         self.counts: dict[str, int] = {t: 0 for t, _ in TOPICS}
         self.ticks = 0
@@ -416,7 +632,9 @@ class TrialLogWriter:
         tr = raw["t_s"]
         if tr.size:
             t0 = float(tr[0])
-            if self._raw_b64:
+            if self.raw_encoding == "binary":
+                payload = self._columns_payload(raw, t0, int(tr.size))
+            elif self.raw_encoding == "base64":
                 # base64 needs no JSON escaping: assemble the (strict) JSON text directly,
                 # which is ~10x cheaper than json.dumps over 15 kB of strings
                 b64 = base64.b64encode
@@ -441,12 +659,17 @@ class TrialLogWriter:
             if np.isfinite(m).all():
                 # repr of a finite float is a valid JSON number: format directly (json.dumps is ~3x slower)
                 fmt = _sample_format(names)
-                for row in rows:
-                    self._add(LOG25_TOPIC, row[0], (fmt % tuple(row)).encode())
+                payloads = [(fmt % tuple(row)).encode() for row in rows]
             else:
-                for row in rows:
-                    rec = {k: (v if math.isfinite(v) else None) for k, v in zip(names, row)}
-                    self._add(LOG25_TOPIC, row[0], _dumps(rec))
+                payloads = [_dumps({k: (v if math.isfinite(v) else None) for k, v in zip(names, row)})
+                            for row in rows]
+            k = len(payloads)
+            ns = np.maximum(np.rint(m[0] * 1e9), 0).astype(np.int64).tolist()
+            seq0 = self._seq[LOG25_TOPIC]
+            cid = self._chan[LOG25_TOPIC]
+            self._batch.extend(zip([cid] * k, ns, payloads, range(seq0, seq0 + k)))
+            self._seq[LOG25_TOPIC] = seq0 + k
+            self.counts[LOG25_TOPIC] += k
         self.ticks += n
         self.last_t_s = float(t[-1])
         self._running_stats(arrays)
@@ -455,6 +678,22 @@ class TrialLogWriter:
         self._send()
         if time.monotonic() - self._last_flush >= self.flush_interval_s:
             self.flush()
+
+    def _columns_payload(self, raw: dict[str, np.ndarray], t0: float, n: int) -> bytes:
+        """One raw block in the binary column layout (see RAW_BINARY_LAYOUT)."""
+        keys = tuple(raw)
+        head = self._col_head
+        if head is None or head[0] != keys:
+            dtypes = ["<f8" if k == "t_s" else self._raw_dtype.str for k in keys]
+            tail = ('"rate_hz":%s,"fields":%s,"dtypes":%s}' % (
+                json.dumps(self.raw_rate_hz), json.dumps(list(keys)), json.dumps(dtypes)))
+            head = self._col_head = (keys, tail, [np.dtype(d) for d in dtypes])
+        text = ('{"t0_s":%r,"n":%d,' % (t0, n) + head[1]).encode()
+        text += b" " * (-(8 + len(text)) % 8)  # columns start 8-byte aligned
+        parts = [RAW_BINARY_MAGIC, struct.pack("<I", len(text)), text]
+        for v, dt in zip(raw.values(), head[2]):
+            parts.append((v if v.dtype == dt else v.astype(dt)).tobytes())
+        return b"".join(parts)
 
     def _running_stats(self, a: dict[str, np.ndarray]) -> None:
         empty = _EMPTY
@@ -601,6 +840,27 @@ def _decode_array(value: Any, encoding: str, key: str = "") -> np.ndarray:
     return np.array([np.nan if v is None else v for v in value], dtype=float)
 
 
+def _decode_columns(data: bytes) -> tuple[dict, dict[str, np.ndarray]]:
+    """Decode a binary raw block (RAW_BINARY_LAYOUT) -> (header, {key: float64 array})."""
+    if data[:4] != RAW_BINARY_MAGIC or len(data) < 8:
+        raise ValueError("not a rig.columns.v1 block (bad magic)")
+    (hlen,) = struct.unpack_from("<I", data, 4)
+    head = json.loads(data[8:8 + hlen])
+    n = int(head["n"])
+    off = 8 + hlen
+    out: dict[str, np.ndarray] = {}
+    for key, dt in zip(head["fields"], head["dtypes"]):
+        dt = np.dtype(dt)
+        end = off + n * dt.itemsize
+        if end > len(data):
+            raise ValueError(f"block truncated in field {key}")
+        out[key] = np.frombuffer(data, dtype=dt, count=n, offset=off).astype(np.float64)
+        off = end
+    if off != len(data):
+        raise ValueError(f"{len(data) - off} bytes after the last field")
+    return head, out
+
+
 class _Content:
     """Everything read from an MCAP (complete or recovered up to its damage)."""
 
@@ -627,7 +887,7 @@ def _read_stream(path: Path, topics: set[str] | None = None) -> _Content:
     ``topics``: keep only these channels' messages (all when None); every
     message is still counted in ``c.counts`` with its time range in ``c.t_range``.
     """
-    from mcap.records import Footer, Header
+    from mcap.stream_reader import StreamReader
 
     c = _Content()
     keep_ids: set[int] = set()
@@ -668,6 +928,8 @@ def _read_stream(path: Path, topics: set[str] | None = None) -> _Content:
 
 def _read_complete(path: Path, topics: set[str] | None = None) -> _Content:
     """Read a complete MCAP (with footer); a truncated one raises a DataFormatError naming ``rig recover``."""
+    from mcap.reader import make_reader
+
     try:
         with open(path, "rb") as fh:
             reader = make_reader(fh)
@@ -746,6 +1008,15 @@ def read_trial(path: str | os.PathLike, channel: str = "25hz") -> TrialData:
         cols: dict[str, list[np.ndarray]] = {}
         for m in c.messages:
             if c.topic_of(m) != RAW_TOPIC:
+                continue
+            chn = c.channels.get(m.channel_id)
+            if chn is not None and chn.message_encoding == RAW_BINARY_ENCODING:
+                try:
+                    head, fields = _decode_columns(m.data)
+                except (ValueError, KeyError, TypeError) as exc:
+                    raise DataFormatError(path, None, f"raw block at log_time {m.log_time} ns: {exc}") from None
+                for k, arr in fields.items():
+                    cols.setdefault(k, []).append(arr)
                 continue
             blk = json.loads(m.data)
             enc = blk["encoding"]
@@ -847,6 +1118,8 @@ def recover(path_in: str | os.PathLike, path_out: str | os.PathLike) -> dict:
         raise DataFormatError(path_in, None, f"nothing recoverable: no complete chunk before the damage "
                                              f"({c.error or 'empty'})")
     records = _metadata_dict(c)
+    from mcap.writer import CompressionType, Writer
+
     path_out.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path_out.name}.", suffix=".tmp", dir=path_out.parent)
     counts: dict[str, int] = {}
@@ -917,7 +1190,7 @@ def write_trial_data(trial: TrialData, path: str | os.PathLike, *, decimated_rat
     os.close(fd)
     try:
         w = TrialLogWriter(tmp, loop_rate_hz=rate, decimated_rate_hz=decimated_rate_hz or rate,
-                           metadata=meta, raw_encoding="base64", flush_interval_s=1e9, fsync=False)
+                           metadata=meta, flush_interval_s=1e9, fsync=False)
         cols = trial.columns()
         block = {"t_s": t}
         for name, arr in cols.items():

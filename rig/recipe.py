@@ -180,12 +180,13 @@ class LogRates(_Strict):
     raw_rate_hz: Positive = Field(1000.0, description="Rate of the raw channel; must divide the loop rate "
                                                       "(the loop rate itself keeps every tick).")
     decimated_rate_hz: Positive = Field(25.0, description="Rate of the per-sample channel (the paper logged at 25 Hz).")
-    block_s: Positive = Field(0.1, description="Duration covered by one raw block message (s).")
-    raw_encoding: Literal["base64", "json"] = Field(
-        "base64", description="Arrays of a raw block: base64 of little-endian floats (fast) or JSON lists.")
+    block_s: Positive = Field(1.0, description="Duration covered by one raw block message (s).")
+    raw_encoding: Literal["binary", "base64", "json"] = Field(
+        "binary", description="Arrays of a raw block: binary little-endian float columns (rig.columns.v1, "
+                              "fastest), base64 of them in JSON, or JSON number lists (docs/trial.md).")
     raw_dtype: Literal["float64", "float32"] = Field(
-        "float64", description="Precision of the base64 raw arrays (t_s is always float64); float32 halves "
-                               "the file and the logging cost.")
+        "float64", description="Precision of the raw arrays (t_s is always float64); float32 halves "
+                               "the raw data.")
 
 
 class Recipe(_Strict):

@@ -9,8 +9,8 @@ import pytest
 from mcap.reader import make_reader
 
 from rig.data import DataFormatError
-from rig.log import (BLOCK_KEYS, EVENTS_TOPIC, LOG25_TOPIC, RAW_TOPIC, STATS_TOPIC, TrialLogWriter, read_metadata,
-                     read_trial, recover, trial_info)
+from rig.log import (BLOCK_KEYS, EVENTS_TOPIC, LOG25_TOPIC, RAW_BINARY_ENCODING, RAW_TOPIC, STATS_TOPIC,
+                     TrialLogWriter, read_metadata, read_trial, recover, trial_info)
 
 
 def make_blocks(n_blocks=50, n=100, rate=1000.0, seed=0):
@@ -59,7 +59,7 @@ def test_round_trip_raw_and_25hz(tmp_path, threaded):
     for k in BLOCK_KEYS:
         got = raw.time_s if k == "t_s" else (getattr(raw, k, None) if k in (
             "position_um", "friction_N", "normal_1_N", "normal_2_N", "position_ref_um", "valve_cmd") else raw.extra[k])
-        assert np.array_equal(got, ref[k]), k          # bit-exact (base64 float64)
+        assert np.array_equal(got, ref[k]), k          # bit-exact (binary float64)
     assert set(raw.extra) == set(BLOCK_KEYS) - {"t_s", "position_um", "friction_N", "normal_1_N", "normal_2_N",
                                                 "position_ref_um", "valve_cmd"}
 
@@ -93,6 +93,10 @@ def test_layout_schemas_chunks_index(tmp_path):
         topics = {c.topic: c for c in summary.channels.values()}
         assert set(topics) == {RAW_TOPIC, LOG25_TOPIC, EVENTS_TOPIC, STATS_TOPIC}
         for c in topics.values():
+            if c.topic == RAW_TOPIC:  # binary columns: no schema, the layout is in the channel metadata
+                assert c.message_encoding == RAW_BINARY_ENCODING and c.schema_id == 0
+                assert "little-endian" in c.metadata["layout"]
+                continue
             assert c.message_encoding == "json"
             assert summary.schemas[c.schema_id].encoding == "jsonschema"
             json.loads(summary.schemas[c.schema_id].data)
@@ -113,6 +117,84 @@ def test_layout_schemas_chunks_index(tmp_path):
         assert names == ["recipe.yaml"]
         stats = [json.loads(m.data) for _, _, m in reader.iter_messages(topics=[STATS_TOPIC])]
         assert stats[0]["bad"] is None and stats[0]["realtime_factor"] == 200.0
+
+
+def test_binary_raw_block_layout_decodes_as_documented(tmp_path):
+    """A /raw message is b'RIGC', u32 header length, JSON header, then little-endian columns (docs/trial.md)."""
+    import struct
+
+    blocks = make_blocks(3, n=1000)
+    path = tmp_path / "b.mcap"
+    write_log(path, blocks).close()
+    with open(path, "rb") as fh:
+        msgs = [m for _, _, m in make_reader(fh).iter_messages(topics=[RAW_TOPIC])]
+    assert len(msgs) == 3
+    for blk, m in zip(blocks, msgs):
+        data = m.data
+        assert data[:4] == b"RIGC"
+        (hlen,) = struct.unpack("<I", data[4:8])
+        head = json.loads(data[8:8 + hlen])
+        assert (8 + hlen) % 8 == 0
+        assert head["n"] == 1000 and head["t0_s"] == blk["t_s"][0] and head["rate_hz"] == 1000.0
+        assert m.log_time == round(head["t0_s"] * 1e9)
+        assert head["fields"] == list(blk) and set(head["dtypes"]) == {"<f8"}
+        cols = np.frombuffer(data, "<f8", offset=8 + hlen).reshape(len(head["fields"]), 1000)
+        for key, col in zip(head["fields"], cols):
+            assert np.array_equal(col, blk[key]), key
+
+
+@pytest.mark.parametrize("compression,level", [("zstd", 1), ("zstd", -3), ("lz4", 0), ("none", 0)])
+def test_chunks_crcs_and_message_index_are_valid_mcap(tmp_path, compression, level):
+    """rig's own MCAP writer: the mcap reader checks the CRCs; every message index entry points at its message."""
+    import struct
+
+    from mcap.records import Chunk, MessageIndex
+    from mcap.stream_reader import StreamReader
+
+    blocks = make_blocks(40)
+    path = tmp_path / "v.mcap"
+    write_log(path, blocks, chunk_size=50_000, compression=compression, compression_level=level).close()
+    with open(path, "rb") as fh:
+        reader = make_reader(fh, validate_crcs=True)
+        summary = reader.get_summary()
+        n_msgs = sum(1 for _ in reader.iter_messages())
+        assert n_msgs == summary.statistics.message_count
+        assert summary.statistics.chunk_count == len(summary.chunk_indexes) > 2
+        assert [m.log_time for _, _, m in reader.iter_messages(topics=[LOG25_TOPIC])] == \
+            [round(t * 1e9) for t in concat(blocks)["t_s"][::40]]
+    expected = {"zstd": "zstd", "lz4": "lz4", "none": ""}[compression]
+    assert all(ci.compression == expected for ci in summary.chunk_indexes)
+    chunk = None
+    checked = 0
+    with open(path, "rb") as fh:
+        for rec in StreamReader(fh, emit_chunks=True, validate_crcs=True).records:
+            if isinstance(rec, Chunk):
+                if rec.compression == "zstd":
+                    import zstandard
+                    chunk = zstandard.ZstdDecompressor().decompress(rec.data, max_output_size=rec.uncompressed_size)
+                elif rec.compression == "lz4":
+                    import lz4.frame
+                    chunk = lz4.frame.decompress(rec.data)
+                else:
+                    chunk = rec.data
+                assert len(chunk) == rec.uncompressed_size
+            elif isinstance(rec, MessageIndex):
+                for log_time, offset in rec.records:
+                    op, _length, cid, _seq, t = struct.unpack_from("<BQHIQ", chunk, offset)
+                    assert (op, cid, t) == (0x05, rec.channel_id, log_time)
+                    checked += 1
+    assert checked == n_msgs
+
+
+def test_base64_raw_encoding_still_written_and_read(tmp_path):
+    blocks = make_blocks(4)
+    path = tmp_path / "b64.mcap"
+    write_log(path, blocks, raw_encoding="base64").close()
+    raw = read_trial(path, "raw")
+    assert np.array_equal(raw.friction_N, concat(blocks)["friction_N"])
+    with open(path, "rb") as fh:
+        ch = {c.topic: c for c in make_reader(fh).get_summary().channels.values()}
+    assert ch[RAW_TOPIC].message_encoding == "json"
 
 
 def test_json_raw_encoding_and_nan(tmp_path):
