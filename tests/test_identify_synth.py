@@ -13,7 +13,7 @@ from rig.analysis import synth
 from rig.analysis.identify import SCHEMA, identify_trials, k_cr_table2
 from rig.analysis.steps import detect_steps
 from rig.cli import app
-from rig.data import read_csv, write_csv
+from rig.data import write_csv
 from rig.friction import TABLE2, FrictionModel
 
 BOUNDARY = FrictionModel.for_lubricant("boundary", 0.12)

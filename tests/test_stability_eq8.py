@@ -5,7 +5,6 @@ the full sweep is benchmarks/bench_identify_stability.py)."""
 from __future__ import annotations
 
 import json
-import math
 
 import pytest
 from typer.testing import CliRunner

@@ -14,7 +14,7 @@ from rig.friction import FrictionModel
 
 SIM_AVAILABLE = True
 try:  # the simulated rig and the planner belong to other helpers; tolerate their absence
-    from rig.profile import RigProfile, load_profile  # noqa: F401
+    from rig.profile import load_profile
     from rig.sim import SimRig
     from rig.recipe import Recipe
     from trajectories import compile_recipe

@@ -46,7 +46,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from rig.friction import (FrictionModel, N_STATE, P_A, P_MU0, P_V0, P_VREG, TABLE2, advance_state, dmu_dv,
+from rig.friction import (FrictionModel, N_STATE, P_A, P_MU0, P_V0, P_VREG, advance_state, dmu_dv,
                           init_state, k_cr_eq8, k_cr_eq13_N_per_um, mu_of, S_THETA, S_THETA2)
 
 DEFAULT_MASS_KG = 10.0

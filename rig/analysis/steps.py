@@ -186,7 +186,7 @@ def detect_steps(trial, *, use_events: bool = True, min_ratio: float = 1.25, sli
     # refine (on a block-averaged copy of a dense record; indices mapped back after);
     # candidates rejected there (starts from rest, stops) must not limit their
     # neighbours' segments, so refine again with the kept ones until nothing changes
-    tf, xf = t, x
+    tf = t
     tb, xb, _ = _thin(t, x)
     steps = []
     for _ in range(len(times) + 1):
@@ -355,7 +355,6 @@ def _refine(t, x, times, *, source, guard_s, fit_span_s, min_ratio, info=None, m
     info = [info[j] for j in order] if info else [None] * len(times)
     bounds = [t[0] - 1.0] + list(times) + [t[-1] + 1.0]
     dtm = float(np.median(np.diff(t))) if t.size > 1 else 1.0
-    seeds = []
     for k, tk in enumerate(times):
         ev = info[k] or {}
         t_prev, t_next = bounds[k], bounds[k + 2]
