@@ -86,3 +86,16 @@ def test_cli_bad_input(tmp_path):
     bad.write_text("{}")
     res = CliRunner().invoke(app, ["stability", "--params", str(bad)])
     assert res.exit_code != 0 and "bad.json" in res.output
+
+
+def test_full_rig_boundary_agrees_with_eq8_plus_leakage():
+    """The full simulated rig (PD) against eq. (8): the actuator's leakage acts as extra
+    derivative gain; with it the boundary agrees within 5 %."""
+    from rig.analysis.simrun import SIM_AVAILABLE
+
+    if not SIM_AVAILABLE:
+        pytest.skip("simulated rig not available")
+    r = S.full_rig_boundary("boundary", iters=6)
+    assert r["k_sim_N_per_um"] is not None
+    assert abs(r["k_sim_N_per_um"] / r["k_cr_eq8_with_leak_N_per_um"] - 1) < 0.05
+    assert abs(r["rel_diff"]) < 0.05
