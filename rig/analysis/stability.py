@@ -247,6 +247,7 @@ def find_boundary(model: FrictionModel, *, kd_N_s_per_um: float, mass_kg: float,
         out = sim(kp)
         v, dtr = out[0], out[1]
         g = growth_rate(v, dtr, V0_um_s, out[2] if len(out) > 2 else None)
+        g = float(min(max(g, -1e6), 1e6)) if g == g else 0.0  # finite for the JSON report
         runs.append({"kp_N_per_um": kp, "growth_rate_per_s": g})
         return g
 

@@ -251,6 +251,12 @@ def stability_cmd(
                               f"{_fmt(f['k_sim_N_per_um'] * 1e3 if f['k_sim_N_per_um'] else None)} kN/m vs eq. (8) "
                               f"{_fmt(f['k_cr_eq8_N_per_um'] * 1e3)} kN/m; with the actuator's leakage damping "
                               f"(kv + {f['kv_leak_N_s_per_um']:g} N s/µm) {_fmt(f['k_cr_eq8_with_leak_N_per_um'] * 1e3)} kN/m")
+                ks = f["k_sim_N_per_um"]
+                if not ks or abs(ks / f["k_cr_eq8_with_leak_N_per_um"] - 1) > 0.05:
+                    console.print(f"[yellow]{nm}: the full rig departs from eq. (8): with a small direct effect the "
+                                  "loop's sensor noise (through kp and the D term) makes the interface velocity "
+                                  "jitter by more than V0, and the linear analysis no longer applies "
+                                  "(docs/identification.md, section 5)[/yellow]")
     if json_out:
         doc = {"schema": "rig.stability/1", "V0_um_s": v0, "mass_kg": mass, "kd_N_s_per_um": kd,
                "normal_force_N": N, "analyses": analyses, "checks": checks}
