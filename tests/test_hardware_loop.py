@@ -64,7 +64,7 @@ REC = SimpleNamespace(name="t", lubricant="boundary", normal_force_N=100.0, seed
 
 
 def _clear(emu):
-    for dev, fault in (("valve", "fault"), ("valve", "silent"), ("loadcells", "exception"),
+    for dev, fault in (("valve", "fault"), ("valve", "silent"), ("loadcells", "exception"), ("loadcells", "slow_s"),
                        ("loadcells", "silent"), ("lvdt", "silent"), ("lvdt", "corrupt_every")):
         emu.inject(dev, fault, None)
 
@@ -120,6 +120,7 @@ def _run_with_fault(rig_env, x, inject, after_s=0.3):
     ("lvdt", "silent", True, "stale_position"),
     ("lvdt", "corrupt_every", 2, "serial_checksum_errors"),
     ("loadcells", "exception", True, "modbus_errors"),
+    ("loadcells", "slow_s", 0.01, "modbus_errors"),  # slower than the 2 ms timeout
 ])
 def test_device_fault_trips_to_safe_state(rig_env, dev, fault, value, expect):
     x = np.full(3000, 500.0)
