@@ -24,7 +24,12 @@ def private_profile(tmp_path: Path, autostart: bool = True, **hw_overrides) -> P
     """config/rigs/emulated.yaml with its devices moved to free ports and ``tmp_path``."""
     from drivers.emulators.rig import free_tcp_port
 
-    data = yaml.safe_load((REPO / "config/rigs/emulated.yaml").read_text())
+    from drivers.emulators.make_profile import render
+
+    # sim.yaml's plant with emulated.yaml's hardware section: the same rig as --sim even if
+    # sim.yaml changed since emulated.yaml was last regenerated
+    text = render((REPO / "config/rigs/sim.yaml").read_text(), (REPO / "config/rigs/emulated.yaml").read_text())
+    data = yaml.safe_load(text)
     hw = data["hardware"]
     hw["loadcells"]["port"] = free_tcp_port()
     hw["lvdt"]["port"] = str(tmp_path / "lvdt")
