@@ -295,13 +295,16 @@ def check_lubricant(name: str, *, mass_kg: float = DEFAULT_MASS_KG, kd_N_s_per_u
 # ---------------------------------------------------------------------------
 def full_rig_boundary(name: str, *, profile=None, ki_N_per_um_s: float | None = 0.0, V0_um_s: float = 1.0,
                       iters: int = 8, periods: float = 12.0, seed: int = 0, progress=None,
-                      bump_um: float = 0.5) -> dict:
+                      bump_um: float = 0.5, kd_N_s_per_um: float | None = None) -> dict:
     """Bisection on the PID's kp with the full simulated rig (rig.sim.SimRig), kd and the
     actuator as in the profile, ``ki`` as given (0: PD, the paper's analysis)."""
     from rig.profile import default_profile_path, load_profile
     from rig.sim import SimRig
 
     prof = load_profile(profile or default_profile_path())
+    if kd_N_s_per_um is not None:
+        prof = prof.model_copy(update={"controller": prof.controller.model_copy(
+            update={"kd_N_s_per_um": float(kd_N_s_per_um)})})
     model = prof.friction_model(name)
     N = prof.normal.nominal_force_N
     kd = prof.controller.kd_N_s_per_um

@@ -254,8 +254,8 @@ def stability_cmd(
                 ks = f["k_sim_N_per_um"]
                 if not ks or abs(ks / f["k_cr_eq8_with_leak_N_per_um"] - 1) > 0.05:
                     console.print(f"[yellow]{nm}: the full rig departs from eq. (8): with a small direct effect the "
-                                  "loop's sensor noise (through kp and the D term) makes the interface velocity "
-                                  "jitter by more than V0, and the linear analysis no longer applies "
+                                  "D term on the noisy LVDT makes the interface velocity jitter (peaks beyond V0) "
+                                  "and the linear analysis no longer applies; with kd = 0 the rig follows eq. (8) "
                                   "(docs/identification.md, section 5)[/yellow]")
     if json_out:
         doc = {"schema": "rig.stability/1", "V0_um_s": v0, "mass_kg": mass, "kd_N_s_per_um": kd,
