@@ -266,7 +266,11 @@ def _run(hw_dict, profile, x_ref, out_q, abort_flag, stop_req, options):
         blk.i = i + 1
         blk.exec[i] = perf() - c0
         if blk.i >= blk.n:
-            out_q.put(("block",) + blk.take())
+            b, tim = blk.take()
+            tim["devices"] = {"lvdt_bad_crc": lv.parser.bad_frames, "lvdt_garbage_bytes": lv.parser.garbage_bytes,
+                              "lvdt_lost": lv.parser.lost_frames, "modbus_errors": lc.n_errors,
+                              "can_status_frames": va.n_status, "can_send_errors": va.send_errors}
+            out_q.put(("block", b, tim))
         skipped = pacer.advance()
         if skipped:
             blk.skipped += skipped

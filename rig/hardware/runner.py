@@ -138,6 +138,7 @@ def run_hardware_trial(plan, recipe, profile, writer, progress=None, *, emulator
                 if t_last >= next_stats - 0.5 / rate_hz:
                     w = stats.window()
                     w.pop("late_hist_edges_us", None)
+                    w.update(tim.get("devices", {}))  # cumulative device error counters
                     writer.loop_stats(t_last, w)
                     next_stats += stats_every_s
                 if progress is not None:
