@@ -1,17 +1,25 @@
-"""Benchmark: does the MCAP log slow the simulated trial down?
+"""Benchmark: closed-loop ticks per second and real-time factor of the simulated trial, LOGGING INCLUDED.
 
-Runs the paper's velocity-step recipe (config/recipes/velocity-steps.yaml, about
-650 s of simulated time, 648 k loop ticks) on the simulated rig
+Runs the paper's velocity-step recipe (config/recipes/velocity-steps.yaml, 681 s
+of simulated time, 681 k loop ticks) on the simulated rig:
 
-  1. without logging (the closed loop alone, blocks of 100 ticks),
-  2. with the trial log (rig.log.TrialLogWriter: raw blocks base64 float64, the
-     25 Hz channel, events, loop statistics, fsync'd flushes every second), with
-     the mcap writer in its background thread (default) and in the caller's thread,
-  3. the same with float32 raw arrays (recipe log.raw_dtype: float32),
-  4. the whole `rig run ... --sim -q` command in a fresh process (startup included),
+  1. the closed loop alone (no log; 1 s blocks, as `rig run` uses),
+  2. with the trial log as `rig run` writes it (rig.log.TrialLogWriter defaults:
+     raw blocks of 1 s as binary float64 columns, the 25 Hz JSON channel,
+     events, loop statistics every second, chunks compressed with zstd level -1,
+     fsync'd flushes at least every second, the writer thread),
+  3. the same with the writer in the caller's thread,
+  4. the same with float32 raw columns (recipe log.raw_dtype: float32),
+  5. the previous layout for comparison (raw blocks of 0.1 s as base64 in JSON,
+     zstd level 3), with the current writer,
+  6. the whole `rig run RECIPE --sim -q` in a fresh process (imports, numba
+     cache loading, plan, git describe, log), and its fixed start-up cost
+     (the same command on a 1 s hold).
 
-and prints ticks/s and the real-time factor (simulated s per wall s), best of
-``--repeat`` runs, with CPU time beside wall time (the machines are shared).
+For each: wall time and CPU time (this process; child CPU for 6), ticks per
+second and real-time factor (simulated s / wall s, and / CPU s), best of
+``--repeat``. The machine is shared: the load average is printed before and
+after; CPU figures are the stable ones.
 
     python benchmarks/bench_run.py [--repeat 3] [--recipe config/recipes/velocity-steps.yaml] [--json out.json]
 """
@@ -20,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import tempfile
@@ -30,14 +39,31 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def _measure(fn, repeat: int) -> dict:
-    best = None
+    """Best (smallest) wall time and best CPU time over ``repeat`` runs of ``fn`` (returns the ticks)."""
+    walls, cpus = [], []
     for _ in range(repeat):
         w0, c0 = time.perf_counter(), time.process_time()
         ticks = fn()
-        wall, cpu = time.perf_counter() - w0, time.process_time() - c0
-        if best is None or wall < best["wall_s"]:
-            best = {"wall_s": wall, "cpu_s": cpu, "ticks": ticks}
-    return best
+        walls.append(time.perf_counter() - w0)
+        cpus.append(time.process_time() - c0)
+    return {"wall_s": min(walls), "cpu_s": min(cpus), "ticks": ticks}
+
+
+def _run_cli(args: list[str], repeat: int) -> dict:
+    """Best wall time and best child CPU time (user + sys) of a fresh `python -m rig.cli ...`."""
+    best_wall = best_cpu = None
+    for _ in range(repeat):
+        r0 = os.times()
+        w0 = time.perf_counter()
+        proc = subprocess.run([sys.executable, "-m", "rig.cli", *args], capture_output=True, text=True, cwd=REPO)
+        wall = time.perf_counter() - w0
+        r1 = os.times()
+        if proc.returncode != 0:
+            raise SystemExit(f"rig {' '.join(args)} failed:\n{proc.stderr}")
+        cpu = (r1.children_user - r0.children_user) + (r1.children_system - r0.children_system)
+        best_wall = wall if best_wall is None else min(best_wall, wall)
+        best_cpu = cpu if best_cpu is None else min(best_cpu, cpu)
+    return {"wall_s": best_wall, "cpu_s": best_cpu}
 
 
 def main(argv=None) -> int:
@@ -45,8 +71,10 @@ def main(argv=None) -> int:
     ap.add_argument("--recipe", default=str(REPO / "config" / "recipes" / "velocity-steps.yaml"))
     ap.add_argument("--profile", default=str(REPO / "config" / "rigs" / "sim.yaml"))
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--no-cli", action="store_true", help="skip the fresh-process runs")
     ap.add_argument("--json", default=None, help="also write the figures to this JSON file")
     args = ap.parse_args(argv)
+    load0 = os.getloadavg()
 
     from rig.commands.trial import run_sim_trial
     from rig.log import TrialLogWriter
@@ -62,68 +90,88 @@ def main(argv=None) -> int:
     t_plan = time.perf_counter() - t0
     sim_s = plan.duration_s
     tmp = Path(tempfile.mkdtemp(prefix="bench_run_"))
+    block_ticks = max(1, int(round(recipe.log.block_s * plan.loop_rate_hz)))
 
     # warm up numba (compiled-code cache load)
     rig = SimRig(profile, profile.friction_model(recipe.lubricant), recipe.normal_force_N, recipe.seed)
-    for _ in rig.run_blocks(plan.x_ref_um[:2000], block_ticks=100):
+    for _ in rig.run_blocks(plan.x_ref_um[:2000], block_ticks=block_ticks):
         pass
 
     def sim_only():
         rig = SimRig(profile, profile.friction_model(recipe.lubricant), recipe.normal_force_N, recipe.seed)
         n = 0
-        for blk in rig.run_blocks(plan.x_ref_um, block_ticks=100):
+        for blk in rig.run_blocks(plan.x_ref_um, block_ticks=block_ticks):
             n += blk["t_s"].size
         return n
 
-    def with_log(dtype, threaded=True):
+    def with_log(name, block_s=None, **kw):
+        rc = recipe
+        if block_s is not None:
+            rc = recipe.model_copy(deep=True)
+            rc.log.block_s = block_s
+
         def run():
-            w = TrialLogWriter(tmp / f"bench_{dtype}.mcap", loop_rate_hz=plan.loop_rate_hz, raw_dtype=dtype,
-                               threaded=threaded,
+            w = TrialLogWriter(tmp / f"{name}.mcap", loop_rate_hz=plan.loop_rate_hz,
+                               decimated_rate_hz=recipe.log.decimated_rate_hz,
                                metadata={"lubricant": recipe.lubricant, "normal_force_N": recipe.normal_force_N},
                                recipe_yaml=recipe.source_text, recipe=recipe.model_dump(mode="json"),
-                               profile=profile.model_dump(mode="json"))
-            run_sim_trial(plan, recipe, profile, w, None, seed=recipe.seed)
+                               profile=profile.model_dump(mode="json"), **kw)
+            run_sim_trial(plan, rc, profile, w, None, seed=recipe.seed)
             w.close()
             return w.ticks
         return run
 
-    results = {"recipe": args.recipe, "simulated_s": sim_s, "ticks": plan.n_ticks, "plan_compile_s": t_plan}
-    rows = [("sim only (no log)", "sim_only", sim_only),
-            ("sim + MCAP log (float64 raw)", "log_float64", with_log("float64")),
-            ("  same, writer in caller thread", "log_float64_unthreaded", with_log("float64", threaded=False)),
-            ("sim + MCAP log (float32 raw)", "log_float32", with_log("float32"))]
+    results = {"recipe": args.recipe, "simulated_s": sim_s, "ticks": plan.n_ticks, "plan_compile_s": t_plan,
+               "cpu_count": os.cpu_count()}
+    rows = [("closed loop alone (no log)", "sim_only", sim_only),
+            ("with the log (default)", "log", with_log("log")),
+            ("  writer in the caller's thread", "log_unthreaded", with_log("log_unthreaded", threaded=False)),
+            ("  float32 raw columns", "log_float32", with_log("log_float32", raw_dtype="float32")),
+            ("  old layout (base64 0.1 s, zstd 3)", "log_old_layout",
+             with_log("log_old_layout", block_s=0.1, raw_encoding="base64", compression_level=3))]
+    print(f"{Path(args.recipe).name}: {sim_s:.1f} s simulated, {plan.n_ticks:,} ticks; load average "
+          f"{load0[0]:.2f} on {os.cpu_count()} cores; best of {args.repeat}")
+    print(f"{'':38s} {'wall':>7s} {'ticks/s':>11s} {'x real time':>11s}   {'CPU':>6s} {'x real time':>11s}  file")
     for label, key, fn in rows:
         r = _measure(fn, args.repeat)
         r["ticks_per_s"] = r["ticks"] / r["wall_s"]
         r["realtime_factor"] = sim_s / r["wall_s"]
         r["cpu_ticks_per_s"] = r["ticks"] / r["cpu_s"] if r["cpu_s"] > 0 else float("nan")
+        r["cpu_realtime_factor"] = sim_s / r["cpu_s"] if r["cpu_s"] > 0 else float("nan")
+        p = tmp / f"{key}.mcap"
+        r["file_MB"] = p.stat().st_size / 1e6 if p.exists() else None
         results[key] = r
-        print(f"{label:32s} wall {r['wall_s']:6.2f} s  {r['ticks_per_s']:>10,.0f} ticks/s  "
-              f"{r['realtime_factor']:7.1f}x real time   (cpu {r['cpu_s']:.2f} s, "
-              f"{r['cpu_ticks_per_s']:,.0f} ticks/cpu-s)")
-    for dtype in ("float64", "float32"):
-        p = tmp / f"bench_{dtype}.mcap"
-        results[f"log_{dtype}"]["file_MB"] = p.stat().st_size / 1e6
-        print(f"  file ({dtype} raw): {p.stat().st_size / 1e6:.1f} MB")
+        size = f"{r['file_MB']:.1f} MB" if r["file_MB"] else "-"
+        print(f"{label:38s} {r['wall_s']:6.3f}s {r['ticks_per_s']:>11,.0f} {r['realtime_factor']:10.0f}x   "
+              f"{r['cpu_s']:5.3f}s {r['cpu_realtime_factor']:10.0f}x  {size}")
 
-    best = None
-    out = tmp / "cli.mcap"
-    for _ in range(args.repeat):
-        w0 = time.perf_counter()
-        proc = subprocess.run([sys.executable, "-m", "rig.cli", "run", args.recipe, "--sim", "-q", "--out", str(out),
-                               "--profile", args.profile], capture_output=True, text=True, cwd=REPO)
-        wall = time.perf_counter() - w0
-        if proc.returncode != 0:
-            print(proc.stderr, file=sys.stderr)
-            return 1
-        best = wall if best is None else min(best, wall)
-    results["rig_run_cli"] = {"wall_s": best, "realtime_factor": sim_s / best, "ticks_per_s": plan.n_ticks / best}
-    print(f"{'rig run --sim (fresh process)':32s} wall {best:6.2f} s  {plan.n_ticks / best:>10,.0f} ticks/s  "
-          f"{sim_s / best:7.1f}x real time   (startup and plan included)")
-    so, l8, l4 = results["sim_only"], results["log_float64"], results["log_float32"]
-    print(f"with the log the trial takes x{l8['wall_s'] / so['wall_s']:.1f} the bare loop's wall time "
-          f"(x{l8['cpu_s'] / so['cpu_s']:.1f} its CPU time); float32 raw: x{l4['wall_s'] / so['wall_s']:.1f} wall, "
-          f"x{l4['cpu_s'] / so['cpu_s']:.1f} CPU")
+    if not args.no_cli:
+        out = tmp / "cli.mcap"
+        cli = _run_cli(["run", args.recipe, "--sim", "-q", "--out", str(out), "--profile", args.profile], args.repeat)
+        hold = tmp / "hold.yaml"
+        hold.write_text(f"name: hold\nlubricant: {recipe.lubricant}\nsegments:\n  - kind: hold\n    duration_s: 1\n")
+        start = _run_cli(["run", str(hold), "--sim", "-q", "--out", str(tmp / "hold.mcap"), "--profile", args.profile],
+                         args.repeat)
+        cli.update(ticks_per_s=plan.n_ticks / cli["wall_s"], realtime_factor=sim_s / cli["wall_s"],
+                   cpu_realtime_factor=sim_s / cli["cpu_s"], startup_wall_s=start["wall_s"],
+                   startup_cpu_s=start["cpu_s"])
+        results["rig_run_cli"] = cli
+        print(f"{'rig run --sim -q (fresh process)':38s} {cli['wall_s']:6.3f}s {cli['ticks_per_s']:>11,.0f} "
+              f"{cli['realtime_factor']:10.0f}x   {cli['cpu_s']:5.3f}s {cli['cpu_realtime_factor']:10.0f}x")
+        print(f"{'  its fixed start-up (rig run, 1 s hold)':38s} {start['wall_s']:6.3f}s {'':>11s} {'':>11s}   "
+              f"{start['cpu_s']:5.3f}s")
+        lg = results["log"]
+        one_h = start["wall_s"] + 3600.0 / lg["realtime_factor"]
+        one_h_cpu = start["cpu_s"] + 3600.0 / lg["cpu_realtime_factor"]
+        results["one_hour_trial_estimate"] = {"wall_s": one_h, "cpu_s": one_h_cpu}
+        print(f"a one-hour trial with `rig run` ~ {one_h:.1f} s wall, {one_h_cpu:.1f} s CPU "
+              f"(start-up + 3600 s at the logged rate)")
+    so, lg = results["sim_only"], results["log"]
+    print(f"the log adds x{lg['cpu_s'] / so['cpu_s']:.2f} to the bare loop's CPU time "
+          f"(old layout x{results['log_old_layout']['cpu_s'] / so['cpu_s']:.2f})")
+    load1 = os.getloadavg()
+    results["loadavg_before_after"] = [load0[0], load1[0]]
+    print(f"load average after: {load1[0]:.2f}")
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=2))
     return 0

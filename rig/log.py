@@ -1,37 +1,41 @@
 """The trial log: one MCAP file per trial.
 
-Layout (all channels: schema encoding ``jsonschema``, message encoding ``json``,
-written with ``json.dumps(allow_nan=False)``; chunked, zstd, message index kept):
+Layout (chunked, zstd (level -1 by default), message index and summary kept;
+written by :class:`_McapFile`, a minimal MCAP writer for this hot path, and
+read with the ``mcap`` package):
 
-``/raw`` (schema ``rig.RawBlock``)
-    The 1 kHz loop data as blocks of samples (about 0.1 s each): every key of the
-    loop's block dict (``t_s, position_ref_um, position_um, friction_N,
+``/raw`` (no schema; message encoding ``rig.columns.v1``)
+    The 1 kHz loop data as blocks of samples (1 s each by default): every key of
+    the loop's block dict (``t_s, position_ref_um, position_um, friction_N,
     normal_1_N, normal_2_N, valve_cmd, pid_p, pid_i, pid_d, dither`` and, from the
-    simulation, ``true_position_um, true_velocity_um_s, true_mu``). Each array is
-    either base64 of little-endian float64 (``"encoding": "base64-f8le"``, the
-    default: ~10x cheaper to encode than JSON numbers, so logging does not slow
-    a simulation running hundreds of times faster than real time) or a JSON list
-    (``"encoding": "json"``; non-finite values as ``null``). ``log_time`` = the
-    block's first sample time.
-``/log25`` (schema ``rig.Sample``)
+    simulation, ``true_position_um, true_velocity_um_s, true_mu``) as binary
+    columns: ``b"RIGC"``, a little-endian u32 header length H, H bytes of JSON
+    header ``{t0_s, n, rate_hz, fields: [key, ...], dtypes: ["<f8" | "<f4", ...]}``
+    padded with spaces so the columns start at a multiple of 8, then each key's
+    ``n`` little-endian floats in order (``RAW_BINARY_LAYOUT``, also in the
+    channel's metadata). ``log_time`` = the block's first sample time. Older or
+    optional encodings (``raw_encoding``): ``base64`` (JSON with base64 arrays,
+    schema ``rig.RawBlock``) and ``json`` (number lists); all are read back.
+``/log25`` (schema ``rig.Sample``, ``jsonschema`` / ``json``)
     One message per sample at the decimated rate (25 Hz like the paper's log,
     section 4.2): ``t_s, position_um, friction_N, normal_1_N, normal_2_N,
     position_ref_um, valve_cmd``; ``log_time`` = the sample time, so Foxglove
     plots it over time. Decimation takes every n-th loop sample (the paper's
     logger sampled the analog-filtered signals; the rig's sensors are filtered
     at 100 Hz / 10 Hz upstream), no extra averaging.
-``/events`` (schema ``rig.Event``)
+``/events`` (schema ``rig.Event``, json)
     ``{t_s, kind, ...}``: segment start/end, velocity steps, stepped-pass levels,
     trial start/end, interruption, operator markers.
-``/loop_stats`` (schema ``rig.LoopStats``)
+``/loop_stats`` (schema ``rig.LoopStats``, json)
     ``{t_s, ...}`` numbers: period statistics, tracking error, real-time factor.
 
-Metadata records: ``trial`` (recipe name, lubricant, normal_force_N, seed,
-software_version, trial index, loop and log rates, start time), ``recipe`` (the
-validated recipe as JSON), ``rig_profile`` (the profile as JSON), ``trial_end``
-(status ``completed`` / ``interrupted`` / ``failed``, counts), and, in a file
-rewritten by :func:`recover`, ``recovery``. The recipe YAML is attached as
-``recipe.yaml``. Time zero is the start of the trial (log_time in ns since then).
+JSON channels are written with ``allow_nan=False`` (non-finite numbers become
+``null``). Metadata records: ``trial`` (recipe name, lubricant, normal_force_N,
+seed, software_version, trial index, loop and log rates, start time), ``recipe``
+(the validated recipe as JSON), ``rig_profile`` (the profile as JSON),
+``trial_end`` (status ``completed`` / ``interrupted`` / ``failed``, counts), and,
+in a file rewritten by :func:`recover`, ``recovery``. The recipe YAML is attached
+as ``recipe.yaml``. Time zero is the start of the trial (log_time in ns since then).
 
 Crash safety: the writer closes the chunk in progress, flushes and ``os.fsync``s
 at least every ``flush_interval_s`` of wall time (1 s), so a crash loses at most
@@ -229,11 +233,11 @@ class _McapFile:
     are serialised by ``mcap.records``. Compared to ``mcap.writer.Writer`` it adds
     a batch of messages in one call (one ``struct`` pack per message instead of
     a dozen Python calls) and lets the compression level be chosen: noisy
-    float64 loop data gains almost nothing from zstd's default level 3 over
-    level 1, at twice the CPU time.
+    float64 loop data compresses only 1.3-1.5x whatever the level, and zstd's
+    default level 3 costs about 3x the CPU time of level -1.
     """
 
-    def __init__(self, fh, *, compression: str = "zstd", level: int = 1, chunk_size: int = 1 << 20,
+    def __init__(self, fh, *, compression: str = "zstd", level: int = -1, chunk_size: int = 1 << 20,
                  crc: bool = True):
         self.fh = fh
         self.pos = 0
@@ -525,9 +529,15 @@ class TrialLogWriter:
     record and the summary. Usable as a context manager (an exception marks the
     trial ``failed``, KeyboardInterrupt ``interrupted``).
 
-    ``threaded`` (default): the mcap writer (chunk compression, file I/O,
+    ``threaded`` (default): the MCAP writer (chunk compression, file I/O,
     fsync) runs in a background thread, fed in order through a bounded queue;
     the caller's thread only encodes.
+
+    ``raw_encoding``: ``binary`` (default, ``rig.columns.v1``), ``base64`` or
+    ``json``; ``raw_dtype``: ``float64`` (exact) or ``float32`` (``t_s`` stays
+    float64); ``compression``: ``zstd`` (default, at ``compression_level`` -1),
+    ``lz4`` or ``none``. Each ``write_block`` call is one raw message, so the
+    caller's block size is the message size (``rig run``: ``log.block_s``, 1 s).
     """
 
     def __init__(self, path: str | os.PathLike, *, loop_rate_hz: float = 1000.0,
@@ -536,7 +546,7 @@ class TrialLogWriter:
                  recipe: dict | None = None, profile: dict | None = None,
                  raw_encoding: str = "binary", raw_dtype: str = "float64", flush_interval_s: float = 1.0,
                  chunk_size: int = 1 << 20, fsync: bool = True, threaded: bool = True,
-                 compression: str = "zstd", compression_level: int = 1):
+                 compression: str = "zstd", compression_level: int = -1):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.loop_rate_hz = float(loop_rate_hz)
