@@ -42,9 +42,9 @@ from .fit import FitResult, evaluate, fit, multistart
 from .models import EXT_PARAMS, model_params, to_friction_model
 from .prep import Grid, prepare
 
-MIN_GAIN_PCT = 0.3
+MIN_GAIN_PCT = 0.15
 MIN_Z = 2.5
-MIN_ZW = 4.5
+MIN_ZW = 5.0
 MIN_DBIC = -10.0
 STRONG_GAIN_PCT = 5.0  # a hold-out gain this large needs no chunk test (single-step records)
 UNEXPLAINED_MIN_GAIN_PCT = 1.0
