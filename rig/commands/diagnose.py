@@ -47,7 +47,9 @@ def register(app: typer.Typer) -> None:
             with err.status("diagnosing...") as status:
                 d = diagnose(trial, baseline=baseline, progress=lambda m: status.update(f"diagnosing: {m}"))
         except ValueError as exc:
-            err.print(f"[red]error:[/red] {data}: {exc}")
+            msg = str(exc)
+            err.print(f"[red]error:[/red] {msg if str(data) in msg else f'{data}: {msg}'}", markup=True,
+                      highlight=False)
             raise typer.Exit(1)
         rep = d.report()
         rep["data"] = str(data)
