@@ -62,7 +62,6 @@ from mcap.data_stream import RecordBuilder
 from mcap.opcode import Opcode
 from mcap.records import (Attachment, AttachmentIndex, Channel, ChunkIndex, DataEnd, Footer, Header, Message,
                           Metadata, MetadataIndex, Schema, Statistics, SummaryOffset)
-from numba import njit
 
 from rig import __version__
 from rig.data import DataFormatError, TrialData
@@ -186,8 +185,7 @@ def _list_or_null(a: np.ndarray) -> list:
 _EMPTY = np.zeros(0)
 
 
-@njit(cache=True)
-def _block_stats(ref, pos, f, n1, n2, valve, acc):  # pragma: no cover - compiled
+def _block_stats_py(ref, pos, f, n1, n2, valve, acc):  # pragma: no cover - compiled
     """Accumulate a block's summary figures into ``acc`` (non-finite samples skipped):
     [sum (ref-pos)^2, max |ref-pos|, n, sum f, sum |f|, n_f, sum f/(n1+n2), n |valve| >= 1]."""
     if ref.size == pos.size:
@@ -213,6 +211,20 @@ def _block_stats(ref, pos, f, n1, n2, valve, acc):  # pragma: no cover - compile
     for i in range(valve.size):
         if abs(valve[i]) >= 1.0:
             acc[7] += 1.0
+
+
+_block_stats_jit = None
+
+
+def _block_stats(ref, pos, f, n1, n2, valve, acc) -> None:
+    """numba-compiled :func:`_block_stats_py` (compiled/loaded from the cache on first use, so that
+    reading a log does not import numba)."""
+    global _block_stats_jit
+    if _block_stats_jit is None:
+        from numba import njit
+
+        _block_stats_jit = njit(cache=True)(_block_stats_py)
+    _block_stats_jit(ref, pos, f, n1, n2, valve, acc)
 
 
 _MAGIC = b"\x89MCAP0\r\n"
