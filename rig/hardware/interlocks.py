@@ -66,7 +66,9 @@ class Interlocks:
         a = lvdt.age_s(now)
         if a > c.stale_s and lvdt.polls_since_frame >= self.stale_ticks:
             return Trip("stale_position", f"no LVDT frame from {lvdt.address} for {a * 1e3:.1f} ms",
-                        t_s, {"age_s": a, "limit_s": c.stale_s})
+                        t_s, {"age_s": a, "limit_s": c.stale_s, "polls": lvdt.polls_since_frame,
+                              "forces_age_s": loadcells.age_s(now),
+                              "forces_reads_since_new": loadcells.reads_since_new})
         a = loadcells.age_s(now)
         if a > c.stale_s and loadcells.reads_since_new >= self.stale_ticks:
             return Trip("stale_forces", f"load-cell sample counter at {loadcells.address} "
