@@ -1101,7 +1101,7 @@ def trial_info(path: str | os.PathLike) -> dict:
     dur = None
     if t_max is not None:
         dur = t_max - (t_min or 0.0)
-        # the last raw block covers ~0.1 s beyond its log_time
+        # the last raw block covers up to block_s (1 s) beyond its log_time
         end = records.get("trial_end", {}).get("duration_s")
         if end is not None:
             try:
