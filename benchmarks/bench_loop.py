@@ -74,6 +74,10 @@ def main(argv=None) -> int:
     print(format_stats(res, f"loop-bench {a.seconds:g} s"))
     print(f"  scheduling {res['realtime']['sched']}; load average before "
           f"{res['loadavg_before'][0]:.2f}, after {res['loadavg_after'][0]:.2f} on {res['cpus']} CPUs")
+    em = res.get("emulator") or {}
+    if em.get("steps"):
+        print(f"  emulator: {em['steps']} plant steps ({em['lock_steps']} on setpoints), longest gap "
+              f"{1e3 * (em['max_gap_s'] or 0):.1f} ms, {em['gaps_over_5ms']} gaps over 5 ms")
     print(json.dumps({k: res[k] for k in ("jitter_us", "late_p50_us", "late_p99_us", "late_p999_us",
                                           "late_max_us", "late_over_100us", "late_over_500us",
                                           "late_over_1000us", "skipped", "n")}, indent=1))

@@ -193,10 +193,23 @@ def loop_bench(seconds: float = 60.0, profile_path: Path = DEFAULT_EMULATED, out
     x = np.full(int(round(seconds * rate)), float(profile.stroke.home_um))
     plan = SimpleNamespace(x_ref_um=x, loop_rate_hz=rate, duration_s=seconds, events=[])
     recipe = SimpleNamespace(name="loop-bench", lubricant="boundary", normal_force_N=None, seed=1)
+    emu = None
+    if hw.emulators.autostart:
+        from drivers.emulators.rig import start_emulator_process
+
+        emu = start_emulator_process(hw, profile, lubricant="boundary")
     load_before = os.getloadavg()
     t0 = time.time()
-    summary = run_hardware_trial(plan, recipe, profile, _NullWriter(), echo=lambda *a, **k: None)
+    try:
+        summary = run_hardware_trial(plan, recipe, profile, _NullWriter(), emulator=emu,
+                                     echo=lambda *a, **k: None)
+        emu_stats = emu.stats() if emu is not None else {}
+    finally:
+        if emu is not None:
+            emu.stop()
     res = dict(summary["timing"])
+    res["emulator"] = {k: emu_stats.get(k) for k in ("steps", "lock_steps", "free_steps", "max_gap_s",
+                                                     "gaps_over_5ms", "modbus_requests")}
     res.update(seconds=seconds, loadavg_before=load_before, loadavg_after=os.getloadavg(),
                started_utc=time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime(t0)),
                realtime=summary.get("realtime"), cpus=os.cpu_count(), emulated=hw.emulators.autostart,
@@ -227,6 +240,10 @@ def loop_bench_command(
                   f"load average before {res['loadavg_before'][0]:.2f}, after {res['loadavg_after'][0]:.2f} "
                   f"on {res['cpus']} CPUs", highlight=False)
     target_ok = res.get("late_p99_us", 1e9) < 100 and res.get("late_over_1000us", 1) == 0
+    em = res.get("emulator") or {}
+    if em.get("steps"):
+        console.print(f"  emulator: {em['steps']} plant steps ({em['lock_steps']} on setpoints), longest gap "
+                      f"{1e3 * (em['max_gap_s'] or 0):.1f} ms, {em['gaps_over_5ms']} gaps over 5 ms", highlight=False)
     console.print(f"  target (p99 lateness < 100 µs, no cycle > 1 ms late): "
                   f"{'[green]met[/]' if target_ok else '[yellow]not met[/]'}")
     sys.stdout.flush()
