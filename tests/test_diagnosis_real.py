@@ -18,8 +18,10 @@
   is unstable (k below the two-state critical stiffness) and does not pass the
   hold-out test. Partly sensible: the displacement is the load point's, so
   stiffness is expected; the second state is found only without stiffness.
-- giacomel-basalt-brava (3 -> 10 µm/s): one state fits with b < 0 at a huge L; a
-  second, slow state improves the hold-out fit by a few %; a weak finding.
+- giacomel-basalt-brava (3 -> 10 µm/s): one state fits with b < 0 at the L bound; a
+  second state would need L2 far beyond the record's slip (a drift, not a state),
+  so nothing passes and the summary says the residual exceeds the noise. Sensible
+  caution: one up-step holds little to tell causes apart.
 """
 
 from __future__ import annotations
@@ -65,11 +67,14 @@ def test_sepiolite_stiffness_then_still_negative_b(real_data_dir):
     assert rep["holdout_rms_N"] < 0.8 * rep["baseline"]["holdout_rms_N"]
 
 
-def test_basalt_weak_second_state(real_data_dir):
-    """Basalt (3 -> 10 µm/s): one state fits with b < 0 at a huge L (no real transient in one
-    state); a slow second state gains a few % on the hold-out blocks. A weak finding, reported as such."""
+def test_basalt_no_finding(real_data_dir):
+    """Basalt (3 -> 10 µm/s): one state fits with b < 0 at the L bound (no transient one state
+    describes). A second state only helps with L2 far beyond the record's slip (34 mm in a 5 mm
+    record), i.e. a drift, not a state: rejected. No catalogue cause passes; the residual stays
+    above the noise, which the summary says."""
+    res = CliRunner().invoke(app, ["diagnose", str(real_data_dir / "giacomel-basalt-brava.csv")])
+    assert res.exit_code == 0
+    assert "no catalogue extension passes the hold-out test" in res.output
     rep = diagnose(load_trial(real_data_dir / "giacomel-basalt-brava.csv")).report()
     assert rep["baseline"]["params"]["B_mu"] < 0
-    causes = [f["cause"] for f in rep["findings"]]
-    assert causes == ["second_state_variable"]
-    assert 2.0 < rep["findings"][0]["gain_pct"] < 15.0
+    assert rep["findings"] == []

@@ -444,7 +444,9 @@ def fit_baseline(grid: Grid, baseline: str) -> FitResult:
 def try_candidate(grid: Grid, cur: FitResult, cause: str, info: dict) -> Candidate:
     exts = list(cur.extensions) + [cause]
     starts = _candidate_starts(cause, cur, grid, info)
-    res = multistart(grid, cur.baseline, exts, starts, keep=min(2, len(starts)), max_nfev=120)
+    # two states: many local minima (but the stiffness solver is costly)
+    keep = 4 if cause == "second_state_variable" and "finite_stiffness" not in exts else 2
+    res = multistart(grid, cur.baseline, exts, starts, keep=min(keep, len(starts)), max_nfev=120)
     gain = 100.0 * (cur.holdout_rms_N - res.holdout_rms_N) / cur.holdout_rms_N
     dbic = res.bic - cur.bic
     z = paired_z(grid, cur.pred, res.pred)
@@ -468,6 +470,10 @@ def _plausible(cause: str, p: dict, grid: Grid) -> bool:
         return False
     if cause == "time_delay" and p["delay_s"] > 0.2 * T:
         return False
+    if cause == "second_state_variable":
+        # a state longer than half the record's slip cannot be told from a drift
+        if p["L2_um"] > 0.5 * float(slip_of(grid)[-1]):
+            return False
     if cause == "position_periodic":
         span = float(grid.x.max() - grid.x.min())
         if p["wavelength_um"] > span / 5:
