@@ -80,7 +80,9 @@ class Diagnosis:
 
     @property
     def model(self):
-        return to_friction_model(self.final.baseline, self.final.extensions, self.final.params)
+        names = model_params(self.final.baseline, self.final.extensions)
+        return to_friction_model(self.final.baseline, self.final.extensions,
+                                 {k: v for k, v in self.final.params.items() if k in names})
 
     def report(self) -> dict:
         """The JSON report of diagnosis.md (schema rig.diagnosis/1)."""
@@ -438,7 +440,14 @@ def fit_baseline(grid: Grid, baseline: str) -> FitResult:
         return fit(grid, "steady_state", [], p_ss)
     if baseline != "rate_state":
         raise ValueError(f"unknown baseline {baseline!r} (rate_state or steady_state)")
-    return multistart(grid, "rate_state", [], _rate_starts(p_ss), keep=3)
+    starts = _rate_starts(p_ss)
+    if not grid.sliding[: max(3, grid.t.size // 200)].any():
+        # the record starts at rest (a hold before sliding): the state it starts in is unknown,
+        # a nuisance parameter (the velocity whose steady state it is), fitted with everything else
+        j = int(np.argmax(grid.sliding))
+        v1 = float(max(grid.v[j], 0.01))
+        starts = [dict(s, v_init_um_s=v1 * f) for s in starts for f in (1.0, 0.01)]
+    return multistart(grid, "rate_state", [], starts, keep=3)
 
 
 def try_candidate(grid: Grid, cur: FitResult, cause: str, info: dict) -> Candidate:
@@ -464,6 +473,10 @@ def _plausible(cause: str, p: dict, grid: Grid) -> bool:
     from .fit import at_bound
 
     if at_bound(p):
+        return False
+    # large cancelling coefficients (e.g. B = 0.13, B2 = -0.13) stand in for something else: real
+    # rate-and-state coefficients are O(0.001-0.02) (Table 2; rock friction)
+    if any(abs(p.get(k, 0.0)) > 0.05 for k in ("A_mu", "B_mu", "B2_mu")):
         return False
     T = float(grid.t[-1] - grid.t[0])
     if cause == "sensor_lag" and p["tau_s"] > 0.2 * T:

@@ -23,6 +23,8 @@ from .prep import Grid
 LOG_PARAMS = {
     "L_um": (0.05, 1e5), "L2_um": (0.05, 1e6), "tau_s": (1e-4, 300.0), "delay_s": (1e-4, 300.0),
     "stiffness_kN_per_m": (0.5, 1e7), "wavelength_um": (1.0, 1e6),
+    # nuisance: the velocity whose steady state the record starts in (records starting from rest)
+    "v_init_um_s": (1e-5, 1e3),
 }
 LIN_PARAMS = {
     "mu0": (0.01, -10.0, 10.0), "A_mu": (1e-3, 0.0, 0.2), "B_mu": (1e-3, -0.2, 0.2), "c_mu": (1e-3, -0.2, 0.2),
@@ -60,8 +62,10 @@ class FitResult:
         return n * math.log(max(self.sse_fit, 1e-300) / n) + self.n_par * math.log(n)
 
 
-def _free_names(baseline: str, extensions: list[str]) -> list[str]:
+def _free_names(baseline: str, extensions: list[str], init: dict | None = None) -> list[str]:
     names = model_params(baseline, extensions)
+    if init is not None and "v_init_um_s" in init:
+        names = names + ["v_init_um_s"]
     out = []
     for nm in names:
         if nm == "amplitude_mu":
@@ -133,7 +137,7 @@ def evaluate(grid: Grid, baseline: str, extensions: list[str], params: dict[str,
 def fit(grid: Grid, baseline: str, extensions: list[str], init: dict[str, float],
         max_nfev: int = 400, mask: np.ndarray | None = None) -> FitResult:
     """Least-squares fit of all the model's parameters from ``init`` on the fit blocks (or ``mask``)."""
-    names = _free_names(baseline, extensions)
+    names = _free_names(baseline, extensions, init)
     internal = _from_params(init)
     z0, lo, hi = _to_internal(names, internal)
     fixed = {k: v for k, v in internal.items() if k not in names and not k.startswith("_")

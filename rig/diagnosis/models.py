@@ -202,6 +202,8 @@ def predict_force(baseline: str, extensions: list[str], params: dict[str, float]
         d = float(params.get("delay_s", 0.0))
         if d > 0:
             v_eff = _interp_delay(t, v, d)
+    if v_init is None and "v_init_um_s" in params:
+        v_init = float(params["v_init_um_s"])
     if v_init is None:
         v_init = float(np.median(v_eff[: max(3, min(50, v_eff.size))]))
     if "finite_stiffness" in extensions:
