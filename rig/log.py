@@ -51,7 +51,6 @@ import json
 import math
 import os
 import struct
-import tempfile
 import time
 import zlib
 from pathlib import Path
@@ -64,7 +63,7 @@ from mcap.records import (Attachment, AttachmentIndex, Channel, ChunkIndex, Data
                           Metadata, MetadataIndex, Schema, Statistics, SummaryOffset)
 
 from rig import __version__
-from rig.data import DataFormatError, TrialData
+from rig.data import DataFormatError, TrialData, atomic_path
 
 RAW_TOPIC = "/raw"
 LOG25_TOPIC = "/log25"
@@ -1142,53 +1141,41 @@ def recover(path_in: str | os.PathLike, path_out: str | os.PathLike) -> dict:
     records = _metadata_dict(c)
     from mcap.writer import CompressionType, Writer
 
-    path_out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path_out.name}.", suffix=".tmp", dir=path_out.parent)
     counts: dict[str, int] = {}
     last_t = 0.0
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            w = Writer(fh, compression=CompressionType.ZSTD)
-            w.start(profile=(c.header.profile if c.header else MCAP_PROFILE), library=f"rig {__version__} (recover)")
-            sid_map: dict[int, int] = {}
-            for sid, s in sorted(c.schemas.items()):
-                sid_map[sid] = w.register_schema(s.name, s.encoding, s.data)
-            cid_map: dict[int, int] = {}
-            for cid, chn in sorted(c.channels.items()):
-                cid_map[cid] = w.register_channel(chn.topic, chn.message_encoding,
-                                                  sid_map.get(chn.schema_id, 0), dict(chn.metadata))
-            for m in c.messages:
-                if m.channel_id not in cid_map:
-                    continue
-                w.add_message(cid_map[m.channel_id], log_time=m.log_time, data=m.data,
-                              publish_time=m.publish_time, sequence=m.sequence)
-                topic = c.topic_of(m)
-                counts[topic] = counts.get(topic, 0) + 1
-                last_t = max(last_t, m.log_time / 1e9)
-            for md in c.metadata:
-                w.add_metadata(md.name, dict(md.metadata))
-            for a in c.attachments:
-                w.add_attachment(create_time=a.create_time, log_time=a.log_time, name=a.name,
-                                 media_type=a.media_type, data=a.data)
-            info = {"recovered": "true", "recovered_from": str(path_in),
-                    "recovery_error": c.error or ("no footer" if not c.complete else "none"),
-                    "original_complete": str(bool(c.complete and not c.error)).lower(),
-                    "messages": str(sum(counts.values())),
-                    "recovered_utc": _dt.datetime.now(_dt.timezone.utc).isoformat()}
-            info.update({f"messages{t.replace('/', '_')}": str(n) for t, n in counts.items()})
-            w.add_metadata("recovery", info)
-            if "trial_end" not in records:
-                w.add_metadata("trial_end", {"status": "recovered", "duration_s": repr(last_t)})
-            w.finish()
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path_out)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
+    with atomic_path(path_out) as tmp, open(tmp, "wb") as fh:
+        w = Writer(fh, compression=CompressionType.ZSTD)
+        w.start(profile=(c.header.profile if c.header else MCAP_PROFILE), library=f"rig {__version__} (recover)")
+        sid_map: dict[int, int] = {}
+        for sid, s in sorted(c.schemas.items()):
+            sid_map[sid] = w.register_schema(s.name, s.encoding, s.data)
+        cid_map: dict[int, int] = {}
+        for cid, chn in sorted(c.channels.items()):
+            cid_map[cid] = w.register_channel(chn.topic, chn.message_encoding,
+                                              sid_map.get(chn.schema_id, 0), dict(chn.metadata))
+        for m in c.messages:
+            if m.channel_id not in cid_map:
+                continue
+            w.add_message(cid_map[m.channel_id], log_time=m.log_time, data=m.data,
+                          publish_time=m.publish_time, sequence=m.sequence)
+            topic = c.topic_of(m)
+            counts[topic] = counts.get(topic, 0) + 1
+            last_t = max(last_t, m.log_time / 1e9)
+        for md in c.metadata:
+            w.add_metadata(md.name, dict(md.metadata))
+        for a in c.attachments:
+            w.add_attachment(create_time=a.create_time, log_time=a.log_time, name=a.name,
+                             media_type=a.media_type, data=a.data)
+        info = {"recovered": "true", "recovered_from": str(path_in),
+                "recovery_error": c.error or ("no footer" if not c.complete else "none"),
+                "original_complete": str(bool(c.complete and not c.error)).lower(),
+                "messages": str(sum(counts.values())),
+                "recovered_utc": _dt.datetime.now(_dt.timezone.utc).isoformat()}
+        info.update({f"messages{t.replace('/', '_')}": str(n) for t, n in counts.items()})
+        w.add_metadata("recovery", info)
+        if "trial_end" not in records:
+            w.add_metadata("trial_end", {"status": "recovered", "duration_s": repr(last_t)})
+        w.finish()
     return {"messages": counts, "error": c.error, "complete_before": c.complete and not c.error,
             "last_t_s": last_t, "path": str(path_out)}
 
@@ -1207,10 +1194,7 @@ def write_trial_data(trial: TrialData, path: str | os.PathLike, *, decimated_rat
     rate = 1.0 / dt if dt > 0 else 1.0
     meta = dict(trial.metadata)
     meta.update(extra_metadata or {})
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
+    with atomic_path(path) as tmp:
         w = TrialLogWriter(tmp, loop_rate_hz=rate, decimated_rate_hz=decimated_rate_hz or rate,
                            metadata=meta, flush_interval_s=1e9, fsync=False)
         cols = trial.columns()
@@ -1225,15 +1209,6 @@ def write_trial_data(trial: TrialData, path: str | os.PathLike, *, decimated_rat
             e = dict(e)
             w.event(e.pop("t_s", 0.0), e.pop("kind", "marker"), **e)
         w.close("imported")
-        with open(tmp, "rb") as fh:
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
     return path
 
 
