@@ -48,3 +48,12 @@ def test_cli_bad_input(tmp_path):
     assert res.exit_code != 0
     assert "position_um" in res.output
     assert not js.exists()
+
+
+def test_cli_bad_mcap(tmp_path):
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(b"not an mcap file\n")
+    res = CliRunner().invoke(app, ["diagnose", str(bad), "--json", str(tmp_path / "o.json")])
+    assert res.exit_code == 1
+    assert "bad.mcap" in res.output
+    assert not (tmp_path / "o.json").exists()

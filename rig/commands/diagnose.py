@@ -38,8 +38,8 @@ def register(app: typer.Typer) -> None:
         except DataFormatError as exc:
             err.print(f"[red]error:[/red] {exc}")
             raise typer.Exit(1)
-        except (OSError, ValueError) as exc:
-            err.print(f"[red]error:[/red] {data}: {exc}")
+        except Exception as exc:  # OSError, ValueError, a broken MCAP: one clear error
+            err.print(f"[red]error:[/red] {data}: cannot read the trial: {exc}", highlight=False)
             raise typer.Exit(1)
         from rig.diagnosis import diagnose
 

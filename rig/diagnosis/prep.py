@@ -277,6 +277,12 @@ def prepare(trial: TrialData, n_blocks: int = 20, slip_window_um: float = 3.0,
     N_nom = float(trial.normal_force_N)
     Ntot = np.asarray(trial.total_normal_N, dtype=float)
     noise_N = _robust_noise(F)
+    if x_raw[-1] < x_raw[0] and float(np.median(F)) < 0:
+        # sliding backwards throughout: the model is odd in v, so mirror the record
+        x_raw, F = -x_raw, -F
+        if trial.position_ref_um is not None:
+            trial = trial.select(np.ones(len(trial), bool))
+            trial.position_ref_um = -trial.position_ref_um
 
     # 1. kinematic grid cells
     dt_med = float(np.median(np.diff(tr)))
