@@ -385,9 +385,66 @@ def _speeds(grid: Grid) -> tuple[float, float]:
     return float(np.percentile(v, 5)), float(np.percentile(v, 95))
 
 
-def _evidence(cause: str, res: FitResult, grid: Grid, info: dict, others: dict[str, float]) -> str:
+def transient_scaling(grid: Grid, before: np.ndarray, after: np.ndarray):
+    """How the duration of what an extension adds after each velocity change scales with speed.
+
+    For every velocity change, the correction ``after - before`` (noise-free: a difference of two
+    fitted predictions validated on hold-out data) is followed from its peak until it falls below
+    1/e of it; the duration's log-log slope against the new speed is ~ -1 for a transient over a slip
+    distance and ~ 0 for one of fixed duration. Returns (slope, n_steps, (v, duration) pairs) or None.
+    """
+    d = after - before
+    t, v = grid.t, grid.v
+    pairs = []
+    tv = t
+    from .plot import velocity_changes
+
+    te = velocity_changes(grid)
+    ev = sorted(set(int(i) for i in np.clip(np.searchsorted(t, te - 1.0), 0, t.size - 1)))
+    for k, i in enumerate(ev):
+        j_end = ev[k + 1] if k + 1 < len(ev) else t.size - 1
+        seg = slice(i + 1, j_end)
+        dd = np.abs(d[seg])
+        if dd.size < 5:
+            continue
+        jm = int(np.argmax(dd))
+        peak = dd[jm]
+        if peak <= 0:
+            continue
+        below = np.flatnonzero(dd[jm:] < peak / math.e)
+        if below.size == 0:
+            continue
+        dur = float(tv[seg][jm + below[0]] - tv[i])
+        v2 = float(np.median(v[seg][jm + below[0]:][:50])) if below[0] + jm < dd.size else float(v[j_end])
+        if dur > 0 and v2 > 0.05:
+            pairs.append((v2, dur))
+    if len(pairs) < 3:
+        return None
+    a = np.log(np.array(pairs))
+    if np.ptp(a[:, 0]) < 0.5:
+        return None
+    slope = float(np.polyfit(a[:, 0], a[:, 1], 1)[0])
+    return slope, len(pairs), pairs
+
+
+def _evidence(cause: str, res: FitResult, grid: Grid, info: dict, others: dict[str, float],
+              before: FitResult | None = None) -> str:
     p = res.params
     vlo, vhi = _speeds(grid)
+    scal = ""
+    if before is not None and cause in ("frictional_memory", "time_delay", "second_state_variable", "aging_law",
+                                        "sensor_lag", "finite_stiffness"):
+        ts = transient_scaling(grid, before.pred, res.pred)
+        if ts is not None:
+            slope, n, pairs = ts
+            if slope < -0.6:
+                kind = "a slip distance (duration ~ 1/v)"
+            elif slope > -0.3:
+                kind = "a fixed time"
+            else:
+                kind = "in between (transients cut short by the next velocity change, or both kinds)"
+            scal = (f"; measured on {n} velocity changes, the added transient's duration scales as v^{slope:.2f}: "
+                    f"{kind}")
     alt = ", ".join(f"{k} {v:+.1f}%" for k, v in sorted(others.items(), key=lambda kv: -kv[1])[:3])
     alt = f" (other candidates' hold-out gains: {alt})" if alt else ""
     if cause == "frictional_memory":
@@ -428,7 +485,7 @@ def _evidence(cause: str, res: FitResult, grid: Grid, info: dict, others: dict[s
              f"{p['amplitude_mu']:.3g} in mu, the same at every speed (so not periodic in time)")
     else:
         s = cause
-    return s + alt
+    return s + scal + alt
 
 
 # ---------------------------------------------------------------------------
@@ -524,7 +581,7 @@ def diagnose(trial: TrialData, baseline: str = "rate_state", progress=None, n_bl
         findings.append({
             "cause": best.cause,
             "params": {k: _r(res.params[k]) for k in _finding_params(best.cause)},
-            "evidence": _evidence(best.cause, res, grid, info, others),
+            "evidence": _evidence(best.cause, res, grid, info, others, before=cur),
             "holdout_rms_N_before": _r(cur.holdout_rms_N),
             "holdout_rms_N_after": _r(res.holdout_rms_N),
             "gain_pct": _r(best.gain_pct, 4),
