@@ -118,3 +118,21 @@ def test_25hz_jitter_gaps_periodic_without_ref():
                                          with_ref=False, jitter=0.4, gaps=4))
     rep = diagnose(trial).report()
     _check_found(rep, "position_periodic", truth["params"])
+
+
+def test_transient_duration_scaling_discriminates():
+    """A careful scientist's test: the transient a sensor lag adds lasts a fixed time at every speed,
+    the one frictional memory adds lasts a slip distance (duration ~ 1/v)."""
+    from rig.diagnosis.core import transient_scaling
+
+    trial, _ = _record("sensor_lag", 100.0, 4, True, "varied")
+    d = diagnose(trial)
+    slope, n, _ = transient_scaling(d.grid, d.baseline.pred, d.final.pred)
+    assert n >= 5 and slope > -0.3
+    assert "a fixed time" in d.findings[0]["evidence"]
+
+    trial, _ = _record(None, 25.0, 3, True, "varied")
+    d = diagnose(trial, baseline="steady_state")
+    slope, n, _ = transient_scaling(d.grid, d.baseline.pred, d.history[1].pred)
+    assert n >= 5 and slope < -0.6
+    assert "a slip distance" in d.findings[0]["evidence"]
