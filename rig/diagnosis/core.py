@@ -513,6 +513,14 @@ def try_candidate(grid: Grid, cur: FitResult, cause: str, info: dict) -> Candida
     # two states: many local minima (but the stiffness solver is costly)
     keep = 4 if cause == "second_state_variable" and "finite_stiffness" not in exts else 2
     res = multistart(grid, cur.baseline, exts, starts, keep=min(keep, len(starts)), max_nfev=120)
+    if cause == "second_state_variable" and "aging_law" not in exts:
+        # the two slip-law states are interchangeable: the first is the one nearer the current model's
+        # L, so that the reported B2, L2 describe the state that was added
+        p = res.params
+        L0 = cur.params.get("L_um", p["L_um"])
+        if abs(math.log(p["L2_um"] / L0)) < abs(math.log(p["L_um"] / L0)):
+            p["L_um"], p["L2_um"] = p["L2_um"], p["L_um"]
+            p["B_mu"], p["B2_mu"] = p["B2_mu"], p["B_mu"]
     gain = 100.0 * (cur.holdout_rms_N - res.holdout_rms_N) / cur.holdout_rms_N
     dbic = res.bic - cur.bic
     z = paired_z(grid, cur.pred, res.pred)
