@@ -544,9 +544,9 @@ def _plausible(cause: str, p: dict, grid: Grid) -> bool:
     if any(abs(p.get(k, 0.0)) > 0.05 for k in ("A_mu", "B_mu", "B2_mu")):
         return False
     T = float(grid.t[-1] - grid.t[0])
-    if cause == "sensor_lag" and p["tau_s"] > 0.2 * T:
+    if cause == "sensor_lag" and (p["tau_s"] > 0.2 * T or p["tau_s"] < grid.time_resolution_s):
         return False
-    if cause == "time_delay" and p["delay_s"] > 0.2 * T:
+    if cause == "time_delay" and (p["delay_s"] > 0.2 * T or p["delay_s"] < grid.time_resolution_s):
         return False
     if cause == "second_state_variable":
         # a state longer than half the record's slip cannot be told from a drift

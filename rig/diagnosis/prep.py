@@ -188,6 +188,8 @@ class Grid:
     # kinematic grid (finer), for plots and screening
     kin: dict = field(default_factory=dict)
     slide_ok: np.ndarray | None = None
+    # shortest time constant the kinematics can tell from their own rounding of a velocity change (s)
+    time_resolution_s: float = 0.0
 
     @property
     def n_raw(self) -> int:
@@ -336,6 +338,11 @@ def prepare(trial: TrialData, n_blocks: int = 20, slip_window_um: float = 3.0,
     else:
         xs, vs = edge_preserving_line(tk, xk, half)
 
+    # without a reference, a line fit cannot resolve the actuator's rounded velocity change (the
+    # paper's steps rise in up to 0.5 s): time constants below ~0.15 s are the estimator's own
+    dtk0 = float(np.median(np.diff(tk))) if tk.size > 1 else KIN_DT_MIN_S
+    time_res = max(3.0 * dtk0, 2.0 * servo_tau) if use_ref else max(3.0 * dtk0, 0.15)
+
     # 4. blocks and bins
     T = float(tk[-1] - tk[0]) if tk.size > 1 else 1.0
     blk_k = np.minimum((tk - tk[0]) / (T / n_blocks), n_blocks - 1).astype(np.int64)
@@ -369,4 +376,4 @@ def prepare(trial: TrialData, n_blocks: int = 20, slip_window_um: float = 3.0,
         normals_vary = nstd > 0.0
     return Grid(t=tb, x=xb, v=vb, F_mean=Fm, N_tot=Nb, count=bc, ss_within=ssw, block=blk, N_nom=N_nom,
                 t0=t0, has_normals=trial.has_normals, normals_vary=normals_vary, noise_N=noise_N,
-                slide_ok=slide_ok, kin={"t": tk, "x": xs, "v": vs, "F": Fs / cnt, "N": Nk, "count": cnt, "x_meas": xk})
+                slide_ok=slide_ok, time_resolution_s=time_res, kin={"t": tk, "x": xs, "v": vs, "F": Fs / cnt, "N": Nk, "count": cnt, "x_meas": xk})
