@@ -136,3 +136,25 @@ def test_transient_duration_scaling_discriminates():
     slope, n, _ = transient_scaling(d.grid, d.baseline.pred, d.history[1].pred)
     assert n >= 5 and slope < -0.6
     assert "a slip distance" in d.findings[0]["evidence"]
+
+
+def test_structure_outside_the_catalogue_is_unexplained():
+    """A jump in friction half-way (say a change of lubricant film) and an oscillation in time (a
+    pump's pulsation) are not catalogue causes: no finding is invented for them; they are reported
+    under `unexplained`, following time and frequency."""
+    trial, _ = _record(None, 25.0, 43, True, "varied")
+    T = trial.time_s[-1]
+    trial.friction_N = trial.friction_N + 0.4 * (trial.time_s > 0.55 * T)
+    d = diagnose(trial)
+    rep = d.report()
+    assert rep["findings"] == []
+    drift = [c for c in d.tried[0] if c.cause == "force_offset_drift"]
+    assert drift and drift[0].gain_pct > 5 and not drift[0].accepted and "not linear" in drift[0].note
+    assert [u["follows"] for u in rep["unexplained"]] == ["time"]
+
+    trial, _ = _record(None, 100.0, 42, True, "varied")
+    trial.friction_N = trial.friction_N + 0.25 * np.sin(2 * np.pi * trial.time_s / 13.0)
+    rep = diagnose(trial).report()
+    assert rep["findings"] == []
+    u = rep["unexplained"]
+    assert [e["follows"] for e in u] == ["frequency"] and abs(u[0]["period_s"] - 13.0) < 0.5
