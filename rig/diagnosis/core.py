@@ -663,7 +663,8 @@ def _binned_gain(grid: Grid, r: np.ndarray, q: np.ndarray, nb: int = 30):
     return 100.0 * (rb - ra) / rb, prof, z
 
 
-def _joint_profile_gain(grid: Grid, cur: FitResult, q: np.ndarray, nb: int = 20, rounds: int = 2):
+def _joint_profile_gain(grid: Grid, cur: FitResult, q: np.ndarray, nb: int = 20, rounds: int = 2,
+                        max_nfev: int = 40):
     """Hold-out gain (%) and z of the current model plus a free step-function profile in q, the
     two fitted together on the fit blocks (alternately: profile of the residual, model refit to the
     data minus the profile), so that the model's own parameters cannot hide the structure."""
@@ -684,7 +685,7 @@ def _joint_profile_gain(grid: Grid, cur: FitResult, q: np.ndarray, nb: int = 20,
         den = np.bincount(b[fm], weights=w[fm], minlength=nbin)
         prof = np.where(den > 0, num / np.maximum(den, 1e-300), 0.0)
         g2 = dataclasses.replace(grid, F_mean=grid.F_mean - prof[b])
-        res = fit(g2, cur.baseline, cur.extensions, params, max_nfev=40)
+        res = fit(g2, cur.baseline, cur.extensions, params, max_nfev=max_nfev)
         params, pred = res.params, res.pred
     final = pred + prof[b]
     after = evaluate(grid, cur.baseline, cur.extensions, params, pred=final)
@@ -699,13 +700,16 @@ def find_unexplained(grid: Grid, cur: FitResult) -> list[dict]:
     if grid.has_normals and grid.normals_vary:
         qs["normal_force"] = grid.N_tot
     scores = {}
+    # the stiffness solver is costly: one alternation with few evaluations is enough to rank quantities
+    rounds, nfev = (1, 15) if "finite_stiffness" in cur.extensions else (2, 40)
     for name, q in qs.items():
         # a velocity profile is a non-log-linear steady-state curve: a few bins in ln v (with as many
         # bins as segments, a staircase visiting each speed once could mimic anything in time)
         if name == "velocity":
-            scores[name] = _joint_profile_gain(grid, cur, np.log(np.maximum(q, 1e-3)), nb=6)
+            scores[name] = _joint_profile_gain(grid, cur, np.log(np.maximum(q, 1e-3)), nb=6, rounds=rounds,
+                                               max_nfev=nfev)
         else:
-            scores[name] = _joint_profile_gain(grid, cur, q)
+            scores[name] = _joint_profile_gain(grid, cur, q, rounds=rounds, max_nfev=nfev)
     # periodic in time (frequency)
     tp = time_periodogram(grid, r)
     if tp is not None:
