@@ -10,6 +10,16 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
 
 
+def out_text(res) -> str:
+    """A CliRunner result's stdout and (when captured apart) stderr together."""
+    text = res.output
+    try:
+        text += res.stderr
+    except (ValueError, AttributeError):
+        pass
+    return text
+
+
 @pytest.fixture(scope="session")
 def repo_root() -> Path:
     return REPO

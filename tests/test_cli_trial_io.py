@@ -10,16 +10,9 @@ from rig.cli import app
 from rig.data import read_csv
 from rig.log import BLOCK_KEYS, TrialLogWriter, read_trial
 
+from conftest import out_text  # noqa: E402
+
 runner = CliRunner()
-
-
-def out_text(res) -> str:
-    text = res.output
-    try:
-        text += res.stderr
-    except (ValueError, AttributeError):
-        pass
-    return text
 
 
 @pytest.fixture()

@@ -20,16 +20,9 @@ from rig.log import EVENTS_TOPIC, LOG25_TOPIC, RAW_TOPIC, STATS_TOPIC, read_tria
 from rig.recipe import load_recipe
 from trajectories import compile_recipe
 
+from conftest import out_text  # noqa: E402
+
 runner = CliRunner()
-
-
-def out_text(res) -> str:
-    text = res.output
-    try:
-        text += res.stderr
-    except (ValueError, AttributeError):
-        pass
-    return text
 
 
 @pytest.fixture()
