@@ -78,10 +78,10 @@ def main(argv=None) -> int:
 
     from rig.commands.trial import run_sim_trial
     from rig.log import TrialLogWriter
-    from rig.profile import load_profile
-    from rig.recipe import load_recipe
+    from rig.config.profile import load_profile
+    from rig.config.recipe import load_recipe
     from rig.sim import SimRig
-    from trajectories import compile_recipe
+    from rig.config.recipe import compile_recipe
 
     recipe = load_recipe(args.recipe)
     profile = load_profile(args.profile)

@@ -1,9 +1,15 @@
-"""The ``hardware`` section of a rig profile (pydantic), validated by the hardware code.
+"""Device configuration models: the ``hardware`` section of a rig profile (pydantic).
 
-A :class:`rig.profile.RigProfile` carries ``hardware: dict | None`` free-form; this
-module turns it into a :class:`HardwareConfig` with one clear error naming the
-field (:func:`parse_hardware`). The section describes the three devices of the
-rig of Dupont & Dunlap (1995, section 3) and how the real-time loop guards them:
+:class:`rig.config.profile.RigProfile` types its ``hardware`` field as
+:class:`HardwareConfig`, so the profile loader (:mod:`rig.config.loader`) reports
+a bad hardware field with its file and line like any other. This module imports
+nothing from ``rig`` (drivers are the lower layer); it also holds
+:class:`StrictModel`, the one strict base class of every configuration model of
+the project (recipes, rig profiles and these device configs).
+
+:func:`parse_hardware` validates a plain dict (a profile's hardware section sent to
+another process as a dict). The section describes the three devices of the rig of
+Dupont & Dunlap (1995, section 3) and how the real-time loop guards them:
 
 * ``loadcells``: the conditioner of the friction load cell (top of the fixture,
   +-0.25 N) and the two normal-force load cells in series with the riders
@@ -19,17 +25,20 @@ rig of Dupont & Dunlap (1995, section 3) and how the real-time loop guards them:
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+class StrictModel(BaseModel):
+    """The one strict base of configuration models: unknown fields are errors, every float
+    must be finite, assignments are validated. Files are validated in pydantic's strict
+    mode besides (``trials: true`` is no integer), by :mod:`rig.config.loader`."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, validate_assignment=True)
 
 
-class ChannelCal(_Strict):
+class ChannelCal(StrictModel):
     """One load-cell channel: ``force_N = raw * scale + offset - tare_N``.
 
     ``address`` is the first register of the value (absolute Modbus address).
@@ -42,7 +51,7 @@ class ChannelCal(_Strict):
     tare_N: float = 0.0
 
 
-class LoadCellConfig(_Strict):
+class LoadCellConfig(StrictModel):
     """Modbus conditioner of the three load cells; one request reads every channel."""
 
     transport: Literal["tcp", "rtu"] = "tcp"
@@ -91,12 +100,14 @@ class LoadCellConfig(_Strict):
         return first, max(ends) - first
 
 
-class LvdtConfig(_Strict):
+class LvdtConfig(StrictModel):
     """Serial LVDT conditioner streaming position frames (:mod:`drivers.lvdt`)."""
 
     port: str = "/dev/ttyUSB0"
     baudrate: int = 921600
-    um_per_count: float = Field(default=0.076, gt=0, description="paper: 0.076 µm step")
+    um_per_count: float = Field(default=0.076, gt=0,
+                                description="quantization step (paper: 0.076 µm); in a rig profile it "
+                                            "defaults to sensors.lvdt.quantization_um and must equal it")
     offset_um: float = 0.0
     invert: bool = False
 
@@ -105,7 +116,7 @@ class LvdtConfig(_Strict):
         return f"serial:{self.port}@{self.baudrate}"
 
 
-class ValveConfig(_Strict):
+class ValveConfig(StrictModel):
     """Servovalve controller on CAN (:mod:`drivers.valve`)."""
 
     interface: Literal["udp_multicast", "virtual", "socketcan"] = "socketcan"
@@ -120,7 +131,7 @@ class ValveConfig(_Strict):
         return f"can-{self.interface}:{self.channel}{extra} node {self.node_id}"
 
 
-class InterlockConfig(_Strict):
+class InterlockConfig(StrictModel):
     """Trip thresholds, checked every tick (:mod:`rig.hardware.interlocks`).
 
     Stroke limits default to the profile's stroke when not given (the paper's
@@ -144,7 +155,7 @@ class InterlockConfig(_Strict):
     stop_hold_s: float = Field(default=0.2, ge=0, description="time logged in the safe state")
 
 
-class RealtimeConfig(_Strict):
+class RealtimeConfig(StrictModel):
     sched_fifo: bool = True
     priority: int = Field(default=80, ge=1, le=99)
     spin_s: float = Field(default=50e-6, ge=0, description="spin before deadline (not under FIFO)")
@@ -152,11 +163,11 @@ class RealtimeConfig(_Strict):
     block_ticks: int = Field(default=100, ge=1)
 
 
-class EmulatorConfig(_Strict):
+class EmulatorConfig(StrictModel):
     """Emulators (drivers.emulators) started by ``rig run --hardware`` when ``autostart``."""
 
     autostart: bool = False
-    seed: int = 1
+    seed: int = Field(default=1, ge=0, le=2**32 - 1)
     lubricant: str | None = Field(default=None, description="None: the trial's lubricant")
     normal_force_N: float | None = None
     sched_fifo: bool = True
@@ -166,7 +177,7 @@ class EmulatorConfig(_Strict):
     run_dir: str = "/tmp/rig-emulated"
 
 
-class HardwareConfig(_Strict):
+class HardwareConfig(StrictModel):
     loadcells: LoadCellConfig
     lvdt: LvdtConfig
     valve: ValveConfig
@@ -201,9 +212,3 @@ def hardware_of_profile(profile, where: str | None = None) -> HardwareConfig:
     name = where or str(getattr(profile, "source_path", None) or "profile")
     return parse_hardware(section, where=f"{name}: hardware")
 
-
-def load_hardware_yaml(path: str | Path) -> HardwareConfig:
-    import yaml
-
-    data = yaml.safe_load(Path(path).read_text())
-    return parse_hardware((data or {}).get("hardware"), where=f"{path}: hardware")

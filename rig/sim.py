@@ -40,7 +40,7 @@ import numpy as np
 from rig import plant as pl
 from rig.control import controller_params_from_profile, new_controller_state
 from rig.friction import N_STATE, FrictionModel, init_state
-from rig.profile import RigProfile, default_profile_path, load_profile
+from rig.config.profile import RigProfile, default_profile_path, load_profile
 
 BLOCK_KEYS = pl.BLOCK_KEYS
 NOISE_PAGE_TICKS = 65536

@@ -21,25 +21,17 @@ def _deep_update(d: dict, u: dict) -> dict:
 
 
 def private_profile(tmp_path: Path, autostart: bool = True, **hw_overrides) -> Path:
-    """config/rigs/emulated.yaml with its devices moved to free ports and ``tmp_path``."""
+    """An overlay of config/rigs/emulated.yaml with its devices moved to free ports and ``tmp_path``."""
     from drivers.emulators.rig import free_tcp_port
 
-    from drivers.emulators.make_profile import render
-
-    # sim.yaml's plant with emulated.yaml's hardware section: the same rig as --sim even if
-    # sim.yaml changed since emulated.yaml was last regenerated
-    text = render((REPO / "config/rigs/sim.yaml").read_text(), (REPO / "config/rigs/emulated.yaml").read_text())
-    data = yaml.safe_load(text)
-    hw = data["hardware"]
-    hw["loadcells"]["port"] = free_tcp_port()
-    hw["lvdt"]["port"] = str(tmp_path / "lvdt")
     rnd = random.Random(os.getpid() ^ hash(str(tmp_path)))
-    hw["valve"]["port"] = rnd.randrange(40000, 60000)
-    hw["emulators"]["run_dir"] = str(tmp_path)
-    hw["emulators"]["autostart"] = autostart
+    hw = {"loadcells": {"port": free_tcp_port()}, "lvdt": {"port": str(tmp_path / "lvdt")},
+          "valve": {"port": rnd.randrange(40000, 60000)},
+          "emulators": {"run_dir": str(tmp_path), "autostart": autostart}}
     _deep_update(hw, hw_overrides)
     path = tmp_path / "rig.yaml"
-    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    path.write_text(yaml.safe_dump({"extends": str(REPO / "config/rigs/emulated.yaml"), "hardware": hw},
+                                   sort_keys=False))
     return path
 
 

@@ -15,10 +15,10 @@ import yaml
 from typer.testing import CliRunner
 
 from rig.cli import app
-from rig.profile import load_profile
+from rig.config.profile import load_profile
 from rig.log import EVENTS_TOPIC, LOG25_TOPIC, RAW_TOPIC, STATS_TOPIC, read_trial, trial_info
-from rig.recipe import load_recipe
-from trajectories import compile_recipe
+from rig.config.recipe import load_recipe
+from rig.config.recipe import compile_recipe
 
 from conftest import out_text  # noqa: E402
 
@@ -31,6 +31,7 @@ def short_steps(repo_root, tmp_path):
     doc = yaml.safe_load((repo_root / "config" / "recipes" / "velocity-steps.yaml").read_text())
     vs = doc["segments"][1]
     vs["slip_before_um"] = 8
+    vs["require_steady_state"] = False  # a short test: the steps start before 5 L of slip
     for st in vs["steps"]:
         st["slip_after_um"] = 12
     vs["hold_s"] = 0.2

@@ -11,7 +11,7 @@ from drivers.config import HardwareConfigError, hardware_of_profile, parse_hardw
 
 
 def test_emulated_profile_validates_and_matches_sim(repo_root):
-    from rig.profile import load_profile
+    from rig.config.profile import load_profile
 
     p = load_profile(repo_root / "config/rigs/emulated.yaml")
     hw = hardware_of_profile(p)
@@ -29,9 +29,9 @@ def test_emulated_profile_validates_and_matches_sim(repo_root):
 
 
 def test_smoke_recipe_validates_and_compiles(repo_root):
-    from rig.profile import load_profile
-    from rig.recipe import load_recipe
-    from trajectories import compile_recipe
+    from rig.config.profile import load_profile
+    from rig.config.recipe import load_recipe
+    from rig.config.recipe import compile_recipe
 
     r = load_recipe(repo_root / "config/recipes/smoke.yaml")
     plan = compile_recipe(r, load_profile(repo_root / "config/rigs/emulated.yaml"))

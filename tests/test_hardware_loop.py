@@ -15,7 +15,7 @@ from drivers.config import hardware_of_profile
 from drivers.emulators.rig import start_emulator_process
 from rig.hardware.loop import BLOCK_KEYS
 from rig.hardware.runner import HardwareTrialFailed, run_hardware_trial
-from rig.profile import load_profile
+from rig.config.profile import load_profile
 
 
 class MemWriter:

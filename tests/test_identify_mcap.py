@@ -16,8 +16,8 @@ def test_identify_mcap_uses_log_events(tmp_path):
     if not simrun.SIM_AVAILABLE:
         pytest.skip("simulated rig not available")
     log = pytest.importorskip("rig.log")
-    from trajectories import compile_recipe
-    from rig.profile import default_profile_path, load_profile
+    from rig.config.recipe import compile_recipe
+    from rig.config.profile import default_profile_path, load_profile
     from rig.sim import SimRig
 
     prof = load_profile(default_profile_path())

@@ -7,7 +7,7 @@ import time
 import numpy as np
 import pytest
 
-from rig.recipe import load_recipe, parse_recipe
+from rig.config.recipe import load_recipe, parse_recipe
 from trajectories import PlanError, RigLimits, compile_recipe
 
 LIM = RigLimits(loop_rate_hz=1000.0, stroke_min_um=0.0, stroke_max_um=5000.0, max_speed_um_s=1000.0,
@@ -120,7 +120,7 @@ def test_log_rate_must_divide_loop_rate():
 
 
 def test_shipped_recipes_fit_the_sim_profile(repo_root):
-    from rig.profile import load_profile
+    from rig.config.profile import load_profile
 
     prof = load_profile(repo_root / "config" / "rigs" / "sim.yaml")
     for path in sorted((repo_root / "config" / "recipes").glob("*.yaml")):

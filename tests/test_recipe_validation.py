@@ -6,7 +6,7 @@ import textwrap
 
 import pytest
 
-from rig.recipe import (DEFAULT_PASS_VELOCITIES_UM_S, RecipeError, SteppedPass, VelocitySteps, load_recipe,
+from rig.config.recipe import (DEFAULT_PASS_VELOCITIES_UM_S, RecipeError, SteppedPass, VelocitySteps, load_recipe,
                         parse_recipe)
 
 GOOD = textwrap.dedent("""\

@@ -7,7 +7,7 @@ import pytest
 from scipy.optimize import curve_fit
 
 from rig.friction import k_cr_eq8
-from rig.profile import load_profile
+from rig.config.profile import load_profile
 from rig.sim import SimRig
 
 FS = 1000

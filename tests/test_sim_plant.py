@@ -7,7 +7,7 @@ import pytest
 
 from rig.friction import FrictionModel, lowpass_uneven, mu_regularized, mu_series
 from rig.plant import BLOCK_KEYS, solve_slip
-from rig.profile import load_profile
+from rig.config.profile import load_profile
 from rig.sim import SimRig
 
 

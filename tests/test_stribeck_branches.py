@@ -50,7 +50,7 @@ def test_levels_from_log_events_full_sim(repo_root):
 
     if not SIM_AVAILABLE:
         pytest.skip("simulated rig not available")
-    from rig.recipe import load_recipe
+    from rig.config.recipe import load_recipe
 
     st = run_sim_trial(load_recipe(repo_root / "config/recipes/stribeck-pass.yaml"), PARAFFIN, seed=5)
     rep = stribeck([st.trial])

@@ -1,4 +1,4 @@
-"""Compile a :class:`rig.recipe.Recipe` into a reference trajectory at the loop rate.
+"""Compile a :class:`~trajectories.segments.PlanSpec` into a reference trajectory at the loop rate.
 
 The reference velocity is piecewise: constant, or a raised-cosine transition
 between two velocities,
@@ -16,11 +16,13 @@ The position is integrated in closed form,
 and sampled at the loop rate with vectorised numpy, so a 1 h plan (3.6 M
 ticks) compiles in well under a second.
 
-Everything is checked against the rig profile BEFORE anything moves: every
-phase's end position against the stroke (5 mm, the LVDT's range, section 3),
-every phase's speed against the actuator's maximum, the raw/decimated log
-rates against the loop rate. A violation raises :class:`PlanError` naming the
-segment and the limit.
+Everything is checked against the rig's :class:`RigLimits` BEFORE anything
+moves: every phase's end position against the stroke (5 mm, the LVDT's range,
+section 3), every phase's speed against the actuator's maximum, the log rates
+against the loop rate, and the run-up before each velocity step against the
+slip length L of the friction model in use (at least ``MIN_RUN_UP_L`` L of
+slip at v1, so the step starts from steady sliding, section 4.2). A violation
+raises :class:`PlanError` naming the segment and the limit.
 """
 
 from __future__ import annotations
@@ -28,16 +30,12 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from functools import cached_property
-from typing import Any
-
 import numpy as np
 
-from rig.recipe import Hold, Move, Recipe, RunIn, SteppedPass, VelocitySteps
+from trajectories.segments import (DEFAULT_RUN_UP_L, MIN_RUN_UP_L, Hold, Move, PlanSpec, RigLimits, RunIn,
+                                   SteppedPass, VelocitySteps)
 
 MAX_PLAN_DURATION_S = 8 * 3600.0
-# Used when the rig profile gives no actuator.max_speed_um_s: 1 mm/s, five times the paper's
-# fastest velocity (200 µm/s, section 4) -- an assumption, not a property of the sim plant.
-DEFAULT_MAX_SPEED_UM_S = 1000.0
 _EPS_UM = 1e-9
 
 
@@ -53,87 +51,6 @@ class PlanError(ValueError):
         if segment is not None:
             where = f"segment {segment + 1} ({kind}{' ' + repr(label) if label else ''}): "
         super().__init__(where + message)
-
-
-# ---------------------------------------------------------------------------
-# Limits read from the rig profile (rig.profile.RigProfile, owned by the sim helper)
-# ---------------------------------------------------------------------------
-
-@dataclass(frozen=True)
-class RigLimits:
-    """What the planner needs from a rig profile."""
-
-    loop_rate_hz: float = 1000.0
-    stroke_min_um: float = 0.0
-    stroke_max_um: float = 5000.0
-    max_speed_um_s: float = DEFAULT_MAX_SPEED_UM_S
-    max_accel_um_s2: float = math.inf
-    initial_position_um: float = 0.0
-    source: str = "defaults"
-    max_speed_note: str = ""
-
-
-def _get(obj: Any, *names: str, default=None):
-    """First attribute/key among ``names`` found on ``obj`` (dotted paths allowed)."""
-    for name in names:
-        cur = obj
-        ok = True
-        for part in name.split("."):
-            if cur is None:
-                ok = False
-                break
-            if isinstance(cur, dict):
-                if part in cur:
-                    cur = cur[part]
-                else:
-                    ok = False
-                    break
-            elif hasattr(cur, part):
-                cur = getattr(cur, part)
-            else:
-                ok = False
-                break
-        if ok and cur is not None:
-            return cur
-    return default
-
-
-def rig_limits(profile: Any) -> RigLimits:
-    """Read the planner's limits from a :class:`rig.profile.RigProfile` (or a dict, or None)."""
-    if profile is None:
-        return RigLimits()
-    if isinstance(profile, RigLimits):
-        return profile
-    rate = float(_get(profile, "loop.rate_hz", default=1000.0))
-    lo = _get(profile, "stroke.min_um", "stroke.min_position_um", "stroke.lower_um", "actuator.stroke_min_um")
-    hi = _get(profile, "stroke.max_um", "stroke.max_position_um", "stroke.upper_um", "actuator.stroke_max_um")
-    length = _get(profile, "stroke.length_um", "stroke.stroke_um", "actuator.stroke_um", "stroke_um")
-    if lo is None and hi is None:
-        length = 5000.0 if length is None else float(length)
-        lo, hi = 0.0, length
-    elif lo is None:
-        lo = float(hi) - (5000.0 if length is None else float(length))
-    elif hi is None:
-        hi = float(lo) + (5000.0 if length is None else float(length))
-    # a hardware profile's interlocks may narrow the stroke (rig.hardware.interlocks)
-    hw_lo = _get(profile, "hardware.interlocks.stroke_min_um")
-    hw_hi = _get(profile, "hardware.interlocks.stroke_max_um")
-    if hw_lo is not None:
-        lo = max(float(lo), float(hw_lo))
-    if hw_hi is not None:
-        hi = min(float(hi), float(hw_hi))
-    vmax = _get(profile, "actuator.max_speed_um_s", "actuator.max_velocity_um_s", "actuator.v_max_um_s",
-                "limits.max_speed_um_s", "hardware.interlocks.max_speed_um_s", default=DEFAULT_MAX_SPEED_UM_S)
-    amax = _get(profile, "actuator.max_accel_um_s2", "actuator.max_acceleration_um_s2",
-                "limits.max_accel_um_s2", default=math.inf)
-    x0 = _get(profile, "initial_position_um", "stroke.initial_position_um", "stroke.home_um",
-              "actuator.initial_position_um", "plant.initial_position_um", default=0.0)
-    src = _get(profile, "source_path", "path", "name", default="profile")
-    note = "" if vmax is not DEFAULT_MAX_SPEED_UM_S else \
-        "; the planner's default: the profile sets no actuator.max_speed_um_s"
-    return RigLimits(loop_rate_hz=rate, stroke_min_um=float(lo), stroke_max_um=float(hi),
-                     max_speed_um_s=float(vmax), max_accel_um_s2=float(amax),
-                     initial_position_um=float(x0), source=str(src), max_speed_note=note)
 
 
 # ---------------------------------------------------------------------------
@@ -305,21 +222,21 @@ def _check_rate(limits: RigLimits, rate_hz: float, what: str) -> int:
     ratio = limits.loop_rate_hz / rate_hz
     n = int(round(ratio))
     if n < 1 or abs(ratio - n) > 1e-9:
-        raise PlanError(f"log.{what} = {rate_hz:g} Hz does not divide the loop rate "
+        raise PlanError(f"{what} = {rate_hz:g} Hz does not divide the loop rate "
                         f"{limits.loop_rate_hz:g} Hz (profile {limits.source})")
     return n
 
 
-def compile_recipe(recipe: Recipe, profile: Any = None) -> Plan:
-    """Compile ``recipe`` for the rig described by ``profile`` (a RigProfile, dict, RigLimits or None).
+def compile_plan(spec: PlanSpec, limits: RigLimits | None = None) -> Plan:
+    """Compile ``spec`` for a rig with ``limits`` (default: :class:`RigLimits`'s).
 
     Raises :class:`PlanError` before anything moves when a segment leaves the
-    stroke, exceeds the actuator's speed or acceleration, or the log rates do
-    not divide the loop rate.
+    stroke, exceeds the actuator's speed or acceleration, a log rate does not
+    divide the loop rate, or a velocity step would start out of steady state.
     """
-    lim = rig_limits(profile)
-    _check_rate(lim, recipe.log.raw_rate_hz, "raw_rate_hz")
-    _check_rate(lim, recipe.log.decimated_rate_hz, "decimated_rate_hz")
+    lim = limits or RigLimits()
+    for what, rate in spec.log_rates_hz:
+        _check_rate(lim, rate, what)
     if not lim.stroke_min_um <= lim.initial_position_um <= lim.stroke_max_um:
         raise PlanError(f"the rig's initial position {lim.initial_position_um:g} µm is outside its stroke "
                         f"[{lim.stroke_min_um:g}, {lim.stroke_max_um:g}] µm")
@@ -328,17 +245,17 @@ def compile_recipe(recipe: Recipe, profile: Any = None) -> Plan:
     events: list[dict] = []
     segments: list[dict] = []
 
-    seg_list: list[tuple[Any, str | None]] = []
-    if recipe.start_position_um is not None and abs(recipe.start_position_um - lim.initial_position_um) > _EPS_UM:
+    seg_list: list = []
+    if spec.start_position_um is not None and abs(spec.start_position_um - lim.initial_position_um) > _EPS_UM:
         speed = min(100.0, lim.max_speed_um_s)
-        seg_list.append((Move(kind="move", position_um=recipe.start_position_um, speed_um_s=speed,
-                              label="approach start_position_um"), None))
-    seg_list.extend((s, None) for s in recipe.segments)
-    offset = 1 if len(seg_list) > len(recipe.segments) else 0
+        seg_list.append(Move(position_um=spec.start_position_um, speed_um_s=speed,
+                             label="approach start_position_um"))
+    seg_list.extend(spec.segments)
+    offset = 1 if len(seg_list) > len(spec.segments) else 0
 
-    for k, (seg, _) in enumerate(seg_list):
-        index = k - offset  # recipe's segment index (-1 for the implicit approach)
-        accel = seg.accel_um_s2 or recipe.accel_um_s2
+    for k, seg in enumerate(seg_list):
+        index = k - offset  # the spec's segment index (-1 for the implicit approach)
+        accel = seg.accel_um_s2 or spec.accel_um_s2
         kind = seg.kind
         label = seg.label
 
@@ -370,8 +287,8 @@ def compile_recipe(recipe: Recipe, profile: Any = None) -> Plan:
             elif isinstance(seg, SteppedPass):
                 _stepped_pass(b, seg, accel, index, events, fail)
             elif isinstance(seg, VelocitySteps):
-                _velocity_steps(b, seg, accel, index, events, fail)
-            else:  # pragma: no cover - the recipe union is closed
+                _velocity_steps(b, seg, accel, index, events, fail, spec)
+            else:  # pragma: no cover - the segment union is closed
                 fail("unknown segment kind")
         except PlanError:
             raise
@@ -455,18 +372,40 @@ def _stepped_pass(b: _Builder, seg: SteppedPass, accel: float, index: int, event
     b.ramp(0.0, accel)
 
 
-def _velocity_steps(b: _Builder, seg: VelocitySteps, accel: float, index: int, events: list, fail) -> None:
-    """Section 4.2: rest -> v1 for slip_before -> v2 for slip_after -> rest (-> return)."""
+def _run_up_um(b: _Builder, st, seg: VelocitySteps, accel: float, j: int, spec: PlanSpec, fail) -> float:
+    """Slip from rest to the step (ramp to v1 included), checked against L of the model in use."""
+    d_ramp = math.pi * st.v1_um_s ** 2 / (4.0 * accel)  # raised cosine 0 -> v1: v1 T / 2
+    L = spec.state_length_um
+    what = f"step {j + 1} ({st.v1_um_s:g} -> {st.v2_um_s:g} µm/s)"
+    if st.slip_before_um is None:
+        if L is None:
+            fail(f"{what}: slip_before_um is needed (no slip length L of a friction model was given)")
+        return d_ramp + DEFAULT_RUN_UP_L * L
+    before = st.slip_before_um
+    if before < d_ramp:
+        fail(f"{what}: slip_before_um {before:g} is shorter than the run-up to v1 ({d_ramp:.2f} µm)")
+    if L is not None and seg.require_steady_state and before - d_ramp < MIN_RUN_UP_L * L * (1 - 1e-9):
+        src = f" ({spec.state_length_source})" if spec.state_length_source else ""
+        fail(f"{what} would start out of steady state: {before - d_ramp:.1f} µm of slip at v1 is "
+             f"{(before - d_ramp) / L:.2f} L, with L = {L:g} µm{src}; a step needs at least "
+             f"{MIN_RUN_UP_L:g} L = {MIN_RUN_UP_L * L:.1f} µm at v1 (the state relaxes as exp(-slip/L), eq. 6). "
+             f"Set slip_before_um >= {math.ceil(d_ramp + MIN_RUN_UP_L * L):g}, or leave it out "
+             f"({DEFAULT_RUN_UP_L:g} L), or set require_steady_state: false")
+    return before
+
+
+def _velocity_steps(b: _Builder, seg: VelocitySteps, accel: float, index: int, events: list, fail,
+                    spec: PlanSpec) -> None:
+    """Section 4.2: rest -> v1 for the run-up -> v2 for slip_after -> rest (-> return)."""
     if b.v != 0:
         b.ramp(0.0, accel)
     x_home = b.x
+    L = spec.state_length_um
     for j, st in enumerate(seg.steps):
-        before = st.slip_before_um or seg.slip_before_um
-        after = st.slip_after_um or seg.slip_after_um
+        before = _run_up_um(b, st, seg, accel, j, spec, fail)
+        after = st.slip_after_um
         x0 = b.x
         d = b.ramp(st.v1_um_s, accel)
-        if d > before:
-            fail(f"step {j + 1}: slip_before_um {before:g} is shorter than the run-up to v1 ({d:.2f} µm)")
         b.cruise_to(x0 + before)
         t_step, x_step = b.t, b.x
         d2 = b.ramp(st.v2_um_s, accel)
@@ -477,7 +416,7 @@ def _velocity_steps(b: _Builder, seg: VelocitySteps, accel: float, index: int, e
         events.append({"t_s": t_step, "kind": "velocity_step", "segment": index, "step": j,
                        "v1_um_s": st.v1_um_s, "v2_um_s": st.v2_um_s, "x_um": x_step, "ramp_end_s": ramp_end,
                        "slip_before_um": before, "slip_after_um": after, "t_end_s": b.t,
-                       "x_end_um": b.x})
+                       "x_end_um": b.x, "run_up_L": None if L is None else (before - d) / L})
         b.ramp(0.0, accel)
         b.cruise_time(seg.hold_s)
         if seg.return_speed_um_s:
@@ -485,4 +424,4 @@ def _velocity_steps(b: _Builder, seg: VelocitySteps, accel: float, index: int, e
             b.cruise_time(seg.hold_s)
 
 
-__all__ = ["Plan", "PlanError", "RigLimits", "compile_recipe", "rig_limits"]
+__all__ = ["Plan", "PlanError", "compile_plan", "MAX_PLAN_DURATION_S"]

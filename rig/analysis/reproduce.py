@@ -84,7 +84,7 @@ def run_lubricant(lubricant: str, n_trials: int, *, seed: int = 0, profile=None,
     prof = None
     kp_max = None
     if engine == "sim" and SIM_AVAILABLE:
-        from rig.profile import default_profile_path, load_profile
+        from rig.config.profile import default_profile_path, load_profile
 
         prof = load_profile(profile or default_profile_path())
         if lubricant in prof.lubricants:

@@ -14,10 +14,10 @@ from rig.friction import FrictionModel
 
 SIM_AVAILABLE = True
 try:  # the simulated rig and the planner belong to other helpers; tolerate their absence
-    from rig.profile import load_profile
+    from rig.config.profile import load_profile
     from rig.sim import SimRig
-    from rig.recipe import Recipe
-    from trajectories import compile_recipe
+    from rig.config.recipe import Recipe
+    from rig.config.recipe import compile_recipe
 except Exception:  # noqa: BLE001
     SIM_AVAILABLE = False
 
@@ -56,7 +56,7 @@ def run_sim_trial(recipe, model: FrictionModel, *, profile=None, seed: int = 0, 
     if not SIM_AVAILABLE:
         raise RuntimeError("the simulated rig (rig.sim, trajectories) is not available")
     if profile is None or isinstance(profile, str):
-        from rig.profile import default_profile_path
+        from rig.config.profile import default_profile_path
 
         profile = load_profile(profile or default_profile_path())
     plan = compile_recipe(recipe, profile)

@@ -298,7 +298,7 @@ def full_rig_boundary(name: str, *, profile=None, ki_N_per_um_s: float | None = 
                       bump_um: float = 0.5, kd_N_s_per_um: float | None = None) -> dict:
     """Bisection on the PID's kp with the full simulated rig (rig.sim.SimRig), kd and the
     actuator as in the profile, ``ki`` as given (0: PD, the paper's analysis)."""
-    from rig.profile import default_profile_path, load_profile
+    from rig.config.profile import default_profile_path, load_profile
     from rig.sim import SimRig
 
     prof = load_profile(profile or default_profile_path())

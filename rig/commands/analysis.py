@@ -182,7 +182,7 @@ def stability_cmd(
     mass, kd, N = S.DEFAULT_MASS_KG, S.DEFAULT_KD_N_S_PER_UM, 100.0
     prof = None
     try:
-        from rig.profile import default_profile_path, load_profile
+        from rig.config.profile import default_profile_path, load_profile
 
         ppath = profile or default_profile_path()
         if profile is not None and not Path(profile).exists():

@@ -34,7 +34,7 @@ def _fail(msg: str, code: int = 2):
 
 def _load(profile_path: Path):
     from drivers.config import HardwareConfigError, hardware_of_profile
-    from rig.profile import ProfileError, load_profile
+    from rig.config.profile import ProfileError, load_profile
 
     try:
         profile = load_profile(profile_path)
@@ -185,7 +185,7 @@ def loop_bench(seconds: float = 60.0, profile_path: Path = DEFAULT_EMULATED, out
 
     from drivers.config import hardware_of_profile
     from rig.hardware.runner import run_hardware_trial
-    from rig.profile import load_profile
+    from rig.config.profile import load_profile
 
     profile = load_profile(profile_path)
     hw = hardware_of_profile(profile)

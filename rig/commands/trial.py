@@ -249,8 +249,9 @@ def run_command(
     Exit status: 0 done; 2 bad input (nothing written); 1 failure while running; 130 interrupted.
     """
     from rig.log import TrialLogWriter
-    from rig.recipe import LUBRICANTS, RecipeError, load_recipe
-    from trajectories import PlanError, compile_recipe
+    from rig.config.recipe import LUBRICANTS, RecipeError, load_recipe
+    from rig.config.recipe import compile_recipe
+    from trajectories import PlanError
 
     if sim == (hardware is not None) and not plan_only:
         _fail("choose exactly one of --sim or --hardware PROFILE")
@@ -263,7 +264,7 @@ def run_command(
             _fail(f"--lubricant {lubricant!r}: expected one of {', '.join(LUBRICANTS)}")
         recipe.lubricant = lubricant
 
-    from rig.profile import ProfileError, default_profile_path, load_profile
+    from rig.config.profile import ProfileError, default_profile_path, load_profile
 
     if hardware is not None:
         ppath = hardware
@@ -286,7 +287,7 @@ def run_command(
         except Exception as exc:  # pydantic / yaml
             _fail(f"{friction_model}: not a valid friction model: {exc}")
     try:
-        plan = compile_recipe(recipe, profile)
+        plan = compile_recipe(recipe, profile, friction_model=fm)
     except PlanError as exc:
         _fail(f"{recipe_path}: {exc}")
     if plan_only:

@@ -1,11 +1,13 @@
 """Rig profile: every physical and controller parameter of a rig, with units in the names.
 
 A profile is a YAML file (``config/rigs/*.yaml``) validated by :class:`RigProfile`
-(pydantic, unknown fields forbidden). :func:`load_profile` turns any problem into a
-:class:`ProfileError` that names the file, the field and, where the YAML parser knows
-it, the line.
+(pydantic, strict, unknown fields forbidden) through the one loader
+(:mod:`rig.config.loader`): :func:`load_profile` turns any problem into a
+:class:`ProfileError` that names the file, the field and the line. A profile may
+start with ``extends: other.yaml`` and give only what differs (``emulated.yaml``
+extends ``sim.yaml``).
 
-Sections (see docs/TEAM-CONTRACTS.md and docs/sim.md):
+Sections (docs/sim.md, docs/hardware.md):
 
 * ``loop``: the control-loop rate (1 kHz in the paper, section 3).
 * ``controller``: digital PID on position error (paper, section 3) in physical units:
@@ -17,47 +19,43 @@ Sections (see docs/TEAM-CONTRACTS.md and docs/sim.md):
 * ``lubricants``: per-lubricant friction parameters, Table 2 means for A, B, L; the paper
   gives no ``mu0``, so the values here are assumptions.
 * ``sim``: numerical settings of the simulated rig.
-* ``hardware``: free-form, validated by the hardware code.
+* ``hardware``: the devices, typed by :class:`drivers.config.HardwareConfig`
+  (``null``: a simulated rig only).
 """
 
 from __future__ import annotations
 
 import math
+import os
 from pathlib import Path
-from typing import Any, Literal
+from typing import Literal
 
-import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import Field, model_validator
 
+from drivers.config import HardwareConfig
+from rig.config.loader import ConfigError, StrictModel, field_error, read_yaml, validate
 from rig.friction import FrictionModel
+from trajectories import DEFAULT_MAX_SPEED_UM_S, RigLimits
 
 
-class ProfileError(ValueError):
-    """A rig profile could not be loaded: names the file, the field and (if known) the line."""
-
-    def __init__(self, path, field: str | None, msg: str, line: int | None = None):
-        self.path = str(path)
-        self.field = field
-        self.line = line
-        self.msg = msg
-        where = self.path + (f", line {line}" if line else "")
-        what = f"field '{field}': " if field else ""
-        super().__init__(f"{where}: {what}{msg}")
+class ProfileError(ConfigError):
+    """A rig profile cannot be used: names the file, the field and the line."""
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+# Upper bound of a normal force (N): ten times the paper's 100 N per rider; the soft normal
+# springs and the +-0.6 N normal load cells are sized for about that (section 3).
+MAX_NORMAL_FORCE_N = 1000.0
 
 
-class LoopConfig(_Strict):
-    rate_hz: float = Field(1000.0, gt=0, description="control-loop rate (paper: 1 kHz)")
+class LoopConfig(StrictModel):
+    rate_hz: float = Field(1000.0, gt=0, le=100_000.0, description="control-loop rate (paper: 1 kHz)")
 
     @property
     def dt_s(self) -> float:
         return 1.0 / self.rate_hz
 
 
-class ControllerConfig(_Strict):
+class ControllerConfig(StrictModel):
     """PID on position error (µm) -> force demand (N); section 3 of the paper."""
 
     kp_N_per_um: float = Field(0.5, ge=0, description="proportional gain = controller stiffness (N/µm = MN/m)")
@@ -74,19 +72,22 @@ class ControllerConfig(_Strict):
     dither_smoothing_s: float = Field(0.05, gt=0, description="time constant of the |PID output| low-pass for the dither")
 
 
-class ServovalveConfig(_Strict):
+class ServovalveConfig(StrictModel):
     time_constant_s: float = Field(0.001, gt=0, description="first-order spool time constant")
     stiction_band_cmd: float = Field(0.0, ge=0, description="spool stiction/deadband, in valve-command units (0-1)")
 
 
-class ActuatorConfig(_Strict):
+class ActuatorConfig(StrictModel):
     full_scale_force_N: float = Field(10000.0, gt=0, description="static force at valve command 1 (actuator blocked)")
     piston_area_mm2: float = Field(1000.0, gt=0)
     chamber_volume_cm3: float = Field(560.0, gt=0, description="total oil volume of both chambers")
     bulk_modulus_MPa: float = Field(1400.0, gt=0, description="effective oil bulk modulus")
     leakage_time_constant_s: float = Field(0.002, gt=0, description="V_t/(4 beta C_L): pressure decay through leakage")
-    moving_mass_kg: float = Field(10.0, gt=0, description="piston + grip + test piece")
+    moving_mass_kg: float = Field(10.0, gt=0, le=10_000.0, description="piston + grip + test piece")
     viscous_damping_N_s_per_um: float = Field(0.0, ge=0, description="piston seal viscous damping")
+    max_speed_um_s: float | None = Field(None, gt=0, le=1e6, description="fastest reference the planner allows "
+                                                                       "(None: the planner's default, 1 mm/s)")
+    max_accel_um_s2: float | None = Field(None, gt=0, description="largest reference acceleration (None: no limit)")
 
     @property
     def hydraulic_stiffness_N_per_um(self) -> float:
@@ -102,15 +103,15 @@ class ActuatorConfig(_Strict):
         return self.hydraulic_stiffness_N_per_um * self.leakage_time_constant_s
 
 
-class FixtureConfig(_Strict):
+class FixtureConfig(StrictModel):
     test_piece_stiffness_N_per_um: float = Field(1.0, gt=0, description="paper: at least 1 MN/m")
     fixture_stiffness_N_per_um: float = Field(10.0, gt=0, description="paper: at least 10 MN/m (incl. load cell)")
 
 
-class NormalConfig(_Strict):
+class NormalConfig(StrictModel):
     """Normal force on each rider, from soft springs (paper, section 3 and 4)."""
 
-    nominal_force_N: float = Field(100.0, gt=0, description="per rider (paper: 100 N)")
+    nominal_force_N: float = Field(100.0, gt=0, le=MAX_NORMAL_FORCE_N, description="per rider (paper: 100 N)")
     rider_offset_fraction: tuple[float, float] = Field((0.005, -0.005), description="static mismatch of riders 1, 2")
     rider_spring_stiffness_N_per_um: float = Field(0.05, ge=0, description="soft normal springs")
     face_taper_um_per_mm: tuple[float, float] = Field((3.0, -2.0), description="test-piece face slope under rider 1, 2")
@@ -125,7 +126,13 @@ class NormalConfig(_Strict):
         return self
 
 
-class LvdtConfig(_Strict):
+class LvdtSignal(StrictModel):
+    """What the LVDT chain does to the position signal (modelled by the simulated rig).
+
+    The device itself (serial port, calibration) is :class:`drivers.config.LvdtConfig`
+    in the ``hardware`` section.
+    """
+
     cutoff_hz: float = Field(100.0, gt=0, description="analog low-pass before digitisation (first order)")
     noise_sigma_um: float = Field(0.125, ge=0, description="Gaussian; the paper's ±0.25 µm read as 2 sigma")
     quantization_um: float = Field(0.076, ge=0, description="ADC step (0 = none)")
@@ -133,19 +140,25 @@ class LvdtConfig(_Strict):
     max_um: float = Field(5000.0, description="upper end (paper: 5 mm)")
 
 
-class LoadCellConfig(_Strict):
+class LoadCellSignal(StrictModel):
+    """What a load-cell chain does to the force signal (modelled by the simulated rig).
+
+    The conditioner (Modbus registers, calibration) is :class:`drivers.config.LoadCellConfig`
+    in the ``hardware`` section.
+    """
+
     cutoff_hz: float = Field(100.0, gt=0, description="first-order low-pass")
     noise_sigma_N: float = Field(0.125, ge=0, description="Gaussian sigma (the paper's ± read as 2 sigma)")
 
 
-class SensorsConfig(_Strict):
-    lvdt: LvdtConfig = Field(default_factory=LvdtConfig)
-    friction_load_cell: LoadCellConfig = Field(default_factory=LoadCellConfig)
-    normal_load_cells: LoadCellConfig = Field(
-        default_factory=lambda: LoadCellConfig(cutoff_hz=10.0, noise_sigma_N=0.3))
+class SensorsConfig(StrictModel):
+    lvdt: LvdtSignal = Field(default_factory=LvdtSignal)
+    friction_load_cell: LoadCellSignal = Field(default_factory=LoadCellSignal)
+    normal_load_cells: LoadCellSignal = Field(
+        default_factory=lambda: LoadCellSignal(cutoff_hz=10.0, noise_sigma_N=0.3))
 
 
-class StrokeConfig(_Strict):
+class StrokeConfig(StrictModel):
     min_um: float = 0.0
     max_um: float = 5000.0
     home_um: float = 500.0
@@ -157,11 +170,11 @@ class StrokeConfig(_Strict):
         return self
 
 
-class LubricantParams(_Strict):
-    mu0: float = Field(gt=0, description="friction coefficient at V0 = 1 µm/s (assumed: paper gives none)")
-    A_mu: float = Field(ge=0)
-    B_mu: float = Field(ge=0)
-    L_um: float = Field(gt=0)
+class LubricantParams(StrictModel):
+    mu0: float = Field(gt=0, le=10.0, description="friction coefficient at V0 = 1 µm/s (assumed: paper gives none)")
+    A_mu: float = Field(ge=0, le=1.0)
+    B_mu: float = Field(ge=0, le=1.0)
+    L_um: float = Field(gt=0, le=1e5, description="characteristic slip length (Table 2: 19-65 µm)")
 
 
 def _default_lubricants() -> dict[str, LubricantParams]:
@@ -173,7 +186,7 @@ def _default_lubricants() -> dict[str, LubricantParams]:
     }
 
 
-class SimConfig(_Strict):
+class SimConfig(StrictModel):
     substeps: int = Field(2, ge=1, le=1000, description="plant integration substeps per loop tick")
     initial_creep_um_s: float = Field(0.01, gt=0,
                                       description="state at steady state for this speed when starting at rest")
@@ -182,7 +195,7 @@ class SimConfig(_Strict):
                                "with a delay or a negative slope, which are ill-posed on a massless interface")
 
 
-class RigProfile(_Strict):
+class RigProfile(StrictModel):
     """All parameters of one rig (simulated or real). Units are in every name."""
 
     name: str = "rig"
@@ -197,7 +210,24 @@ class RigProfile(_Strict):
     stroke: StrokeConfig = Field(default_factory=StrokeConfig)
     lubricants: dict[str, LubricantParams] = Field(default_factory=_default_lubricants)
     sim: SimConfig = Field(default_factory=SimConfig)
-    hardware: dict[str, Any] | None = None
+    hardware: HardwareConfig | None = None
+
+    @model_validator(mode="after")
+    def _cross_checks(self):
+        lv = self.sensors.lvdt
+        if lv.min_um >= lv.max_um:
+            raise field_error("sensors.lvdt.max_um", f"must exceed sensors.lvdt.min_um ({lv.min_um:g})")
+        if self.hardware is not None:
+            # the LVDT has one quantization step: the device's counts are the sensor chain's steps
+            dev = self.hardware.lvdt
+            if "um_per_count" not in dev.model_fields_set:
+                dev.um_per_count = lv.quantization_um
+            elif lv.quantization_um > 0 and abs(dev.um_per_count - lv.quantization_um) > 1e-9 * lv.quantization_um:
+                raise field_error("hardware.lvdt.um_per_count",
+                                  f"{dev.um_per_count:g} µm differs from sensors.lvdt.quantization_um "
+                                  f"({lv.quantization_um:g} µm): the LVDT has one quantization step; "
+                                  f"leave um_per_count out to take the sensor's")
+        return self
 
     @property
     def dt_s(self) -> float:
@@ -207,6 +237,25 @@ class RigProfile(_Strict):
     def output_max_N(self) -> float:
         c = self.controller.output_max_N
         return self.actuator.full_scale_force_N if c is None else c
+
+    def plan_limits(self, source: str | None = None) -> RigLimits:
+        """What the planner needs: loop rate, stroke (narrowed by the hardware interlocks'
+        stroke limits when given), the actuator's speed and acceleration, the home position."""
+        lo, hi = self.stroke.min_um, self.stroke.max_um
+        if self.hardware is not None:
+            il = self.hardware.interlocks
+            if il.stroke_min_um is not None:
+                lo = max(lo, il.stroke_min_um)
+            if il.stroke_max_um is not None:
+                hi = min(hi, il.stroke_max_um)
+        a = self.actuator
+        note = "" if a.max_speed_um_s is not None else \
+            "; the planner's default: the profile sets no actuator.max_speed_um_s"
+        return RigLimits(loop_rate_hz=self.loop.rate_hz, stroke_min_um=lo, stroke_max_um=hi,
+                         max_speed_um_s=a.max_speed_um_s if a.max_speed_um_s is not None else DEFAULT_MAX_SPEED_UM_S,
+                         max_accel_um_s2=a.max_accel_um_s2 if a.max_accel_um_s2 is not None else math.inf,
+                         initial_position_um=self.stroke.home_um, source=source or self.name,
+                         max_speed_note=note)
 
     def friction_model(self, lubricant: str) -> FrictionModel:
         """The rate-and-state :class:`FrictionModel` (eqs. 5-6) for a lubricant of this profile."""
@@ -226,86 +275,14 @@ class RigProfile(_Strict):
         return (lp.B_mu - lp.A_mu) * n / lp.L_um
 
 
-# ---------------------------------------------------------------------------
-# loading with file/field/line errors
-# ---------------------------------------------------------------------------
-def _node_line(node, loc: tuple) -> int | None:
-    """Line (1-based) of the YAML node at ``loc`` (or of its deepest existing parent)."""
-    line = node.start_mark.line + 1 if node is not None else None
-    for key in loc:
-        if isinstance(node, yaml.MappingNode):
-            nxt = None
-            for k, v in node.value:
-                if isinstance(k, yaml.ScalarNode) and k.value == str(key):
-                    nxt = v
-                    line = k.start_mark.line + 1
-                    break
-            if nxt is None:
-                return line
-            node = nxt
-        elif isinstance(node, yaml.SequenceNode) and isinstance(key, int) and key < len(node.value):
-            node = node.value[key]
-            line = node.start_mark.line + 1
-        else:
-            return line
-    return line
+def load_profile(path: str | os.PathLike) -> RigProfile:
+    """Load and validate a rig profile YAML (``extends`` resolved).
 
-
-def load_profile(path: str | Path) -> RigProfile:
-    """Load and validate a rig profile YAML. Raises :class:`ProfileError` (file, field, line)."""
-    path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ProfileError(path, None, f"cannot read file: {exc.strerror or exc}") from None
-    try:
-        root = yaml.compose(text)
-        doc = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        line = mark.line + 1 if mark is not None else None
-        raise ProfileError(path, None, f"invalid YAML: {getattr(exc, 'problem', None) or exc}", line) from None
-    if doc is None:
-        raise ProfileError(path, None, "empty file", 1)
-    if not isinstance(doc, dict):
-        raise ProfileError(path, None, "top level must be a mapping of sections", 1)
-    if "rig_profile" in doc and len(doc) == 1:  # optional wrapper
-        doc = doc["rig_profile"]
-        loc_prefix: tuple = ("rig_profile",)
-    else:
-        loc_prefix = ()
-    try:
-        prof = RigProfile.model_validate(doc)
-    except ValidationError as exc:
-        err = exc.errors()[0]
-        loc = tuple(err.get("loc", ()))
-        field = ".".join(str(x) for x in loc) or None
-        msg = err.get("msg", "invalid value")
-        if err.get("type") == "extra_forbidden":
-            msg = "unknown field (not allowed; check the spelling and units in the name)"
-        if "input" in err and err.get("type") not in ("extra_forbidden", "missing"):
-            inp = err["input"]
-            if not isinstance(inp, dict):
-                msg += f" (got {inp!r})"
-        n_more = len(exc.errors()) - 1
-        if n_more:
-            msg += f" [and {n_more} more problem(s)]"
-        raise ProfileError(path, field, msg, _node_line(root, loc_prefix + loc)) from None
-    _check_physics(prof, path, root, loc_prefix)
-    return prof
-
-
-def _check_physics(prof: RigProfile, path, root, prefix) -> None:
-    for name, lp in prof.lubricants.items():
-        for fname in ("mu0", "A_mu", "B_mu", "L_um"):
-            if not math.isfinite(getattr(lp, fname)):
-                loc = prefix + ("lubricants", name, fname)
-                raise ProfileError(path, ".".join(loc), "must be finite", _node_line(root, loc))
-    if prof.sensors.lvdt.min_um >= prof.sensors.lvdt.max_um:
-        loc = prefix + ("sensors", "lvdt", "max_um")
-        raise ProfileError(path, ".".join(loc), "must exceed sensors.lvdt.min_um", _node_line(root, loc))
+    Raises :class:`ProfileError` naming the file, the field and the line on any fault."""
+    doc = read_yaml(path, error=ProfileError, what="a rig profile (a mapping of sections)", allow_extends=True)
+    return validate(RigProfile, doc, error=ProfileError)
 
 
 def default_profile_path() -> Path:
     """config/rigs/sim.yaml of this repository."""
-    return Path(__file__).resolve().parents[1] / "config" / "rigs" / "sim.yaml"
+    return Path(__file__).resolve().parents[2] / "config" / "rigs" / "sim.yaml"

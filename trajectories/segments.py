@@ -1,0 +1,133 @@
+"""Plain descriptions of what a trial's reference does: the planner's input.
+
+These are frozen dataclasses, already validated by whoever builds them
+(:mod:`rig.config.recipe` converts a validated recipe into a :class:`PlanSpec`);
+``trajectories`` imports nothing from ``rig``. Units are in every name.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import ClassVar, Union
+
+# A velocity step must start from steady sliding (Dupont & Dunlap 1995, section 4.2): the
+# state variable relaxes over the slip length L (eq. 6), as exp(-slip / L). The run-up at v1
+# before a step is therefore at least MIN_RUN_UP_L x L of constant-velocity slip (exp(-5) =
+# 0.7 % of the initial distance from steady state); unset, it is DEFAULT_RUN_UP_L x L.
+MIN_RUN_UP_L = 5.0
+DEFAULT_RUN_UP_L = 6.0
+
+# Used when the rig gives no maximum speed: 1 mm/s, five times the paper's fastest
+# velocity (200 µm/s, section 4) -- an assumption, not a property of the sim plant.
+DEFAULT_MAX_SPEED_UM_S = 1000.0
+
+
+@dataclass(frozen=True)
+class RigLimits:
+    """What the planner needs from a rig profile."""
+
+    loop_rate_hz: float = 1000.0
+    stroke_min_um: float = 0.0
+    stroke_max_um: float = 5000.0
+    max_speed_um_s: float = DEFAULT_MAX_SPEED_UM_S
+    max_accel_um_s2: float = math.inf
+    initial_position_um: float = 0.0
+    source: str = "defaults"
+    max_speed_note: str = ""
+
+
+@dataclass(frozen=True)
+class RunIn:
+    """Pull then push through ``distance_um`` at ``speed_um_s`` (section 4: 4 mm at 20 µm/s)."""
+
+    kind: ClassVar[str] = "run_in"
+    distance_um: float = 4000.0
+    speed_um_s: float = 20.0
+    label: str | None = None
+    accel_um_s2: float | None = None
+
+
+@dataclass(frozen=True)
+class Hold:
+    kind: ClassVar[str] = "hold"
+    duration_s: float = 1.0
+    label: str | None = None
+    accel_um_s2: float | None = None
+
+
+@dataclass(frozen=True)
+class Move:
+    kind: ClassVar[str] = "move"
+    position_um: float = 0.0
+    speed_um_s: float = 100.0
+    label: str | None = None
+    accel_um_s2: float | None = None
+
+
+@dataclass(frozen=True)
+class SteppedPass:
+    """Section 4.1: levels of ``level_um`` at ``velocities_um_s`` up, then the same back down;
+    friction averaged over the last ``window_um`` of each level."""
+
+    kind: ClassVar[str] = "stepped_pass"
+    velocities_um_s: tuple[float, ...] = (1.0, 2.0, 5.0, 10.0, 50.0, 100.0, 200.0)
+    level_um: float = 250.0
+    window_um: float = 50.0
+    label: str | None = None
+    accel_um_s2: float | None = None
+
+    def levels_um_s(self) -> list[float]:
+        v = list(self.velocities_um_s)
+        return v + v[::-1]
+
+
+@dataclass(frozen=True)
+class VelocityStep:
+    """One step v1 -> v2. ``slip_before_um``: slip from rest to the step, ramp to v1 included
+    (None: the ramp plus DEFAULT_RUN_UP_L x L)."""
+
+    v1_um_s: float
+    v2_um_s: float
+    slip_before_um: float | None = None
+    slip_after_um: float = 300.0
+
+
+@dataclass(frozen=True)
+class VelocitySteps:
+    """Section 4.2: steps from steady sliding, each from rest, then back to the start at
+    ``return_speed_um_s`` (None: stay). ``require_steady_state=False`` lets a step start
+    before MIN_RUN_UP_L x L of slip (short tests, transient-start experiments)."""
+
+    kind: ClassVar[str] = "velocity_steps"
+    steps: tuple[VelocityStep, ...] = ()
+    return_speed_um_s: float | None = 100.0
+    hold_s: float = 1.0
+    require_steady_state: bool = True
+    label: str | None = None
+    accel_um_s2: float | None = None
+
+
+Segment = Union[RunIn, Hold, Move, SteppedPass, VelocitySteps]
+
+
+@dataclass(frozen=True)
+class PlanSpec:
+    """Everything the planner compiles.
+
+    ``state_length_um``: L of the friction model in use (eq. 6), for the run-up before
+    velocity steps; ``state_length_source`` says where it came from (for messages). None:
+    every velocity step must give ``slip_before_um`` and no steady-state check is made.
+    ``log_rates_hz``: rates (name -> Hz) that must divide the loop rate.
+    """
+
+    segments: tuple[Segment, ...]
+    accel_um_s2: float = 500.0
+    start_position_um: float | None = None
+    state_length_um: float | None = None
+    state_length_source: str = ""
+    log_rates_hz: tuple[tuple[str, float], ...] = ()
+
+
+__all__ = ["RigLimits", "RunIn", "Hold", "Move", "SteppedPass", "VelocityStep", "VelocitySteps", "Segment",
+           "PlanSpec", "MIN_RUN_UP_L", "DEFAULT_RUN_UP_L", "DEFAULT_MAX_SPEED_UM_S"]
