@@ -1,4 +1,6 @@
-"""Planner: segment lengths, the stepped pass's geometry, velocity steps, limits, speed."""
+"""Planner: segment lengths, the stepped pass's geometry, velocity steps, limits, speed, the
+run-up before a velocity step (>= 5 L of the friction model in use), and the layering
+(trajectories imports nothing from rig)."""
 
 from __future__ import annotations
 
@@ -7,8 +9,10 @@ import time
 import numpy as np
 import pytest
 
-from rig.config.recipe import load_recipe, parse_recipe
-from trajectories import PlanError, RigLimits, compile_recipe
+from rig.config.profile import RigProfile, load_profile
+from rig.config.recipe import compile_recipe, load_recipe, parse_recipe
+from trajectories import MIN_RUN_UP_L, PlanError, PlanSpec, RigLimits, compile_plan
+from trajectories import Hold as PlainHold
 
 LIM = RigLimits(loop_rate_hz=1000.0, stroke_min_um=0.0, stroke_max_um=5000.0, max_speed_um_s=1000.0,
                 initial_position_um=500.0, source="test")
@@ -20,7 +24,7 @@ def recipe(segments: str, extra: str = ""):
 
 def test_run_in_lengths_and_bounded_acceleration():
     r = recipe("  - kind: run_in\n", "accel_um_s2: 100\n")
-    p = compile_recipe(r, LIM)
+    p = compile_recipe(r, limits=LIM)
     x, v = p.x_ref_um, p.v_ref_um_s
     assert x[0] == pytest.approx(500.0)
     assert x.max() == pytest.approx(4500.0, abs=1e-6)  # pulled 4 mm
@@ -38,7 +42,7 @@ def test_run_in_lengths_and_bounded_acceleration():
 
 def test_stepped_pass_up_then_down_and_geometry():
     r = recipe("  - kind: stepped_pass\n")
-    p = compile_recipe(r, LIM)
+    p = compile_recipe(r, limits=LIM)
     levels = p.events_of("level")
     vs = [e["v_um_s"] for e in levels]
     assert vs == [1, 2, 5, 10, 50, 100, 200, 200, 100, 50, 10, 5, 2, 1]
@@ -63,14 +67,14 @@ def test_stepped_pass_up_then_down_and_geometry():
 def test_stepped_pass_transition_too_long_is_a_plan_error():
     r = recipe("  - kind: stepped_pass\n", "accel_um_s2: 20\n")
     with pytest.raises(PlanError, match=r"segment 1 \(stepped_pass\).*accel"):
-        compile_recipe(r, LIM)
+        compile_recipe(r, limits=LIM)
 
 
 def test_velocity_steps_events_and_slip():
     r = recipe("  - kind: velocity_steps\n    slip_before_um: 100\n    slip_after_um: 300\n"
                "    steps: [{v1_um_s: 1, v2_um_s: 2}, {v1_um_s: 1, v2_um_s: 10, slip_after_um: 340}]\n",
                "accel_um_s2: 20\n")
-    p = compile_recipe(r, LIM)
+    p = compile_recipe(r, limits=LIM)
     steps = p.events_of("velocity_step")
     assert [(e["v1_um_s"], e["v2_um_s"]) for e in steps] == [(1, 2), (1, 10)]
     for e, after in zip(steps, (300, 340)):
@@ -90,7 +94,7 @@ def test_velocity_steps_events_and_slip():
 def test_stroke_violation_names_segment_and_limit():
     r = recipe("  - kind: hold\n    duration_s: 1\n  - kind: move\n    position_um: 5200\n    speed_um_s: 50\n")
     with pytest.raises(PlanError) as ei:
-        compile_recipe(r, LIM)
+        compile_recipe(r, limits=LIM)
     msg = str(ei.value)
     assert ei.value.segment == 1 and "segment 2 (move)" in msg and "stroke" in msg and "5200" in msg
 
@@ -98,17 +102,17 @@ def test_stroke_violation_names_segment_and_limit():
 def test_run_in_beyond_stroke():
     r = recipe("  - kind: move\n    position_um: 1500\n    speed_um_s: 100\n  - kind: run_in\n")
     with pytest.raises(PlanError, match=r"segment 2 \(run_in\).*5500.*stroke"):
-        compile_recipe(r, LIM)
+        compile_recipe(r, limits=LIM)
 
 
 def test_speed_limit_from_profile():
     lim = RigLimits(max_speed_um_s=100.0, initial_position_um=500.0)
     r = recipe("  - kind: stepped_pass\n")
     with pytest.raises(PlanError, match=r"segment 1 \(stepped_pass\): speed 200 .*maximum 100"):
-        compile_recipe(r, lim)
-    # the same limits read from a profile-like mapping
-    prof = {"loop": {"rate_hz": 1000}, "stroke": {"min_um": 0, "max_um": 5000, "home_um": 500},
-            "actuator": {"max_speed_um_s": 100.0}}
+        compile_recipe(r, limits=lim)
+    # the same limits read from a profile
+    prof = RigProfile.model_validate({"stroke": {"min_um": 0, "max_um": 5000, "home_um": 500},
+                                      "actuator": {"max_speed_um_s": 100.0}})
     with pytest.raises(PlanError, match="maximum 100"):
         compile_recipe(r, prof)
 
@@ -116,23 +120,31 @@ def test_speed_limit_from_profile():
 def test_log_rate_must_divide_loop_rate():
     r = recipe("  - kind: hold\n    duration_s: 1\n", "log: {decimated_rate_hz: 30}\n")
     with pytest.raises(PlanError, match="decimated_rate_hz"):
-        compile_recipe(r, LIM)
+        compile_recipe(r, limits=LIM)
 
 
-def test_shipped_recipes_fit_the_sim_profile(repo_root):
-    from rig.config.profile import load_profile
-
+@pytest.mark.parametrize("lubricant", ["dry", "paraffin", "boundary"])
+def test_shipped_recipes_fit_the_sim_profile_for_every_lubricant(repo_root, lubricant):
     prof = load_profile(repo_root / "config" / "rigs" / "sim.yaml")
+    L_um = prof.lubricants[lubricant].L_um
     for path in sorted((repo_root / "config" / "recipes").glob("*.yaml")):
-        p = compile_recipe(load_recipe(path), prof)
+        r = load_recipe(path)
+        r.lubricant = lubricant  # what `rig run --lubricant` does
+        p = compile_recipe(r, prof)
         assert p.x_ref_um.min() >= prof.stroke.min_um and p.x_ref_um.max() <= prof.stroke.max_um
         assert p.x_ref_um[0] == pytest.approx(prof.stroke.home_um)
+        for e in p.events_of("velocity_step"):
+            assert e["run_up_L"] >= MIN_RUN_UP_L
+            # the reference is at v1 over the last 5 L before the step
+            k0 = int(np.ceil((e["t_s"] - MIN_RUN_UP_L * L_um / e["v1_um_s"]) * 1000))
+            k1 = int(np.floor(e["t_s"] * 1000))
+            assert np.allclose(p.v_ref_um_s[k0:k1], e["v1_um_s"], rtol=1e-9)
 
 
 def test_velocity_steps_recipe_windows_fit(repo_root):
     """Enough slip after each step for the windows at 50/100/250 µm plus 200 points at 25 Hz."""
     r = load_recipe(repo_root / "config" / "recipes" / "velocity-steps.yaml")
-    p = compile_recipe(r, LIM)
+    p = compile_recipe(r, limits=LIM)
     steps = p.events_of("velocity_step")
     assert [(e["v1_um_s"], e["v2_um_s"]) for e in steps] == [(1, 2), (1, 5), (1, 10)]
     L_um = 19.2  # boundary lubricant, Table 2
@@ -145,7 +157,7 @@ def test_velocity_steps_recipe_windows_fit(repo_root):
 def test_one_hour_plan_is_fast():
     r = recipe("  - kind: stepped_pass\n  - kind: hold\n    duration_s: 2700\n")
     t0 = time.perf_counter()
-    p = compile_recipe(r, LIM)
+    p = compile_recipe(r, limits=LIM)
     dt = time.perf_counter() - t0
     assert p.duration_s > 3600
     assert p.n_ticks == pytest.approx(p.duration_s * 1000 + 1, abs=2)
@@ -154,18 +166,99 @@ def test_one_hour_plan_is_fast():
 
 def test_start_position_adds_an_approach():
     r = recipe("  - kind: hold\n    duration_s: 1\n", "start_position_um: 1000\n")
-    p = compile_recipe(r, LIM)
+    p = compile_recipe(r, limits=LIM)
     assert p.segments[0]["index"] == -1 and p.segments[0]["kind"] == "move"
     assert p.segments[1]["x_start_um"] == pytest.approx(1000.0)
     assert p.x_ref_um[0] == pytest.approx(500.0)
 
 
 def test_default_speed_limit_and_hardware_stroke_interlocks():
-    prof = {"loop": {"rate_hz": 1000}, "stroke": {"min_um": 0, "max_um": 5000, "home_um": 500},
-            "hardware": {"interlocks": {"stroke_max_um": 3000}}}
+    prof = RigProfile.model_validate({
+        "stroke": {"min_um": 0, "max_um": 5000, "home_um": 500},
+        "hardware": {"loadcells": {}, "lvdt": {}, "valve": {}, "interlocks": {"stroke_max_um": 3000}}})
     r = recipe("  - kind: move\n    position_um: 3500\n    speed_um_s: 100\n")
     with pytest.raises(PlanError, match=r"outside the stroke \[0, 3000\]"):
         compile_recipe(r, prof)
     r = recipe("  - kind: move\n    position_um: 3500\n    speed_um_s: 1500\n")
     with pytest.raises(PlanError, match="planner's default"):
-        compile_recipe(r, {"stroke": {"home_um": 500}})
+        compile_recipe(r, RigProfile())
+
+
+# --- the run-up before a velocity step (issue 11: steps start from steady sliding) -------
+
+STEPS = "  - kind: velocity_steps\n    label: vs\n{before}    steps: [{{v1_um_s: 1, v2_um_s: 2}}]\n"
+
+
+def test_short_run_up_is_refused_naming_the_segment():
+    prof = RigProfile()  # dry: L = 64.7 µm
+    r = recipe("  - kind: hold\n    duration_s: 1\n" + STEPS.format(before="    slip_before_um: 120\n"),
+               "accel_um_s2: 20\n")
+    r.lubricant = "dry"
+    with pytest.raises(PlanError) as ei:
+        compile_recipe(r, prof)
+    msg = str(ei.value)
+    assert ei.value.segment == 1 and msg.startswith("segment 2 (velocity_steps 'vs'): step 1 (1 -> 2 µm/s)")
+    assert "out of steady state" in msg and "1.85 L" in msg and "L = 64.7 µm" in msg and "dry" in msg
+    assert "slip_before_um >= 324" in msg
+    r.lubricant = "boundary"  # 120 µm = 6.2 L of boundary's 19.2 µm: fine
+    assert compile_recipe(r, prof).events_of("velocity_step")[0]["run_up_L"] == pytest.approx(6.25, abs=0.01)
+
+
+def test_default_run_up_is_six_L_of_the_model_in_use():
+    from rig.friction import FrictionModel
+
+    prof = RigProfile()
+    r = recipe(STEPS.format(before=""), "accel_um_s2: 20\n")
+    for lub in ("dry", "paraffin", "boundary"):
+        r.lubricant = lub
+        e = compile_recipe(r, prof).events_of("velocity_step")[0]
+        assert e["run_up_L"] == pytest.approx(6.0)
+        assert e["slip_before_um"] == pytest.approx(6 * prof.lubricants[lub].L_um + np.pi / 80, rel=1e-9)
+    # a friction model given to the run (rig run --friction-model) sets L
+    fm = FrictionModel(params={"mu0": 0.1, "A_mu": 0.001, "B_mu": 0.004, "L_um": 100.0})
+    e = compile_recipe(r, prof, friction_model=fm).events_of("velocity_step")[0]
+    assert e["slip_before_um"] == pytest.approx(600.0, abs=0.1)
+    r = recipe(STEPS.format(before="    slip_before_um: 150\n"), "accel_um_s2: 20\n")  # 7.8 L of boundary
+    with pytest.raises(PlanError, match="L = 100 µm .the friction model given"):
+        compile_recipe(r, prof, friction_model=fm)
+
+
+def test_require_steady_state_false_allows_a_short_run_up():
+    r = recipe(STEPS.format(before="    slip_before_um: 10\n    require_steady_state: false\n"),
+               "accel_um_s2: 20\n")
+    e = compile_recipe(r, limits=LIM).events_of("velocity_step")[0]
+    assert e["run_up_L"] == pytest.approx((10 - np.pi / 80) / 19.2)
+    r = recipe(STEPS.format(before="    slip_before_um: 0.01\n    require_steady_state: false\n"),
+               "accel_um_s2: 20\n")
+    with pytest.raises(PlanError, match="shorter than the run-up to v1"):
+        compile_recipe(r, limits=LIM)
+
+
+def test_dry_run_up_still_fits_the_stroke(repo_root):
+    """velocity-steps.yaml on dry: 388 µm of run-up + 650 µm after the 1 -> 10 step from 500 µm."""
+    prof = load_profile(repo_root / "config" / "rigs" / "sim.yaml")
+    r = load_recipe(repo_root / "config" / "recipes" / "velocity-steps.yaml")
+    r.lubricant = "dry"
+    p = compile_recipe(r, prof)
+    assert p.x_ref_um.max() < 1600.0 < prof.stroke.max_um
+    assert 1400 < p.duration_s < 1600
+
+
+def test_planner_takes_plain_data():
+    p = compile_plan(PlanSpec(segments=(PlainHold(duration_s=2.0),)), RigLimits(initial_position_um=100.0))
+    assert p.duration_s == pytest.approx(2.0) and np.all(p.x_ref_um == 100.0)
+
+
+def test_trajectories_imports_nothing_from_rig(repo_root):
+    import ast
+    import subprocess
+    import sys
+
+    for path in (repo_root / "trajectories").glob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else \
+                [node.module or ""] if isinstance(node, ast.ImportFrom) else []
+            assert not any(n == "rig" or n.startswith("rig.") for n in names), (path, names)
+    code = "import sys, trajectories; print(sorted(m for m in sys.modules if m == 'rig' or m.startswith('rig.')))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=repo_root, check=True)
+    assert out.stdout.strip() == "[]"

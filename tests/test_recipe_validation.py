@@ -117,3 +117,84 @@ def test_equal_step_velocities_rejected():
         parse_recipe("name: x\nlubricant: dry\nsegments:\n  - kind: velocity_steps\n"
                      "    steps: [{v1_um_s: 1, v2_um_s: 1}]\n", "s.yaml")
     assert ei.value.field == "segments[0].steps[0]" and ei.value.line == 5
+
+
+# --- what used to pass and fail later (issue 8, item 5) ---------------------------------
+
+@pytest.mark.parametrize("old,new,field,line,words", [
+    ("normal_force_N: 100", "normal_force_N: 100\nseed: -1", "seed", 4, "greater than or equal to 0"),
+    ("normal_force_N: 100", "normal_force_N: 100\ntrials: true", "trials", 4, "valid integer"),
+    ("normal_force_N: 100", "normal_force_N: 1e12", "normal_force_N", 3, "less than or equal to 1000"),
+    ("name: t", "name: ../../escape", "name", 1, "should match pattern"),
+    ("name: t", "name: a/b", "name", 1, "should match pattern"),
+    ("name: t", "name: .hidden", "name", 1, "should match pattern"),
+    ("duration_s: 1", "duration_s: '1'", "segments[0].duration_s", 6, "valid number"),
+    ("speed_um_s: 50", "speed_um_s: 1.0e9", "segments[3].speed_um_s", 14, "less than or equal"),
+])
+def test_caught_at_load(tmp_path, old, new, field, line, words):
+    p = write(tmp_path, GOOD.replace(old, new))
+    with pytest.raises(RecipeError) as ei:
+        load_recipe(p)
+    assert (ei.value.field, ei.value.line) == (field, line)
+    assert words in str(ei.value) and str(p) in str(ei.value)
+
+
+def test_duplicate_key_names_both_lines(tmp_path):
+    p = write(tmp_path, GOOD.replace("normal_force_N: 100", "normal_force_N: 100\nlubricant: dry"))
+    with pytest.raises(RecipeError) as ei:
+        load_recipe(p)
+    e = ei.value
+    assert e.line == 4 and e.field == "lubricant"
+    assert "duplicate key 'lubricant'" in str(e) and "first at line 2" in str(e) and "again at line 4" in str(e)
+    # inside a segment too
+    p = write(tmp_path, GOOD.replace("position_um: 500", "position_um: 500\n    position_um: 900"))
+    with pytest.raises(RecipeError) as ei:
+        load_recipe(p)
+    assert ei.value.line == 14 and ei.value.field == "segments[3].position_um"
+
+
+def test_deep_nesting_is_a_clear_error(tmp_path):
+    p = write(tmp_path, "name: t\nlubricant: dry\nsegments: " + "[" * 5000 + "]" * 5000 + "\n")
+    with pytest.raises(RecipeError) as ei:
+        load_recipe(p)
+    assert "nested deeper than" in str(ei.value) and ei.value.line == 3
+
+
+def test_alias_bomb_is_refused(tmp_path):
+    lines = ["a0: &a0 [1, 1, 1, 1, 1, 1, 1, 1, 1, 1]"]
+    for i in range(1, 9):
+        lines.append(f"a{i}: &a{i} [" + ", ".join([f"*a{i - 1}"] * 10) + "]")
+    p = write(tmp_path, "\n".join(lines) + "\nname: t\n")
+    with pytest.raises(RecipeError, match="more than .* YAML nodes"):
+        load_recipe(p)
+
+
+def test_other_yaml_features_refused(tmp_path):
+    with pytest.raises(RecipeError, match="merge keys"):
+        load_recipe(write(tmp_path, "base: &b {lubricant: dry}\n<<: *b\nname: t\n"))
+    with pytest.raises(RecipeError, match="unsupported YAML tag") as ei:
+        load_recipe(write(tmp_path, "name: !!binary aGVsbG8=\n"))
+    assert ei.value.line == 1
+
+
+def test_cli_refuses_before_writing(tmp_path, monkeypatch):
+    """`rig run` on a bad recipe exits 2 with the file/line/field, and writes no MCAP."""
+    from typer.testing import CliRunner
+
+    from conftest import out_text
+    from rig.cli import app
+
+    monkeypatch.chdir(tmp_path)
+    for old, new, field in (("normal_force_N: 100", "normal_force_N: 100\nseed: -1", "seed"),
+                            ("name: t", "name: ../../escape", "name")):
+        p = write(tmp_path, GOOD.replace(old, new), name="bad.yaml")
+        res = CliRunner().invoke(app, ["run", str(p), "--sim", "-q"])
+        assert res.exit_code == 2, out_text(res)
+        assert f"field '{field}'" in out_text(res) and "line " in out_text(res)
+        assert "Traceback" not in out_text(res)
+    assert not list(tmp_path.rglob("*.mcap")) and not list(tmp_path.parent.parent.glob("escape*"))
+
+
+def test_strict_types_still_take_ints_for_floats_and_lists_for_tuples(tmp_path):
+    r = load_recipe(write(tmp_path, GOOD))
+    assert isinstance(r.normal_force_N, float) and r.normal_force_N == 100.0

@@ -152,6 +152,13 @@ class _Loader(yaml.SafeLoader):
             self._depth -= 1
 
 
+# YAML 1.1 (PyYAML) reads 1e12 and 5e-5 (no dot) as strings; YAML 1.2 and every reader of
+# these files mean numbers: resolve them as floats (strict validation would refuse a string).
+_Loader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:[0-9][0-9_]*)(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
+    list("-+0123456789"))
+
 _PLAIN_TAGS = {"tag:yaml.org,2002:" + t for t in ("str", "int", "float", "bool", "null")}
 _TIMESTAMP = "tag:yaml.org,2002:timestamp"
 _MAP = "tag:yaml.org,2002:map"
