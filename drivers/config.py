@@ -191,7 +191,8 @@ class HardwareConfigError(ValueError):
 
 
 def parse_hardware(section: dict | None, where: str = "hardware") -> HardwareConfig:
-    """Validate a profile's free-form ``hardware`` section; one clear error naming the field."""
+    """Validate a hardware section given as a plain dict (sent to another process, or built in
+    code); one clear error naming the field. Profiles are typed when loaded (rig.config)."""
     if section is None:
         raise HardwareConfigError(f"{where}: the profile has no 'hardware' section")
     if isinstance(section, HardwareConfig):
@@ -207,7 +208,8 @@ def parse_hardware(section: dict | None, where: str = "hardware") -> HardwareCon
 
 
 def hardware_of_profile(profile, where: str | None = None) -> HardwareConfig:
-    """The :class:`HardwareConfig` of a RigProfile (or of a plain dict holding ``hardware``)."""
+    """The :class:`HardwareConfig` of a RigProfile (or of a plain dict holding ``hardware``);
+    :class:`HardwareConfigError` when the profile has none (``hardware: null``)."""
     section = profile.get("hardware") if isinstance(profile, dict) else getattr(profile, "hardware", None)
     name = where or str(getattr(profile, "source_path", None) or "profile")
     return parse_hardware(section, where=f"{name}: hardware")
