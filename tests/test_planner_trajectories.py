@@ -262,3 +262,23 @@ def test_trajectories_imports_nothing_from_rig(repo_root):
     code = "import sys, trajectories; print(sorted(m for m in sys.modules if m == 'rig' or m.startswith('rig.')))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=repo_root, check=True)
     assert out.stdout.strip() == "[]"
+
+
+def test_rig_run_refuses_a_step_out_of_steady_state(repo_root, tmp_path):
+    """`rig run --plan-only`: the shipped recipe plans for dry; a 120 µm run-up does not (exit 2)."""
+    from typer.testing import CliRunner
+
+    from conftest import out_text
+    from rig.cli import app
+
+    shipped = repo_root / "config" / "recipes" / "velocity-steps.yaml"
+    res = CliRunner().invoke(app, ["run", str(shipped), "--sim", "--lubricant", "dry", "--plan-only"])
+    assert res.exit_code == 0, out_text(res)
+    old = tmp_path / "old.yaml"
+    old.write_text(shipped.read_text().replace("    label: boundary steps\n",
+                                               "    label: boundary steps\n    slip_before_um: 120\n"))
+    res = CliRunner().invoke(app, ["run", str(old), "--sim", "--lubricant", "dry", "--plan-only"])
+    assert res.exit_code == 2
+    text = " ".join(out_text(res).split())
+    assert "segment 2 (velocity_steps 'boundary steps')" in text and "out of steady state" in text
+    assert "Traceback" not in text

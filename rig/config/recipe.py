@@ -42,7 +42,7 @@ from pydantic import Field, PrivateAttr, field_validator, model_validator
 
 import trajectories as tj
 from rig.config.loader import ConfigError, StrictModel, parse_yaml, read_yaml, validate
-from rig.config.profile import MAX_NORMAL_FORCE_N
+from rig.config.profile import MAX_NORMAL_FORCE_N, RigProfile
 
 LUBRICANTS = ("dry", "paraffin", "boundary")
 
@@ -302,12 +302,12 @@ def state_length(recipe: Recipe, profile, friction_model=None) -> tuple[float, s
     lubricant (what a real rig is expected to have)."""
     if friction_model is not None and getattr(friction_model, "has_state", False):
         return float(friction_model.get("L_um")), "the friction model given"
-    lp = profile.lubricants.get(recipe.lubricant) if profile is not None else None
+    prof = profile if profile is not None else RigProfile()
+    lp = prof.lubricants.get(recipe.lubricant)
     if lp is None:
-        from rig.friction import TABLE2
-
-        return float(TABLE2[recipe.lubricant]["L_um"][0]), f"{recipe.lubricant}, Table 2"
-    return lp.L_um, f"{recipe.lubricant} in profile {profile.name}"
+        raise tj.PlanError(f"lubricant {recipe.lubricant!r} is not in profile {prof.name} (it has: "
+                           f"{', '.join(prof.lubricants)}): no slip length L for the run-up before a step")
+    return lp.L_um, f"{recipe.lubricant} in profile {prof.name}"
 
 
 def plan_spec(recipe: Recipe, profile=None, friction_model=None) -> tj.PlanSpec:
