@@ -388,7 +388,7 @@ def validate(model: type[M], doc: YamlDoc, *, root: Loc = (), error: type[Config
             if len(errors) > 4:
                 msg += f"; and {len(errors) - 4} more"
         if at.file != doc.path:
-            msg += f" (in {at.file}, extended by {doc.path})"
+            msg += f" (extended by {doc.path})"
         raise error(at.file, msg, field=fmt_loc(loc) or None, line=at.line) from None
 
 
