@@ -70,6 +70,7 @@ Speed = Annotated[float, Field(gt=0, le=MAX_SPEED_UM_S)]
 Distance = Annotated[float, Field(gt=0, le=MAX_DISTANCE_UM)]
 Position = Annotated[float, Field(ge=-MAX_DISTANCE_UM, le=MAX_DISTANCE_UM)]
 Duration = Annotated[float, Field(gt=0, le=MAX_DURATION_S)]
+Rate = Annotated[float, Field(gt=0, le=MAX_RATE_HZ)]
 
 
 class _SegmentBase(StrictModel):
@@ -186,10 +187,11 @@ Segment = Annotated[Union[RunIn, SteppedPass, VelocitySteps, Hold, Move], Field(
 class LogRates(StrictModel):
     """What the log keeps: raw loop data (blocks) and a decimated per-sample channel."""
 
-    raw_rate_hz: Annotated[float, Field(gt=0, le=MAX_RATE_HZ)] = Field(1000.0, description="Rate of the raw channel; must divide the loop rate "
-                                                      "(the loop rate itself keeps every tick).")
-    decimated_rate_hz: Annotated[float, Field(gt=0, le=MAX_RATE_HZ)] = Field(25.0, description="Rate of the per-sample channel (the paper logged at 25 Hz).")
-    block_s: Annotated[float, Field(gt=0, le=60.0)] = Field(1.0, description="Duration covered by one raw block message (s).")
+    raw_rate_hz: Rate = Field(1000.0, description="Rate of the raw channel; must divide the loop rate "
+                                                  "(the loop rate itself keeps every tick).")
+    decimated_rate_hz: Rate = Field(25.0, description="Rate of the per-sample channel (the paper logged at 25 Hz).")
+    block_s: Annotated[float, Field(gt=0, le=60.0)] = Field(
+        1.0, description="Duration covered by one raw block message (s).")
     raw_encoding: Literal["binary", "base64", "json"] = Field(
         "binary", description="Arrays of a raw block: binary little-endian float columns (rig.columns.v1, "
                               "fastest), base64 of them in JSON, or JSON number lists (docs/trial.md).")
