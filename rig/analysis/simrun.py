@@ -59,7 +59,7 @@ def run_sim_trial(recipe, model: FrictionModel, *, profile=None, seed: int = 0, 
         from rig.config.profile import default_profile_path
 
         profile = load_profile(profile or default_profile_path())
-    plan = compile_recipe(recipe, profile)
+    plan = compile_recipe(recipe, profile, friction_model=model)
     rig = SimRig(profile, model, normal_force_N=recipe.normal_force_N, seed=seed)
     every = max(1, int(round(plan.loop_rate_hz / rate_hz)))
     keys = ("t_s", "position_um", "friction_N", "normal_1_N", "normal_2_N", "position_ref_um", "valve_cmd",
