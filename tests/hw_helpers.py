@@ -22,7 +22,7 @@ def _deep_update(d: dict, u: dict) -> dict:
 
 def private_profile(tmp_path: Path, autostart: bool = True, **hw_overrides) -> Path:
     """config/rigs/emulated.yaml with its devices moved to free ports and ``tmp_path``."""
-    from drivers.emulators.rig import free_tcp_port
+    from drivers.emulators.modbus_conditioner import free_tcp_port
 
     from drivers.emulators.make_profile import render
 

@@ -44,9 +44,9 @@ def main(argv=None) -> int:
     if "--check" in argv:
         return 0 if new == old else 1
     if new != old:
-        from rig.data import atomic_write_text
-
-        atomic_write_text(path, new)
+        tmp = path.with_name(path.name + ".tmp")
+        tmp.write_text(new)
+        tmp.replace(path)
         print(f"rewrote {path}")
     return 0
 
