@@ -122,17 +122,22 @@ def _run(hw_dict, profile, x_ref, out_q, abort_flag, stop_req, options):
     il = Interlocks(ilc, float(profile.stroke.min_um), float(profile.stroke.max_um),
                     hw.valve.heartbeat_timeout_s, period)
     mono = time.monotonic
-    connected = []
-    try:
-        for dev in devices:
+    failed: list[DeviceError] = []
+    for dev in devices:  # every device that does not answer is named, not just the first
+        try:
             dev.connect()
-            connected.append(dev)
-        wait_for_data(devices, max(0.5, 4 * hw.valve.heartbeat_timeout_s), mono)
-    except DeviceError as exc:
-        for d in connected:
+        except DeviceError as exc:
+            failed.append(exc)
+    if not failed:
+        try:
+            wait_for_data(devices, max(0.5, 4 * hw.valve.heartbeat_timeout_s), mono)
+        except DeviceError as exc:
+            failed.append(exc)
+    if failed:
+        for d in devices:
             d.close()
-        out_q.put(("done", {"status": "error", "message": str(exc), "device": exc.device,
-                            "address": exc.address}))
+        out_q.put(("done", {"status": "error", "message": "; ".join(map(str, failed)),
+                            "devices_failed": [{"device": e.device, "address": e.address} for e in failed]}))
         return
     health = {d.name: d.health(mono()) for d in devices}  # updated in place by d.health(now)
     rt_info = setup_realtime(rt.sched_fifo, rt.priority, rt.cpu)
