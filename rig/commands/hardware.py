@@ -47,46 +47,40 @@ def _load(profile_path: Path):
     return profile, hw
 
 
-def check_devices(hw) -> list[dict]:
-    """Connect to each device, read it once; one row per device (never raises)."""
-    from drivers.errors import DeviceError
-    from drivers.loadcells import LoadCellReader
-    from drivers.lvdt import LvdtReader
-    from drivers.valve import ValveController
+DEVICE_LABELS = {"loadcells": "load cells", "lvdt": "LVDT", "valve": "servovalve"}
 
+
+def _reading(rig, name: str) -> str:
+    if name == "loadcells":
+        f, n1, n2 = rig.forces.forces_N
+        return (f"friction {f:.3f} N, normal 1 {n1:.3f} N, normal 2 {n2:.3f} N, "
+                f"counter {rig.forces.counter}, status 0x{rig.forces.status:04x}")
+    if name == "lvdt":
+        lv = rig.position
+        return f"position {lv.position_um:.3f} µm, seq {lv.seq}, status 0x{lv.status:02x}"
+    va = rig.valve.final_state()
+    return f"status 0x{va['status_bits']:02x} (enabled {va['enabled']}), output {va['output']:+.4f}"
+
+
+def check_devices(hw) -> list[dict]:
+    """Connect to each device, wait for its first data, read it once; one row per device (never raises)."""
+    from drivers.errors import DeviceError
+    from rig.hardware.devices import build_devices, wait_for_data
+
+    rig = build_devices(hw)
+    order = (rig.forces, rig.position, rig.valve)
     rows = []
-    lc = LoadCellReader(hw.loadcells)
-    try:
-        lc.connect()
-        f, n1, n2 = lc.read()
-        rows.append({"device": "load cells", "address": lc.address, "ok": True,
-                     "reading": f"friction {f:.3f} N, normal 1 {n1:.3f} N, normal 2 {n2:.3f} N, "
-                                f"counter {lc.counter}, status 0x{lc.status:04x}"})
-    except DeviceError as exc:
-        rows.append({"device": "load cells", "address": lc.address, "ok": False, "reading": exc.message})
-    finally:
-        lc.close()
-    lv = LvdtReader(hw.lvdt)
-    try:
-        lv.connect()
-        lv.wait_frame(0.5)
-        rows.append({"device": "LVDT", "address": lv.address, "ok": True,
-                     "reading": f"position {lv.position_um:.3f} µm, seq {lv.seq}, status 0x{lv.status:02x}"})
-    except DeviceError as exc:
-        rows.append({"device": "LVDT", "address": lv.address, "ok": False, "reading": exc.message})
-    finally:
-        lv.close()
-    va = ValveController(hw.valve)
-    try:
-        va.connect()
-        va.wait_status(max(0.2, 4 * hw.valve.heartbeat_timeout_s))
-        rows.append({"device": "servovalve", "address": va.address, "ok": True,
-                     "reading": f"status 0x{va.status_bits:02x} (enabled {va.enabled}, fault {va.fault}), "
-                                f"heartbeat {va.heartbeat}, output {va.output:+.4f}"})
-    except DeviceError as exc:
-        rows.append({"device": "servovalve", "address": va.address, "ok": False, "reading": exc.message})
-    finally:
-        va.close()
+    for dev in order:
+        row = {"device": DEVICE_LABELS[dev.name], "address": dev.address}
+        try:
+            dev.connect()
+            wait_for_data([dev], max(0.5, 4 * hw.valve.heartbeat_timeout_s), time.monotonic)
+            row.update(ok=True, reading=_reading(rig, dev.name))
+        except DeviceError as exc:
+            row.update(ok=False, reading=exc.message)
+        finally:
+            dev.close()
+        rows.append(row)
     return rows
 
 
