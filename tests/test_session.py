@@ -122,11 +122,28 @@ def test_ctrl_c_is_a_controlled_stop_and_the_backend_finishes():
 
 def test_backend_failure_mid_run_keeps_the_log_and_says_why():
     log = MemoryLog()
-    res = run_trial(_plan(5000), ScriptedBackend(50, fail_at=7), log, handle_signals=False)
+    be = ScriptedBackend(50, fail_at=7, safe=False)
+    res = run_trial(_plan(5000), be, log, handle_signals=False)
     assert res.status == "failed" and res.cause == "failure" and "OSError: link down" in res.reason
+    assert be.stop_reason == res.reason  # asked to stop
     assert res.ticks == 700 and log.status == "failed"
-    assert not res.safe and res.history[-2][0] is Phase.STOPPING  # not known to be safe
+    assert not res.safe and res.history[-2][0] is Phase.STOPPING  # the backend did not report safe
     assert any(e["kind"] == "trial_failed" and "link down" in e["message"] for e in log.events)
+
+
+def test_a_failing_log_stops_the_backend():
+    class DiskFull(MemoryLog):
+        def write_block(self, block):
+            if self.ticks >= 500:
+                raise OSError(28, "No space left on device")
+            super().write_block(block)
+
+    log = DiskFull()
+    be = ScriptedBackend(50, stop_after_request=2)
+    res = run_trial(_plan(5000), be, log, handle_signals=False)
+    assert be.stop_reason and "No space left on device" in be.stop_reason  # the backend was told to stop
+    assert res.status == "failed" and res.cause == "failure" and "No space left" in res.reason
+    assert res.ticks == 500 and res.safe  # the backend drained to its end and reported safe
 
 
 def test_trip_reported_by_the_backend_fails_the_trial():

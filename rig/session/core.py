@@ -297,6 +297,25 @@ def _noop(*_a, **_k) -> None:
     return None
 
 
+class _Guarded:
+    """The writer's event/loop_stats, with failures collected instead of raised."""
+
+    def __init__(self, writer, errors: list):
+        self._w, self._errors = writer, errors
+
+    def event(self, *a, **k) -> None:
+        self._call(self._w.event, *a, **k)
+
+    def loop_stats(self, *a, **k) -> None:
+        self._call(self._w.loop_stats, *a, **k)
+
+    def _call(self, fn, *a, **k) -> None:
+        try:
+            fn(*a, **k)
+        except Exception as exc:  # noqa: BLE001
+            self._errors.append(f"{type(exc).__name__}: {exc}")
+
+
 class TrialSession:
     """Run ``plan`` on ``backend``, logging to ``writer`` (see the module docstring).
 
@@ -333,11 +352,8 @@ class TrialSession:
                               cause=cause.value, reason=reason)
 
     def _on_signal(self, signum, _frame) -> None:
-        name = signal.Signals(signum).name
-        self._signals.append(name)
-        self._pending_signal = name
-
-    _pending_signal: str | None = None
+        # only note it here: the run loop turns it into a stop request between two messages
+        self._signals.append(signal.Signals(signum).name)
 
     def _install_signals(self) -> dict:
         old = {}
@@ -359,14 +375,16 @@ class TrialSession:
         t_wall0 = time.perf_counter()
         next_stats = self.stats_every_s
         ending: Ending | None = None
+        handled = 0  # signals turned into stop requests
         old = self._install_signals()
         try:
             try:
                 backend.start(plan)
                 while True:
                     try:
-                        if self._pending_signal is not None:
-                            name, self._pending_signal = self._pending_signal, None
+                        while handled < len(self._signals):
+                            name = self._signals[handled]
+                            handled += 1
                             self.request_stop(Cause.OPERATOR, f"operator abort ({name})")
                         msg = backend.receive()
                         if msg is None:
@@ -389,12 +407,13 @@ class TrialSession:
                                           f"{msg.data.get('message')}")
                     except KeyboardInterrupt:
                         self._signals.append("KeyboardInterrupt")
+                        handled = len(self._signals)
                         self.request_stop(Cause.OPERATOR, "operator abort (Ctrl-C)")
                 ending = backend.finish()
             except BackendError as exc:
                 ending = Ending("failed", str(exc), safe=True)
-            except Exception as exc:  # noqa: BLE001 - a failure while running: keep what was logged
-                ending = Ending("failed", f"{type(exc).__name__}: {exc}", safe=False)
+            except Exception as exc:  # noqa: BLE001 - a failure while running (e.g. the log): stop the backend
+                ending = self._fail_stop(f"{type(exc).__name__}: {exc}")
         finally:
             for sig, h in old.items():
                 signal.signal(sig, h)
@@ -405,9 +424,28 @@ class TrialSession:
                     ending.message += f"; closing the backend failed: {exc}"
         return self._end(ending, time.perf_counter() - t_wall0)
 
+    def _fail_stop(self, reason: str, drain_s: float = 2.0) -> Ending:
+        """The session itself failed (its writer, its progress): ask the backend for a stop, let it
+        reach its safe state (its messages are dropped: the log may be what failed), say how it ended."""
+        self.stop.request(Cause.FAILURE, reason)
+        try:
+            self.backend.request_stop(reason)
+            t_end = time.monotonic() + drain_s
+            while time.monotonic() < t_end and self.backend.receive() is not None:
+                pass
+            if time.monotonic() >= t_end:
+                self.backend.request_stop(reason, insist=True)
+            got = self.backend.finish()
+        except Exception as exc:  # noqa: BLE001
+            return Ending("failed", f"{reason}; stopping the backend failed: {exc}", safe=False)
+        return Ending("failed", reason, safe=got.safe, summary=got.summary, final_stats=got.final_stats,
+                      report=got.report)
+
     def _end(self, ending: Ending, wall_s: float) -> TrialResult:
-        w, sm, fig = self.writer, self.stop, self.figures
+        sm, fig = self.stop, self.figures
         t_last = fig.last_t_s
+        log_errors: list[str] = []
+        w = _Guarded(self.writer, log_errors)  # after a failure of the log, the rest is best effort
         # how it ended decides the cause unless a stop was already asked for
         if sm.phase is Phase.RUNNING:
             cause = {"completed": Cause.END_OF_PLAN, "stopped": Cause.OPERATOR,
@@ -431,16 +469,19 @@ class TrialSession:
                     else "KeyboardInterrupt (Ctrl-C)")
         elif status == "failed":
             w.event(t_last, "trial_failed", status=ending.outcome, message=sm.reason)
-        close_error = None
+        close_error = "; ".join(log_errors) or None
         try:
-            w.close(status, wall_s=wall_s, ticks_per_s=fig.ticks / wall_s if wall_s > 0 else 0.0,
-                    realtime_factor=t_last / wall_s if wall_s > 0 else 0.0,
-                    tracking_error_rms_um=fig.tracking_error_rms_um, mean_friction_N=fig.mean_friction_N,
-                    mean_abs_friction_N=fig.mean_abs_friction_N, stop_reason=sm.reason, stop_cause=sm.cause.value)
+            self.writer.close(status, wall_s=wall_s, ticks_per_s=fig.ticks / wall_s if wall_s > 0 else 0.0,
+                              realtime_factor=t_last / wall_s if wall_s > 0 else 0.0,
+                              tracking_error_rms_um=fig.tracking_error_rms_um, mean_friction_N=fig.mean_friction_N,
+                              mean_abs_friction_N=fig.mean_abs_friction_N, stop_reason=sm.reason,
+                              stop_cause=sm.cause.value)
         except Exception as exc:  # noqa: BLE001 - e.g. disk full: the file cannot be finished
             close_error = f"{type(exc).__name__}: {exc}"
+        if close_error and sm.status == "completed":
+            sm.cause, sm.reason = Cause.FAILURE, f"the log could not be finished: {close_error}"
         sm.done()
-        return TrialResult(status=status, cause=sm.cause.value, reason=sm.reason, ticks=fig.ticks,
+        return TrialResult(status=sm.status, cause=sm.cause.value, reason=sm.reason, ticks=fig.ticks,
                            duration_s=t_last, wall_s=wall_s, figures=fig, ending=ending, safe=ending.safe,
                            close_error=close_error, history=list(sm.history))
 
