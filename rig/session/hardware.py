@@ -93,7 +93,7 @@ class HardwareBackend:
         self.proc.start()
 
     # -- run -------------------------------------------------------------------
-    def receive(self):
+    def receive(self) -> Block | Event | None:
         if self._done is not None:
             return None
         while True:
@@ -145,7 +145,7 @@ class HardwareBackend:
         w.update(self._devices)  # cumulative device counters
         return w
 
-    def finish(self):
+    def finish(self) -> Ending:
         s = dict(self._done or {"status": "loop_died", "message": "the loop process ended without a summary"})
         final = self.stats.final()
         final["read_max_us"] = self.read_max_s * 1e6
@@ -155,11 +155,11 @@ class HardwareBackend:
         status = s.get("status")
         outcome = {"completed": "completed", "aborted": "stopped", "tripped": "tripped"}.get(status, "failed")
         vf = s.get("valve_final") or {}
-        # safe: the loop reached its safe state (valve nulled and disabled), or it is gone and the
-        # valve controller's watchdog nulls the valve
+        # safe: the loop reached its safe state and the valve confirms it is disabled (a dead loop or a
+        # silent valve cannot confirm anything: the valve controller's watchdog is what nulls it then)
         safe = status in ("completed", "aborted", "tripped") and not vf.get("enabled", False)
-        if status == "loop_died":
-            safe = False
+        if "devices_failed" in s:
+            safe = True  # the devices did not answer before the start: nothing was ever enabled
         s["safe_state"] = (f"valve status 0x{vf.get('status_bits', 0):02x}, enabled {vf.get('enabled')}, "
                            f"output {vf.get('output')}") if vf else ""
         msg = s.get("message") or ("" if status == "completed" else str(status))
