@@ -76,10 +76,11 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     load0 = os.getloadavg()
 
-    from rig.commands.trial import run_sim_trial
     from rig.log import TrialLogWriter
     from rig.config.profile import load_profile
     from rig.config.recipe import load_recipe
+    from rig.session import run_trial
+    from rig.session.sim import SimBackend
     from rig.sim import SimRig
     from rig.config.recipe import compile_recipe
 
@@ -116,9 +117,10 @@ def main(argv=None) -> int:
                                metadata={"lubricant": recipe.lubricant, "normal_force_N": recipe.normal_force_N},
                                recipe_yaml=recipe.source_text, recipe=recipe.model_dump(mode="json"),
                                profile=profile.model_dump(mode="json"), **kw)
-            run_sim_trial(plan, rc, profile, w, None, seed=recipe.seed)
-            w.close()
-            return w.ticks
+            bt = max(1, int(round(rc.log.block_s * plan.loop_rate_hz)))
+            backend = SimBackend(profile, profile.friction_model(rc.lubricant), rc.normal_force_N, recipe.seed,
+                                 block_ticks=bt)
+            return run_trial(plan, backend, w, handle_signals=False).ticks
         return run
 
     results = {"recipe": args.recipe, "simulated_s": sim_s, "ticks": plan.n_ticks, "plan_compile_s": t_plan,

@@ -30,6 +30,7 @@ import struct
 import time
 
 from drivers.config import LoadCellConfig
+from drivers.device import DeviceHealth
 from drivers.errors import DeviceError
 
 DEVICE = "load-cell conditioner"
@@ -60,11 +61,20 @@ def encode_value(value: float, encoding: str, word_order: str) -> list[int]:
 
 
 class LoadCellReader:
-    """Reads friction, normal 1 and normal 2 (N) in one Modbus request."""
+    """Reads friction, normal 1 and normal 2 (N) in one Modbus request.
+
+    A :class:`drivers.device.Device` (``name`` "loadcells"): ``read(now)``
+    makes the request, the values are ``forces_N`` = (friction, normal 1,
+    normal 2); ``write`` does nothing (a sensor).
+    """
+
+    name = "loadcells"
 
     def __init__(self, cfg: LoadCellConfig):
         self.cfg = cfg
         self.address = cfg.address_text
+        self._health = DeviceHealth(DEVICE, self.address)
+        self.forces_N: tuple[float, float, float] = (float("nan"),) * 3
         self._first, self._count = cfg.span()
         self._client = None
         self._last_counter: int | None = None
@@ -161,7 +171,8 @@ class LoadCellReader:
         return raw * cal.scale + cal.offset - cal.tare_N
 
     def read(self, now: float | None = None) -> tuple[float, float, float]:
-        """(friction_N, normal_1_N, normal_2_N), calibrated and tared."""
+        """One request: ``forces_N`` = (friction_N, normal_1_N, normal_2_N), calibrated and tared
+        (also returned)."""
         regs = self.read_raw()
         now = time.monotonic() if now is None else now
         c = self.cfg
@@ -178,8 +189,22 @@ class LoadCellReader:
             self._last_change_t = now
         if c.status_address is not None:
             self.status = regs[c.status_address - self._first]
-        return (self._value(regs, "friction"), self._value(regs, "normal_1"),
-                self._value(regs, "normal_2"))
+        self.forces_N = (self._value(regs, "friction"), self._value(regs, "normal_1"),
+                         self._value(regs, "normal_2"))
+        return self.forces_N
+
+    def write(self, now: float | None = None) -> None:
+        pass
+
+    def health(self, now: float | None = None) -> DeviceHealth:
+        h = self._health
+        h.frames_ok, h.errors, h.consecutive_errors = self.n_reads, self.n_errors, self.consecutive_errors
+        h.age_s = self.age_s(now)
+        h.polls_since_new = self.reads_since_new
+        h.status = self.status
+        h.fault = bool(self.status & 0x03)
+        h.fault_code = self.status
+        return h
 
     def age_s(self, now: float | None = None) -> float:
         """Time since the conditioner last produced a new sample."""

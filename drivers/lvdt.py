@@ -30,6 +30,7 @@ import struct
 import time
 
 from drivers.config import LvdtConfig
+from drivers.device import DeviceHealth
 from drivers.errors import DeviceError
 
 DEVICE = "LVDT conditioner"
@@ -94,11 +95,18 @@ class FrameParser:
 
 
 class LvdtReader:
-    """Non-blocking reader of the LVDT stream; ``poll()`` every tick."""
+    """Non-blocking reader of the LVDT stream; ``poll()`` every tick.
+
+    A :class:`drivers.device.Device` (``name`` "lvdt"): ``read(now)`` polls,
+    the value is ``position_um``; ``write`` does nothing (a sensor).
+    """
+
+    name = "lvdt"
 
     def __init__(self, cfg: LvdtConfig):
         self.cfg = cfg
         self.address = cfg.address_text
+        self._health = DeviceHealth(DEVICE, self.address)
         self.parser = FrameParser()
         self._ser = None
         self.position_um = float("nan")
@@ -153,6 +161,24 @@ class LvdtReader:
             self.seq = seq
             self.last_frame_t = time.monotonic() if now is None else now
         return len(frames)
+
+    # -- the Device protocol --------------------------------------------------------
+    def read(self, now: float | None = None) -> None:
+        self.poll(now)
+
+    def write(self, now: float | None = None) -> None:
+        pass
+
+    def health(self, now: float | None = None) -> DeviceHealth:
+        h, p = self._health, self.parser
+        h.frames_ok, h.frames_bad, h.frames_lost, h.garbage_bytes = (p.good_frames, p.bad_frames,
+                                                                      p.lost_frames, p.garbage_bytes)
+        h.age_s = self.age_s(now)
+        h.polls_since_new = self.polls_since_frame
+        h.status = self.status
+        h.fault = bool(self.status & 0x03)
+        h.fault_code = self.status
+        return h
 
     def wait_frame(self, timeout_s: float = 0.5) -> None:
         """Block until a good frame arrives (for ``rig devices check``); DeviceError if none."""

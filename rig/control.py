@@ -91,7 +91,7 @@ def make_controller_params(kp_N_per_um: float, ki_N_per_um_s: float, kd_N_s_per_
 
 
 def controller_params_from_profile(profile) -> np.ndarray:
-    """Controller parameter vector from a :class:`rig.profile.RigProfile`."""
+    """Controller parameter vector from a :class:`rig.config.profile.RigProfile`."""
     c = profile.controller
     return make_controller_params(
         c.kp_N_per_um, c.ki_N_per_um_s, c.kd_N_s_per_um, profile.dt_s, c.integral_max_N, profile.output_max_N,

@@ -22,7 +22,7 @@ def _deep_update(d: dict, u: dict) -> dict:
 
 def private_profile(tmp_path: Path, autostart: bool = True, **hw_overrides) -> Path:
     """An overlay of config/rigs/emulated.yaml with its devices moved to free ports and ``tmp_path``."""
-    from drivers.emulators.rig import free_tcp_port
+    from drivers.emulators.modbus_conditioner import free_tcp_port
 
     rnd = random.Random(os.getpid() ^ hash(str(tmp_path)))
     hw = {"loadcells": {"port": free_tcp_port()}, "lvdt": {"port": str(tmp_path / "lvdt")},

@@ -9,7 +9,7 @@ import pytest
 from drivers.config import LoadCellConfig
 from drivers.emulators.modbus_conditioner import ModbusConditionerEmulator
 from drivers.emulators.pty import PtyBridge
-from drivers.emulators.rig import free_tcp_port
+from drivers.emulators.modbus_conditioner import free_tcp_port
 from drivers.errors import DeviceError
 from drivers.loadcells import LoadCellReader, decode_value, encode_value
 

@@ -96,7 +96,7 @@ def test_closed_bus_names_device():
 
 def test_udp_multicast_across_processes_smoke():
     """The transport of the emulated rig: frames cross process boundaries."""
-    from drivers.emulators.rig import emulated_hardware, start_emulator_process
+    from rig.hardware.emulated import emulated_hardware, start_emulator_process
 
     hw = emulated_hardware("/tmp/rig-test-valve")
     h = start_emulator_process(hw, plant="integrator")

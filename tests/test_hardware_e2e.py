@@ -102,7 +102,7 @@ def test_kill9_loop_keeps_log(tmp_path):
 
 def test_kill9_logger_then_recover(tmp_path):
     from drivers.config import hardware_of_profile
-    from drivers.emulators.rig import start_emulator_process
+    from rig.hardware.emulated import start_emulator_process
     from rig.config.profile import load_profile
 
     prof = private_profile(tmp_path, autostart=False)

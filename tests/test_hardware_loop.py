@@ -1,5 +1,6 @@
-"""The real-time loop process against the emulated rig: a clean run, and interlock trips
-that end in the safe state (valve nulled and disabled, seen from the valve emulator)."""
+"""The trial session on the hardware backend against the emulated rig: a clean run, and
+interlock trips that end in the safe state (valve nulled and disabled, seen from the valve
+emulator), with the session's stop state machine reaching SAFE then DONE."""
 
 from __future__ import annotations
 
@@ -12,10 +13,11 @@ import pytest
 from hw_helpers import private_profile
 
 from drivers.config import hardware_of_profile
-from drivers.emulators.rig import start_emulator_process
+from rig.hardware.emulated import start_emulator_process
 from rig.hardware.loop import BLOCK_KEYS
-from rig.hardware.runner import HardwareTrialFailed, run_hardware_trial
 from rig.config.profile import load_profile
+from rig.session import Phase, run_trial
+from rig.session.hardware import HardwareBackend
 
 
 class MemWriter:
@@ -40,6 +42,9 @@ class MemWriter:
     def loop_stats(self, t_s, stats):
         self.stats.append((t_s, stats))
 
+    def close(self, status, **summary):
+        self.status = status
+
     def col(self, key):
         return np.concatenate([b[key] for b in self.blocks])
 
@@ -57,10 +62,13 @@ def rig_env(tmp_path_factory):
 
 def _plan(x):
     x = np.asarray(x, dtype=float)
-    return SimpleNamespace(x_ref_um=x, loop_rate_hz=1000.0, duration_s=x.size / 1000.0, events=[])
+    return SimpleNamespace(x_ref_um=x, loop_rate_hz=1000.0, duration_s=(x.size - 1) / 1000.0, n_ticks=x.size,
+                           events=[])
 
 
-REC = SimpleNamespace(name="t", lubricant="boundary", normal_force_N=100.0, seed=2)
+def _run(rig_env, x, w):
+    return run_trial(_plan(x), HardwareBackend(rig_env.hw, rig_env.profile, emulator=rig_env.emu), w,
+                     handle_signals=False)
 
 
 def _clear(emu):
@@ -85,8 +93,11 @@ def test_clean_run_blocks_stats_and_tracking(rig_env):
     t = np.arange(n) / 1000.0
     x = 500.0 + np.clip(t - 0.3, 0, None) * 10.0  # hold, then 10 µm/s
     w = MemWriter()
-    s = run_hardware_trial(_plan(x), REC, rig_env.profile, w, emulator=rig_env.emu, echo=lambda *a, **k: None)
-    assert s["status"] == "completed"
+    res = _run(rig_env, x, w)
+    s = res.summary
+    assert res.status == "completed" and w.status == "completed" and s["status"] == "completed"
+    assert [h[0] for h in res.history] == [Phase.RUNNING, Phase.STOPPING, Phase.SAFE, Phase.DONE]
+    assert set(s["devices"]) == {"lvdt", "loadcells", "valve"} and s["devices"]["lvdt"]["frames_ok"] > 1000
     assert set(BLOCK_KEYS) <= set(w.blocks[0])
     ts = w.col("t_s")
     assert np.all(np.diff(ts) > 0) and ts[-1] == pytest.approx(1.499)
@@ -100,18 +111,20 @@ def test_clean_run_blocks_stats_and_tracking(rig_env):
     _safe_state(rig_env.emu)  # a completed trial also ends nulled and disabled
 
 
-def _run_with_fault(rig_env, x, inject, after_s=0.3):
+def _run_with_fault(rig_env, x, inject, after_s=0.3, confirmed_safe=True):
     _clear(rig_env.emu)
     w = MemWriter(after_s, (lambda: inject(rig_env.emu)) if inject else None)
-    with pytest.raises(HardwareTrialFailed) as ei:
-        run_hardware_trial(_plan(x), REC, rig_env.profile, w, emulator=rig_env.emu,
-                           echo=lambda *a, **k: None)
+    res = _run(rig_env, x, w)
+    assert res.status == "failed" and res.cause == "trip" and w.status == "failed", res
+    # SAFE only when the valve confirms it (a silent valve cannot: STOPPING -> DONE)
+    assert res.safe == confirmed_safe and (res.history[-2][0] is Phase.SAFE) == confirmed_safe
     st = _safe_state(rig_env.emu)
     trips = [e for e in w.events if e["kind"] == "interlock"]
-    assert len(trips) == 1 and trips[0]["message"], (w.events, ei.value.summary)
+    assert len(trips) == 1 and trips[0]["message"], (w.events, res.summary)
     assert w.col("valve_cmd")[-1] == 0.0  # the last logged ticks are nulled
+    assert any(e["kind"] == "trial_failed" for e in w.events)
     _clear(rig_env.emu)
-    return ei.value, trips[0], w, st
+    return res, trips[0], w, st
 
 
 @pytest.mark.parametrize("dev,fault,value,expect", [
@@ -124,17 +137,18 @@ def _run_with_fault(rig_env, x, inject, after_s=0.3):
 ])
 def test_device_fault_trips_to_safe_state(rig_env, dev, fault, value, expect):
     x = np.full(3000, 500.0)
-    exc, trip, w, _ = _run_with_fault(rig_env, x, lambda emu: emu.inject(dev, fault, value))
-    assert exc.summary["trip"]["name"] == expect
-    assert trip["t_s"] > 0.2 and expect in str(exc) or trip["message"] in str(exc)
+    res, trip, w, _ = _run_with_fault(rig_env, x, lambda emu: emu.inject(dev, fault, value),
+                                      confirmed_safe=(dev, fault) != ("valve", "silent"))
+    assert res.summary["trip"]["name"] == expect == trip["name"]
+    assert trip["t_s"] > 0.2 and trip["message"] in res.reason
 
 
 def test_stroke_limit_trips_and_holds(rig_env):
     # profile limit here: stroke_max_um 530; the reference runs on to 560 µm at 50 µm/s
     t = np.arange(2000) / 1000.0
     x = 500.0 + 50.0 * np.clip(t - 0.1, 0, None) * (t < 1.5) + 50.0 * 1.4 * (t >= 1.5)
-    exc, trip, w, st = _run_with_fault(rig_env, x, None)
-    assert exc.summary["trip"]["name"] == "stroke_limit"
+    res, trip, w, st = _run_with_fault(rig_env, x, None)
+    assert res.summary["trip"]["name"] == "stroke_limit"
     assert trip["values"]["position_um"] > 530.0 and trip["name"] == "stroke_limit"
     pos = w.col("position_um")
     assert pos.max() < 545.0  # stopped within a few hundred ms of travel
@@ -143,7 +157,7 @@ def test_stroke_limit_trips_and_holds(rig_env):
 def test_port_vanishes_mid_run_trips_device_lost(rig_env):
     # last test of the module: the emulator's LVDT is gone afterwards
     x = np.full(3000, 500.0)
-    exc, trip, w, _ = _run_with_fault(rig_env, x, lambda emu: emu.inject("lvdt", "vanish", True))
-    assert exc.summary["trip"]["name"] == "device_lost"
+    res, trip, w, _ = _run_with_fault(rig_env, x, lambda emu: emu.inject("lvdt", "vanish", True))
+    assert res.summary["trip"]["name"] == "device_lost"
     assert "LVDT conditioner at serial:" in trip["message"]
     assert trip["values"]["address"].startswith("serial:")

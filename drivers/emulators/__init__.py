@@ -1,4 +1,4 @@
-"""Device emulators over real transports, driven by the simulated plant.
+"""Per-device protocol emulators over real transports.
 
 * :mod:`.modbus_conditioner`: the load-cell conditioner, a pymodbus server on
   TCP (127.0.0.1) or RTU over a pty pair bridged in Python (:mod:`.pty`);
@@ -6,12 +6,12 @@
 * :mod:`.valve_controller`: the servovalve controller on a python-can bus
   (``udp_multicast`` across processes, ``virtual`` inside one), with a watchdog
   that nulls the output when setpoints stop;
-* :mod:`.rig`: :class:`EmulatedRig`, all three around one plant
-  (``rig.sim.SimRig.plant_step``), stepped once per received setpoint (lock
-  step with the controller) or free-running at 1 kHz with the valve nulled,
-  in its own process (:func:`start_emulator_process`).
+Each knows its device only and gets its values through a small interface
+(``send(position_um)``, ``update(forces)`` or a shared-memory sample,
+``output(now)``); the emulated rig that composes them with the simulated plant
+is :mod:`rig.hardware.emulated` (drivers/ imports nothing from rig/).
 
-Fault injection (``EmulatedRig.inject(device, fault, value)``): dropped or
+Fault injection (``rig.hardware.emulated.EmulatedRig.inject(device, fault, value)``): dropped or
 corrupted LVDT frames, garbage bytes, silent or vanished devices, slow Modbus
 answers, Modbus exception responses, a frozen sample counter, the valve fault
 bit, a silent valve controller (missing heartbeat).

@@ -171,17 +171,26 @@ class ModbusConditionerEmulator:
             self._thread.join(timeout=3)
 
 
+def free_tcp_port() -> int:
+    """A TCP port on 127.0.0.1 that nothing listens on now (for an emulator's server)."""
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
 def modbus_server_main(cfg_dict, shared: SharedSample, rtu_server_port, fifo_priority, conn):
-    """Entry of the Modbus server process (started by :class:`drivers.emulators.rig.EmulatedRig`)."""
+    """Entry of the Modbus server process (started by the emulated rig, :class:`rig.hardware.emulated.EmulatedRig`)."""
     import logging
     import os
     import signal
     import sys
     import time
 
-    from drivers.emulators.rig import _set_pdeathsig
+    from drivers.linux import set_pdeathsig
 
-    _set_pdeathsig()
+    set_pdeathsig()
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
     sys.setswitchinterval(1e-4)

@@ -47,60 +47,54 @@ def _load(profile_path: Path):
     return profile, hw
 
 
-def check_devices(hw) -> list[dict]:
-    """Connect to each device, read it once; one row per device (never raises)."""
-    from drivers.errors import DeviceError
-    from drivers.loadcells import LoadCellReader
-    from drivers.lvdt import LvdtReader
-    from drivers.valve import ValveController
+DEVICE_LABELS = {"loadcells": "load cells", "lvdt": "LVDT", "valve": "servovalve"}
 
+
+def _reading(rig, name: str) -> str:
+    if name == "loadcells":
+        f, n1, n2 = rig.forces.forces_N
+        return (f"friction {f:.3f} N, normal 1 {n1:.3f} N, normal 2 {n2:.3f} N, "
+                f"counter {rig.forces.counter}, status 0x{rig.forces.status:04x}")
+    if name == "lvdt":
+        lv = rig.position
+        return f"position {lv.position_um:.3f} µm, seq {lv.seq}, status 0x{lv.status:02x}"
+    va = rig.valve.final_state()
+    return f"status 0x{va['status_bits']:02x} (enabled {va['enabled']}), output {va['output']:+.4f}"
+
+
+def check_devices(hw) -> list[dict]:
+    """Connect to each device, wait for its first data, read it once; one row per device (never raises)."""
+    from drivers.errors import DeviceError
+    from rig.hardware.devices import build_devices, wait_for_data
+
+    rig = build_devices(hw)
+    order = (rig.forces, rig.position, rig.valve)
     rows = []
-    lc = LoadCellReader(hw.loadcells)
-    try:
-        lc.connect()
-        f, n1, n2 = lc.read()
-        rows.append({"device": "load cells", "address": lc.address, "ok": True,
-                     "reading": f"friction {f:.3f} N, normal 1 {n1:.3f} N, normal 2 {n2:.3f} N, "
-                                f"counter {lc.counter}, status 0x{lc.status:04x}"})
-    except DeviceError as exc:
-        rows.append({"device": "load cells", "address": lc.address, "ok": False, "reading": exc.message})
-    finally:
-        lc.close()
-    lv = LvdtReader(hw.lvdt)
-    try:
-        lv.connect()
-        lv.wait_frame(0.5)
-        rows.append({"device": "LVDT", "address": lv.address, "ok": True,
-                     "reading": f"position {lv.position_um:.3f} µm, seq {lv.seq}, status 0x{lv.status:02x}"})
-    except DeviceError as exc:
-        rows.append({"device": "LVDT", "address": lv.address, "ok": False, "reading": exc.message})
-    finally:
-        lv.close()
-    va = ValveController(hw.valve)
-    try:
-        va.connect()
-        va.wait_status(max(0.2, 4 * hw.valve.heartbeat_timeout_s))
-        rows.append({"device": "servovalve", "address": va.address, "ok": True,
-                     "reading": f"status 0x{va.status_bits:02x} (enabled {va.enabled}, fault {va.fault}), "
-                                f"heartbeat {va.heartbeat}, output {va.output:+.4f}"})
-    except DeviceError as exc:
-        rows.append({"device": "servovalve", "address": va.address, "ok": False, "reading": exc.message})
-    finally:
-        va.close()
+    for dev in order:
+        row = {"device": DEVICE_LABELS[dev.name], "address": dev.address}
+        try:
+            dev.connect()
+            wait_for_data([dev], max(0.5, 4 * hw.valve.heartbeat_timeout_s), time.monotonic)
+            row.update(ok=True, reading=_reading(rig, dev.name))
+        except DeviceError as exc:
+            row.update(ok=False, reading=exc.message)
+        finally:
+            dev.close()
+        rows.append(row)
     return rows
 
 
 def devices_check(
     hardware: Path = typer.Option(..., "--hardware", metavar="PROFILE", help="Rig profile with a hardware section."),
     start_emulators: bool = typer.Option(False, "--start-emulators",
-                                         help="Start the emulated devices first (drivers/emulators)."),
+                                         help="Start the emulated devices first (rig.hardware.emulated)."),
     as_json: bool = typer.Option(False, "--json", help="Print the result as JSON."),
 ):
     """Connect to every device, read each once, say what answered. Exit 1 if any did not."""
     profile, hw = _load(hardware)
     emu = None
     if start_emulators:
-        from drivers.emulators.rig import EmulatorError, start_emulator_process
+        from rig.hardware.emulated import EmulatorError, start_emulator_process
 
         try:
             emu = start_emulator_process(hw, profile)
@@ -130,7 +124,7 @@ def emulate(
     seconds: Optional[float] = typer.Option(None, "--seconds", help="Stop after this long (default: Ctrl-C)."),
 ):
     """Serve the emulated devices of PROFILE (Modbus, LVDT pty, CAN valve) until Ctrl-C."""
-    from drivers.emulators.rig import EmulatorError, start_emulator_process
+    from rig.hardware.emulated import EmulatorError, start_emulator_process
 
     profile, hw = _load(profile_path)
     try:
@@ -154,69 +148,56 @@ def emulate(
                   f"LVDT frames {st.get('lvdt_sent')}", highlight=False)
 
 
-class _NullWriter:
-    """A writer that only counts (loop-bench logs nothing)."""
+def loop_bench(seconds: float = 60.0, profile_path: Path = DEFAULT_EMULATED, out_json: Path | None = None) -> dict:
+    """Run the loop holding position against the (emulated) devices; return the final statistics.
 
-    ticks = 0
-    last_t_s = 0.0
-
-    def __init__(self):
-        self.stats = []
-        self.events = []
-
-    def schedule_events(self, events):
-        pass
-
-    def write_block(self, block):
-        self.ticks += len(block["t_s"])
-        self.last_t_s = float(block["t_s"][-1])
-
-    def event(self, t_s, kind, **data):
-        self.events.append({"t_s": t_s, "kind": kind, **data})
-
-    def loop_stats(self, t_s, stats):
-        self.stats.append((t_s, stats))
-
-
-def loop_bench(seconds: float = 60.0, profile_path: Path = DEFAULT_EMULATED, out_json: Path | None = None,
-               echo=print) -> dict:
-    """Run the loop holding position against the (emulated) devices; return the final statistics."""
+    The trial session runs on the hardware backend and logs to memory (events and statistics only).
+    Raises :class:`LoopBenchFailed` if the loop stopped early (a trip, a lost device).
+    """
     import numpy as np
 
     from drivers.config import hardware_of_profile
-    from rig.hardware.runner import run_hardware_trial
     from rig.config.profile import load_profile
+    from rig.session import MemoryLog, run_trial
+    from rig.session.hardware import HardwareBackend
 
     profile = load_profile(profile_path)
     hw = hardware_of_profile(profile)
     rate = float(profile.loop.rate_hz)
     x = np.full(int(round(seconds * rate)), float(profile.stroke.home_um))
-    plan = SimpleNamespace(x_ref_um=x, loop_rate_hz=rate, duration_s=seconds, events=[])
-    recipe = SimpleNamespace(name="loop-bench", lubricant="boundary", normal_force_N=None, seed=1)
+    plan = SimpleNamespace(x_ref_um=x, loop_rate_hz=rate, duration_s=(x.size - 1) / rate, n_ticks=x.size,
+                           events=[])
     emu = None
     if hw.emulators.autostart:
-        from drivers.emulators.rig import start_emulator_process
+        from rig.hardware.emulated import start_emulator_process
 
         emu = start_emulator_process(hw, profile, lubricant="boundary")
     load_before = os.getloadavg()
     t0 = time.time()
     try:
-        summary = run_hardware_trial(plan, recipe, profile, _NullWriter(), emulator=emu,
-                                     echo=lambda *a, **k: None)
+        result = run_trial(plan, HardwareBackend(hw, profile, emulator=emu), MemoryLog(keep_blocks=False,
+                                                                                      rate_hz=rate))
         emu_stats = emu.stats() if emu is not None else {}
     finally:
         if emu is not None:
             emu.stop()
+    if result.status != "completed":
+        raise LoopBenchFailed(result.reason)
+    summary = result.summary
     res = dict(summary["timing"])
     res["emulator"] = {k: emu_stats.get(k) for k in ("steps", "lock_steps", "free_steps", "max_gap_s",
                                                      "gaps_over_5ms", "modbus_requests")}
     res.update(seconds=seconds, loadavg_before=load_before, loadavg_after=os.getloadavg(),
                started_utc=time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime(t0)),
                realtime=summary.get("realtime"), cpus=os.cpu_count(), emulated=hw.emulators.autostart,
-               modbus=summary.get("modbus"), lvdt=summary.get("lvdt"), can=summary.get("can"))
+               devices=summary.get("devices"))
     if out_json:
         Path(out_json).write_text(json.dumps(res, indent=2, default=str))
     return res
+
+
+class LoopBenchFailed(RuntimeError):
+    """The loop stopped before the end of the bench (the message says why)."""
 
 
 def loop_bench_command(
@@ -226,13 +207,12 @@ def loop_bench_command(
     out_json: Optional[Path] = typer.Option(None, "--json", help="Also write the figures to this JSON file."),
 ):
     """Run the 1 kHz loop holding position against the devices; print jitter, lateness, misses."""
-    from rig.hardware.runner import HardwareTrialFailed
     from rig.hardware.timing import format_stats
 
     _load(hardware)
     try:
         res = loop_bench(seconds, hardware, out_json)
-    except HardwareTrialFailed as exc:
+    except LoopBenchFailed as exc:
         _fail(f"the loop stopped: {exc}", 1)
     console.print(format_stats(res, f"loop-bench {seconds:g} s"), highlight=False)
     rt = res.get("realtime") or {}

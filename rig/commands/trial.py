@@ -1,12 +1,11 @@
 """Trial commands: ``rig run``, ``rig info``, ``rig export``, ``rig import``, ``rig recover``.
 
-``rig run RECIPE --sim`` loads and validates the recipe (:mod:`rig.recipe`),
+``rig run RECIPE --sim`` loads and validates the recipe (:mod:`rig.config.recipe`),
 the rig profile and the friction model, compiles the reference
 (:mod:`trajectories`) and checks it against the stroke and the actuator BEFORE
-anything moves, then runs the closed loop (:class:`rig.sim.SimRig`) block by
-block and logs every block to one MCAP per trial (:mod:`rig.log`).
-``--hardware PROFILE`` hands the same plan and log writer to
-``rig.hardware.runner.run_hardware_trial``.
+anything moves, then hands the plan to the trial session (:mod:`rig.session`)
+on the simulated rig's backend (``--sim``) or the hardware's (``--hardware
+PROFILE``, :class:`rig.session.hardware.HardwareBackend`), one MCAP per trial.
 
 Exit status: 0 success; 2 bad input (recipe, profile, plan, CSV; nothing is
 written); 1 a failure while running; 130 interrupted by Ctrl-C (the MCAP is
@@ -16,12 +15,11 @@ finished with what was logged and marked ``interrupted``).
 from __future__ import annotations
 
 import json
-import math
 import time
 import warnings
 from enum import Enum
 from pathlib import Path
-from typing import Any, Callable, Optional
+from typing import Any, Optional
 
 import typer
 from rich.console import Console
@@ -42,7 +40,7 @@ def _fail(message: str, code: int = EXIT_BAD_INPUT) -> None:
 
 
 # ---------------------------------------------------------------------------
-# Progress reporting (shared with the hardware runner)
+# Progress reporting
 # ---------------------------------------------------------------------------
 
 class TrialProgress:
@@ -119,71 +117,22 @@ class TrialProgress:
 
 
 # ---------------------------------------------------------------------------
-# Running a simulated trial
+# rig run
 # ---------------------------------------------------------------------------
 
-def run_sim_trial(plan, recipe, profile, writer, progress: Callable | None = None, *, friction_model=None,
-                  seed: int = 0, normal_force_N: float | None = None, stats_every_s: float = 1.0) -> dict:
-    """Run ``plan`` on the simulated rig, logging every block to ``writer``.
-
-    Planned events are logged as the loop reaches them; loop statistics (ticks,
-    wall time, real-time factor, tracking error) every ``stats_every_s`` of
-    simulated time. A KeyboardInterrupt propagates after logging an
-    ``interrupted`` event (the caller closes the log).
-    """
-    from rig.sim import SimRig
-
-    lubricant = recipe.lubricant
-    fm = friction_model if friction_model is not None else profile.friction_model(lubricant)
-    nf = float(normal_force_N if normal_force_N is not None else recipe.normal_force_N)
-    rig = SimRig(profile, fm, nf, seed)
-    block_ticks = max(1, int(round(recipe.log.block_s * plan.loop_rate_hz)))
-    writer.schedule_events(plan.events)
-    writer.event(0.0, "trial_start", recipe=recipe.name, lubricant=lubricant, normal_force_N=nf, seed=seed,
-                 duration_s=plan.duration_s, n_ticks=plan.n_ticks, backend="sim")
-    t_wall0 = time.perf_counter()
-    dt_half = 0.5 / plan.loop_rate_hz
-    next_stats = stats_every_s
-    # window of the loop statistics: differences of the writer's running sums
-    w0 = (t_wall0, writer.ticks, writer.sum_err2_um2, writer.n_err, writer.n_valve_saturated)
-    t_last = 0.0
-    try:
-        for block in rig.run_blocks(plan.x_ref_um, block_ticks=block_ticks):
-            writer.write_block(block)
-            t_last = float(block["t_s"][-1])
-            if t_last >= next_stats - dt_half:
-                now = time.perf_counter()
-                dw = now - w0[0]
-                ticks = writer.ticks - w0[1]
-                n_err = writer.n_err - w0[3]
-                writer.loop_stats(t_last, {
-                    "ticks": ticks, "wall_s": dw, "ticks_per_s": ticks / dw if dw > 0 else None,
-                    "realtime_factor": (ticks / plan.loop_rate_hz) / dw if dw > 0 else None,
-                    "tracking_error_rms_um": math.sqrt((writer.sum_err2_um2 - w0[2]) / n_err) if n_err else None,
-                    "valve_saturated_fraction": (writer.n_valve_saturated - w0[4]) / ticks if ticks else None})
-                w0 = (now, writer.ticks, writer.sum_err2_um2, writer.n_err, writer.n_valve_saturated)
-                next_stats += stats_every_s
-            if progress is not None:
-                progress(t_last)
-    except KeyboardInterrupt:
-        writer.event(t_last, "interrupted", reason="KeyboardInterrupt (Ctrl-C)")
-        raise
-    wall = time.perf_counter() - t_wall0
-    return {"ticks": writer.ticks, "duration_s": t_last, "wall_s": wall}
-
-
-def _summary_table(result: dict, writer, out: Path, status: str) -> Table:
-    ticks = writer.ticks
-    wall = result.get("wall_s") or float("nan")
-    dur = writer.last_t_s
-    tab = Table(title=f"trial {status}: {out}", show_header=False, box=None)
+def _summary_table(result, out: Path) -> Table:
+    fig = result.figures
+    ticks, wall, dur = result.ticks, result.wall_s, result.duration_s
+    tab = Table(title=f"trial {result.status}: {out}", show_header=False, box=None)
     tab.add_row("simulated/trial time", f"{dur:.2f} s")
     tab.add_row("wall time", f"{wall:.2f} s")
     tab.add_row("loop ticks", f"{ticks} ({ticks / wall:,.0f} ticks/s, {dur / wall:.1f}x real time)"
                 if wall and wall > 0 else str(ticks))
-    tab.add_row("tracking error rms", f"{writer.tracking_error_rms_um:.3f} µm (max {writer.max_abs_err_um:.2f} µm)")
-    tab.add_row("mean friction", f"{writer.mean_friction_N:.3f} N (mu {writer.mean_mu:.4f}); "
-                                 f"mean |friction| {writer.mean_abs_friction_N:.3f} N")
+    tab.add_row("tracking error rms", f"{fig.tracking_error_rms_um:.3f} µm (max {fig.max_abs_err_um:.2f} µm)")
+    tab.add_row("mean friction", f"{fig.mean_friction_N:.3f} N (mu {fig.mean_mu:.4f}); "
+                                 f"mean |friction| {fig.mean_abs_friction_N:.3f} N")
+    if result.status != "completed":
+        tab.add_row("stopped", f"{result.cause}: {result.reason}")
     size = out.stat().st_size if out.exists() else 0
     tab.add_row("file written", f"{out} ({size / 1e6:.2f} MB)")
     return tab
@@ -195,33 +144,13 @@ def _trial_paths(out: Path, n: int) -> list[Path]:
     return [out.with_name(f"{out.stem}-{k + 1:02d}{out.suffix}") for k in range(n)]
 
 
-def _git_describe() -> str:
-    """The repository's commit (and '-dirty'), for the trial metadata; '' outside a git checkout."""
-    import subprocess
-
-    repo = Path(__file__).resolve().parents[2]
-    try:
-        out = subprocess.run(["git", "-C", str(repo), "describe", "--always", "--dirty", "--abbrev=12"],
-                             capture_output=True, text=True, timeout=3)
-        return out.stdout.strip() if out.returncode == 0 else ""
-    except (OSError, subprocess.SubprocessError):
-        return ""
-
-
-def _profile_dict(profile) -> dict:
-    try:
-        return profile.model_dump(mode="json")
-    except Exception:  # pragma: no cover - a non-pydantic profile
-        return {"repr": repr(profile)}
-
-
 def run_command(
     recipe_path: Path = typer.Argument(..., help="Recipe YAML (config/recipes/*.yaml).", show_default=False,
                                      metavar="RECIPE"),
-    sim: bool = typer.Option(False, "--sim", help="Run on the simulated rig (rig.sim.SimRig)."),
+    sim: bool = typer.Option(False, "--sim", help="Run on the simulated rig (rig.session.sim.SimBackend)."),
     hardware: Optional[Path] = typer.Option(None, "--hardware", metavar="PROFILE",
                                             help="Run on the real rig described by this hardware profile YAML "
-                                                 "(rig.hardware.runner)."),
+                                                 "(rig.session.hardware.HardwareBackend)."),
     lubricant: Optional[str] = typer.Option(None, "--lubricant",
                                             help="Override the recipe's lubricant: dry, paraffin or boundary."),
     out: Optional[Path] = typer.Option(None, "--out", "-o",
@@ -248,9 +177,7 @@ def run_command(
 
     Exit status: 0 done; 2 bad input (nothing written); 1 failure while running; 130 interrupted.
     """
-    from rig.log import TrialLogWriter
-    from rig.config.recipe import LUBRICANTS, RecipeError, load_recipe
-    from rig.config.recipe import compile_recipe
+    from rig.config.recipe import LUBRICANTS, RecipeError, compile_recipe, load_recipe
     from trajectories import PlanError
 
     if sim == (hardware is not None) and not plan_only:
@@ -266,10 +193,7 @@ def run_command(
 
     from rig.config.profile import ProfileError, default_profile_path, load_profile
 
-    if hardware is not None:
-        ppath = hardware
-    else:
-        ppath = profile_path or recipe.profile_path() or default_profile_path()
+    ppath = hardware if hardware is not None else (profile_path or recipe.profile_path() or default_profile_path())
     try:
         profile = load_profile(ppath)
     except ProfileError as exc:
@@ -293,84 +217,60 @@ def run_command(
     if plan_only:
         typer.echo(plan.summary())
         return
-
-    run_hw = None
-    aborted_types: tuple = (KeyboardInterrupt,)
     if hardware is not None:
+        from drivers.config import HardwareConfigError, hardware_of_profile
+        from rig.session.hardware import HardwareBackend
+
         try:
-            from rig.hardware import runner as hw_runner
-        except ModuleNotFoundError as exc:
-            if exc.name and (exc.name == "rig.hardware" or exc.name.startswith("rig.hardware.")):
-                _fail("hardware support is not installed (rig.hardware.runner is missing); use --sim", EXIT_FAILURE)
-            raise
-        run_hw = getattr(hw_runner, "run_hardware_trial", None)
-        if run_hw is None:
-            _fail("rig.hardware.runner has no run_hardware_trial(); hardware support incomplete", EXIT_FAILURE)
-        aborted = getattr(hw_runner, "HardwareTrialAborted", None)
-        if isinstance(aborted, type):
-            aborted_types = (KeyboardInterrupt, aborted)
+            hw = hardware_of_profile(profile, where=str(hardware))
+        except HardwareConfigError as exc:
+            _fail(str(exc))
+
+    from rig.session.logfile import git_describe, run_to_log
+    from rig.session.sim import SimBackend
 
     out = out or Path("out") / f"{recipe.name}.mcap"
     if out.suffix.lower() != ".mcap":
         _fail(f"--out {out}: the trial log is an MCAP file (use a .mcap name)")
     paths = _trial_paths(out, recipe.trials)
     base_seed = recipe.seed if seed is None else seed
-    recipe_json = recipe.model_dump(mode="json")
-    profile_json = _profile_dict(profile)
-    git_commit = _git_describe()
-    exit_code = 0
+    git_commit = git_describe()
+    block_ticks = max(1, int(round(recipe.log.block_s * plan.loop_rate_hz)))
     for k, path in enumerate(paths):
         trial_seed = base_seed + k
         meta = {"recipe": recipe.name, "recipe_file": str(recipe_path), "lubricant": recipe.lubricant,
                 "normal_force_N": recipe.normal_force_N, "seed": trial_seed, "trial": k + 1,
-                "trials": len(paths), "profile": str(ppath), "profile_name": getattr(profile, "name", ""),
+                "trials": len(paths), "profile": str(ppath), "profile_name": profile.name,
                 "backend": "hardware" if hardware is not None else "sim",
                 "friction_model": str(friction_model) if friction_model else f"profile:{recipe.lubricant}",
                 "plan_duration_s": plan.duration_s, "git_commit": git_commit}
         if fm is not None:
             meta["friction_model_json"] = fm.model_dump_json()
-        try:
-            writer = TrialLogWriter(path, loop_rate_hz=plan.loop_rate_hz,
-                                    decimated_rate_hz=recipe.log.decimated_rate_hz,
-                                    raw_rate_hz=recipe.log.raw_rate_hz, metadata=meta,
-                                    recipe_yaml=recipe.source_text, recipe=recipe_json, profile=profile_json,
-                                    raw_encoding=recipe.log.raw_encoding, raw_dtype=recipe.log.raw_dtype)
-        except OSError as exc:
-            _fail(f"cannot write {path}: {exc.strerror or exc}", EXIT_FAILURE)
+        if hardware is not None:
+            backend = HardwareBackend(hw, profile, lubricant=recipe.lubricant,
+                                      normal_force_N=recipe.normal_force_N, seed=trial_seed)
+        else:
+            backend = SimBackend(profile, fm if fm is not None else profile.friction_model(recipe.lubricant),
+                                 recipe.normal_force_N, trial_seed, block_ticks=block_ticks)
         title = f"trial {k + 1}/{len(paths)} " if len(paths) > 1 else ""
-        status = "completed"
-        result: dict = {}
-        t0 = time.perf_counter()
         try:
             with TrialProgress(plan, title=title, enabled=not quiet) as prog:
-                if run_hw is not None:
-                    result = run_hw(plan, recipe, profile, writer, prog) or {}
-                else:
-                    result = run_sim_trial(plan, recipe, profile, writer, prog, friction_model=fm,
-                                           seed=trial_seed, normal_force_N=recipe.normal_force_N)
-        except aborted_types:
-            status = "interrupted"
-            exit_code = EXIT_INTERRUPTED
-        except Exception as exc:  # a failure while running: keep what was logged
-            status = "failed"
-            exit_code = EXIT_FAILURE
-            err_console.print(f"[bold red]error:[/] trial {k + 1} failed: {type(exc).__name__}: {exc}",
-                              highlight=False)
-        result.setdefault("wall_s", time.perf_counter() - t0)
-        wall = result["wall_s"]
-        try:
-            writer.close(status, wall_s=wall, ticks_per_s=writer.ticks / wall if wall > 0 else 0.0,
-                         realtime_factor=writer.last_t_s / wall if wall > 0 else 0.0,
-                         tracking_error_rms_um=writer.tracking_error_rms_um,
-                         mean_friction_N=writer.mean_friction_N, mean_abs_friction_N=writer.mean_abs_friction_N)
-        except Exception as exc:  # e.g. disk full: the file cannot be finished
-            _fail(f"cannot finish {path}: {exc}; `rig recover {path} --out FIXED.mcap` keeps what reached "
-                  f"the disk", EXIT_FAILURE)
-        console.print(_summary_table(result, writer, path, status))
-        if exit_code:
-            if status == "interrupted":
-                err_console.print(f"interrupted: {path} holds what was logged (status 'interrupted')")
-            raise typer.Exit(exit_code)
+                result = run_to_log(path, plan, recipe, profile, backend, meta, progress=prog,
+                                    echo=lambda text: err_console.print(text, highlight=False, markup=False),
+                                    trial_fields={"normal_force_N": recipe.normal_force_N, "seed": trial_seed})
+        except OSError as exc:
+            _fail(f"cannot write {path}: {exc.strerror or exc}", EXIT_FAILURE)
+        if result.close_error:
+            _fail(f"cannot finish {path}: {result.close_error}; `rig recover {path} --out FIXED.mcap` keeps "
+                  f"what reached the disk", EXIT_FAILURE)
+        if result.status == "failed":
+            err_console.print(f"[bold red]error:[/] trial {k + 1} failed: {result.reason}", highlight=False)
+        console.print(_summary_table(result, path))
+        if result.status == "interrupted":
+            err_console.print(f"interrupted: {path} holds what was logged (status 'interrupted')")
+            raise typer.Exit(EXIT_INTERRUPTED)
+        if result.status == "failed":
+            raise typer.Exit(EXIT_FAILURE)
 
 
 # ---------------------------------------------------------------------------

@@ -6,18 +6,35 @@ state: valve command nulled, controller disabled (the servovalve controller
 also nulls itself when setpoints stop: its watchdog), the actuator then holds
 where it is (a nulled servovalve blocks the cylinder's ports).
 
+The interlocks see the process values and each device's
+:class:`drivers.device.DeviceHealth` (frames ok/bad/lost, age of the last
+data, errors, status and fault bits), never a driver's internals. Devices by
+their loop name: ``lvdt`` (position), ``loadcells`` (forces), ``valve``.
+
 Limits (``hardware.interlocks`` of the profile): stroke limits (default: the
 profile's stroke; the paper's LVDT and actuator allow 5 mm), friction force
-limit, normal force band per rider, stale sensor data, valve fault bit or
-missing heartbeat, CAN send errors, Modbus exceptions/timeouts, serial
-checksum errors in one second, a run of late cycles, following error.
+limit, normal force band per rider, stale sensor data, device fault bits,
+missing valve heartbeat, CAN error frames, consecutive Modbus and CAN send
+errors, serial checksum errors in one second, a run of late cycles,
+following error.
 """
 
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
+from typing import Mapping
 
 from drivers.config import InterlockConfig
+from drivers.device import DeviceHealth
+from drivers.errors import DeviceError
+
+# per device: the names of its trips
+STALE_TRIP = {"lvdt": "stale_position", "loadcells": "stale_forces", "valve": "valve_heartbeat"}
+FAULT_TRIP = {"lvdt": "lvdt_fault", "loadcells": "loadcell_fault", "valve": "valve_fault"}
+ERRORS_TRIP = {"loadcells": "modbus_errors", "valve": "can_bus_errors"}
+# trips after which nothing from the device can be trusted: stop at once (no hold)
+DEVICE_TRIPS = frozenset({"device_lost", "modbus_errors", "can_bus_errors", "stale_forces", "stale_position",
+                          "valve_heartbeat"})
 
 
 @dataclass
@@ -40,17 +57,18 @@ class Interlocks:
     def __init__(self, cfg: InterlockConfig, stroke_min_um: float, stroke_max_um: float,
                  heartbeat_timeout_s: float, period_s: float = 1e-3):
         self.cfg = cfg
-        # stale = older than stale_s AND no new data over that many loop ticks, so that a
+        # stale = older than its limit AND no new data over that many loop ticks, so that a
         # stall of the whole machine (the loop itself late) is not taken for a dead device
         self.stale_ticks = max(2, int(round(cfg.stale_s / period_s)))
+        self.stale_s = {"lvdt": cfg.stale_s, "loadcells": cfg.stale_s, "valve": heartbeat_timeout_s}
         self.x_min = cfg.stroke_min_um if cfg.stroke_min_um is not None else stroke_min_um
         self.x_max = cfg.stroke_max_um if cfg.stroke_max_um is not None else stroke_max_um
-        self.hb_timeout = heartbeat_timeout_s
         self.late_run = 0
         self._bad_window_start_t = None
         self._bad_at_window_start = 0
 
-    def check(self, t_s, now, x_ref, x, f, n1, n2, lvdt, loadcells, valve, late_s) -> Trip | None:
+    def check(self, t_s: float, now: float, x_ref: float, x: float, f: float, n1: float, n2: float,
+              health: Mapping[str, DeviceHealth], late_s: float) -> Trip | None:
         c = self.cfg
         # deadlines
         if late_s > c.late_threshold_s:
@@ -62,46 +80,34 @@ class Interlocks:
                             {"late_s": late_s, "run": self.late_run})
         else:
             self.late_run = 0
-        # stale data
-        a = lvdt.age_s(now)
-        if a > c.stale_s and lvdt.polls_since_frame >= self.stale_ticks:
-            return Trip("stale_position", f"no LVDT frame from {lvdt.address} for {a * 1e3:.1f} ms",
-                        t_s, {"age_s": a, "limit_s": c.stale_s, "polls": lvdt.polls_since_frame,
-                              "forces_age_s": loadcells.age_s(now),
-                              "forces_reads_since_new": loadcells.reads_since_new})
-        a = loadcells.age_s(now)
-        if a > c.stale_s and loadcells.reads_since_new >= self.stale_ticks:
-            return Trip("stale_forces", f"load-cell sample counter at {loadcells.address} "
-                        f"unchanged for {a * 1e3:.1f} ms", t_s, {"age_s": a, "limit_s": c.stale_s})
-        # serial checksum errors per second
-        bad = lvdt.parser.bad_frames
-        if self._bad_window_start_t is None or now - self._bad_window_start_t >= 1.0:
-            self._bad_window_start_t = now
-            self._bad_at_window_start = bad
-        if bad - self._bad_at_window_start > c.max_checksum_errors:
-            return Trip("serial_checksum_errors",
-                        f"{bad - self._bad_at_window_start} LVDT frames with a bad checksum within 1 s "
-                        f"on {lvdt.address}", t_s,
-                        {"bad_frames": bad, "limit": c.max_checksum_errors})
-        if lvdt.status & 0x03:
-            return Trip("lvdt_fault", f"LVDT conditioner reports status 0x{lvdt.status:02x}", t_s,
-                        {"status": lvdt.status})
-        if loadcells.status & 0x03:
-            return Trip("loadcell_fault", f"load-cell conditioner reports status 0x{loadcells.status:04x}",
-                        t_s, {"status": loadcells.status})
-        # valve
-        if valve.fault:
-            return Trip("valve_fault", f"servovalve controller at {valve.address} reports a fault "
-                        f"(code 0x{valve.fault_code:04x})", t_s,
-                        {"status_bits": valve.status_bits, "fault_code": valve.fault_code})
-        a = valve.heartbeat_age_s(now)
-        if a > self.hb_timeout and valve.polls_since_status >= self.stale_ticks:
-            return Trip("valve_heartbeat", f"no status frame from the servovalve controller at "
-                        f"{valve.address} for {a * 1e3:.1f} ms", t_s,
-                        {"age_s": a, "limit_s": self.hb_timeout})
-        if valve.bus_error_frames:
-            return Trip("can_bus_errors", f"{valve.bus_error_frames} CAN error frames on {valve.address}",
-                        t_s, {"error_frames": valve.bus_error_frames})
+        # stale data, faults
+        for name, h in health.items():
+            limit = self.stale_s.get(name, c.stale_s)
+            if h.age_s > limit and h.polls_since_new >= self.stale_ticks:
+                return Trip(STALE_TRIP.get(name, f"stale_{name}"),
+                            f"no new data from the {h.device} at {h.address} for {h.age_s * 1e3:.1f} ms",
+                            t_s, {"age_s": h.age_s, "limit_s": limit, "polls": h.polls_since_new})
+        for name, h in health.items():
+            if h.fault:
+                return Trip(FAULT_TRIP.get(name, f"{name}_fault"),
+                            f"the {h.device} at {h.address} reports a fault (code 0x{h.fault_code:04x})", t_s,
+                            {"status": h.status, "fault_code": h.fault_code})
+        # serial checksum errors per second (the LVDT stream)
+        lv = health.get("lvdt")
+        if lv is not None:
+            bad = lv.frames_bad
+            if self._bad_window_start_t is None or now - self._bad_window_start_t >= 1.0:
+                self._bad_window_start_t = now
+                self._bad_at_window_start = bad
+            if bad - self._bad_at_window_start > c.max_checksum_errors:
+                return Trip("serial_checksum_errors",
+                            f"{bad - self._bad_at_window_start} frames with a bad checksum within 1 s "
+                            f"from the {lv.device} at {lv.address}", t_s,
+                            {"bad_frames": bad, "limit": c.max_checksum_errors})
+        va = health.get("valve")
+        if va is not None and va.frames_bad:
+            return Trip("can_bus_errors", f"{va.frames_bad} CAN error frames on {va.address}",
+                        t_s, {"error_frames": va.frames_bad})
         # process limits
         if x < self.x_min or x > self.x_max:
             return Trip("stroke_limit", f"position {x:.1f} µm outside the stroke "
@@ -121,22 +127,17 @@ class Interlocks:
                         {"position_ref_um": x_ref, "position_um": x})
         return None
 
-    def device_error(self, t_s, exc, counters: dict) -> Trip | None:
-        """A DeviceError this tick: trips when the consecutive count reaches its limit."""
+    def device_error(self, t_s: float, name: str, exc: DeviceError, health: DeviceHealth) -> Trip | None:
+        """A DeviceError from device ``name`` this tick: Modbus failures and CAN send errors trip when
+        their consecutive count (``health.consecutive_errors``) reaches its limit; anything else
+        (a port lost, a bus gone) at once."""
         c = self.cfg
-        dev = getattr(exc, "device", "device")
-        kind = getattr(exc, "kind", "io")
-        if dev.startswith("load-cell"):
-            n = counters.get("modbus", 0)
-            if n < c.max_modbus_errors:
+        kind = exc.kind
+        limit = {"loadcells": c.max_modbus_errors, "valve": c.max_can_errors if kind == "bus" else None}.get(name)
+        if limit is not None:
+            n = health.consecutive_errors
+            if n < limit:
                 return None
-            return Trip("modbus_errors", f"{exc} ({n} consecutive failures)", t_s,
-                        {"consecutive": n, "limit": c.max_modbus_errors})
-        if dev.startswith("servovalve") and kind == "bus":
-            n = counters.get("can", 0)
-            if n < c.max_can_errors:
-                return None
-            return Trip("can_bus_errors", f"{exc} ({n} consecutive failures)", t_s,
-                        {"consecutive": n, "limit": c.max_can_errors})
-        return Trip("device_lost", str(exc), t_s, {"device": dev,
-                                                    "address": getattr(exc, "address", "?")})
+            return Trip(ERRORS_TRIP[name], f"{exc} ({n} consecutive failures)", t_s,
+                        {"consecutive": n, "limit": limit})
+        return Trip("device_lost", str(exc), t_s, {"device": exc.device, "address": exc.address})

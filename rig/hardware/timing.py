@@ -25,32 +25,15 @@ import time
 
 import numpy as np
 
+from drivers.linux import PR_SET_TIMERSLACK, prctl, set_pdeathsig, set_process_name
+
 # signed lateness histogram edges (µs); first/last bins are open
 HIST_EDGES_US = np.array([-1e9, -100, -50, -20, -10, 0, 10, 20, 50, 100, 200, 500, 1000, 2000,
                           5000, 1e9])
 MISS_THRESHOLDS_US = (100, 500, 1000)
 
 
-def _prctl(option: int, arg: int) -> bool:
-    try:
-        libc = ctypes.CDLL("libc.so.6", use_errno=True)
-        return libc.prctl(option, ctypes.c_ulong(arg), 0, 0, 0) == 0
-    except Exception:  # noqa: BLE001
-        return False
-
-
-def set_process_name(name: str) -> bool:
-    """Set the kernel's name of this process (``/proc/PID/comm``, 15 bytes: PR_SET_NAME)."""
-    try:
-        libc = ctypes.CDLL("libc.so.6", use_errno=True)
-        return libc.prctl(15, ctypes.c_char_p(name.encode()[:15]), 0, 0, 0) == 0
-    except Exception:  # noqa: BLE001
-        return False
-
-
-def set_pdeathsig(sig: int) -> bool:
-    """Deliver ``sig`` to this process when its parent dies (PR_SET_PDEATHSIG)."""
-    return _prctl(1, sig)
+__all__ = ["Pacer", "TimingStats", "format_stats", "setup_realtime", "set_pdeathsig", "set_process_name"]
 
 
 def setup_realtime(sched_fifo: bool = True, priority: int = 80, cpu: int | None = None) -> dict:
@@ -70,7 +53,7 @@ def setup_realtime(sched_fifo: bool = True, priority: int = 80, cpu: int | None 
             info["priority"] = priority
         except (OSError, AttributeError) as exc:
             info["note"] += f"SCHED_FIFO refused ({exc}); sleep-then-spin under SCHED_OTHER; "
-    if _prctl(29, 1):  # PR_SET_TIMERSLACK: 1 ns
+    if prctl(PR_SET_TIMERSLACK, 1):  # 1 ns
         info["timer_slack_ns"] = 1
     try:
         libc = ctypes.CDLL("libc.so.6", use_errno=True)
@@ -221,8 +204,8 @@ def format_stats(s: dict, title: str = "loop timing") -> str:
         f"max {s.get('period_max_us', float('nan')):8.1f} µs   jitter {s.get('jitter_us', float('nan')):8.1f} µs",
         f"  exec      p50 {s['exec_p50_us']:8.1f} µs   p99 {s['exec_p99_us']:8.1f} µs   "
         f"max {s['exec_max_us']:8.1f} µs",
-        (f"  Modbus request max {s['modbus_max_us']:8.1f} µs, {s['modbus_over_1ms']} over 1 ms\n"
-         if "modbus_max_us" in s else "") +
+        (f"  device reads max {s['read_max_us']:8.1f} µs, {s['read_over_1ms']} over 1 ms\n"
+         if "read_max_us" in s else "") +
         f"  late > 100 µs: {s['late_over_100us']}   > 500 µs: {s['late_over_500us']}   "
         f"> 1 ms: {s['late_over_1000us']}",
     ]

@@ -1,4 +1,11 @@
-"""The emulated rig: the three device emulators around one simulated plant.
+"""The emulated rig: the three device emulators (:mod:`drivers.emulators`) around one simulated plant.
+
+The per-device protocol emulators know their devices only; they get their
+values through small interfaces: the LVDT streamer ``send(position_um)``, the
+Modbus conditioner ``update(friction_N, normal_1_N, normal_2_N)`` (or its
+shared-memory :class:`drivers.emulators.modbus_conditioner.SharedSample` when
+the server runs in its own process), the valve controller ``output(now)``.
+This module composes them with the plant (:class:`rig.sim.SimRig`).
 
 :class:`EmulatedRig` steps the plant (``rig.sim.SimRig.plant_step(valve_cmd)``)
 once per setpoint frame received from the controller, so that the emulated
@@ -23,10 +30,12 @@ from pathlib import Path
 from drivers.config import HardwareConfig, parse_hardware
 from drivers.emulators.lvdt_streamer import LvdtStreamer
 from drivers.emulators.modbus_conditioner import (
-    ModbusConditionerEmulator, SharedSample, modbus_server_main,
+    ModbusConditionerEmulator, SharedSample, free_tcp_port, modbus_server_main,
 )
+from drivers.linux import set_pdeathsig, set_process_name
 from drivers.emulators.pty import PtyBridge
 from drivers.emulators.valve_controller import ValveControllerEmulator
+from rig.sim import SimRig
 
 SENSOR_KEYS = ("position_um", "friction_N", "normal_1_N", "normal_2_N")
 
@@ -44,6 +53,9 @@ class IntegratorPlant:
         self.x_um = x0_um
         self.t_s = 0.0
 
+    def reset(self, x0_um: float, v_init_um_s: float | None = None) -> None:
+        self.x_um = float(x0_um)
+
     def plant_step(self, valve_cmd: float) -> dict:
         v = valve_cmd * self.v_full_um_s
         self.x_um += v * self.dt_s
@@ -55,9 +67,7 @@ class IntegratorPlant:
 
 def sim_plant(profile, lubricant: str | None = None, normal_force_N: float | None = None,
               seed: int = 1):
-    """The simulated rig (S's ``SimRig``) as the emulators' plant."""
-    from rig.sim import SimRig
-
+    """The simulated rig (:class:`rig.sim.SimRig`) as the emulators' plant."""
     lub = lubricant or "paraffin"
     model = profile.friction_model(lub)
     kwargs = {"seed": seed}
@@ -241,23 +251,11 @@ class EmulatedRig:
 
 # -- its own process -------------------------------------------------------------------
 
-def _set_pdeathsig():
-    try:
-        import ctypes
-
-        libc = ctypes.CDLL("libc.so.6", use_errno=True)
-        libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
-    except Exception:  # noqa: BLE001
-        pass
-
-
 def _emulator_main(hw_dict, profile, lubricant, normal_force_N, seed, conn, plant_kind):
     import logging
     import sys
 
-    _set_pdeathsig()
-    from rig.hardware.timing import set_process_name
-
+    set_pdeathsig()
     set_process_name("rig-emulator")
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
     sys.setswitchinterval(1e-4)  # the Modbus server thread must not wait 5 ms for the GIL
@@ -315,10 +313,7 @@ def _emulator_main(hw_dict, profile, lubricant, normal_force_N, seed, conn, plan
                                      "lvdt_overflow": rig.lvdt.overflow}))
             elif op == "reset":
                 x0, v0 = req[1], req[2]
-                if hasattr(rig.plant, "reset"):
-                    rig.plant.reset(x0, v0)
-                else:
-                    rig.plant.x_um = x0
+                rig.plant.reset(x0, v0)
                 rig.step(0.0)
                 conn.send(("ok", None))
             elif op == "stop":
@@ -335,10 +330,7 @@ def _emulator_main(hw_dict, profile, lubricant, normal_force_N, seed, conn, plan
 
 
 def _rate_of(profile) -> float:
-    try:
-        return float(profile.loop.rate_hz)
-    except AttributeError:
-        return 1000.0
+    return 1000.0 if profile is None else float(profile.loop.rate_hz)  # the integrator plant has no profile
 
 
 class EmulatorError(RuntimeError):
@@ -421,14 +413,6 @@ def start_emulator_process(hw: HardwareConfig | dict, profile=None, lubricant: s
 
 __all__ = ["EmulatedRig", "IntegratorPlant", "start_emulator_process", "EmulatorHandle",
            "EmulatorError", "sim_plant", "emulated_hardware", "free_tcp_port"]
-
-
-def free_tcp_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def emulated_hardware(run_dir: str | os.PathLike, transport: str = "tcp",

@@ -1,0 +1,495 @@
+"""One trial session over a :class:`Backend`: the plan in, the log out.
+
+:class:`TrialSession` runs a compiled plan (:class:`trajectories.Plan`) on a
+backend (the simulated rig, :class:`rig.session.sim.SimBackend`; the hardware,
+:class:`rig.session.hardware.HardwareBackend`) and is the only code that:
+
+* logs the planned events as the backend's blocks reach them, the
+  ``trial_start`` event, the backend's own events (interlocks, loop start);
+* writes every block to the log writer;
+* logs loop statistics every ``stats_every_s`` of trial time (ticks, wall time,
+  real-time factor, tracking error, valve saturation; plus the backend's own
+  window figures, e.g. the hardware loop's lateness);
+* handles stopping, as a small explicit state machine (:class:`StopMachine`):
+  ``RUNNING -> STOPPING -> SAFE -> DONE``, with the reason and its cause.
+  Ctrl-C / SIGTERM (or a KeyboardInterrupt raised while the session runs) asks
+  the backend for a controlled stop; the session keeps logging what the
+  backend still sends (the hardware holds position, then nulls and disables
+  the valve) until the backend says it is safe. A third signal insists (the
+  hardware loop is terminated; the valve controller's watchdog nulls the valve).
+* closes the log with the status: ``completed``, ``interrupted`` or ``failed``.
+
+The writer needs only ``schedule_events``, ``event``, ``write_block``,
+``loop_stats`` and ``close(status, **summary)`` (:class:`rig.log.TrialLogWriter`,
+or :class:`rig.session.memory.MemoryLog`).
+"""
+
+from __future__ import annotations
+
+import math
+import signal
+import threading
+import time
+from dataclasses import dataclass, field
+from enum import Enum
+from typing import Any, Callable, Protocol, runtime_checkable
+
+import numpy as np
+
+
+# ---------------------------------------------------------------------------
+# What a backend sends
+# ---------------------------------------------------------------------------
+
+@dataclass(slots=True)
+class Block:
+    """Loop samples: a dict of equal-length numpy arrays (``t_s`` and the block keys)."""
+
+    data: dict
+
+
+@dataclass(slots=True)
+class Event:
+    """Something the backend observed at trial time ``t_s`` (``interlock``, ``loop_start``, ...)."""
+
+    t_s: float
+    kind: str
+    data: dict = field(default_factory=dict)
+
+
+@dataclass
+class Ending:
+    """How the backend's run ended.
+
+    ``outcome``: ``completed`` (the plan ran to its end), ``stopped`` (a stop
+    that was asked for), ``tripped`` (an interlock), ``failed`` (a device or
+    process failure). ``safe``: the backend left its actuator safe (nulled,
+    disabled), or has none. ``message``: one line for the operator.
+    ``final_stats``: the backend's whole-trial statistics (logged once, with
+    ``final: true``); ``report``: text for the operator (e.g. loop timing).
+    """
+
+    outcome: str
+    message: str = ""
+    safe: bool = True
+    summary: dict = field(default_factory=dict)
+    final_stats: dict | None = None
+    report: str = ""
+
+
+class BackendError(RuntimeError):
+    """The backend cannot run (e.g. a device does not answer); the message names what and where."""
+
+
+@runtime_checkable
+class Backend(Protocol):
+    """What a trial runs on. One instance runs one trial.
+
+    ``start(plan)`` prepares (devices connected, loop started) and raises
+    :class:`BackendError` when it cannot; ``receive()`` returns the next
+    :class:`Block` or :class:`Event`, or ``None`` once the run has ended (end of
+    plan, stop done, trip, failure); ``request_stop(reason, insist)`` asks for
+    a controlled stop and returns at once; ``stats_window()`` gives the
+    backend's own statistics since the last call (merged into the session's
+    ``loop_stats``); ``finish()`` says how the run ended; ``close()`` releases
+    everything (idempotent, also after a failure).
+    """
+
+    name: str
+
+    def describe(self) -> dict: ...
+
+    def start(self, plan) -> None: ...
+
+    def receive(self) -> Block | Event | None: ...
+
+    def request_stop(self, reason: str, insist: bool = False) -> None: ...
+
+    def stats_window(self) -> dict: ...
+
+    def finish(self) -> Ending: ...
+
+    def close(self) -> None: ...
+
+
+# ---------------------------------------------------------------------------
+# Stopping
+# ---------------------------------------------------------------------------
+
+class Phase(str, Enum):
+    RUNNING = "running"
+    STOPPING = "stopping"   # a stop was asked for (or the backend ended); not yet safe
+    SAFE = "safe"           # the backend reports its actuator safe (nulled, disabled)
+    DONE = "done"           # log closed
+
+
+class Cause(str, Enum):
+    END_OF_PLAN = "end_of_plan"
+    OPERATOR = "operator"     # Ctrl-C, SIGTERM
+    TRIP = "trip"             # an interlock
+    FAILURE = "failure"       # a device, the loop process, the session itself
+
+
+_ALLOWED = {
+    Phase.RUNNING: {Phase.STOPPING},
+    Phase.STOPPING: {Phase.SAFE, Phase.DONE},  # DONE directly: could not reach a safe state
+    Phase.SAFE: {Phase.DONE},
+    Phase.DONE: set(),
+}
+
+
+class StopMachine:
+    """RUNNING -> STOPPING -> SAFE -> DONE, with the first reason given (later ones are counted).
+
+    ``history`` keeps ``(phase, reason, monotonic time)`` of every transition.
+    """
+
+    def __init__(self):
+        self.phase = Phase.RUNNING
+        self.cause: Cause | None = None
+        self.reason = ""
+        self.requests = 0
+        self.history: list[tuple[Phase, str, float]] = [(Phase.RUNNING, "", time.monotonic())]
+
+    def _go(self, phase: Phase, reason: str = "") -> None:
+        if phase not in _ALLOWED[self.phase]:
+            raise RuntimeError(f"stop state machine: {self.phase.value} -> {phase.value} is not allowed")
+        self.phase = phase
+        self.history.append((phase, reason, time.monotonic()))
+
+    def request(self, cause: Cause, reason: str) -> bool:
+        """A stop is asked for; True if this is the first request (RUNNING -> STOPPING)."""
+        self.requests += 1
+        if self.phase is not Phase.RUNNING:
+            return False
+        self.cause, self.reason = cause, reason
+        self._go(Phase.STOPPING, reason)
+        return True
+
+    def safe(self, detail: str = "") -> None:
+        self._go(Phase.SAFE, detail)
+
+    def done(self) -> None:
+        self._go(Phase.DONE)
+
+    @property
+    def status(self) -> str:
+        """The log's status: completed, interrupted or failed."""
+        if self.cause is Cause.END_OF_PLAN:
+            return "completed"
+        if self.cause is Cause.OPERATOR:
+            return "interrupted"
+        return "failed"
+
+
+# ---------------------------------------------------------------------------
+# Figures of the logged samples
+# ---------------------------------------------------------------------------
+
+class BlockFigures:
+    """Running sums over the blocks: tracking error, friction, mu, valve saturation.
+
+    ``window()`` gives the figures since the previous call; the properties the
+    whole trial's. Non-finite samples are skipped.
+    """
+
+    _N = 8  # sum e^2, max |e|, n_e, sum f, sum |f|, n_f, sum mu, n_valve_saturated
+
+    def __init__(self):
+        self.ticks = 0
+        self.last_t_s = 0.0
+        self.acc = np.zeros(self._N)
+        self._w_acc = self.acc.copy()
+        self._w_ticks = 0
+        self._w_wall = time.perf_counter()
+
+    def add(self, b: dict) -> None:
+        t = b["t_s"]
+        n = t.size
+        if n == 0:
+            return
+        a = self.acc
+        if "position_ref_um" in b and "position_um" in b:
+            e = b["position_ref_um"] - b["position_um"]
+            e = e[np.isfinite(e)]
+            if e.size:
+                a[0] += float(e @ e)
+                a[1] = max(a[1], float(np.abs(e).max()))
+                a[2] += e.size
+        f = b.get("friction_N")
+        if f is not None:
+            ok = np.isfinite(f)
+            fo = f[ok]
+            a[3] += float(fo.sum())
+            a[4] += float(np.abs(fo).sum())
+            a[5] += fo.size
+            if "normal_1_N" in b and "normal_2_N" in b:
+                ntot = (b["normal_1_N"] + b["normal_2_N"])[ok]
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    mu = fo / ntot
+                a[6] += float(mu[np.isfinite(mu)].sum())
+        v = b.get("valve_cmd")
+        if v is not None:
+            a[7] += int((np.abs(v) >= 1.0).sum())
+        self.ticks += n
+        self.last_t_s = float(t[-1])
+
+    def window(self, rate_hz: float) -> dict:
+        now = time.perf_counter()
+        dw = now - self._w_wall
+        d = self.acc - self._w_acc
+        ticks = self.ticks - self._w_ticks
+        out = {"ticks": ticks, "wall_s": dw,
+               "ticks_per_s": ticks / dw if dw > 0 else None,
+               "realtime_factor": (ticks / rate_hz) / dw if dw > 0 else None,
+               "tracking_error_rms_um": math.sqrt(d[0] / d[2]) if d[2] else None,
+               "valve_saturated_fraction": d[7] / ticks if ticks else None}
+        self._w_acc = self.acc.copy()
+        self._w_ticks = self.ticks
+        self._w_wall = now
+        return out
+
+    @property
+    def tracking_error_rms_um(self) -> float:
+        return math.sqrt(self.acc[0] / self.acc[2]) if self.acc[2] else float("nan")
+
+    @property
+    def max_abs_err_um(self) -> float:
+        return float(self.acc[1]) if self.acc[2] else float("nan")
+
+    @property
+    def mean_friction_N(self) -> float:
+        return self.acc[3] / self.acc[5] if self.acc[5] else float("nan")
+
+    @property
+    def mean_abs_friction_N(self) -> float:
+        return self.acc[4] / self.acc[5] if self.acc[5] else float("nan")
+
+    @property
+    def mean_mu(self) -> float:
+        return self.acc[6] / self.acc[5] if self.acc[5] else float("nan")
+
+
+# ---------------------------------------------------------------------------
+# The session
+# ---------------------------------------------------------------------------
+
+@dataclass
+class TrialResult:
+    status: str                 # completed | interrupted | failed
+    cause: str                  # end_of_plan | operator | trip | failure
+    reason: str                 # one line: why it stopped
+    ticks: int
+    duration_s: float           # trial time of the last logged sample
+    wall_s: float
+    figures: BlockFigures
+    ending: Ending | None
+    safe: bool                  # the backend ended safe
+    close_error: str | None = None  # the log could not be finished (e.g. disk full)
+    history: list = field(default_factory=list)
+
+    @property
+    def summary(self) -> dict:
+        return self.ending.summary if self.ending is not None else {}
+
+
+def _noop(*_a, **_k) -> None:
+    return None
+
+
+class _Guarded:
+    """The writer's event/loop_stats, with failures collected instead of raised."""
+
+    def __init__(self, writer, errors: list):
+        self._w, self._errors = writer, errors
+
+    def event(self, *a, **k) -> None:
+        self._call(self._w.event, *a, **k)
+
+    def loop_stats(self, *a, **k) -> None:
+        self._call(self._w.loop_stats, *a, **k)
+
+    def _call(self, fn, *a, **k) -> None:
+        try:
+            fn(*a, **k)
+        except Exception as exc:  # noqa: BLE001
+            self._errors.append(f"{type(exc).__name__}: {exc}")
+
+
+class TrialSession:
+    """Run ``plan`` on ``backend``, logging to ``writer`` (see the module docstring).
+
+    ``progress(t_s)``: called after every block. ``echo(text)``: operator
+    messages (interlock trips, the backend's final report). ``trial_fields``:
+    extra fields of the ``trial_start`` event. ``handle_signals``: install
+    SIGINT/SIGTERM handlers for the run (main thread only).
+    """
+
+    def __init__(self, plan, backend: Backend, writer, *, progress: Callable[[float], Any] | None = None,
+                 echo: Callable[[str], Any] = _noop, stats_every_s: float = 1.0,
+                 trial_fields: dict | None = None, handle_signals: bool = True):
+        self.plan = plan
+        self.backend = backend
+        self.writer = writer
+        self.progress = progress
+        self.echo = echo
+        self.stats_every_s = float(stats_every_s)
+        self.trial_fields = dict(trial_fields or {})
+        self.handle_signals = handle_signals
+        self.stop = StopMachine()
+        self.figures = BlockFigures()
+        self._signals: list[str] = []
+
+    # -- stop requests ---------------------------------------------------------
+    def request_stop(self, cause: Cause, reason: str) -> None:
+        first = self.stop.request(cause, reason)
+        if cause is Cause.OPERATOR:
+            self.backend.request_stop(reason, insist=self.stop.requests >= 3)
+        elif first:
+            self.backend.request_stop(reason)
+        if first:
+            self.writer.event(self.figures.last_t_s, "stop_state", state=Phase.STOPPING.value,
+                              cause=cause.value, reason=reason)
+
+    def _on_signal(self, signum, _frame) -> None:
+        # only note it here: the run loop turns it into a stop request between two messages
+        self._signals.append(signal.Signals(signum).name)
+
+    def _install_signals(self) -> dict:
+        old = {}
+        if not self.handle_signals or threading.current_thread() is not threading.main_thread():
+            return old
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            old[sig] = signal.signal(sig, self._on_signal)
+        return old
+
+    # -- run -------------------------------------------------------------------
+    def run(self) -> TrialResult:
+        plan, backend, w = self.plan, self.backend, self.writer
+        rate = float(plan.loop_rate_hz)
+        half_tick = 0.5 / rate
+        w.schedule_events(plan.events)
+        w.event(0.0, "trial_start", **{**self.trial_fields, "backend": backend.name,
+                                       "duration_s": float(plan.duration_s), "n_ticks": int(plan.n_ticks),
+                                       **backend.describe()})
+        t_wall0 = time.perf_counter()
+        next_stats = self.stats_every_s
+        ending: Ending | None = None
+        handled = 0  # signals turned into stop requests
+        old = self._install_signals()
+        try:
+            try:
+                backend.start(plan)
+                while True:
+                    try:
+                        while handled < len(self._signals):
+                            name = self._signals[handled]
+                            handled += 1
+                            self.request_stop(Cause.OPERATOR, f"operator abort ({name})")
+                        msg = backend.receive()
+                        if msg is None:
+                            break
+                        if type(msg) is Block:
+                            w.write_block(msg.data)
+                            self.figures.add(msg.data)
+                            t = self.figures.last_t_s
+                            if t >= next_stats - half_tick:
+                                st = self.figures.window(rate)
+                                st.update(backend.stats_window())
+                                w.loop_stats(t, st)
+                                next_stats += self.stats_every_s
+                            if self.progress is not None:
+                                self.progress(t)
+                        else:
+                            w.event(msg.t_s, msg.kind, **msg.data)
+                            if msg.kind == "interlock":
+                                self.echo(f"INTERLOCK {msg.data.get('name')} at t={msg.t_s:.3f} s: "
+                                          f"{msg.data.get('message')}")
+                    except KeyboardInterrupt:
+                        self._signals.append("KeyboardInterrupt")
+                        handled = len(self._signals)
+                        self.request_stop(Cause.OPERATOR, "operator abort (Ctrl-C)")
+                ending = backend.finish()
+            except BackendError as exc:
+                ending = Ending("failed", str(exc), safe=True)
+            except Exception as exc:  # noqa: BLE001 - a failure while running (e.g. the log): stop the backend
+                ending = self._fail_stop(f"{type(exc).__name__}: {exc}")
+        finally:
+            for sig, h in old.items():
+                signal.signal(sig, h)
+            try:
+                backend.close()
+            except Exception as exc:  # noqa: BLE001
+                if ending is not None:
+                    ending.message += f"; closing the backend failed: {exc}"
+        return self._end(ending, time.perf_counter() - t_wall0)
+
+    def _fail_stop(self, reason: str, drain_s: float = 2.0) -> Ending:
+        """The session itself failed (its writer, its progress): ask the backend for a stop, let it
+        reach its safe state (its messages are dropped: the log may be what failed), say how it ended."""
+        self.stop.request(Cause.FAILURE, reason)
+        try:
+            self.backend.request_stop(reason)
+            t_end = time.monotonic() + drain_s
+            while time.monotonic() < t_end and self.backend.receive() is not None:
+                pass
+            if time.monotonic() >= t_end:
+                self.backend.request_stop(reason, insist=True)
+            got = self.backend.finish()
+        except Exception as exc:  # noqa: BLE001
+            return Ending("failed", f"{reason}; stopping the backend failed: {exc}", safe=False)
+        return Ending("failed", reason, safe=got.safe, summary=got.summary, final_stats=got.final_stats,
+                      report=got.report)
+
+    def _end(self, ending: Ending, wall_s: float) -> TrialResult:
+        sm, fig = self.stop, self.figures
+        t_last = fig.last_t_s
+        log_errors: list[str] = []
+        w = _Guarded(self.writer, log_errors)  # after a failure of the log, the rest is best effort
+        # how it ended decides the cause unless a stop was already asked for
+        if sm.phase is Phase.RUNNING:
+            cause = {"completed": Cause.END_OF_PLAN, "stopped": Cause.OPERATOR,
+                     "tripped": Cause.TRIP}.get(ending.outcome, Cause.FAILURE)
+            sm.request(cause, ending.message or ending.outcome)
+            w.event(t_last, "stop_state", state=Phase.STOPPING.value, cause=cause.value, reason=sm.reason)
+        elif ending.outcome in ("tripped", "failed"):
+            # a trip or a failure during an operator stop: the trial failed
+            sm.cause, sm.reason = (Cause.TRIP if ending.outcome == "tripped" else Cause.FAILURE), ending.message
+        if ending.final_stats:
+            w.loop_stats(t_last, {**ending.final_stats, "final": True})
+        if ending.report:
+            self.echo(ending.report)
+        if ending.safe:
+            sm.safe(ending.summary.get("safe_state", ""))
+            w.event(t_last, "stop_state", state=Phase.SAFE.value)
+        status = sm.status
+        if status == "interrupted":
+            sig = self._signals[0] if self._signals else "abort"
+            w.event(t_last, "interrupted", reason=f"operator abort ({sig})" if sig != "KeyboardInterrupt"
+                    else "KeyboardInterrupt (Ctrl-C)")
+        elif status == "failed":
+            w.event(t_last, "trial_failed", status=ending.outcome, message=sm.reason)
+        close_error = "; ".join(log_errors) or None
+        try:
+            self.writer.close(status, wall_s=wall_s, ticks_per_s=fig.ticks / wall_s if wall_s > 0 else 0.0,
+                              realtime_factor=t_last / wall_s if wall_s > 0 else 0.0,
+                              tracking_error_rms_um=fig.tracking_error_rms_um, mean_friction_N=fig.mean_friction_N,
+                              mean_abs_friction_N=fig.mean_abs_friction_N, stop_reason=sm.reason,
+                              stop_cause=sm.cause.value)
+        except Exception as exc:  # noqa: BLE001 - e.g. disk full: the file cannot be finished
+            close_error = f"{type(exc).__name__}: {exc}"
+        if close_error and sm.status == "completed":
+            sm.cause, sm.reason = Cause.FAILURE, f"the log could not be finished: {close_error}"
+        sm.done()
+        return TrialResult(status=sm.status, cause=sm.cause.value, reason=sm.reason, ticks=fig.ticks,
+                           duration_s=t_last, wall_s=wall_s, figures=fig, ending=ending, safe=ending.safe,
+                           close_error=close_error, history=list(sm.history))
+
+
+def run_trial(plan, backend: Backend, writer, **kw) -> TrialResult:
+    """``TrialSession(plan, backend, writer, **kw).run()``."""
+    return TrialSession(plan, backend, writer, **kw).run()
+
+
+__all__ = ["Backend", "BackendError", "Block", "BlockFigures", "Cause", "Ending", "Event", "Phase",
+           "StopMachine", "TrialResult", "TrialSession", "run_trial"]

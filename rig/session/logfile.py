@@ -1,0 +1,38 @@
+"""A trial run to one MCAP file: open the log with the trial's metadata, run the session, close it."""
+
+from __future__ import annotations
+
+import subprocess
+from pathlib import Path
+
+from rig.session.core import Backend, TrialResult, run_trial
+
+
+def git_describe() -> str:
+    """The repository's commit (and '-dirty'), for the trial metadata; '' outside a git checkout."""
+    repo = Path(__file__).resolve().parents[2]
+    try:
+        out = subprocess.run(["git", "-C", str(repo), "describe", "--always", "--dirty", "--abbrev=12"],
+                             capture_output=True, text=True, timeout=3)
+        return out.stdout.strip() if out.returncode == 0 else ""
+    except (OSError, subprocess.SubprocessError):
+        return ""
+
+
+def open_log(path: Path, plan, recipe, profile, metadata: dict):
+    """A :class:`rig.log.TrialLogWriter` for one trial of ``recipe`` (raises OSError)."""
+    from rig.log import TrialLogWriter
+
+    return TrialLogWriter(path, loop_rate_hz=plan.loop_rate_hz, decimated_rate_hz=recipe.log.decimated_rate_hz,
+                          raw_rate_hz=recipe.log.raw_rate_hz, metadata=metadata,
+                          recipe_yaml=recipe.source_text, recipe=recipe.model_dump(mode="json"),
+                          profile=profile.model_dump(mode="json"),
+                          raw_encoding=recipe.log.raw_encoding, raw_dtype=recipe.log.raw_dtype)
+
+
+def run_to_log(path: Path, plan, recipe, profile, backend: Backend, metadata: dict, **session_kw) -> TrialResult:
+    """Open the log (OSError if it cannot be written), run the session on ``backend``, close the log."""
+    writer = open_log(path, plan, recipe, profile, metadata)
+    fields = {"recipe": recipe.name, "lubricant": recipe.lubricant}
+    fields.update(session_kw.pop("trial_fields", {}))
+    return run_trial(plan, backend, writer, trial_fields=fields, **session_kw)

@@ -1,0 +1,97 @@
+"""The simulated rig as a session backend, and the one way to simulate a plan.
+
+:class:`SimBackend` runs the closed loop (:class:`rig.sim.SimRig`) block by
+block as the session asks; a stop request ends it after the block in progress
+(a simulation has no actuator to make safe). :func:`simulate` runs a recipe or
+a compiled plan through the same :class:`rig.session.TrialSession` into memory
+and returns the blocks and the logged events (the 25 Hz
+:class:`rig.data.TrialData` with :meth:`MemoryLog.trial_data`).
+"""
+
+from __future__ import annotations
+
+from rig.session.core import Block, Ending, TrialResult, run_trial
+from rig.session.memory import MemoryLog
+from rig.sim import SimRig
+
+
+class SimBackend:
+    """``SimRig(profile, friction_model, normal_force_N, seed)`` as a :class:`rig.session.Backend`.
+
+    ``block_ticks``: ticks per block sent to the log (``rig run``: the recipe's
+    ``log.block_s`` at the loop rate).
+    """
+
+    name = "sim"
+
+    def __init__(self, profile, friction_model, normal_force_N: float | None = None, seed: int = 0,
+                 block_ticks: int = 1000):
+        self.rig = SimRig(profile, friction_model, normal_force_N, seed)
+        self.seed = seed
+        self.block_ticks = max(1, int(block_ticks))
+        self._blocks = None
+        self._stop: str | None = None
+        self._ended = False
+
+    def describe(self) -> dict:
+        return {"normal_force_N": self.rig.normal_force_N, "seed": self.seed}
+
+    def start(self, plan) -> None:
+        self._blocks = self.rig.run_blocks(plan.x_ref_um, block_ticks=self.block_ticks)
+
+    def receive(self) -> Block | None:
+        if self._stop is not None or self._ended:
+            return None
+        blk = next(self._blocks, None)
+        if blk is None:
+            self._ended = True
+            return None
+        return Block(blk)
+
+    def request_stop(self, reason: str, insist: bool = False) -> None:
+        self._stop = reason
+
+    def stats_window(self) -> dict:
+        return {}
+
+    def finish(self) -> Ending:
+        if self._stop is not None:
+            return Ending("stopped", self._stop)
+        return Ending("completed")
+
+    def close(self) -> None:
+        self._blocks = None
+
+
+def simulate(recipe_or_plan, profile, friction_model=None, *, recipe=None, seed: int | None = None,
+             normal_force_N: float | None = None, keep_blocks: bool = True,
+             block_ticks: int = 20000) -> tuple[MemoryLog, TrialResult]:
+    """Run a recipe (or a compiled plan with its ``recipe``) on the simulated rig, in memory.
+
+    ``friction_model``: a :class:`rig.friction.FrictionModel`, or None for the
+    profile's model of the recipe's lubricant. ``seed`` / ``normal_force_N``
+    default to the recipe's. Returns ``(log, result)``: ``log.blocks`` (with
+    ``keep_blocks``), ``log.events`` (planned events reached, session events),
+    ``log.trial_data(rate_hz)``; ``result`` the session's :class:`TrialResult`.
+    """
+    from rig.config.recipe import compile_recipe
+    from trajectories import Plan
+
+    if isinstance(recipe_or_plan, Plan):
+        plan = recipe_or_plan
+        if recipe is None:
+            raise ValueError("simulate(plan, ...) needs recipe= (lubricant, normal force, seed)")
+    else:
+        recipe = recipe_or_plan
+        fm0 = friction_model if friction_model is not None else profile.friction_model(recipe.lubricant)
+        plan = compile_recipe(recipe, profile, friction_model=fm0)
+    fm = friction_model if friction_model is not None else profile.friction_model(recipe.lubricant)
+    nf = float(normal_force_N if normal_force_N is not None else recipe.normal_force_N)
+    sd = int(recipe.seed if seed is None else seed)
+    backend = SimBackend(profile, fm, nf, sd, block_ticks=block_ticks)
+    log = MemoryLog(keep_blocks=keep_blocks, rate_hz=plan.loop_rate_hz,
+                    metadata={"normal_force_N": f"{nf:g}", "lubricant": recipe.lubricant, "seed": str(sd),
+                              "recipe": recipe.name, "generator": "rig.session.simulate"})
+    result = run_trial(plan, backend, log, handle_signals=False,
+                       trial_fields={"recipe": recipe.name, "lubricant": recipe.lubricant})
+    return log, result
