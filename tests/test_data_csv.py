@@ -7,7 +7,8 @@ import warnings
 import numpy as np
 import pytest
 
-from rig.data import DataFormatError, PartialLineWarning, TrialData, load_trial, read_csv, write_csv
+from rig.data import DataFormatError, PartialLineWarning, TrialData, read_csv, write_csv
+from rig.log import load_trial
 
 GOOD = (
     "# rig-trial-csv: 1\n"

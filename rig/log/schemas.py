@@ -1,0 +1,322 @@
+"""The trial log's layout: topics, JSON schemas, and the raw-block codecs (rig.columns.v1 / v2).
+
+``/raw`` carries the 1 kHz loop data as blocks of samples (one message per
+block, 1 s by default). Since version 2 (``rig.columns.v2``) each column is
+stored as the device delivers it: integer counts with a scale and an offset
+(LVDT counts of 0.076 µm, load-cell counts of 1 mN, the valve command as the
+int16 sent on CAN), derived floats (PID terms, dither) as float32, and each
+column filtered (delta and/or byte shuffle) where that pays for zstd. A column
+decodes as ``value = stored * scale + offset``; NaN is the dtype's minimum.
+
+``RAW_V2_LAYOUT`` (also in the channel's schema and metadata) documents the bytes:
+
+    b"RIG2", u32 LE header length H, H bytes of UTF-8 JSON header
+    {"t0_s", "n", "rate_hz", "columns": [[key, dtype, filter, scale, offset, nbytes], ...]}
+    padded with spaces to a multiple of 8, then each column's nbytes in order.
+    dtype: "<i2" | "<i4" | "<i8" | "<f4" | "<f8"; filter: "none" | "delta" |
+    "shuffle" | "delta+shuffle" (delta: first value absolute, then differences,
+    modulo the integer width; shuffle: the bytes of the n values regrouped by
+    byte position, byte 0 of every value first).
+
+Version 1 (``rig.columns.v1``, written until this layout) stored every column
+as float64/float32; it is still read, as are the JSON (``base64``/``json``)
+raw blocks of older logs.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import math
+import struct
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+RAW_TOPIC = "/raw"
+LOG25_TOPIC = "/log25"
+EVENTS_TOPIC = "/events"
+STATS_TOPIC = "/loop_stats"
+MCAP_PROFILE = "rig-trial"
+#: the /log25 message fields (mu = friction / (normal_1 + normal_2), null where undefined)
+SAMPLE_FIELDS = ("t_s", "position_um", "friction_N", "normal_1_N", "normal_2_N", "position_ref_um", "valve_cmd",
+                 "mu")
+BLOCK_KEYS = ("t_s", "position_ref_um", "position_um", "friction_N", "normal_1_N", "normal_2_N", "valve_cmd",
+              "pid_p", "pid_i", "pid_d", "dither", "true_position_um", "true_velocity_um_s", "true_mu")
+
+RAW_V1_ENCODING = "rig.columns.v1"
+RAW_V1_MAGIC = b"RIGC"
+RAW_V2_ENCODING = "rig.columns.v2"
+RAW_V2_MAGIC = b"RIG2"
+RAW_V2_LAYOUT = (
+    "b'RIG2', u32 LE header length H, H bytes of UTF-8 JSON header {t0_s, n, rate_hz, columns: [[key, dtype, "
+    "filter, scale, offset, nbytes], ...]} padded with spaces to a multiple of 8, then each column's nbytes. "
+    "value = stored * scale + offset; NaN = the integer dtype's minimum; filter 'delta' = first value then "
+    "differences (modulo the width), 'shuffle' = bytes regrouped by byte position (byte 0 of all values first)")
+B64_ENCODING = "base64-f8le"
+B64_F4_ENCODING = "base64-f4le"
+
+
+@dataclass(frozen=True)
+class Column:
+    """How one raw column is stored: ``value = stored * scale + offset`` (unit)."""
+
+    dtype: str
+    scale: float = 1.0
+    offset: float = 0.0
+    unit: str = ""
+    filter: str = "none"
+    description: str = ""
+
+    def as_schema(self) -> dict:
+        return {"dtype": self.dtype, "scale": self.scale, "offset": self.offset, "unit": self.unit,
+                "filter": self.filter, "description": self.description}
+
+
+LVDT_UM_PER_COUNT = 0.076      # paper: LVDT quantization step 0.076 µm
+LOAD_CELL_N_PER_COUNT = 0.001  # 1 mN: 250x finer than the ±0.25 N load-cell noise (measured-data.md)
+VALVE_FULL_SCALE = 32767       # the int16 valve command on CAN (drivers/valve.py)
+
+#: the loop's columns as the devices deliver them (the measured filters, benchmarks/bench_run.py)
+DEVICE_COLUMNS: dict[str, Column] = {
+    "t_s": Column("<i8", 1e-9, 0.0, "s", "delta", "trial time; offset = the block's first sample"),
+    "position_ref_um": Column("<i4", 0.001, 0.0, "µm", "delta", "controller reference, 1 nm steps"),
+    "position_um": Column("<i4", LVDT_UM_PER_COUNT, 0.0, "µm", "shuffle", "LVDT counts"),
+    "friction_N": Column("<i4", LOAD_CELL_N_PER_COUNT, 0.0, "N", "shuffle", "friction load-cell counts"),
+    "normal_1_N": Column("<i4", LOAD_CELL_N_PER_COUNT, 0.0, "N", "shuffle", "rider 1 load-cell counts"),
+    "normal_2_N": Column("<i4", LOAD_CELL_N_PER_COUNT, 0.0, "N", "shuffle", "rider 2 load-cell counts"),
+    "valve_cmd": Column("<i2", 1.0 / VALVE_FULL_SCALE, 0.0, "1", "shuffle", "valve command, int16 as on CAN"),
+    "pid_p": Column("<f4", unit="N", description="PID proportional term"),
+    "pid_i": Column("<f4", unit="N", filter="shuffle", description="PID integral term"),
+    "pid_d": Column("<f4", unit="N", description="PID derivative term"),
+    "dither": Column("<f4", unit="N", filter="shuffle", description="dither added to the PID output"),
+    "true_position_um": Column("<i4", 0.001, 0.0, "µm", "delta+shuffle", "simulation truth, 1 nm steps"),
+    "true_velocity_um_s": Column("<i4", 0.001, 0.0, "µm/s", "shuffle", "simulation truth"),
+    "true_mu": Column("<i4", 1e-7, 0.0, "1", "shuffle", "simulation truth"),
+}
+#: any other column, and every column of an imported CSV: exact float64
+EXACT = Column("<f8", filter="shuffle", description="exact float64")
+
+
+def device_columns(lvdt_um_per_count: float | None = None) -> dict[str, Column]:
+    """The device columns, with the profile's LVDT step when it has one."""
+    cols = dict(DEVICE_COLUMNS)
+    if lvdt_um_per_count and lvdt_um_per_count > 0:
+        c = cols["position_um"]
+        cols["position_um"] = Column(c.dtype, float(lvdt_um_per_count), c.offset, c.unit, c.filter, c.description)
+    return cols
+
+
+def _shuffle(b: bytes, itemsize: int) -> bytes:
+    if itemsize == 1:
+        return b
+    return np.frombuffer(b, np.uint8).reshape(-1, itemsize).T.tobytes()
+
+
+def _unshuffle(b: bytes, itemsize: int) -> bytes:
+    if itemsize == 1:
+        return b
+    return np.frombuffer(b, np.uint8).reshape(itemsize, -1).T.tobytes()
+
+
+def _encode_column(x: np.ndarray, col: Column, offset: float) -> bytes:
+    dt = np.dtype(col.dtype)
+    if dt.kind == "i":
+        info = np.iinfo(dt)
+        with np.errstate(invalid="ignore", over="ignore"):
+            v = (x - offset) / col.scale if (offset or col.scale != 1.0) else x
+            finite = np.isfinite(v)
+            s = np.rint(np.clip(np.where(finite, v, 0.0), info.min + 1, info.max)).astype(dt)
+        if not finite.all():
+            s[~finite] = info.min  # NaN sentinel
+        if "delta" in col.filter and s.size:
+            s = np.diff(s, prepend=np.zeros(1, dt)).astype(dt)  # wraps modulo 2^bits
+        b = s.tobytes()
+    else:
+        b = x.astype(dt, copy=False).tobytes()
+    return _shuffle(b, dt.itemsize) if "shuffle" in col.filter else b
+
+
+def _decode_column(b: bytes, dtype: str, flt: str, scale: float, offset: float, n: int) -> np.ndarray:
+    dt = np.dtype(dtype)
+    if len(b) != n * dt.itemsize:
+        raise ValueError(f"{len(b)} bytes for {n} values of {dtype}")
+    if "shuffle" in flt:
+        b = _unshuffle(b, dt.itemsize)
+    s = np.frombuffer(b, dt)
+    if dt.kind == "f":
+        out = s.astype(np.float64)
+        return out * scale + offset if (scale != 1.0 or offset) else out
+    if "delta" in flt:
+        s = np.cumsum(s, dtype=dt)
+    nan = s == np.iinfo(dt).min
+    out = s.astype(np.float64) * scale + offset
+    if nan.any():
+        out[nan] = np.nan
+    return out
+
+
+class ColumnsV2Encoder:
+    """Encodes loop blocks in ``rig.columns.v2`` (the header layout is cached per key set)."""
+
+    def __init__(self, columns: dict[str, Column], rate_hz: float):
+        self.columns = columns
+        self.rate_hz = float(rate_hz)
+
+    def column(self, key: str) -> Column:
+        return self.columns.get(key, EXACT)
+
+    def encode(self, block: dict[str, np.ndarray], t0: float) -> bytes:
+        n = int(block["t_s"].size)
+        parts = []
+        meta = []
+        for key, arr in block.items():
+            col = self.column(key)
+            off = t0 if key == "t_s" and np.dtype(col.dtype).kind == "i" else col.offset
+            b = _encode_column(arr, col, off)
+            parts.append(b)
+            meta.append([key, col.dtype, col.filter, col.scale, off, len(b)])
+        text = json.dumps({"t0_s": t0, "n": n, "rate_hz": self.rate_hz, "columns": meta},
+                          separators=(",", ":"), allow_nan=False).encode()
+        text += b" " * (-(8 + len(text)) % 8)
+        return b"".join([RAW_V2_MAGIC, struct.pack("<I", len(text)), text, *parts])
+
+    def schema(self, keys) -> dict:
+        """The channel's schema: the layout and, per column, dtype, scale, offset, unit, filter."""
+        return {"title": RAW_V2_ENCODING, "layout": RAW_V2_LAYOUT, "rate_hz": self.rate_hz,
+                "columns": {k: self.column(k).as_schema() for k in keys}}
+
+
+def decode_v2(data: bytes) -> tuple[dict, dict[str, np.ndarray]]:
+    """A ``rig.columns.v2`` block -> (header, {key: float64 array in physical units})."""
+    if len(data) < 8 or data[:4] != RAW_V2_MAGIC:
+        raise ValueError("not a rig.columns.v2 block (bad magic)")
+    (hlen,) = struct.unpack_from("<I", data, 4)
+    head = json.loads(data[8:8 + hlen])
+    n = int(head["n"])
+    off = 8 + hlen
+    out: dict[str, np.ndarray] = {}
+    for key, dtype, flt, scale, offset, nbytes in head["columns"]:
+        end = off + int(nbytes)
+        if end > len(data):
+            raise ValueError(f"block truncated in column {key}")
+        out[key] = _decode_column(data[off:end], dtype, flt, float(scale), float(offset), n)
+        off = end
+    if off != len(data):
+        raise ValueError(f"{len(data) - off} bytes after the last column")
+    return head, out
+
+
+def decode_v1(data: bytes) -> tuple[dict, dict[str, np.ndarray]]:
+    """A ``rig.columns.v1`` block (float64/float32 columns) -> (header, {key: float64 array})."""
+    if data[:4] != RAW_V1_MAGIC or len(data) < 8:
+        raise ValueError("not a rig.columns.v1 block (bad magic)")
+    (hlen,) = struct.unpack_from("<I", data, 4)
+    head = json.loads(data[8:8 + hlen])
+    n = int(head["n"])
+    off = 8 + hlen
+    out: dict[str, np.ndarray] = {}
+    for key, dt in zip(head["fields"], head["dtypes"]):
+        dt = np.dtype(dt)
+        end = off + n * dt.itemsize
+        if end > len(data):
+            raise ValueError(f"block truncated in field {key}")
+        out[key] = np.frombuffer(data, dtype=dt, count=n, offset=off).astype(np.float64)
+        off = end
+    if off != len(data):
+        raise ValueError(f"{len(data) - off} bytes after the last field")
+    return head, out
+
+
+def decode_json_block(data: bytes) -> tuple[dict, dict[str, np.ndarray]]:
+    """An old JSON raw block (schema rig.RawBlock: base64-f8le / base64-f4le / json lists)."""
+    blk = json.loads(data)
+    enc = blk["encoding"]
+    n = int(blk["n"])
+    out = {}
+    for k, v in blk["fields"].items():
+        if enc == B64_ENCODING or (enc == B64_F4_ENCODING and k == "t_s"):
+            arr = np.frombuffer(base64.b64decode(v), dtype="<f8").astype(float)
+        elif enc == B64_F4_ENCODING:
+            arr = np.frombuffer(base64.b64decode(v), dtype="<f4").astype(float)
+        else:
+            arr = np.array([np.nan if x is None else x for x in v], dtype=float)
+        if arr.size != n:
+            raise ValueError(f"field {k} has {arr.size} samples, expected {n}")
+        out[k] = arr
+    return blk, out
+
+
+def decode_raw(encoding: str, data: bytes) -> dict[str, np.ndarray]:
+    """Any raw block (v2, v1 or the old JSON ones) by its channel's message encoding."""
+    if encoding == RAW_V2_ENCODING:
+        return decode_v2(data)[1]
+    if encoding == RAW_V1_ENCODING:
+        return decode_v1(data)[1]
+    return decode_json_block(data)[1]
+
+
+_NUM_OR_NULL = {"type": ["number", "null"]}
+_UNITS = {"t_s": "s", "position_um": "µm", "friction_N": "N", "normal_1_N": "N", "normal_2_N": "N",
+          "position_ref_um": "µm", "valve_cmd": "1 (-1..1)", "mu": "1: friction / (normal_1 + normal_2)"}
+#: JSON schemas of the JSON channels (Foxglove decodes and plots them)
+SCHEMAS: dict[str, dict] = {
+    "rig.Sample": {
+        "title": "rig.Sample",
+        "description": "One decimated sample (25 Hz like the paper's log). Units: s, µm, N, valve 1, mu 1.",
+        "type": "object",
+        "properties": {name: dict(({"type": "number"} if name == "t_s" else _NUM_OR_NULL),
+                                  description=_UNITS[name]) for name in SAMPLE_FIELDS},
+        "required": ["t_s", "position_um", "friction_N"],
+    },
+    "rig.Event": {
+        "title": "rig.Event",
+        "type": "object",
+        "properties": {"t_s": {"type": "number"}, "kind": {"type": "string"}},
+        "required": ["t_s", "kind"],
+        "additionalProperties": True,
+    },
+    "rig.LoopStats": {
+        "title": "rig.LoopStats",
+        "type": "object",
+        "properties": {"t_s": {"type": "number"}},
+        "required": ["t_s"],
+        "additionalProperties": _NUM_OR_NULL,
+    },
+}
+JSON_TOPICS = ((LOG25_TOPIC, "rig.Sample"), (EVENTS_TOPIC, "rig.Event"), (STATS_TOPIC, "rig.LoopStats"))
+
+
+def jsonable(value: Any) -> Any:
+    """Make ``value`` strict-JSON safe: numpy scalars/arrays to Python, non-finite floats to None."""
+    if isinstance(value, dict):
+        return {str(k): jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [jsonable(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return jsonable(value.tolist())
+    if isinstance(value, (np.floating, float)):
+        f = float(value)
+        return f if math.isfinite(f) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    if isinstance(value, np.bool_):
+        return bool(value)
+    if value is None or isinstance(value, (str, int, bool)):
+        return value
+    return str(value)
+
+
+def dumps(obj: Any) -> bytes:
+    return json.dumps(obj, allow_nan=False, separators=(",", ":")).encode()
+
+
+def meta_str(v: Any) -> str:
+    if isinstance(v, str):
+        return v
+    if isinstance(v, float):
+        return repr(v) if math.isfinite(v) else str(v)
+    if isinstance(v, (dict, list, tuple)):
+        return json.dumps(jsonable(v), allow_nan=False)
+    return str(v)
