@@ -4,7 +4,9 @@
 block, 1 s by default). Since version 2 (``rig.columns.v2``) each column is
 stored as the device delivers it: integer counts with a scale and an offset
 (LVDT counts of 0.076 µm, load-cell counts of 1 mN, the valve command as the
-int16 sent on CAN), derived floats (PID terms, dither) as float32, and each
+int16 sent on CAN); the derived terms (PID terms, dither, simulation truths)
+in fixed point far below what the valve resolves (PID 1 mN / 0.1 mN, dither
+1 µN; the int16 valve step is 0.31 N of a 10 kN actuator) or float32, and each
 column filtered (delta and/or byte shuffle) where that pays for zstd. A column
 decodes as ``value = stored * scale + offset``; NaN is the dtype's minimum.
 
@@ -80,23 +82,23 @@ VALVE_FULL_SCALE = 32767       # the int16 valve command on CAN (drivers/valve.p
 
 #: the loop's columns as the devices deliver them (the measured filters, benchmarks/bench_run.py)
 DEVICE_COLUMNS: dict[str, Column] = {
-    "t_s": Column("<i8", 1e-9, 0.0, "s", "delta", "trial time; offset = the block's first sample"),
-    "position_ref_um": Column("<i4", 0.001, 0.0, "µm", "delta", "controller reference, 1 nm steps"),
-    "position_um": Column("<i4", LVDT_UM_PER_COUNT, 0.0, "µm", "shuffle", "LVDT counts"),
-    "friction_N": Column("<i4", LOAD_CELL_N_PER_COUNT, 0.0, "N", "shuffle", "friction load-cell counts"),
-    "normal_1_N": Column("<i4", LOAD_CELL_N_PER_COUNT, 0.0, "N", "shuffle", "rider 1 load-cell counts"),
-    "normal_2_N": Column("<i4", LOAD_CELL_N_PER_COUNT, 0.0, "N", "shuffle", "rider 2 load-cell counts"),
-    "valve_cmd": Column("<i2", 1.0 / VALVE_FULL_SCALE, 0.0, "1", "shuffle", "valve command, int16 as on CAN"),
-    "pid_p": Column("<f4", unit="N", description="PID proportional term"),
-    "pid_i": Column("<f4", unit="N", filter="shuffle", description="PID integral term"),
-    "pid_d": Column("<f4", unit="N", description="PID derivative term"),
-    "dither": Column("<f4", unit="N", filter="shuffle", description="dither added to the PID output"),
-    "true_position_um": Column("<i4", 0.001, 0.0, "µm", "delta+shuffle", "simulation truth, 1 nm steps"),
-    "true_velocity_um_s": Column("<i4", 0.001, 0.0, "µm/s", "shuffle", "simulation truth"),
-    "true_mu": Column("<i4", 1e-7, 0.0, "1", "shuffle", "simulation truth"),
+    "t_s": Column("<i8", 1e-9, 0.0, "s", "delta+zstd", "trial time; offset = the block's first sample"),
+    "position_ref_um": Column("<i4", 0.001, 0.0, "µm", "delta+zstd", "controller reference, 1 nm steps"),
+    "position_um": Column("<i4", LVDT_UM_PER_COUNT, 0.0, "µm", "shuffle+zstd", "LVDT counts"),
+    "friction_N": Column("<i4", LOAD_CELL_N_PER_COUNT, 0.0, "N", "shuffle+zstd", "friction load-cell counts"),
+    "normal_1_N": Column("<i4", LOAD_CELL_N_PER_COUNT, 0.0, "N", "shuffle+zstd", "rider 1 load-cell counts"),
+    "normal_2_N": Column("<i4", LOAD_CELL_N_PER_COUNT, 0.0, "N", "shuffle+zstd", "rider 2 load-cell counts"),
+    "valve_cmd": Column("<i2", 1.0 / VALVE_FULL_SCALE, 0.0, "1", "shuffle+zstd", "valve command, int16 as on CAN"),
+    "pid_p": Column("<i4", 0.001, 0.0, "N", "shuffle+zstd", "PID proportional term, 1 mN steps"),
+    "pid_i": Column("<i4", 0.0001, 0.0, "N", "delta+shuffle+zstd", "PID integral term, 0.1 mN steps"),
+    "pid_d": Column("<f4", unit="N", filter="zstd", description="PID derivative term, float32"),
+    "dither": Column("<i4", 1e-6, 0.0, "N", "shuffle+zstd", "dither added to the PID output, 1 µN steps"),
+    "true_position_um": Column("<i4", 0.001, 0.0, "µm", "delta+shuffle+zstd", "simulation truth, 1 nm steps"),
+    "true_velocity_um_s": Column("<i4", 0.001, 0.0, "µm/s", "shuffle+zstd", "simulation truth"),
+    "true_mu": Column("<i4", 1e-6, 0.0, "1", "shuffle+zstd", "simulation truth"),
 }
 #: any other column, and every column of an imported CSV: exact float64
-EXACT = Column("<f8", filter="shuffle", description="exact float64")
+EXACT = Column("<f8", filter="shuffle+zstd", description="exact float64")
 
 
 def device_columns(lvdt_um_per_count: float | None = None) -> dict[str, Column]:
@@ -135,11 +137,35 @@ def _encode_column(x: np.ndarray, col: Column, offset: float) -> bytes:
         b = s.tobytes()
     else:
         b = x.astype(dt, copy=False).tobytes()
-    return _shuffle(b, dt.itemsize) if "shuffle" in col.filter else b
+    if "shuffle" in col.filter:
+        b = _shuffle(b, dt.itemsize)
+    return _zstd_c().compress(b) if "zstd" in col.filter else b
+
+
+_ZSTD: dict = {}
+COLUMN_ZSTD_LEVEL = 3
+
+
+def _zstd_c():
+    c = _ZSTD.get("c")
+    if c is None:
+        import zstandard
+        c = _ZSTD["c"] = zstandard.ZstdCompressor(level=COLUMN_ZSTD_LEVEL)
+    return c
+
+
+def _zstd_d(b: bytes, size: int) -> bytes:
+    d = _ZSTD.get("d")
+    if d is None:
+        import zstandard
+        d = _ZSTD["d"] = zstandard.ZstdDecompressor()
+    return d.decompress(b, max_output_size=size)
 
 
 def _decode_column(b: bytes, dtype: str, flt: str, scale: float, offset: float, n: int) -> np.ndarray:
     dt = np.dtype(dtype)
+    if "zstd" in flt:
+        b = _zstd_d(b, n * dt.itemsize)
     if len(b) != n * dt.itemsize:
         raise ValueError(f"{len(b)} bytes for {n} values of {dtype}")
     if "shuffle" in flt:

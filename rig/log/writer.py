@@ -236,6 +236,8 @@ class TrialLogWriter:
             pass
         cols = device_columns(lvdt_step) if raw_columns == "device" else {}
         self._enc = ColumnsV2Encoder(cols, self.raw_rate_hz)
+        self._raw_columns = raw_columns
+        self._dec_fmt: dict[str, str] = {}
         if raw_columns == "exact":
             self._enc.column = lambda key: EXACT  # every column exact
         self.flush_interval_s = float(flush_interval_s)
@@ -368,7 +370,7 @@ class TrialLogWriter:
         if first < n:
             idx = slice(first, n, self._dec_every)
             names = [nm for nm in SAMPLE_FIELDS[:-1] if nm in arrays]
-            cols = {nm: arrays[nm][idx] for nm in names}
+            cols = {nm: self._on_grid(nm, arrays[nm][idx]) for nm in names}
             if "normal_1_N" in cols and "normal_2_N" in cols:
                 nn = cols["normal_1_N"] + cols["normal_2_N"]
                 with np.errstate(divide="ignore", invalid="ignore"):
@@ -376,11 +378,13 @@ class TrialLogWriter:
                 names.append("mu")
             m = np.array([cols[nm] for nm in names])
             rows = m.T.tolist()
+            specs = [self._dec_format(nm) for nm in names]
             if np.isfinite(m).all():
-                fmt = "{" + ",".join(f'"{nm}":%r' for nm in names) + "}"
+                fmt = "{" + ",".join(f'"{nm}":{sp}' for nm, sp in zip(names, specs)) + "}"
                 payloads = [(fmt % tuple(row)).encode() for row in rows]
             else:
-                payloads = [dumps({k: (v if math.isfinite(v) else None) for k, v in zip(names, row)})
+                payloads = [("{" + ",".join(f'"{nm}":' + (sp % v if math.isfinite(v) else "null")
+                                            for nm, sp, v in zip(names, specs, row)) + "}").encode()
                             for row in rows]
             k = len(payloads)
             ts = m[0]
@@ -401,6 +405,31 @@ class TrialLogWriter:
         self._send()
         if time.monotonic() - self._last_flush >= self.flush_interval_s:
             self.flush()
+
+    def _on_grid(self, name: str, x: np.ndarray) -> np.ndarray:
+        """The value /raw stores for a device column (its integer count times the scale)."""
+        col = self._enc.column(name)
+        if name == "t_s" or np.dtype(col.dtype).kind != "i":
+            return x
+        with np.errstate(invalid="ignore"):
+            return np.rint((x - col.offset) / col.scale) * col.scale + col.offset
+
+    def _dec_format(self, name: str) -> str:
+        """printf format of a /log25 field: the raw column's resolution (the same values as /raw), else repr."""
+        f = self._dec_fmt.get(name)
+        if f is None:
+            col = self._enc.column(name)
+            f = "%r"
+            if name == "mu" and self._raw_columns == "device":
+                f = "%.6g"
+            elif name != "t_s" and np.dtype(col.dtype).kind == "i" and col.offset == 0.0:
+                f = "%.9g"  # e.g. the valve's k/32767
+                for d in range(10):
+                    if abs(round(col.scale, d) - col.scale) < 1e-12 * max(col.scale, 1e-300):
+                        f = f"%.{d}f"
+                        break
+            self._dec_fmt[name] = f
+        return f
 
     def _running_stats(self, a: dict[str, np.ndarray]) -> None:
         e = _EMPTY
