@@ -51,7 +51,7 @@ def info_command(
         typer.echo(json.dumps(info, indent=2, allow_nan=False, default=str))
         return
     state = "complete, every chunk's CRC verified" if info["complete"] else \
-        f"DAMAGED ({info['damage']}) -- `rig recover` keeps the intact chunks"
+        f"DAMAGED/TRUNCATED ({info['damage']}) -- `rig recover` keeps the intact chunks"
     console.print(f"[bold]{info['path']}[/]  {info['size_bytes'] / 1e6:.2f} MB  {state}", highlight=False)
     rec = info["metadata"].get("recovery")
     if info["recovered"]:
