@@ -122,26 +122,6 @@ def _unshuffle(b: bytes, itemsize: int) -> bytes:
     return np.frombuffer(b, np.uint8).reshape(itemsize, -1).T.tobytes()
 
 
-def _encode_column(x: np.ndarray, col: Column, offset: float) -> bytes:
-    dt = np.dtype(col.dtype)
-    if dt.kind == "i":
-        info = np.iinfo(dt)
-        with np.errstate(invalid="ignore", over="ignore"):
-            v = (x - offset) / col.scale if (offset or col.scale != 1.0) else x
-            finite = np.isfinite(v)
-            s = np.rint(np.clip(np.where(finite, v, 0.0), info.min + 1, info.max)).astype(dt)
-        if not finite.all():
-            s[~finite] = info.min  # NaN sentinel
-        if "delta" in col.filter and s.size:
-            s = np.diff(s, prepend=np.zeros(1, dt)).astype(dt)  # wraps modulo 2^bits
-        b = s.tobytes()
-    else:
-        b = x.astype(dt, copy=False).tobytes()
-    if "shuffle" in col.filter:
-        b = _shuffle(b, dt.itemsize)
-    return _zstd_c().compress(b) if "zstd" in col.filter else b
-
-
 _ZSTD: dict = {}
 COLUMN_ZSTD_LEVEL = 3
 
@@ -193,16 +173,64 @@ class ColumnsV2Encoder:
     def column(self, key: str) -> Column:
         return self.columns.get(key, EXACT)
 
+    def _plan(self, keys: tuple) -> list:
+        """Columns grouped by dtype, so that a block is scaled, rounded and filtered in a few numpy calls."""
+        plan = self._plans.get(keys)
+        if plan is None:
+            groups: dict[str, list] = {}
+            for key in keys:
+                groups.setdefault(self.column(key).dtype, []).append(key)
+            plan = []
+            for dtype, ks in groups.items():
+                cols = [self.column(k) for k in ks]
+                plan.append((np.dtype(dtype), ks, cols,
+                             np.array([c.offset for c in cols])[:, None],
+                             np.array([1.0 / c.scale for c in cols])[:, None],
+                             [i for i, c in enumerate(cols) if "delta" in c.filter],
+                             ks.index("t_s") if "t_s" in ks else -1))
+            self._plans[keys] = plan
+        return plan
+
+    _plans: dict
+
     def encode(self, block: dict[str, np.ndarray], t0: float) -> bytes:
         n = int(block["t_s"].size)
+        if not hasattr(self, "_plans"):
+            self._plans = {}
         parts = []
         meta = []
-        for key, arr in block.items():
-            col = self.column(key)
-            off = t0 if key == "t_s" and np.dtype(col.dtype).kind == "i" else col.offset
-            b = _encode_column(arr, col, off)
-            parts.append(b)
-            meta.append([key, col.dtype, col.filter, col.scale, off, len(b)])
+        for dt, ks, cols, offsets, inv_scale, delta_rows, t_row in self._plan(tuple(block)):
+            m = np.stack([block[k] for k in ks]).astype(np.float64, copy=False)
+            if dt.kind == "i":
+                if t_row >= 0:
+                    offsets = offsets.copy()
+                    offsets[t_row, 0] = t0
+                m = (m - offsets) * inv_scale
+                np.rint(m, out=m)
+                info = np.iinfo(dt)
+                finite = np.isfinite(m)
+                all_finite = bool(finite.all())
+                if not all_finite or m.min() <= info.min or m.max() > info.max:
+                    m = np.clip(np.where(finite, m, 0.0), info.min + 1, info.max)
+                st = m.astype(dt)
+                if not all_finite:
+                    st[~finite] = info.min  # NaN sentinel
+                if delta_rows and n > 1:
+                    st[delta_rows, 1:] = np.diff(st[delta_rows], axis=1)  # wraps modulo 2^bits
+            else:
+                st = m.astype(dt)
+            size = dt.itemsize
+            shuffled = st.view(np.uint8).reshape(len(ks), n, size).transpose(0, 2, 1).tobytes() if size > 1 \
+                else st.tobytes()
+            plain = st.tobytes()
+            row = n * size
+            for i, (k, c) in enumerate(zip(ks, cols)):
+                b = (shuffled if "shuffle" in c.filter else plain)[i * row:(i + 1) * row]
+                if "zstd" in c.filter:
+                    b = _zstd_c().compress(b)
+                parts.append(b)
+                off = t0 if i == t_row and dt.kind == "i" else c.offset
+                meta.append([k, c.dtype, c.filter, c.scale, off, len(b)])
         text = json.dumps({"t0_s": t0, "n": n, "rate_hz": self.rate_hz, "columns": meta},
                           separators=(",", ":"), allow_nan=False).encode()
         text += b" " * (-(8 + len(text)) % 8)
