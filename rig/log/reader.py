@@ -153,7 +153,7 @@ def scan(path: str | os.PathLike, topics: set[str] | None = None) -> LogContent:
                     c.complete = True
         except Exception as exc:  # the point where the framing broke: keep everything before it
             name = type(exc).__name__
-            if name == "EndOfFile":
+            if name in ("EndOfFile", "RecordLengthLimitExceeded"):  # a record runs past the end of the file
                 c.error = "file ends in the middle of a record (truncated)"
             elif isinstance(exc, McapError) or isinstance(exc, (ValueError, KeyError, UnicodeDecodeError)):
                 c.error = f"{name}: {exc}" if str(exc) else name
