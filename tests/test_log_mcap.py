@@ -436,3 +436,28 @@ def test_listeners_get_samples_events_and_loop_stats(tmp_path):
     assert sum(len(p["t_s"]) for p in samples) == 10 and "mu" in samples[0]
     assert len(w.listener_errors) == 1 and "viewer gone" in w.listener_errors[0]
     assert read_trial(tmp_path / "l.mcap").metadata["status"] == "completed"
+
+
+def test_foxglove_layout_plots_only_fields_the_log_has():
+    """config/foxglove/rig-trial.json: every plotted path is a topic and field the writer produces."""
+    from rig.log.schemas import SAMPLE_FIELDS
+
+    layout = json.loads((Path(__file__).parents[1] / "config" / "foxglove" / "rig-trial.json").read_text())
+    fields = {LOG25_TOPIC: set(SAMPLE_FIELDS),
+              # sim: run_sim_trial's statistics; hardware: rig.hardware.timing's window
+              STATS_TOPIC: {"realtime_factor", "tracking_error_rms_um", "late_p99_us", "late_max_us", "exec_p99_us"}}
+    paths = []
+    for pid, cfg in layout["configById"].items():
+        for p in cfg.get("paths", []):
+            topic, field = p["value"].split(".", 1)
+            assert field in fields[topic], p["value"]
+            paths.append(p["value"])
+        if "topicPath" in cfg:
+            assert cfg["topicPath"] == EVENTS_TOPIC
+    for want in ("/log25.position_um", "/log25.position_ref_um", "/log25.friction_N", "/log25.normal_1_N",
+                 "/log25.normal_2_N", "/log25.valve_cmd", "/loop_stats.late_p99_us"):
+        assert want in paths
+
+    def leaves(node):
+        return [node] if isinstance(node, str) else leaves(node["first"]) + leaves(node["second"])
+    assert sorted(leaves(layout["layout"])) == sorted(layout["configById"])
