@@ -57,6 +57,79 @@ def _baseline_writer(commit: str, tmp: Path):
     return mod.TrialLogWriter
 
 
+def _log_only(blocks, Baseline, tmp: Path, repeat: int) -> dict:
+    """CPU of the log alone on the trial's precomputed blocks, before vs after, interleaved (so that the
+    machine's load drifts out), and where the difference goes: raw encoding (v1 vs v2) and the MCAP
+    writer (the project's own vs the ``mcap`` package's Writer) on the identical message stream."""
+    import io
+
+    from mcap.reader import make_reader
+    from mcap.writer import CompressionType, Writer
+
+    from rig.log import TrialLogWriter
+    from rig.log.schemas import ColumnsV2Encoder, device_columns
+
+    def write(cls, name):
+        c0 = time.process_time()
+        w = cls(tmp / name, threaded=False, fsync=False)
+        for b in blocks:
+            w.write_block(b)
+        w.close()
+        return time.process_time() - c0
+
+    best = {"before": [], "after": []}
+    for _ in range(repeat):
+        best["before"].append(write(Baseline, "lo_before.mcap"))
+        best["after"].append(write(TrialLogWriter, "lo_after.mcap"))
+    out = {k: min(v) for k, v in best.items()}
+
+    enc = ColumnsV2Encoder(device_columns(), 1000.0)
+    old = Baseline(tmp / "enc_v1.mcap", threaded=False, fsync=False)
+    t = {"v2": [], "v1": []}
+    for _ in range(repeat):
+        c0 = time.process_time()
+        for b in blocks:
+            enc.encode(b, float(b["t_s"][0]))
+        t["v2"].append(time.process_time() - c0)
+        c0 = time.process_time()
+        for b in blocks:
+            old._columns_payload(b, float(b["t_s"][0]), b["t_s"].size)
+        t["v1"].append(time.process_time() - c0)
+    old.close()
+    out["encode_v2_s"], out["encode_v1_s"] = min(t["v2"]), min(t["v1"])
+
+    with open(tmp / "lo_after.mcap", "rb") as fh:
+        reader = make_reader(fh)
+        summary = reader.get_summary()
+        msgs = [(m.channel_id, m.log_time, m.data, m.sequence) for _, _, m in reader.iter_messages()]
+    own_cls = sys.modules["_rig_log_baseline"]._McapFile
+    t = {"mcap": [], "own": []}
+    for _ in range(repeat):
+        c0 = time.process_time()
+        w = Writer(io.BytesIO(), compression=CompressionType.ZSTD)
+        w.start()
+        ids = {}
+        for cid, ch in summary.channels.items():
+            sc = summary.schemas.get(ch.schema_id)
+            sid = w.register_schema(sc.name, sc.encoding, sc.data) if sc else 0
+            ids[cid] = w.register_channel(ch.topic, ch.message_encoding, sid)
+        for cid, ns, data, seq in msgs:
+            w.add_message(ids[cid], log_time=ns, data=data, publish_time=ns, sequence=seq)
+        w.finish()
+        t["mcap"].append(time.process_time() - c0)
+        c0 = time.process_time()
+        o = own_cls(io.BytesIO(), compression="zstd", level=-1)
+        o.start("rig-trial", "bench")
+        for cid, ch in summary.channels.items():
+            o.add_channel(ch.topic, ch.message_encoding, 0)
+        o.add_messages(msgs)
+        o.finish()
+        t["own"].append(time.process_time() - c0)
+    out["writer_mcap_s"], out["writer_own_s"] = min(t["mcap"]), min(t["own"])
+    out["messages"] = len(msgs)
+    return out
+
+
 def _measure(fn, repeat: int) -> dict:
     """Best (smallest) wall time and best CPU time over ``repeat`` runs of ``fn`` (returns the ticks)."""
     walls, cpus = [], []
@@ -174,6 +247,21 @@ def main(argv=None) -> int:
         size = f"{r['file_MB']:7.1f}M {r['MB_per_hour']:8.1f}" if r["file_MB"] else ""
         print(f"{label:38s} {r['wall_s']:6.3f}s {r['ticks_per_s']:>11,.0f} {r['realtime_factor']:10.0f}x   "
               f"{r['cpu_s']:5.3f}s {r['cpu_realtime_factor']:10.0f}x  {size}")
+
+    if Baseline is not None:
+        blocks = []
+        rig = SimRig(profile, profile.friction_model(recipe.lubricant), recipe.normal_force_N, recipe.seed)
+        for blk in rig.run_blocks(plan.x_ref_um, block_ticks=block_ticks):
+            blocks.append({k: v.copy() for k, v in blk.items()})
+        lo = _log_only(blocks, Baseline, tmp, args.repeat)
+        results["log_only"] = lo
+        print(f"the log alone on the trial's {len(blocks)} blocks (CPU, interleaved, best of {args.repeat}): "
+              f"before {lo['before']:.3f} s, after {lo['after']:.3f} s (x{lo['after'] / lo['before']:.2f})")
+        print(f"  raw encoding: v1 {lo['encode_v1_s']:.3f} s, v2 {lo['encode_v2_s']:.3f} s; the same "
+              f"{lo['messages']:,} messages through the MCAP writer: own {lo['writer_own_s']:.3f} s, "
+              f"mcap package {lo['writer_mcap_s']:.3f} s "
+              f"({1e6 * lo['writer_mcap_s'] / lo['messages']:.1f} vs {1e6 * lo['writer_own_s'] / lo['messages']:.1f}"
+              f" µs per message)")
 
     if not args.no_cli:
         out = tmp / "cli.mcap"
