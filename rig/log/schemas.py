@@ -163,6 +163,17 @@ def _decode_column(b: bytes, dtype: str, flt: str, scale: float, offset: float, 
     return out
 
 
+_PREFIX: dict = {}
+
+
+def _col_prefix(key: str, col: Column) -> str:
+    """``[key, dtype, filter, scale,`` of a column's header entry, as JSON (cached)."""
+    p = _PREFIX.get((key, col))
+    if p is None:
+        p = _PREFIX[(key, col)] = json.dumps([key, col.dtype, col.filter, col.scale])[:-1] + ","
+    return p
+
+
 class ColumnsV2Encoder:
     """Encodes loop blocks in ``rig.columns.v2`` (the header layout is cached per key set)."""
 
@@ -205,15 +216,17 @@ class ColumnsV2Encoder:
                 if t_row >= 0:
                     offsets = offsets.copy()
                     offsets[t_row, 0] = t0
-                m = (m - offsets) * inv_scale
+                m -= offsets  # m is a fresh array (np.stack)
+                m *= inv_scale
                 np.rint(m, out=m)
                 info = np.iinfo(dt)
-                finite = np.isfinite(m)
-                all_finite = bool(finite.all())
-                if not all_finite or m.min() <= info.min or m.max() > info.max:
-                    m = np.clip(np.where(finite, m, 0.0), info.min + 1, info.max)
-                st = m.astype(dt)
-                if not all_finite:
+                all_finite = bool(np.isfinite(m).all())
+                if all_finite:
+                    np.clip(m, info.min + 1, info.max, out=m)
+                    st = m.astype(dt)
+                else:
+                    finite = np.isfinite(m)
+                    st = np.clip(np.where(finite, m, 0.0), info.min + 1, info.max).astype(dt)
                     st[~finite] = info.min  # NaN sentinel
                 if delta_rows and n > 1:
                     st[delta_rows, 1:] = np.diff(st[delta_rows], axis=1)  # wraps modulo 2^bits
@@ -230,9 +243,10 @@ class ColumnsV2Encoder:
                     b = _zstd_c().compress(b)
                 parts.append(b)
                 off = t0 if i == t_row and dt.kind == "i" else c.offset
-                meta.append([k, c.dtype, c.filter, c.scale, off, len(b)])
-        text = json.dumps({"t0_s": t0, "n": n, "rate_hz": self.rate_hz, "columns": meta},
-                          separators=(",", ":"), allow_nan=False).encode()
+                meta.append(f"{_col_prefix(k, c)}{off!r},{len(b)}]")
+        if not math.isfinite(t0):
+            raise ValueError(f"block time t0_s = {t0} is not finite")
+        text = ('{"t0_s":%r,"n":%d,"rate_hz":%r,"columns":[%s]}' % (t0, n, self.rate_hz, ",".join(meta))).encode()
         text += b" " * (-(8 + len(text)) % 8)
         return b"".join([RAW_V2_MAGIC, struct.pack("<I", len(text)), text, *parts])
 

@@ -98,6 +98,8 @@ class _Sink:
     def messages(self, items: list) -> None:
         add = self.w.add_message
         for cid, ns, data, seq in items:
+            if callable(data):  # a raw block, encoded here (in the writer thread when threaded)
+                data = data()
             add(cid, log_time=ns, data=data, publish_time=ns, sequence=seq)
 
     def call(self, fn: Callable, *args) -> None:
@@ -201,8 +203,8 @@ class TrialLogWriter:
     ``start_time_ns``: wall-clock ns since the epoch of trial time 0 (default:
     now). ``raw_columns``: ``"device"`` (default: the devices' integer counts,
     :data:`rig.log.schemas.DEVICE_COLUMNS`) or ``"exact"`` (float64, for
-    imported data). ``threaded``: the ``mcap`` Writer (compression, file I/O,
-    fsync) runs in a background thread. ``compression``: zstd, lz4 or none.
+    imported data). ``threaded``: the raw-block encoding and the ``mcap``
+    Writer (compression, file I/O, fsync) run in a background thread. ``compression``: zstd, lz4 or none.
     ``raw_encoding`` and ``raw_dtype`` are obsolete and ignored (the raw
     channel is always ``rig.columns.v2``; older encodings are read, no longer
     written).
@@ -277,6 +279,7 @@ class TrialLogWriter:
                                   media_type="application/yaml", data=recipe_yaml.encode("utf-8"))
         self._batch: list = []
         self._sink = _ThreadedSink(sink) if threaded else sink
+        self._threaded = bool(threaded)
         # the first chunk carries the schemas and channels: get it on disk now
         self.event(0.0, "log_start")
         self.flush()
@@ -364,7 +367,11 @@ class TrialLogWriter:
                     raise ValueError(f"raw block keys changed: {self._raw_keys} -> {keys}")
                 self._raw_channel(keys)
             t0 = float(tr[0])
-            self._add(RAW_TOPIC, t0, self._enc.encode(raw, t0))
+            if self._threaded:  # encode in the writer thread, from a copy (the loop may reuse its arrays)
+                copy = {k: v.copy() for k, v in raw.items()}
+                self._add(RAW_TOPIC, t0, lambda: self._enc.encode(copy, t0))
+            else:
+                self._add(RAW_TOPIC, t0, self._enc.encode(raw, t0))
         # decimated per-sample channel: ticks whose global index is a multiple of the decimation
         first = (-start) % self._dec_every
         if first < n:
