@@ -20,7 +20,7 @@ from rig.log.schemas import DEVICE_COLUMNS, decode_v2
 
 V1_FILE = Path(__file__).parent / "data" / "v1-sim-1khz.mcap"
 STD = ("position_um", "friction_N", "normal_1_N", "normal_2_N", "position_ref_um", "valve_cmd")
-T0_NS = 1_700_000_000_000_000_000  # 2023-11-14: a fixed wall-clock start
+T0_NS = 1_700_000_000_123_456_789  # 2023-11-14: a fixed wall-clock start (more digits than a float64 holds)
 
 
 def make_blocks(n_blocks=50, n=100, rate=1000.0, seed=0):

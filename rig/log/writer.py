@@ -215,7 +215,7 @@ class TrialLogWriter:
                  metadata: dict[str, Any] | None = None, recipe_yaml: str | None = None,
                  recipe: dict | None = None, profile: dict | None = None,
                  raw_encoding: str = "binary", raw_dtype: str | None = None, flush_interval_s: float = 1.0,
-                 chunk_size: int = 1 << 20, fsync: bool = True, threaded: bool = True,
+                 chunk_size: int = 1 << 18, fsync: bool = True, threaded: bool = True,
                  compression: str = "zstd", start_time_ns: int | None = None, raw_columns: str = "device"):
         if raw_encoding not in ("binary", "base64", "json"):
             raise ValueError(f"raw_encoding must be 'binary', not {raw_encoding!r}")
@@ -395,8 +395,9 @@ class TrialLogWriter:
                             for row in rows]
             k = len(payloads)
             ts = m[0]
-            ns = np.clip(self.start_time_ns + np.rint(np.nan_to_num(ts) * 1e9), 0, 2.0 ** 64 - 2048)
-            ns = [min(int(v), _U64_MAX) for v in ns.tolist()]
+            rel = np.clip(np.rint(np.nan_to_num(ts) * 1e9), -9e18, 9e18).astype(np.int64).tolist()
+            t0n = self.start_time_ns  # integer arithmetic: float64 cannot hold epoch ns exactly
+            ns = [min(max(t0n + v, 0), _U64_MAX) for v in rel]
             seq0 = self._seq[LOG25_TOPIC]
             cid = self._chan[LOG25_TOPIC]
             self._batch.extend(zip([cid] * k, ns, payloads, range(seq0, seq0 + k)))
