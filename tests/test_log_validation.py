@@ -23,10 +23,10 @@ SMOKE = REPO / "config/recipes/smoke.yaml"
 VALIDATOR = Path(__file__).parent / "tools" / "validate_mcap.js"
 
 
-def _rig(*args, timeout=120):
+def _rig(*args, timeout=120, ok=(0,)):
     p = subprocess.run([sys.executable, "-m", "rig.cli", *map(str, args)], cwd=REPO, capture_output=True,
                        text=True, timeout=timeout)
-    assert p.returncode == 0, p.stdout + p.stderr
+    assert p.returncode in ok, p.stdout + p.stderr
     return p
 
 
@@ -44,7 +44,9 @@ def written(tmp_path_factory):
     d = tmp_path_factory.mktemp("logs")
     files = {"sim": d / "sim.mcap", "hardware": d / "hw.mcap"}
     _rig("run", SMOKE, "--sim", "-q", "--out", files["sim"])
-    _rig("run", SMOKE, "--hardware", private_profile(d), "--out", files["hardware"], "-q")
+    # on a loaded machine the emulated rig may trip an interlock (exit 1): the log is then finished with
+    # status 'failed', still a complete hardware log
+    _rig("run", SMOKE, "--hardware", private_profile(d), "--out", files["hardware"], "-q", ok=(0, 1))
     cut = d / "cut.mcap"
     data = files["hardware"].read_bytes()
     cut.write_bytes(data[: len(data) * 2 // 3])
