@@ -1,23 +1,24 @@
-"""Benchmark: closed-loop ticks per second and real-time factor of the simulated trial, LOGGING INCLUDED.
+"""Benchmark: closed-loop ticks per second, real-time factor and log size of the simulated trial, LOGGING INCLUDED.
 
 Runs the paper's velocity-step recipe (config/recipes/velocity-steps.yaml, 681 s
-of simulated time, 681 k loop ticks) on the simulated rig:
+of simulated time, 681 k loop ticks) on the simulated rig, in one sitting:
 
   1. the closed loop alone (no log; 1 s blocks, as `rig run` uses),
-  2. with the trial log as `rig run` writes it (rig.log.TrialLogWriter defaults:
-     raw blocks of 1 s as binary float64 columns, the 25 Hz JSON channel,
-     events, loop statistics every second, chunks compressed with zstd level -1,
-     fsync'd flushes at least every second, the writer thread),
-  3. the same with the writer in the caller's thread,
-  4. the same with float32 raw columns (recipe log.raw_dtype: float32),
-  5. the previous layout for comparison (raw blocks of 0.1 s as base64 in JSON,
-     zstd level 3), with the current writer,
-  6. the whole `rig run RECIPE --sim -q` in a fresh process (imports, numba
-     cache loading, plan, git describe, log), and its fixed start-up cost
-     (the same command on a 1 s hold).
+  2. BEFORE: the project's own MCAP writer and the rig.columns.v1 raw channel
+     (float64 columns, zstd level -1), loaded from git (``--baseline``, the
+     commit before rig/log became a package),
+  3. AFTER: rig.log.TrialLogWriter as `rig run` writes it (the ``mcap``
+     package's Writer, zstd, rig.columns.v2 device counts, the 25 Hz JSON
+     channel with mu, events, loop statistics every second, fsync'd flushes at
+     least every second, the writer thread),
+  4. the same with the writer in the caller's thread,
+  5. the same with a flush after every 1 s block: the chunking of a trial
+     logged in real time (hardware), which sets the size per hour a lab keeps,
+  6. the whole `rig run RECIPE --sim -q` in a fresh process, and its fixed
+     start-up cost (the same command on a 1 s hold).
 
 For each: wall time and CPU time (this process; child CPU for 6), ticks per
-second and real-time factor (simulated s / wall s, and / CPU s), best of
+second, real-time factor, file size and MB per hour of trial; best of
 ``--repeat``. The machine is shared: the load average is printed before and
 after; CPU figures are the stable ones.
 
@@ -27,6 +28,7 @@ after; CPU figures are the stable ones.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import os
 import subprocess
@@ -36,6 +38,96 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
+
+
+BASELINE = "5e036b0"  # main before the log package: rig/log.py with its own MCAP writer
+
+
+def _baseline_writer(commit: str, tmp: Path):
+    """TrialLogWriter of rig/log.py at ``commit`` (the project's own MCAP writer), imported from git."""
+    src = subprocess.run(["git", "-C", str(REPO), "show", f"{commit}:rig/log.py"], capture_output=True, text=True)
+    if src.returncode != 0:
+        return None
+    path = tmp / "_rig_log_baseline.py"
+    path.write_text(src.stdout)
+    spec = importlib.util.spec_from_file_location("_rig_log_baseline", path)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["_rig_log_baseline"] = mod
+    spec.loader.exec_module(mod)
+    return mod.TrialLogWriter
+
+
+def _log_only(blocks, Baseline, tmp: Path, repeat: int) -> dict:
+    """CPU of the log alone on the trial's precomputed blocks, before vs after, interleaved (so that the
+    machine's load drifts out), and where the difference goes: raw encoding (v1 vs v2) and the MCAP
+    writer (the project's own vs the ``mcap`` package's Writer) on the identical message stream."""
+    import io
+
+    from mcap.reader import make_reader
+    from mcap.writer import CompressionType, Writer
+
+    from rig.log import TrialLogWriter
+    from rig.log.schemas import ColumnsV2Encoder, device_columns
+
+    def write(cls, name):
+        c0 = time.process_time()
+        w = cls(tmp / name, threaded=False, fsync=False)
+        for b in blocks:
+            w.write_block(b)
+        w.close()
+        return time.process_time() - c0
+
+    best = {"before": [], "after": []}
+    for _ in range(repeat):
+        best["before"].append(write(Baseline, "lo_before.mcap"))
+        best["after"].append(write(TrialLogWriter, "lo_after.mcap"))
+    out = {k: min(v) for k, v in best.items()}
+
+    enc = ColumnsV2Encoder(device_columns(), 1000.0)
+    old = Baseline(tmp / "enc_v1.mcap", threaded=False, fsync=False)
+    t = {"v2": [], "v1": []}
+    for _ in range(repeat):
+        c0 = time.process_time()
+        for b in blocks:
+            enc.encode(b, float(b["t_s"][0]))
+        t["v2"].append(time.process_time() - c0)
+        c0 = time.process_time()
+        for b in blocks:
+            old._columns_payload(b, float(b["t_s"][0]), b["t_s"].size)
+        t["v1"].append(time.process_time() - c0)
+    old.close()
+    out["encode_v2_s"], out["encode_v1_s"] = min(t["v2"]), min(t["v1"])
+
+    with open(tmp / "lo_after.mcap", "rb") as fh:
+        reader = make_reader(fh)
+        summary = reader.get_summary()
+        msgs = [(m.channel_id, m.log_time, m.data, m.sequence) for _, _, m in reader.iter_messages()]
+    own_cls = sys.modules["_rig_log_baseline"]._McapFile
+    t = {"mcap": [], "own": []}
+    for _ in range(repeat):
+        c0 = time.process_time()
+        w = Writer(io.BytesIO(), compression=CompressionType.ZSTD)
+        w.start()
+        ids = {}
+        for cid, ch in summary.channels.items():
+            sc = summary.schemas.get(ch.schema_id)
+            sid = w.register_schema(sc.name, sc.encoding, sc.data) if sc else 0
+            ids[cid] = w.register_channel(ch.topic, ch.message_encoding, sid)
+        for cid, ns, data, seq in msgs:
+            w.add_message(ids[cid], log_time=ns, data=data, publish_time=ns, sequence=seq)
+        w.finish()
+        t["mcap"].append(time.process_time() - c0)
+        c0 = time.process_time()
+        o = own_cls(io.BytesIO(), compression="zstd", level=-1)
+        o.start("rig-trial", "bench")
+        for cid, ch in summary.channels.items():
+            o.add_channel(ch.topic, ch.message_encoding, 0)
+        o.add_messages(msgs)
+        o.finish()
+        t["own"].append(time.process_time() - c0)
+    out["writer_mcap_s"], out["writer_own_s"] = min(t["mcap"]), min(t["own"])
+    out["messages"] = len(msgs)
+    return out
 
 
 def _measure(fn, repeat: int) -> dict:
@@ -73,6 +165,7 @@ def main(argv=None) -> int:
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--no-cli", action="store_true", help="skip the fresh-process runs")
     ap.add_argument("--json", default=None, help="also write the figures to this JSON file")
+    ap.add_argument("--baseline", default=BASELINE, help="git commit whose rig/log.py is the 'before' writer")
     args = ap.parse_args(argv)
     load0 = os.getloadavg()
 
@@ -105,35 +198,43 @@ def main(argv=None) -> int:
             n += blk["t_s"].size
         return n
 
-    def with_log(name, block_s=None, **kw):
-        rc = recipe
-        if block_s is not None:
-            rc = recipe.model_copy(deep=True)
-            rc.log.block_s = block_s
+    Baseline = _baseline_writer(args.baseline, tmp)
 
+    def with_log(name, writer_cls=TrialLogWriter, flush_every_block=False, **kw):
         def run():
-            w = TrialLogWriter(tmp / f"{name}.mcap", loop_rate_hz=plan.loop_rate_hz,
-                               decimated_rate_hz=recipe.log.decimated_rate_hz,
-                               metadata={"lubricant": recipe.lubricant, "normal_force_N": recipe.normal_force_N},
-                               recipe_yaml=recipe.source_text, recipe=recipe.model_dump(mode="json"),
-                               profile=profile.model_dump(mode="json"), **kw)
-            bt = max(1, int(round(rc.log.block_s * plan.loop_rate_hz)))
-            backend = SimBackend(profile, profile.friction_model(rc.lubricant), rc.normal_force_N, recipe.seed,
-                                 block_ticks=bt)
+            w = writer_cls(tmp / f"{name}.mcap", loop_rate_hz=plan.loop_rate_hz,
+                           decimated_rate_hz=recipe.log.decimated_rate_hz,
+                           metadata={"lubricant": recipe.lubricant, "normal_force_N": recipe.normal_force_N},
+                           recipe_yaml=recipe.source_text, recipe=recipe.model_dump(mode="json"),
+                           profile=profile.model_dump(mode="json"), **kw)
+            if flush_every_block:  # each 1 s block in its own chunk, as in a trial logged in real time
+                write = w.write_block
+
+                def write_and_flush(block):
+                    write(block)
+                    w.flush()
+                w.write_block = write_and_flush
+            backend = SimBackend(profile, profile.friction_model(recipe.lubricant), recipe.normal_force_N,
+                                 recipe.seed, block_ticks=block_ticks)
             return run_trial(plan, backend, w, handle_signals=False).ticks
         return run
 
     results = {"recipe": args.recipe, "simulated_s": sim_s, "ticks": plan.n_ticks, "plan_compile_s": t_plan,
-               "cpu_count": os.cpu_count()}
-    rows = [("closed loop alone (no log)", "sim_only", sim_only),
-            ("with the log (default)", "log", with_log("log")),
-            ("  writer in the caller's thread", "log_unthreaded", with_log("log_unthreaded", threaded=False)),
-            ("  float32 raw columns", "log_float32", with_log("log_float32", raw_dtype="float32")),
-            ("  old layout (base64 0.1 s, zstd 3)", "log_old_layout",
-             with_log("log_old_layout", block_s=0.1, raw_encoding="base64", compression_level=3))]
+               "cpu_count": os.cpu_count(), "baseline": args.baseline}
+    rows = [("closed loop alone (no log)", "sim_only", sim_only)]
+    if Baseline is not None:
+        rows += [("BEFORE: own writer, columns.v1", "log_before", with_log("log_before", Baseline))]
+    rows += [("AFTER: mcap Writer, columns.v2", "log", with_log("log")),
+             ("  writer in the caller's thread", "log_unthreaded", with_log("log_unthreaded", threaded=False)),
+             ("  a chunk per 1 s block (real time)", "log_realtime_chunks",
+              with_log("log_realtime_chunks", flush_every_block=True))]
+    if Baseline is not None:
+        rows += [("  BEFORE, a chunk per 1 s block", "log_before_realtime_chunks",
+                  with_log("log_before_realtime_chunks", Baseline, flush_every_block=True))]
     print(f"{Path(args.recipe).name}: {sim_s:.1f} s simulated, {plan.n_ticks:,} ticks; load average "
           f"{load0[0]:.2f} on {os.cpu_count()} cores; best of {args.repeat}")
-    print(f"{'':38s} {'wall':>7s} {'ticks/s':>11s} {'x real time':>11s}   {'CPU':>6s} {'x real time':>11s}  file")
+    print(f"{'':38s} {'wall':>7s} {'ticks/s':>11s} {'x real time':>11s}   {'CPU':>6s} {'x real time':>11s}"
+          f"  {'file':>8s} {'MB/hour':>8s}")
     for label, key, fn in rows:
         r = _measure(fn, args.repeat)
         r["ticks_per_s"] = r["ticks"] / r["wall_s"]
@@ -142,10 +243,26 @@ def main(argv=None) -> int:
         r["cpu_realtime_factor"] = sim_s / r["cpu_s"] if r["cpu_s"] > 0 else float("nan")
         p = tmp / f"{key}.mcap"
         r["file_MB"] = p.stat().st_size / 1e6 if p.exists() else None
+        r["MB_per_hour"] = r["file_MB"] / sim_s * 3600.0 if r["file_MB"] else None
         results[key] = r
-        size = f"{r['file_MB']:.1f} MB" if r["file_MB"] else "-"
+        size = f"{r['file_MB']:7.1f}M {r['MB_per_hour']:8.1f}" if r["file_MB"] else ""
         print(f"{label:38s} {r['wall_s']:6.3f}s {r['ticks_per_s']:>11,.0f} {r['realtime_factor']:10.0f}x   "
               f"{r['cpu_s']:5.3f}s {r['cpu_realtime_factor']:10.0f}x  {size}")
+
+    if Baseline is not None:
+        blocks = []
+        rig = SimRig(profile, profile.friction_model(recipe.lubricant), recipe.normal_force_N, recipe.seed)
+        for blk in rig.run_blocks(plan.x_ref_um, block_ticks=block_ticks):
+            blocks.append({k: v.copy() for k, v in blk.items()})
+        lo = _log_only(blocks, Baseline, tmp, args.repeat)
+        results["log_only"] = lo
+        print(f"the log alone on the trial's {len(blocks)} blocks (CPU, interleaved, best of {args.repeat}): "
+              f"before {lo['before']:.3f} s, after {lo['after']:.3f} s (x{lo['after'] / lo['before']:.2f})")
+        print(f"  raw encoding: v1 {lo['encode_v1_s']:.3f} s, v2 {lo['encode_v2_s']:.3f} s; the same "
+              f"{lo['messages']:,} messages through the MCAP writer: own {lo['writer_own_s']:.3f} s, "
+              f"mcap package {lo['writer_mcap_s']:.3f} s "
+              f"({1e6 * lo['writer_mcap_s'] / lo['messages']:.1f} vs {1e6 * lo['writer_own_s'] / lo['messages']:.1f}"
+              f" µs per message)")
 
     if not args.no_cli:
         out = tmp / "cli.mcap"
@@ -169,8 +286,17 @@ def main(argv=None) -> int:
         print(f"a one-hour trial with `rig run` ~ {one_h:.1f} s wall, {one_h_cpu:.1f} s CPU "
               f"(start-up + 3600 s at the logged rate)")
     so, lg = results["sim_only"], results["log"]
-    print(f"the log adds x{lg['cpu_s'] / so['cpu_s']:.2f} to the bare loop's CPU time "
-          f"(old layout x{results['log_old_layout']['cpu_s'] / so['cpu_s']:.2f})")
+    line = f"the log adds x{lg['cpu_s'] / so['cpu_s']:.2f} to the bare loop's CPU time"
+    if "log_before" in results:
+        bf = results["log_before"]
+        results["after_vs_before_cpu"] = lg["cpu_s"] / bf["cpu_s"]
+        line += (f" (before: x{bf['cpu_s'] / so['cpu_s']:.2f}); sim+log throughput after/before "
+                 f"{bf['cpu_s'] / lg['cpu_s']:.2f} (CPU), {bf['wall_s'] / lg['wall_s']:.2f} (wall)")
+    print(line)
+    rt = results["log_realtime_chunks"]
+    print(f"size of a trial logged in real time: {rt['MB_per_hour']:.1f} MB per hour of 1 kHz trial (target <= 60)"
+          + (f"; before {results['log_before_realtime_chunks']['MB_per_hour']:.1f}"
+             if "log_before_realtime_chunks" in results else ""))
     load1 = os.getloadavg()
     results["loadavg_before_after"] = [load0[0], load1[0]]
     print(f"load average after: {load1[0]:.2f}")

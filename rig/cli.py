@@ -1,7 +1,8 @@
 """The operator CLI, ``rig`` (typer).
 
 Each subsystem registers its commands from its own module, so the modules
-stay independent: ``rig.commands.trial`` (run, info, export, import, recover),
+stay independent: ``rig.commands.trial`` (run), ``rig.commands.logs`` (info,
+export, import, recover),
 ``rig.commands.analysis`` (identify, stribeck, stability, reproduce),
 ``rig.commands.diagnose`` (diagnose), ``rig.commands.hardware`` (devices,
 loop-bench). A module that is missing is simply not registered.
@@ -29,6 +30,7 @@ app = typer.Typer(
 
 COMMAND_MODULES = (
     "rig.commands.trial",
+    "rig.commands.logs",
     "rig.commands.analysis",
     "rig.commands.diagnose",
     "rig.commands.hardware",

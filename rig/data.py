@@ -4,12 +4,17 @@ The CSV format is ``../shared/specs/measured-data.md`` (version 1), kept to the
 letter: ``# rig-trial-csv: 1`` first, ``# key: value`` metadata lines, a header
 with at least ``time_s``, ``position_um``, ``friction_N``; optional
 ``normal_1_N``, ``normal_2_N``, ``position_ref_um``, ``valve_cmd``; extra
-columns kept. Bad input raises :class:`DataFormatError` naming the file, the
-line and what is wrong; a trailing partial line is a warning.
+columns kept and never an error (numeric ones as float arrays with empty cells
+as NaN, any with text as string arrays). Numbers are ASCII only (``١٢٣`` or
+``１２`` are not numbers, nor ``1_000``). Bad input raises
+:class:`DataFormatError` naming the file, the line and what is wrong (an
+invalid ``normal_force_N`` metadata value too); a trailing partial line is a
+warning.
 
 :class:`TrialData` is what every analysis (identify, stribeck, diagnose)
 consumes, whether it came from a CSV or from the rig's MCAP log
-(:func:`load_trial` dispatches on the suffix).
+(``rig.log.load_trial`` dispatches on the suffix; this module imports nothing
+from the log).
 """
 
 from __future__ import annotations
@@ -18,6 +23,7 @@ import contextlib
 import io
 import math
 import os
+import re
 import tempfile
 import warnings
 from dataclasses import dataclass, field
@@ -83,14 +89,19 @@ class TrialData:
         """Nominal per-rider normal force N (N)."""
         value = self.metadata.get("normal_force_N")
         if value is not None:
-            try:
-                v = float(value)
-                if math.isfinite(v) and v > 0:
-                    return v
-            except ValueError:
-                pass
+            v = parse_number(str(value))
+            if v is None or not math.isfinite(v) or v <= 0:
+                raise ValueError(f"{self.source or 'trial'}: normal_force_N metadata {value!r} is not a positive "
+                                 "number of newtons")
+            return v
         if self.has_normals:
-            return float(np.median((self.normal_1_N + self.normal_2_N) / 2.0))
+            with np.errstate(invalid="ignore"):
+                med = float(np.nanmedian((self.normal_1_N + self.normal_2_N) / 2.0)) \
+                    if np.isfinite(self.normal_1_N + self.normal_2_N).any() else float("nan")
+            if math.isfinite(med) and med > 0:
+                return med
+            raise ValueError(f"{self.source or 'trial'}: the normal columns' median is {med:g} N and there is no "
+                             "normal_force_N metadata; the nominal normal force is unknown")
         raise ValueError(
             f"{self.source or 'trial'}: no normal_force_N metadata and no normal columns; "
             "the nominal normal force is unknown"
@@ -105,8 +116,11 @@ class TrialData:
 
     @property
     def mu(self) -> np.ndarray:
-        """Friction coefficient of one interface, friction / (normal_1 + normal_2) (measured-data.md)."""
-        return self.friction_N / self.total_normal_N
+        """Friction coefficient of one interface, friction / (normal_1 + normal_2) (measured-data.md);
+        NaN where the normal forces sum to zero (never a division by zero)."""
+        total = self.total_normal_N
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(total != 0.0, self.friction_N / np.where(total != 0.0, total, 1.0), np.nan)
 
     def columns(self) -> dict[str, np.ndarray]:
         """All present columns in the CSV's canonical order (standard first, then extra)."""
@@ -131,12 +145,30 @@ class TrialData:
         )
 
 
-def _parse_float(text: str, path, lineno: int, column: str) -> float:
+_NUMBER = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?|[+-]?(?:nan|inf|infinity)", re.IGNORECASE | re.ASCII)
+
+
+def parse_number(text: str) -> float | None:
+    """A decimal number in ASCII (``1``, ``-2.5e3``, ``nan``, ``inf``), else None.
+
+    Python's float() also takes other scripts' digits (``١٢٣``, ``１２``) and
+    underscores (``1_000``); the interchange format does not."""
     s = text.strip()
-    try:
-        return float(s)
-    except ValueError:
-        raise DataFormatError(path, lineno, f"column '{column}': non-numeric value {s!r}") from None
+    if not _NUMBER.fullmatch(s):
+        return None
+    return float(s)
+
+
+def _parse_float(text: str, path, lineno: int, column: str) -> float:
+    v = parse_number(text)
+    if v is None:
+        raise DataFormatError(path, lineno, f"column '{column}': non-numeric value {text.strip()!r}")
+    return v
+
+
+def _plain_ascii(text: str) -> bool:
+    """True when float() cannot accept anything the format rejects (ASCII, no underscores)."""
+    return text.isascii() and "_" not in text
 
 
 def read_csv(path: str | os.PathLike) -> TrialData:
@@ -164,16 +196,28 @@ def read_csv(path: str | os.PathLike) -> TrialData:
         raise DataFormatError(path, 1, f"first line must be '# {CSV_MAGIC}: {CSV_VERSION}', found {lines[0][:60]!r}")
 
     metadata: dict[str, str] = {}
+    meta_line: dict[str, int] = {}
     i = 1
     while i < len(lines) and lines[i].lstrip().startswith("#"):
         body = lines[i].lstrip()[1:].strip()
         if ":" in body:
             key, value = body.split(":", 1)
             metadata[key.strip()] = value.strip()
+            meta_line[key.strip()] = i + 1
         elif body:
             metadata.setdefault("comment", "")
             metadata["comment"] = (metadata["comment"] + " " + body).strip()
         i += 1
+    if "normal_force_N" in metadata:
+        v = parse_number(metadata["normal_force_N"])
+        if v is None or not math.isfinite(v) or v <= 0:
+            raise DataFormatError(path, meta_line["normal_force_N"],
+                                  f"normal_force_N metadata must be a positive number of newtons, found "
+                                  f"{metadata['normal_force_N']!r}")
+    if metadata.get("position_source", "on_sample") not in ("on_sample", "load_point"):
+        msg = (f"{path}, line {meta_line['position_source']}: unknown position_source "
+               f"{metadata['position_source']!r} (expected on_sample or load_point); taken as on_sample")
+        warnings.warn(msg, UserWarning, stacklevel=2)
     if i >= len(lines) or not lines[i].strip():
         raise DataFormatError(path, i + 1, "missing header row (column names) after the metadata lines")
     header_lineno = i + 1
@@ -187,9 +231,14 @@ def read_csv(path: str | os.PathLike) -> TrialData:
                               f"missing required column(s): {', '.join(missing)} (header has: {', '.join(names)})")
 
     ncol = len(names)
+    std_idx = [j for j, n in enumerate(names) if n in STANDARD_COLUMNS]
+    extra_idx = [j for j, n in enumerate(names) if n not in STANDARD_COLUMNS]
     rows: list[list[float]] = []
+    extra_text: list[list[str]] = []
     file_warnings: list[str] = []
     data_lines = lines[i + 1:]
+    fast = _plain_ascii("\n".join(data_lines))
+    row_lines: list[int] = []
     for k, line in enumerate(data_lines):
         lineno = header_lineno + 1 + k
         if not line.strip():
@@ -204,7 +253,11 @@ def read_csv(path: str | os.PathLike) -> TrialData:
                 break
             raise DataFormatError(path, lineno, f"expected {ncol} fields, found {len(fields)}")
         try:
-            values = [float(f) for f in fields]
+            if fast:
+                values = [float(fields[j]) if fields[j].strip() or names[j] in REQUIRED_COLUMNS
+                          else math.nan for j in std_idx]
+            else:
+                values = [_strict(fields[j], names[j]) for j in std_idx]
         except ValueError:
             if is_last and not ends_with_newline:
                 # a number cut in half can still parse; one that does not is a partial line
@@ -212,18 +265,28 @@ def read_csv(path: str | os.PathLike) -> TrialData:
                 warnings.warn(msg, PartialLineWarning, stacklevel=2)
                 file_warnings.append(msg)
                 break
-            for name, f in zip(names, fields):
-                _parse_float(f, path, lineno, name)
-            raise  # pragma: no cover - _parse_float raised above
+            for j in std_idx:
+                if not fields[j].strip() and names[j] in REQUIRED_COLUMNS:
+                    raise DataFormatError(path, lineno, f"column '{names[j]}': empty value") from None
+                if fields[j].strip():
+                    _parse_float(fields[j], path, lineno, names[j])
+            raise  # pragma: no cover - raised above
         rows.append(values)
+        extra_text.append([fields[j].strip() for j in extra_idx])
+        row_lines.append(lineno)
     if not rows:
         raise DataFormatError(path, header_lineno, "empty data: no rows after the header")
 
     table = np.asarray(rows, dtype=float)
-    cols = {name: table[:, j] for j, name in enumerate(names)}
-    first_data = header_lineno + 1
-    # line numbers of the kept rows (blank lines skipped)
-    row_lines = [header_lineno + 1 + k for k, ln in enumerate(data_lines) if ln.strip()][: len(rows)]
+    cols = {names[j]: table[:, c] for c, j in enumerate(std_idx)}
+    extra: dict[str, np.ndarray] = {}
+    for c, j in enumerate(extra_idx):
+        texts = [r[c] for r in extra_text]
+        nums = [parse_number(t) if t else math.nan for t in texts]
+        if all(v is not None for v in nums):
+            extra[names[j]] = np.asarray(nums, dtype=float)
+        else:  # text: kept as strings, never an error
+            extra[names[j]] = np.asarray(texts, dtype=str)
     for name in REQUIRED_COLUMNS:
         bad = np.flatnonzero(~np.isfinite(cols[name]))
         if bad.size:
@@ -235,18 +298,28 @@ def read_csv(path: str | os.PathLike) -> TrialData:
         j = bad[0] + 1
         raise DataFormatError(path, row_lines[j],
                               f"time_s not strictly increasing ({t[j - 1]!r} then {t[j]!r})")
-    del first_data
 
     def opt(name):
         return cols.get(name)
 
-    extra = {n: cols[n] for n in names if n not in STANDARD_COLUMNS}
     return TrialData(
         time_s=t, position_um=cols["position_um"], friction_N=cols["friction_N"],
         normal_1_N=opt("normal_1_N"), normal_2_N=opt("normal_2_N"),
         position_ref_um=opt("position_ref_um"), valve_cmd=opt("valve_cmd"),
         extra=extra, metadata=metadata, source=str(path), warnings=file_warnings,
     )
+
+
+def _strict(text: str, name: str) -> float:
+    """One standard-column field: ASCII number; empty is NaN in optional columns (ValueError otherwise)."""
+    if not text.strip():
+        if name in REQUIRED_COLUMNS:
+            raise ValueError("empty")
+        return math.nan
+    v = parse_number(text)
+    if v is None:
+        raise ValueError(text)
+    return v
 
 
 def _fmt(x: float) -> str:
@@ -277,9 +350,16 @@ def write_csv(trial: TrialData, path: str | os.PathLike) -> Path:
         buf.write(f"# {key}: {value}\n")
     names = list(cols)
     buf.write(",".join(names) + "\n")
-    table = np.column_stack([np.asarray(cols[n], dtype=float) for n in names])
-    for row in table:
-        buf.write(",".join(_fmt(v) for v in row) + "\n")
+    text_cols = {n for n in names if np.asarray(cols[n]).dtype.kind in "USO"}
+    if not text_cols:
+        table = np.column_stack([np.asarray(cols[n], dtype=float) for n in names])
+        for row in table:
+            buf.write(",".join(_fmt(v) for v in row) + "\n")
+    else:
+        series = [[str(v) for v in cols[n]] if n in text_cols else [_fmt(v) for v in np.asarray(cols[n], float)]
+                  for n in names]
+        for row in zip(*series):
+            buf.write(",".join(row) + "\n")
     atomic_write_text(path, buf.getvalue())
     return path
 
@@ -292,6 +372,9 @@ def atomic_path(path: str | os.PathLike):
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     os.close(fd)
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o666 & ~umask)  # like open(): colleagues can read results (mkstemp makes 0600)
     try:
         yield Path(tmp)
         with open(tmp, "rb") as fh:
@@ -313,16 +396,3 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
 
 def atomic_write_text(path: str | os.PathLike, text: str) -> None:
     atomic_write_bytes(path, text.encode("utf-8"))
-
-
-def load_trial(path: str | os.PathLike) -> TrialData:
-    """Load a trial from a measured-data ``.csv`` or a rig ``.mcap`` log."""
-    path = Path(path)
-    suffix = path.suffix.lower()
-    if suffix == ".csv":
-        return read_csv(path)
-    if suffix == ".mcap":
-        from rig.log import read_trial  # the MCAP reader lives with the writer
-
-        return read_trial(path)
-    raise DataFormatError(path, None, f"unknown data file type {suffix!r} (expected .csv or .mcap)")

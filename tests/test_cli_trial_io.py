@@ -1,4 +1,5 @@
-"""CLI: rig export / import / info / recover, and the CSV spec's bad inputs (no partial output)."""
+"""CLI: rig export (CSV, Parquet) / import / info / recover, corrupt chunks, v1 logs, and the CSV spec's bad
+inputs (no partial output)."""
 
 from __future__ import annotations
 
@@ -84,6 +85,9 @@ GOOD_HEAD = "# rig-trial-csv: 1\n# normal_force_N: 100\n"
     ("time_s,position_um,friction_N\n0,1,2\n0.04,1,2\n0.04,1,2\n", 6, "not strictly increasing"),
     ("time_s,position_um,friction_N\n0,1,2\n0.04,1,nan\n", 5, "NaN"),
     ("time_s,position_um,friction_N\n", 3, "empty data"),
+    ("time_s,position_um,friction_N\n0,1,2\n0.04,١٢٣,2\n", 5, "non-numeric"),
+    ("time_s,position_um,friction_N\n0,1,2\n0.04,１２,2\n", 5, "non-numeric"),
+    ("time_s,position_um,friction_N\n0,1,2\n0.04,1_000,2\n", 5, "non-numeric"),
 ])
 def test_import_bad_input_one_error_no_output(tmp_path, body, line, what):
     src = tmp_path / "bad.csv"
@@ -147,7 +151,98 @@ def test_help_is_complete(cmd):
     assert res.exit_code == 0
     text = res.output
     expected = {"run": ["--sim", "--hardware", "--lubricant", "--out", "--profile", "--friction-model", "--seed"],
-                "info": ["--events", "--json"], "export": ["--csv", "--rate"], "import": ["--out"],
+                "info": ["--events", "--json"], "export": ["--csv", "--parquet", "--rate", "--strict"],
+                "import": ["--out"],
                 "recover": ["--out"]}[cmd]
     for opt in expected:
         assert opt in text, (cmd, opt)
+
+
+@pytest.mark.parametrize("value", ["abc", "-100", "0", "nan", "١٠٠"])
+def test_import_invalid_normal_force_metadata_names_the_line(tmp_path, value):
+    src = tmp_path / "nf.csv"
+    src.write_text(f"# rig-trial-csv: 1\n# lubricant: dry\n# normal_force_N: {value}\ntime_s,position_um,friction_N\n"
+                   "0,1,2\n0.04,2,3\n", encoding="utf-8")
+    out = tmp_path / "nf.mcap"
+    res = runner.invoke(app, ["import", str(src), "--out", str(out)])
+    assert res.exit_code == 2
+    text = out_text(res)
+    assert f"{src}, line 3" in text and "normal_force_N" in text and "positive" in text
+    assert not out.exists()
+
+
+def test_import_keeps_text_and_empty_extra_columns_and_zero_normals(tmp_path):
+    src = tmp_path / "x.csv"
+    src.write_text("# rig-trial-csv: 1\ntime_s,position_um,friction_N,normal_1_N,normal_2_N,note,spare,gain\n"
+                   "0,1,2,0,0,start,,1.5\n0.04,2,3,0,0,ok,,\n0.08,3,4,0,0,end,,2\n", encoding="utf-8")
+    out = tmp_path / "x.mcap"
+    res = runner.invoke(app, ["import", str(src), "--out", str(out)])
+    assert res.exit_code == 0, out_text(res)  # extra columns are never an error; zero normals divide nothing
+    tr = read_trial(out, "raw")
+    assert np.isnan(tr.extra["spare"]).all() and np.allclose(tr.extra["gain"], [1.5, np.nan, 2], equal_nan=True)
+    assert np.isnan(tr.mu).all()
+    assert "text_columns.json" in out_text(runner.invoke(app, ["info", str(out)]))
+    back = tmp_path / "back.csv"
+    assert runner.invoke(app, ["export", str(out), "--csv", str(back), "--rate", "raw"]).exit_code == 0
+    assert read_csv(back).extra.keys() >= {"spare", "gain"}
+
+
+def test_import_huge_times_is_one_clear_error(tmp_path):
+    src = tmp_path / "ns.csv"
+    src.write_text("# rig-trial-csv: 1\ntime_s,position_um,friction_N\n1e19,1,2\n2e19,2,3\n")
+    res = runner.invoke(app, ["import", str(src), "--out", str(tmp_path / "ns.mcap")])
+    assert res.exit_code == 2 and "time_s" in out_text(res) and "seconds" in out_text(res)
+    assert not (tmp_path / "ns.mcap").exists()
+
+
+def test_export_parquet_beside_csv(small_log, tmp_path):
+    pq = pytest.importorskip("pyarrow.parquet")
+    csv, par = tmp_path / "o.csv", tmp_path / "o.parquet"
+    res = runner.invoke(app, ["export", str(small_log), "--csv", str(csv), "--parquet", str(par), "--rate", "raw"])
+    assert res.exit_code == 0, out_text(res)
+    table = pq.read_table(par)
+    tr = read_csv(csv)
+    assert table.num_rows == len(tr) == 2000
+    assert table.column_names[:3] == ["time_s", "position_um", "friction_N"] and "pid_p" in table.column_names
+    assert np.allclose(table.column("friction_N").to_numpy(), tr.friction_N, rtol=1e-8)
+    assert table.schema.metadata[b"rig.lubricant"] == b"paraffin"
+    res = runner.invoke(app, ["export", str(small_log)])
+    assert res.exit_code == 2 and "--parquet" in out_text(res)
+
+
+def test_export_reads_v1_logs():
+    from pathlib import Path
+    v1 = Path(__file__).parent / "data" / "v1-sim-1khz.mcap"
+    import tempfile
+    with tempfile.TemporaryDirectory() as d:
+        out = Path(d) / "v1.csv"
+        res = runner.invoke(app, ["export", str(v1), "--csv", str(out), "--rate", "raw"])
+        assert res.exit_code == 0, out_text(res)
+        assert len(read_csv(out)) == 1678
+
+
+def test_corrupt_chunk_warns_in_export_and_info_and_fails_strict(small_log, tmp_path):
+    from test_log_mcap import corrupt_middle_chunk
+
+    bad = tmp_path / "bad.mcap"
+    corrupt_middle_chunk(small_log, bad)
+    csv = tmp_path / "b.csv"
+    res = runner.invoke(app, ["export", str(bad), "--csv", str(csv), "--rate", "raw"])
+    assert res.exit_code == 0, out_text(res)
+    text = out_text(res)
+    assert "warning" in text and "CRC mismatch" in text and "/raw" in text
+    n = len(read_csv(csv))
+    assert 1000 < n < 2000
+    ref = read_trial(small_log, "raw")
+    got = read_csv(csv)
+    keep = np.isin(np.round(ref.time_s, 6), np.round(got.time_s, 6))
+    assert np.allclose(got.normal_1_N, ref.normal_1_N[keep], atol=1e-9)  # no corrupt value exported
+
+    res = runner.invoke(app, ["export", str(bad), "--csv", str(tmp_path / "s.csv"), "--strict"])
+    assert res.exit_code == 2 and "damaged chunk" in out_text(res) and not (tmp_path / "s.csv").exists()
+    res = runner.invoke(app, ["info", str(bad)])
+    assert res.exit_code == 0 and "corrupt chunk" in out_text(res) and "DAMAGED" in out_text(res)
+    fixed = tmp_path / "fixed.mcap"
+    res = runner.invoke(app, ["recover", str(bad), "--out", str(fixed)])
+    assert res.exit_code == 0 and "was complete" not in out_text(res) and "corrupt" in out_text(res)
+    assert len(read_trial(fixed, "raw")) == n

@@ -7,7 +7,8 @@ import warnings
 import numpy as np
 import pytest
 
-from rig.data import DataFormatError, PartialLineWarning, TrialData, load_trial, read_csv, write_csv
+from rig.data import DataFormatError, PartialLineWarning, TrialData, read_csv, write_csv
+from rig.log import load_trial
 
 GOOD = (
     "# rig-trial-csv: 1\n"
@@ -131,3 +132,43 @@ def test_real_records_load(real_data_dir):
         assert len(tr) > 1000
         assert np.all(np.diff(tr.time_s) > 0)
         assert 0.3 < float(np.median(tr.mu)) < 1.0  # rock friction coefficients
+
+
+def test_extra_columns_text_or_empty_are_kept_never_an_error(tmp_path):
+    text = ("# rig-trial-csv: 1\ntime_s,position_um,friction_N,comment,blank,num\n"
+            "0,1,2,hello,,1\n0.04,2,3,world,,\n")
+    tr = read_csv(_write(tmp_path, text))
+    assert list(tr.extra["comment"]) == ["hello", "world"]
+    assert np.isnan(tr.extra["blank"]).all() and tr.extra["num"][0] == 1 and np.isnan(tr.extra["num"][1])
+    out = tmp_path / "back.csv"
+    write_csv(tr, out)
+    back = read_csv(out)
+    assert list(back.extra["comment"]) == ["hello", "world"] and np.array_equal(back.position_um, [1.0, 2.0])
+
+
+@pytest.mark.parametrize("value", ["١٢٣", "１２", "1_0", "٣.٥", "1e٣"])
+def test_non_ascii_digits_are_not_numbers(tmp_path, value):
+    text = f"# rig-trial-csv: 1\ntime_s,position_um,friction_N\n0,1,2\n0.04,{value},2\n0.08,3,4\n"
+    with pytest.raises(DataFormatError, match=r"line 4: column 'position_um': non-numeric"):
+        read_csv(_write(tmp_path, text))
+
+
+@pytest.mark.parametrize("value", ["abc", "-100", "0", "nan", "inf", ""])
+def test_invalid_normal_force_metadata_is_an_error_naming_the_line(tmp_path, value):
+    text = f"# rig-trial-csv: 1\n# lubricant: dry\n# normal_force_N: {value}\ntime_s,position_um,friction_N\n0,1,2\n"
+    with pytest.raises(DataFormatError, match=r"line 3: normal_force_N metadata must be a positive number"):
+        read_csv(_write(tmp_path, text))
+
+
+def test_zero_normal_forces_never_divide_by_zero(tmp_path):
+    text = "# rig-trial-csv: 1\ntime_s,position_um,friction_N,normal_1_N,normal_2_N\n0,1,2,0,0\n0.04,2,3,50,50\n"
+    tr = read_csv(_write(tmp_path, text))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # not even a RuntimeWarning
+        mu = tr.mu
+    assert np.isnan(mu[0]) and mu[1] == pytest.approx(0.03)
+    zero = read_csv(_write(tmp_path, text.replace("50,50", "0,0"), name="z.csv"))
+    with pytest.raises(ValueError, match="nominal normal force is unknown"):
+        zero.normal_force_N
+    write_csv(zero, tmp_path / "z_out.csv")  # still writable, without a normal_force_N line
+    assert "normal_force_N" not in (tmp_path / "z_out.csv").read_text()

@@ -19,7 +19,7 @@ import yaml
 from typer.testing import CliRunner
 
 from rig.cli import app
-from rig.data import load_trial
+from rig.log import load_trial
 from rig.friction import FrictionModel
 
 RECIPE = """\

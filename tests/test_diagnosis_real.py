@@ -31,7 +31,7 @@ import json
 from typer.testing import CliRunner
 
 from rig.cli import app
-from rig.data import load_trial
+from rig.log import load_trial
 from rig.diagnosis import diagnose
 
 

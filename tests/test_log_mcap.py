@@ -1,16 +1,26 @@
-"""The MCAP trial log: round trip, the 25 Hz channel, layout, flushing, truncation and recovery."""
+"""The MCAP trial log: round trip (v2 device counts), layout, v1 compatibility, CRC-verified reads,
+corrupt chunks, flushing, truncation and recovery, epoch log_time, listeners."""
 
 from __future__ import annotations
 
 import json
+import struct
+import time
+import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
 from mcap.reader import make_reader
 
 from rig.data import DataFormatError
-from rig.log import (BLOCK_KEYS, EVENTS_TOPIC, LOG25_TOPIC, RAW_BINARY_ENCODING, RAW_TOPIC, STATS_TOPIC,
-                     TrialLogWriter, read_metadata, read_trial, recover, trial_info)
+from rig.log import (BLOCK_KEYS, EVENTS_TOPIC, LOG25_TOPIC, RAW_TOPIC, RAW_V2_ENCODING, STATS_TOPIC,
+                     LogDamageWarning, TrialLogWriter, read_metadata, read_trial, recover, trial_info)
+from rig.log.schemas import DEVICE_COLUMNS, decode_v2
+
+V1_FILE = Path(__file__).parent / "data" / "v1-sim-1khz.mcap"
+STD = ("position_um", "friction_N", "normal_1_N", "normal_2_N", "position_ref_um", "valve_cmd")
+T0_NS = 1_700_000_000_123_456_789  # 2023-11-14: a fixed wall-clock start (more digits than a float64 holds)
 
 
 def make_blocks(n_blocks=50, n=100, rate=1000.0, seed=0):
@@ -21,10 +31,12 @@ def make_blocks(n_blocks=50, n=100, rate=1000.0, seed=0):
         blk = {k: rng.normal(size=n) * 10 for k in BLOCK_KEYS}
         blk["t_s"] = t
         blk["position_ref_um"] = 500 + 2.0 * t
-        blk["position_um"] = blk["position_ref_um"] + rng.normal(size=n) * 0.1
+        blk["position_um"] = 0.076 * np.round((blk["position_ref_um"] + rng.normal(size=n) * 0.1) / 0.076)
         blk["normal_1_N"] = 100 + rng.normal(size=n)
         blk["normal_2_N"] = 100 + rng.normal(size=n)
         blk["friction_N"] = 20 + rng.normal(size=n)
+        blk["valve_cmd"] = np.clip(rng.normal(size=n) * 0.1, -1, 1)
+        blk["true_mu"] = 0.1 + rng.normal(size=n) * 1e-3
         out.append(blk)
     return out
 
@@ -34,6 +46,7 @@ def concat(blocks):
 
 
 def write_log(path, blocks, **kw):
+    kw.setdefault("start_time_ns", T0_NS)
     w = TrialLogWriter(path, metadata={"lubricant": "boundary", "normal_force_N": 100.0, "seed": 7,
                                        "recipe": "unit"},
                        recipe_yaml="name: unit\n", recipe={"name": "unit"}, profile={"name": "p"}, **kw)
@@ -46,82 +59,98 @@ def write_log(path, blocks, **kw):
     return w
 
 
+def column(trial, key):
+    if key == "t_s":
+        return trial.time_s
+    return getattr(trial, key) if key in STD else trial.extra[key]
+
+
 @pytest.mark.parametrize("threaded", [True, False])
-def test_round_trip_raw_and_25hz(tmp_path, threaded):
+def test_round_trip_raw_device_counts_and_25hz(tmp_path, threaded):
     blocks = make_blocks()
     path = tmp_path / "t.mcap"
-    w = write_log(path, blocks, threaded=threaded)
-    w.close()
+    write_log(path, blocks, threaded=threaded).close()
     ref = concat(blocks)
 
     raw = read_trial(path, channel="raw")
     assert len(raw) == 5000
     for k in BLOCK_KEYS:
-        got = raw.time_s if k == "t_s" else (getattr(raw, k, None) if k in (
-            "position_um", "friction_N", "normal_1_N", "normal_2_N", "position_ref_um", "valve_cmd") else raw.extra[k])
-        assert np.array_equal(got, ref[k]), k          # bit-exact (binary float64)
-    assert set(raw.extra) == set(BLOCK_KEYS) - {"t_s", "position_um", "friction_N", "normal_1_N", "normal_2_N",
-                                                "position_ref_um", "valve_cmd"}
+        col = DEVICE_COLUMNS[k]
+        step = col.scale if np.dtype(col.dtype).kind == "i" else 1e-6 * np.abs(ref[k]).max()
+        err = np.abs(column(raw, k) - ref[k]).max()
+        assert err <= 0.5 * step + 1e-12 * np.abs(ref[k]).max(), (k, err, step)
+    assert np.array_equal(raw.position_um, ref["position_um"])  # on the LVDT grid: exact
+    assert np.abs(raw.time_s - ref["t_s"]).max() < 1e-12
+    assert set(raw.extra) == set(BLOCK_KEYS) - {"t_s", *STD}
 
-    dec = read_trial(path)  # default: the 25 Hz channel
+    dec = read_trial(path)  # default: the 25 Hz channel, the same device values as /raw
     assert dec.metadata["channel"] == "25hz"
     assert len(dec) == 5000 // 40
     assert np.array_equal(dec.time_s, ref["t_s"][::40])
-    assert np.array_equal(dec.friction_N, ref["friction_N"][::40])
-    assert np.array_equal(dec.valve_cmd, ref["valve_cmd"][::40])
+    for k in STD:
+        np.testing.assert_allclose(getattr(dec, k), getattr(raw, k)[::40], rtol=0, atol=1e-9)
     assert dec.extra == {}
 
-    # events and metadata come along
     kinds = [e["kind"] for e in dec.events]
     assert "velocity_step" in kinds and kinds[0] == "log_start" and kinds[-1] == "log_end"
     step = next(e for e in dec.events if e["kind"] == "velocity_step")
     assert step["v2_um_s"] == 2.0 and step["x_um"] == 501.0 and step["t_s"] == pytest.approx(1.0)
     assert dec.metadata["lubricant"] == "boundary" and dec.normal_force_N == 100.0
     assert dec.metadata["seed"] == "7" and dec.metadata["status"] == "completed"
-    assert dec.metadata["software_version"]
     meta = read_metadata(path)
     assert json.loads(meta["recipe"]["json"]) == {"name": "unit"}
     assert json.loads(meta["rig_profile"]["json"]) == {"name": "p"}
+    assert meta["trial"]["start_time_ns"] == str(T0_NS)
 
 
-def test_layout_schemas_chunks_index(tmp_path):
+def test_layout_schemas_chunks_index_epoch_log_time(tmp_path):
     path = tmp_path / "t.mcap"
-    write_log(path, make_blocks(), chunk_size=64_000).close()
+    write_log(path, make_blocks(), chunk_size=16_000).close()
     with open(path, "rb") as fh:
-        reader = make_reader(fh)
+        reader = make_reader(fh, validate_crcs=True)
         summary = reader.get_summary()
         topics = {c.topic: c for c in summary.channels.values()}
         assert set(topics) == {RAW_TOPIC, LOG25_TOPIC, EVENTS_TOPIC, STATS_TOPIC}
+        raw = topics[RAW_TOPIC]
+        assert raw.message_encoding == RAW_V2_ENCODING
+        schema = json.loads(summary.schemas[raw.schema_id].data)  # scale, offset, unit per column
+        assert schema["columns"]["position_um"]["scale"] == 0.076 and schema["columns"]["position_um"]["unit"] == "µm"
+        assert schema["columns"]["valve_cmd"]["dtype"] == "<i2"
+        assert raw.metadata["json_twin"] == LOG25_TOPIC
         for c in topics.values():
-            if c.topic == RAW_TOPIC:  # binary columns: no schema, the layout is in the channel metadata
-                assert c.message_encoding == RAW_BINARY_ENCODING and c.schema_id == 0
-                assert "little-endian" in c.metadata["layout"]
-                continue
-            assert c.message_encoding == "json"
-            assert summary.schemas[c.schema_id].encoding == "jsonschema"
-            json.loads(summary.schemas[c.schema_id].data)
+            if c.topic != RAW_TOPIC:
+                assert c.message_encoding == "json"
+                assert summary.schemas[c.schema_id].encoding == "jsonschema"
         assert len(summary.chunk_indexes) > 1
-        assert all(ci.compression == "zstd" for ci in summary.chunk_indexes)
-        assert all(ci.message_index_offsets for ci in summary.chunk_indexes)  # message index kept
-        counts = summary.statistics.channel_message_counts
-        by_topic = {topics_c.topic: counts[cid] for cid, topics_c in summary.channels.items()}
+        assert all(ci.compression == "zstd" and ci.message_index_offsets for ci in summary.chunk_indexes)
+        by_topic = {c.topic: summary.statistics.channel_message_counts[cid] for cid, c in summary.channels.items()}
         assert by_topic[RAW_TOPIC] == 50 and by_topic[LOG25_TOPIC] == 125
-        # the 25 Hz channel: log_time is the sample time, one plain JSON object per sample
-        msgs = list(reader.iter_messages(topics=[LOG25_TOPIC]))
-        for _, _, m in msgs[:5]:
+        # log_time: wall-clock ns since the epoch = start + t_s; t_s stays a field
+        assert summary.statistics.message_start_time == T0_NS
+        for _, _, m in list(reader.iter_messages(topics=[LOG25_TOPIC]))[:5]:
             d = json.loads(m.data)
-            assert m.log_time == round(d["t_s"] * 1e9)
+            assert m.log_time == T0_NS + round(d["t_s"] * 1e9)
             assert set(d) == {"t_s", "position_um", "friction_N", "normal_1_N", "normal_2_N", "position_ref_um",
-                              "valve_cmd"}
-        names = [a.name for a in reader.iter_attachments()]
-        assert names == ["recipe.yaml"]
+                              "valve_cmd", "mu"}
+            assert d["mu"] == pytest.approx(d["friction_N"] / (d["normal_1_N"] + d["normal_2_N"]), rel=1e-5)
+        assert [a.name for a in reader.iter_attachments()] == ["recipe.yaml"]
         stats = [json.loads(m.data) for _, _, m in reader.iter_messages(topics=[STATS_TOPIC])]
         assert stats[0]["bad"] is None and stats[0]["realtime_factor"] == 200.0
 
 
-def test_binary_raw_block_layout_decodes_as_documented(tmp_path):
-    """A /raw message is b'RIGC', u32 header length, JSON header, then little-endian columns (docs/trial.md)."""
-    import struct
+def test_default_start_time_is_now(tmp_path):
+    before = time.time_ns()
+    w = TrialLogWriter(tmp_path / "n.mcap")
+    w.write_block(make_blocks(1)[0])
+    w.close()
+    with open(tmp_path / "n.mcap", "rb") as fh:
+        st = make_reader(fh).get_summary().statistics
+    assert before <= st.message_start_time <= time.time_ns()
+
+
+def test_v2_block_decodes_as_documented(tmp_path):
+    """b'RIG2', u32 header length, JSON header with [key, dtype, filter, scale, offset, nbytes], columns."""
+    import zstandard
 
     blocks = make_blocks(3, n=1000)
     path = tmp_path / "b.mcap"
@@ -131,95 +160,130 @@ def test_binary_raw_block_layout_decodes_as_documented(tmp_path):
     assert len(msgs) == 3
     for blk, m in zip(blocks, msgs):
         data = m.data
-        assert data[:4] == b"RIGC"
+        assert data[:4] == b"RIG2"
         (hlen,) = struct.unpack("<I", data[4:8])
         head = json.loads(data[8:8 + hlen])
-        assert (8 + hlen) % 8 == 0
-        assert head["n"] == 1000 and head["t0_s"] == blk["t_s"][0] and head["rate_hz"] == 1000.0
-        assert m.log_time == round(head["t0_s"] * 1e9)
-        assert head["fields"] == list(blk) and set(head["dtypes"]) == {"<f8"}
-        cols = np.frombuffer(data, "<f8", offset=8 + hlen).reshape(len(head["fields"]), 1000)
-        for key, col in zip(head["fields"], cols):
-            assert np.array_equal(col, blk[key]), key
+        assert (8 + hlen) % 8 == 0 and head["n"] == 1000 and head["t0_s"] == blk["t_s"][0]
+        assert m.log_time == T0_NS + round(head["t0_s"] * 1e9)
+        off = 8 + hlen
+        for key, dtype, flt, scale, offset, nbytes in head["columns"]:
+            b = data[off:off + nbytes]
+            off += nbytes
+            if key != "position_um":
+                continue
+            assert (dtype, flt, scale) == ("<i4", "shuffle+zstd", 0.076)
+            b = zstandard.ZstdDecompressor().decompress(b, max_output_size=4000)
+            counts = np.frombuffer(b, np.uint8).reshape(4, 1000).T.copy().view("<i4").ravel()
+            assert np.array_equal(counts * scale + offset, blk["position_um"])
+        assert off == len(data)
 
 
-@pytest.mark.parametrize("compression,level", [("zstd", 1), ("zstd", -3), ("lz4", 0), ("none", 0)])
-def test_chunks_crcs_and_message_index_are_valid_mcap(tmp_path, compression, level):
-    """rig's own MCAP writer: the mcap reader checks the CRCs; every message index entry points at its message."""
-    import struct
-
-    from mcap.records import Chunk, MessageIndex
-    from mcap.stream_reader import StreamReader
-
-    blocks = make_blocks(40)
-    path = tmp_path / "v.mcap"
-    write_log(path, blocks, chunk_size=50_000, compression=compression, compression_level=level).close()
-    with open(path, "rb") as fh:
-        reader = make_reader(fh, validate_crcs=True)
-        summary = reader.get_summary()
-        n_msgs = sum(1 for _ in reader.iter_messages())
-        assert n_msgs == summary.statistics.message_count
-        assert summary.statistics.chunk_count == len(summary.chunk_indexes) > 2
-        assert [m.log_time for _, _, m in reader.iter_messages(topics=[LOG25_TOPIC])] == \
-            [round(t * 1e9) for t in concat(blocks)["t_s"][::40]]
-    expected = {"zstd": "zstd", "lz4": "lz4", "none": ""}[compression]
-    assert all(ci.compression == expected for ci in summary.chunk_indexes)
-    chunk = None
-    checked = 0
-    with open(path, "rb") as fh:
-        for rec in StreamReader(fh, emit_chunks=True, validate_crcs=True).records:
-            if isinstance(rec, Chunk):
-                if rec.compression == "zstd":
-                    import zstandard
-                    chunk = zstandard.ZstdDecompressor().decompress(rec.data, max_output_size=rec.uncompressed_size)
-                elif rec.compression == "lz4":
-                    import lz4.frame
-                    chunk = lz4.frame.decompress(rec.data)
-                else:
-                    chunk = rec.data
-                assert len(chunk) == rec.uncompressed_size
-            elif isinstance(rec, MessageIndex):
-                for log_time, offset in rec.records:
-                    op, _length, cid, _seq, t = struct.unpack_from("<BQHIQ", chunk, offset)
-                    assert (op, cid, t) == (0x05, rec.channel_id, log_time)
-                    checked += 1
-    assert checked == n_msgs
-
-
-def test_base64_raw_encoding_still_written_and_read(tmp_path):
-    blocks = make_blocks(4)
-    path = tmp_path / "b64.mcap"
-    write_log(path, blocks, raw_encoding="base64").close()
-    raw = read_trial(path, "raw")
-    assert np.array_equal(raw.friction_N, concat(blocks)["friction_N"])
-    with open(path, "rb") as fh:
-        ch = {c.topic: c for c in make_reader(fh).get_summary().channels.values()}
-    assert ch[RAW_TOPIC].message_encoding == "json"
-
-
-def test_json_raw_encoding_and_nan(tmp_path):
+def test_nan_and_inf_survive_as_nan(tmp_path):
     blocks = make_blocks(5)
     blocks[1]["friction_N"][3] = np.nan
     blocks[1]["valve_cmd"][20] = np.inf  # tick 120: also the 4th 25 Hz sample
+    blocks[2]["pid_d"][5] = np.nan       # a float32 column
     path = tmp_path / "j.mcap"
-    write_log(path, blocks, raw_encoding="json").close()
+    write_log(path, blocks).close()
     raw = read_trial(path, "raw")
-    ref = concat(blocks)
-    assert np.isnan(raw.friction_N[103]) and np.isnan(raw.valve_cmd[120])
-    ok = np.isfinite(ref["friction_N"])
-    assert np.array_equal(raw.friction_N[ok], ref["friction_N"][ok])
+    assert np.isnan(raw.friction_N[103]) and np.isnan(raw.valve_cmd[120]) and np.isnan(raw.extra["pid_d"][205])
+    assert np.isfinite(raw.friction_N).sum() == 499
     dec = read_trial(path, "25hz")
     assert np.isnan(dec.valve_cmd[3]) and np.isnan(dec.valve_cmd).sum() == 1
 
 
-def test_float32_raw_dtype(tmp_path):
-    blocks = make_blocks(5)
-    path = tmp_path / "f.mcap"
-    write_log(path, blocks, raw_dtype="float32").close()
-    raw = read_trial(path, "raw")
-    ref = concat(blocks)
-    assert np.array_equal(raw.time_s, ref["t_s"])  # time stays float64
-    assert np.array_equal(raw.friction_N, ref["friction_N"].astype(np.float32).astype(float))
+def test_mu_on_log25_is_null_where_normals_sum_to_zero(tmp_path):
+    blk = make_blocks(1)[0]
+    blk["normal_1_N"][:] = 0.0
+    blk["normal_2_N"][:] = 0.0
+    path = tmp_path / "z.mcap"
+    w = TrialLogWriter(path)
+    w.write_block(blk)  # no ZeroDivisionError anywhere
+    w.close()
+    with open(path, "rb") as fh:
+        rows = [json.loads(m.data) for _, _, m in make_reader(fh).iter_messages(topics=[LOG25_TOPIC])]
+    assert rows and all(r["mu"] is None for r in rows)
+    assert np.isnan(w.mean_mu)
+    assert np.isnan(read_trial(path).mu).all()
+
+
+def test_v1_log_from_the_previous_writer_still_reads():
+    """tests/data/v1-sim-1khz.mcap: written by the old rig.columns.v1 writer (float64 columns, log_time from 0)."""
+    raw = read_trial(V1_FILE, "raw")
+    dec = read_trial(V1_FILE)
+    assert len(raw) == 1678 and np.allclose(np.diff(raw.time_s), 1e-3)
+    assert {"pid_p", "true_mu"} <= set(raw.extra)
+    assert 99 < np.median(raw.normal_1_N) < 102 and 495 < np.median(raw.position_um) < 510
+    assert np.array_equal(dec.time_s, raw.time_s[::40])            # v1 float64: the 25 Hz values are exact
+    assert np.array_equal(dec.friction_N, raw.friction_N[::40])
+    assert dec.metadata["lubricant"] == "boundary" and dec.normal_force_N == 100.0
+    info = trial_info(V1_FILE)
+    assert info["complete"] and info["duration_s"] == pytest.approx(1.677, abs=0.01)
+
+
+@pytest.mark.parametrize("compression", ["zstd", "lz4", "none"])
+def test_mcap_reader_validates_every_chunk_crc(tmp_path, compression):
+    blocks = make_blocks(40)
+    path = tmp_path / "v.mcap"
+    write_log(path, blocks, chunk_size=20_000, compression=compression).close()
+    with open(path, "rb") as fh:
+        reader = make_reader(fh, validate_crcs=True)
+        summary = reader.get_summary()
+        assert sum(1 for _ in reader.iter_messages()) == summary.statistics.message_count
+        assert summary.statistics.chunk_count == len(summary.chunk_indexes) > 2
+    expected = {"zstd": "zstd", "lz4": "lz4", "none": ""}[compression]
+    assert all(ci.compression == expected for ci in summary.chunk_indexes)
+    assert len(read_trial(path, "raw")) == 4000
+
+
+def corrupt_middle_chunk(src: Path, dst: Path, nbytes: int = 64):
+    """Flip ``nbytes`` bytes in the data of the chunk one third into the file; returns that chunk's index."""
+    with open(src, "rb") as fh:
+        chunks = make_reader(fh).get_summary().chunk_indexes
+    victim = min(chunks, key=lambda c: abs(c.chunk_start_offset - src.stat().st_size / 3))
+    data = bytearray(src.read_bytes())
+    at = victim.chunk_start_offset + victim.chunk_length - victim.compressed_size // 2 - nbytes
+    for i in range(at, at + nbytes):
+        data[i] ^= 0xFF
+    dst.write_bytes(bytes(data))
+    return victim
+
+
+def test_corrupt_chunk_is_named_skipped_and_never_carried_forward(tmp_path):
+    blocks = make_blocks(60)
+    good = tmp_path / "good.mcap"
+    write_log(good, blocks, chunk_size=20_000).close()
+    bad = tmp_path / "bad.mcap"
+    victim = corrupt_middle_chunk(good, bad)
+    t_lo = (victim.message_start_time - T0_NS) / 1e9
+    ref = read_trial(good, "raw")
+
+    with pytest.warns(LogDamageWarning, match=r"CRC mismatch .* t = \d+\.\d+\.\.\d+\.\d+ s .*/raw"):
+        raw = read_trial(bad, "raw")
+    assert raw.warnings and f"{t_lo:.3f}" in raw.warnings[0]
+    assert 0 < len(raw) < len(ref)
+    # every value kept is the intact one: nothing from the corrupt chunk
+    keep = np.isin(ref.time_s, raw.time_s)
+    assert np.array_equal(raw.friction_N, ref.friction_N[keep])
+    lost = ref.time_s[~keep]
+    assert lost.min() >= t_lo - 1e-9
+    with pytest.raises(DataFormatError, match="damaged chunk"):
+        read_trial(bad, "raw", strict=True)
+
+    info = trial_info(bad)
+    assert not info["complete"] and len(info["corrupt_chunks"]) == 1
+    assert RAW_TOPIC in info["corrupt_chunks"][0]["channels"]
+
+    fixed = tmp_path / "fixed.mcap"
+    res = recover(bad, fixed)
+    assert not res["complete_before"] and len(res["damage"]) == 1
+    with open(fixed, "rb") as fh:  # passes the CRC check, and holds only intact values
+        assert sum(1 for _ in make_reader(fh, validate_crcs=True).iter_messages()) > 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", LogDamageWarning)
+        rec = read_trial(fixed, "raw")
+    assert np.array_equal(rec.time_s, raw.time_s) and np.array_equal(rec.friction_N, raw.friction_N)
+    assert "corrupt chunk" in trial_info(fixed)["metadata"]["recovery"]["recovery_error"]
 
 
 def test_decimation_continues_across_odd_blocks(tmp_path):
@@ -231,36 +295,35 @@ def test_decimation_continues_across_odd_blocks(tmp_path):
     for a, b in zip(edges[:-1], edges[1:]):
         w.write_block({k: v[a:b] for k, v in ref.items()})
     w.close()
-    dec = read_trial(path)
-    assert np.array_equal(dec.time_s, ref["t_s"][:1000:40])
+    assert np.array_equal(read_trial(path).time_s, ref["t_s"][:1000:40])
 
 
 @pytest.mark.parametrize("threaded", [True, False])
 def test_flush_makes_data_survive_a_crash(tmp_path, threaded):
     blocks = make_blocks(30)
     path = tmp_path / "c.mcap"
-    w = write_log(path, blocks, flush_interval_s=0.0, threaded=threaded)  # flush (close chunk + fsync) after every block
+    w = write_log(path, blocks, flush_interval_s=0.0, threaded=threaded)  # flush + fsync after every block
     w.abort()  # crash: no footer, no summary
     with pytest.raises(DataFormatError, match="rig recover"):
         read_trial(path)
     info = trial_info(path)
     assert not info["complete"] and info["damage"]
-    raw_count = next(c["messages"] for c in info["channels"] if c["topic"] == RAW_TOPIC)
-    assert raw_count == 30  # nothing lost
+    assert next(c["messages"] for c in info["channels"] if c["topic"] == RAW_TOPIC) == 30  # nothing lost
+    fixed = tmp_path / "fixed.mcap"
+    recover(path, fixed)
+    assert len(read_trial(fixed, "raw")) == 3000
 
 
 def test_recover_truncated_mid_chunk(tmp_path):
     blocks = make_blocks(200)
     full = tmp_path / "full.mcap"
-    write_log(full, blocks, chunk_size=100_000).close()
+    write_log(full, blocks, chunk_size=30_000).close()
     with open(full, "rb") as fh:
         chunks = make_reader(fh).get_summary().chunk_indexes
     assert len(chunks) >= 4
     victim = chunks[len(chunks) // 2]
-    cut = victim.chunk_start_offset + victim.chunk_length // 2  # in the middle of a chunk
-    data = full.read_bytes()[:cut]
     bad = tmp_path / "cut.mcap"
-    bad.write_bytes(data)
+    bad.write_bytes(full.read_bytes()[:victim.chunk_start_offset + victim.chunk_length // 2])
 
     with pytest.raises(DataFormatError, match="rig recover"):
         read_trial(bad)
@@ -268,12 +331,11 @@ def test_recover_truncated_mid_chunk(tmp_path):
     res = recover(bad, fixed)
     assert res["error"] and not res["complete_before"]
     raw = read_trial(fixed, "raw")
-    ref = concat(blocks)
+    ref = read_trial(full, "raw")
     n = len(raw)
     assert 0 < n < 20000 and n % 100 == 0
-    assert np.array_equal(raw.friction_N, ref["friction_N"][:n])  # the complete chunks, intact
-    assert raw.metadata["recovered"] == "true"
-    assert raw.metadata["lubricant"] == "boundary"  # the original metadata kept
+    assert np.array_equal(raw.friction_N, ref.friction_N[:n])  # the complete chunks, intact
+    assert raw.metadata["recovered"] == "true" and raw.metadata["lubricant"] == "boundary"
     info = trial_info(fixed)
     assert info["recovered"] and info["complete"]
     assert info["metadata"]["recovery"]["recovered_from"] == str(bad)
@@ -281,12 +343,18 @@ def test_recover_truncated_mid_chunk(tmp_path):
     assert not list(tmp_path.glob(".*.tmp"))  # no temporary file left
 
 
-def test_recover_refuses_garbage(tmp_path):
+@pytest.mark.parametrize("content,what", [(b"not an mcap at all", "not an MCAP"),
+                                          (b"\x89PNG\r\n\x1a\n" + bytes(40), "PNG"),
+                                          (b"", "empty")])
+def test_not_a_log_is_one_clear_error(tmp_path, content, what):
     p = tmp_path / "g.mcap"
-    p.write_bytes(b"not an mcap at all")
-    with pytest.raises(DataFormatError):
-        recover(p, tmp_path / "out.mcap")
+    p.write_bytes(content)
+    for fn in (lambda: recover(p, tmp_path / "out.mcap"), lambda: read_trial(p), lambda: trial_info(p)):
+        with pytest.raises(DataFormatError, match=what):
+            fn()
     assert not (tmp_path / "out.mcap").exists()
+    with pytest.raises(DataFormatError, match="directory"):
+        trial_info(tmp_path)
 
 
 def test_context_manager_marks_interrupted(tmp_path):
@@ -307,19 +375,18 @@ def test_scheduled_events_logged_when_reached(tmp_path):
     for b in make_blocks(3):
         w.write_block(b)
     w.close("interrupted")
-    kinds = [e["kind"] for e in read_trial(path).events]
-    assert kinds == ["log_start", "b", "a", "log_end"]
+    assert [e["kind"] for e in read_trial(path).events] == ["log_start", "b", "a", "log_end"]
 
 
 def test_flush_at_least_every_second_of_wall_time(tmp_path, monkeypatch):
-    import rig.log as log_mod
+    import rig.log.writer as writer_mod
 
     clock = [1000.0]
-    monkeypatch.setattr(log_mod.time, "monotonic", lambda: clock[0])
+    monkeypatch.setattr(writer_mod.time, "monotonic", lambda: clock[0])
     blocks = make_blocks(6)
 
     def raw_on_disk(path):
-        return next(c["messages"] for c in trial_info(path)["channels"] if c["topic"] == RAW_TOPIC)
+        return next((c["messages"] for c in trial_info(path)["channels"] if c["topic"] == RAW_TOPIC), 0)
 
     a = tmp_path / "a.mcap"
     w = TrialLogWriter(a)  # default flush_interval_s = 1.0
@@ -345,3 +412,52 @@ def test_writer_thread_error_surfaces(tmp_path):
         for b in make_blocks(3):  # raised at the next call after the failure, at the latest by close()
             w.write_block(b)
         w.close()
+
+
+def test_listeners_get_samples_events_and_loop_stats(tmp_path):
+    """The hook for a live view: 25 Hz samples, events and loop statistics; a failing listener is detached."""
+    got: list = []
+
+    def broken(kind, payload):
+        raise RuntimeError("viewer gone")
+
+    w = TrialLogWriter(tmp_path / "l.mcap")
+    w.add_listener(lambda kind, payload: got.append((kind, payload)))
+    w.add_listener(broken)
+    for i, b in enumerate(make_blocks(4)):
+        w.write_block(b)
+        w.event(float(b["t_s"][-1]), "marker", i=i)
+        w.loop_stats(float(b["t_s"][-1]), {"ticks": 100})
+    w.close()
+    kinds = [k for k, _ in got]
+    assert kinds.count("samples") == 4 and kinds.count("loop_stats") == 4
+    assert kinds.count("event") >= 5  # markers and log_end
+    samples = [p for k, p in got if k == "samples"]
+    assert sum(len(p["t_s"]) for p in samples) == 10 and "mu" in samples[0]
+    assert len(w.listener_errors) == 1 and "viewer gone" in w.listener_errors[0]
+    assert read_trial(tmp_path / "l.mcap").metadata["status"] == "completed"
+
+
+def test_foxglove_layout_plots_only_fields_the_log_has():
+    """config/foxglove/rig-trial.json: every plotted path is a topic and field the writer produces."""
+    from rig.log.schemas import SAMPLE_FIELDS
+
+    layout = json.loads((Path(__file__).parents[1] / "config" / "foxglove" / "rig-trial.json").read_text())
+    fields = {LOG25_TOPIC: set(SAMPLE_FIELDS),
+              # sim: run_sim_trial's statistics; hardware: rig.hardware.timing's window
+              STATS_TOPIC: {"realtime_factor", "tracking_error_rms_um", "late_p99_us", "late_max_us", "exec_p99_us"}}
+    paths = []
+    for pid, cfg in layout["configById"].items():
+        for p in cfg.get("paths", []):
+            topic, field = p["value"].split(".", 1)
+            assert field in fields[topic], p["value"]
+            paths.append(p["value"])
+        if "topicPath" in cfg:
+            assert cfg["topicPath"] == EVENTS_TOPIC
+    for want in ("/log25.position_um", "/log25.position_ref_um", "/log25.friction_N", "/log25.normal_1_N",
+                 "/log25.normal_2_N", "/log25.valve_cmd", "/loop_stats.late_p99_us"):
+        assert want in paths
+
+    def leaves(node):
+        return [node] if isinstance(node, str) else leaves(node["first"]) + leaves(node["second"])
+    assert sorted(leaves(layout["layout"])) == sorted(layout["configById"])

@@ -46,7 +46,8 @@ from numba import njit
 from scipy.optimize import least_squares, minimize_scalar
 
 from rig.analysis.steps import Step, detect_steps, line_fit
-from rig.data import TrialData, atomic_write_text, load_trial
+from rig.data import TrialData, atomic_write_text
+from rig.log import load_trial
 from rig.friction import (FrictionModel, P_A, P_B, P_L, P_MU0, V0_UM_S, k_cr_eq13_N_per_um, mu_series)
 from rig.kinematics import velocity_for_steps, velocity_local_poly, velocity_paper
 

@@ -21,7 +21,8 @@ def _fail(msg: str, code: int = 2):
 
 
 def _load(paths: list[Path]):
-    from rig.data import DataFormatError, load_trial
+    from rig.data import DataFormatError
+    from rig.log import load_trial
 
     trials = []
     for p in paths:

@@ -27,7 +27,8 @@ def register(app: typer.Typer) -> None:
         """Fit the friction model, find and name what it misses, extend it, measure the gain on hold-out data."""
         from rich.console import Console
 
-        from rig.data import DataFormatError, atomic_write_text, load_trial
+        from rig.data import DataFormatError, atomic_write_text
+        from rig.log import load_trial
 
         err = Console(stderr=True)
         if baseline not in ("rate_state", "steady_state"):

@@ -1,4 +1,4 @@
-"""Trial commands: ``rig run``, ``rig info``, ``rig export``, ``rig import``, ``rig recover``.
+"""Trial command: ``rig run`` (the log commands are in :mod:`rig.commands.logs`).
 
 ``rig run RECIPE --sim`` loads and validates the recipe (:mod:`rig.config.recipe`),
 the rig profile and the friction model, compiles the reference
@@ -14,10 +14,7 @@ finished with what was logged and marked ``interrupted``).
 
 from __future__ import annotations
 
-import json
 import time
-import warnings
-from enum import Enum
 from pathlib import Path
 from typing import Any, Optional
 
@@ -273,163 +270,5 @@ def run_command(
             raise typer.Exit(EXIT_FAILURE)
 
 
-# ---------------------------------------------------------------------------
-# info / export / import / recover
-# ---------------------------------------------------------------------------
-
-def info_command(
-    path: Path = typer.Argument(..., help="Trial log (.mcap).", show_default=False, metavar="FILE.mcap"),
-    events: int = typer.Option(20, "--events", "-n", help="How many events to list (0: none, -1: all)."),
-    as_json: bool = typer.Option(False, "--json", help="Print everything as JSON instead of tables."),
-):
-    """Show a trial log: channels with message counts, duration, metadata, events, recovered or damaged."""
-    from rig.data import DataFormatError
-    from rig.log import trial_info
-
-    try:
-        info = trial_info(path)
-    except DataFormatError as exc:
-        _fail(str(exc))
-    if as_json:
-        typer.echo(json.dumps(info, indent=2, allow_nan=False, default=str))
-        return
-    state = "complete" if info["complete"] else f"DAMAGED/TRUNCATED ({info['damage']}) -- run `rig recover`"
-    console.print(f"[bold]{info['path']}[/]  {info['size_bytes'] / 1e6:.2f} MB  {state}", highlight=False)
-    rec = info["metadata"].get("recovery")
-    if info["recovered"]:
-        console.print(f"[yellow]recovered[/] from {rec.get('recovered_from')} "
-                      f"(damage: {rec.get('recovery_error')}; {rec.get('messages')} messages kept)", highlight=False)
-    else:
-        console.print("recovered: no")
-    dur = info["duration_s"]
-    console.print(f"duration: {dur:.3f} s" if dur is not None else "duration: (no samples)")
-    tab = Table(title="channels")
-    for col in ("topic", "schema", "encoding", "messages"):
-        tab.add_column(col)
-    for c in info["channels"]:
-        tab.add_row(c["topic"], c["schema"], c["encoding"], str(c["messages"]))
-    console.print(tab)
-    mt = Table(title="metadata")
-    mt.add_column("record")
-    mt.add_column("key")
-    mt.add_column("value", overflow="fold")
-    for name, rec_ in info["metadata"].items():
-        for key, value in rec_.items():
-            if key == "json" and len(value) > 80:
-                value = value[:77] + "..."
-            mt.add_row(name, key, value)
-    console.print(mt)
-    if info["attachments"]:
-        console.print("attachments: " + ", ".join(f"{a['name']} ({a['bytes']} B)" for a in info["attachments"]))
-    evs = info["events"]
-    kinds: dict[str, int] = {}
-    for e in evs:
-        kinds[e["kind"]] = kinds.get(e["kind"], 0) + 1
-    console.print(f"events: {len(evs)} (" + ", ".join(f"{k} {n}" for k, n in kinds.items()) + ")")
-    shown = evs if events < 0 else evs[:events]
-    for e in shown:
-        rest = {k: v for k, v in e.items() if k not in ("t_s", "kind")}
-        console.print(f"  {e['t_s']:10.3f} s  {e['kind']:<14} " + " ".join(
-            f"{k}={(round(v, 4) if isinstance(v, float) else v)}" for k, v in rest.items()), highlight=False)
-    if len(shown) < len(evs):
-        console.print(f"  ... {len(evs) - len(shown)} more (--events -1 lists all)")
-
-
-class Rate(str, Enum):
-    raw = "raw"
-    r25 = "25"
-
-
-def export_command(
-    path: Path = typer.Argument(..., help="Trial log (.mcap).", show_default=False, metavar="TRIAL.mcap"),
-    csv: Path = typer.Option(..., "--csv", help="CSV file to write (measured-data format, version 1).",
-                             show_default=False),
-    rate: Rate = typer.Option(Rate.r25, "--rate", help="'25': the decimated per-sample channel (the paper's "
-                                                       "25 Hz log); 'raw': every loop sample."),
-    extra: bool = typer.Option(True, "--extra/--no-extra", help="Keep extra columns (raw: pid_*, dither, "
-                                                                "true_*) after the standard ones."),
-):
-    """Export a trial log to the measured-data CSV (../shared/specs/measured-data.md), atomically.
-
-    Columns: time_s, position_um, friction_N, normal_1_N, normal_2_N,
-    position_ref_um, valve_cmd (those present), then extra columns; the trial's
-    metadata (normal_force_N, lubricant, recipe, seed, ...) as '# key: value' lines.
-    """
-    from rig.data import DataFormatError, write_csv
-    from rig.log import read_trial
-
-    try:
-        trial = read_trial(path, channel="raw" if rate == Rate.raw else "25hz")
-    except DataFormatError as exc:
-        _fail(str(exc))
-    if not extra:
-        trial.extra = {}
-    try:
-        write_csv(trial, csv)
-    except OSError as exc:
-        _fail(f"cannot write {csv}: {exc.strerror or exc}", EXIT_FAILURE)
-    console.print(f"wrote {csv}: {len(trial)} rows, columns {', '.join(trial.columns())}", highlight=False)
-
-
-def import_command(
-    path: Path = typer.Argument(..., help="Measured-data CSV (version 1).", show_default=False, metavar="IN.csv"),
-    out: Path = typer.Option(..., "--out", "-o", help="Trial log to write (.mcap).", show_default=False),
-):
-    """Import a measured-data CSV into a trial log (MCAP), atomically.
-
-    Bad input (missing column, non-numeric value, time not increasing, NaN in a
-    required column, empty data) is one error naming the file and the line,
-    exit status 2, and no output file. A trailing partial line is a warning; the
-    complete rows before it are imported. Every row goes to both the raw and
-    the per-sample channel; the CSV metadata to the 'trial' metadata record.
-    Exit status: 0 done, 2 bad input.
-    """
-    from rig.data import DataFormatError, PartialLineWarning, read_csv
-    from rig.log import write_trial_data
-
-    if out.suffix.lower() != ".mcap":
-        _fail(f"--out {out}: the trial log is an MCAP file (use a .mcap name)")
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always", PartialLineWarning)
-        try:
-            trial = read_csv(path)
-        except DataFormatError as exc:
-            _fail(str(exc))
-    for w in caught:
-        if issubclass(w.category, PartialLineWarning):
-            err_console.print(f"[yellow]warning:[/] {w.message}", highlight=False)
-    try:
-        write_trial_data(trial, out, extra_metadata={"imported_from": str(path)})
-    except OSError as exc:
-        _fail(f"cannot write {out}: {exc.strerror or exc}", EXIT_FAILURE)
-    console.print(f"wrote {out}: {len(trial)} samples, columns {', '.join(trial.columns())}", highlight=False)
-
-
-def recover_command(
-    path: Path = typer.Argument(..., help="Damaged or truncated trial log (.mcap).", show_default=False,
-                                metavar="FILE.mcap"),
-    out: Path = typer.Option(..., "--out", "-o", help="Readable trial log to write (.mcap).", show_default=False),
-):
-    """Rewrite a truncated trial log (e.g. after a crash; no footer) into a readable one.
-
-    Every complete chunk before the damaged point is kept; the new file carries a
-    'recovery' metadata record (`rig info` shows it as recovered).
-    """
-    from rig.data import DataFormatError
-    from rig.log import recover
-
-    try:
-        res = recover(path, out)
-    except (DataFormatError, ValueError) as exc:
-        _fail(str(exc))
-    n = sum(res["messages"].values())
-    what = "was complete" if res["complete_before"] else f"damaged at: {res['error'] or 'no footer'}"
-    console.print(f"wrote {out}: {n} messages up to t = {res['last_t_s']:.3f} s ({path} {what})", highlight=False)
-
-
 def register(app: typer.Typer) -> None:
     app.command("run")(run_command)
-    app.command("info")(info_command)
-    app.command("export")(export_command)
-    app.command("import")(import_command)
-    app.command("recover")(recover_command)

@@ -1,0 +1,322 @@
+"""Reading a trial log, verified: every chunk's CRC is checked.
+
+A chunk whose CRC does not match (or that does not decompress) is dropped with
+a :class:`LogDamageWarning` naming its time range and the channels it held;
+the other chunks' data is kept. ``strict=True`` turns the damage into a
+:class:`rig.data.DataFormatError`. A file cut off (no footer) is an error that
+names ``rig recover``, which rewrites it from every intact chunk.
+Reads v2 (``rig.columns.v2``), v1 and the older JSON raw blocks alike.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import warnings
+from pathlib import Path
+
+import numpy as np
+from mcap.exceptions import McapError
+from mcap.records import (Attachment, Channel, Chunk, Footer, Header, Message, MessageIndex, Metadata, Schema)
+from mcap.stream_reader import StreamReader, breakup_chunk
+
+from rig.data import STANDARD_COLUMNS, DataFormatError, TrialData
+from rig.log.schemas import EVENTS_TOPIC, LOG25_TOPIC, RAW_TOPIC, decode_raw
+
+
+class LogDamageWarning(UserWarning):
+    """Part of a trial log is damaged (a chunk failed its CRC); the rest was read."""
+
+
+_MAGICS = {b"\x89PNG": "a PNG image", b"%PDF": "a PDF document", b"PK\x03\x04": "a ZIP archive",
+           b"\x1f\x8b": "a gzip file", b"# rig-trial-csv": "a measured-data CSV (use `rig import`)"}
+
+
+def _sniff(path: Path) -> None:
+    """Clear errors for what is not an MCAP log at all (a directory, an image, a CSV, ...)."""
+    if not path.exists():
+        raise DataFormatError(path, None, "no such file")
+    if path.is_dir():
+        raise DataFormatError(path, None, "is a directory, not an MCAP trial log")
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(16)
+    except OSError as exc:
+        raise DataFormatError(path, None, f"cannot read file: {exc.strerror or exc}") from None
+    if head[:8] == b"\x89MCAP0\r\n":
+        return
+    if not head:
+        raise DataFormatError(path, None, "empty file, not an MCAP trial log")
+    for magic, what in _MAGICS.items():
+        if head.startswith(magic):
+            raise DataFormatError(path, None, f"this is {what}, not an MCAP trial log")
+    raise DataFormatError(path, None, "not an MCAP trial log (it does not start with the MCAP magic bytes)")
+
+
+class LogContent:
+    """Everything read from an MCAP: intact records, and what was damaged."""
+
+    def __init__(self):
+        self.schemas: dict[int, Schema] = {}
+        self.channels: dict[int, Channel] = {}
+        self.messages: list[Message] = []
+        self.metadata: list[Metadata] = []
+        self.attachments: list[Attachment] = []
+        self.complete = False
+        self.error: str | None = None  # where reading stopped (truncation / broken framing)
+        self.damage: list[dict] = []   # corrupt chunks: {t_start_s, t_end_s, channels, error}
+        self.header = None
+        self.counts: dict[int, int] = {}
+        self.t_range: dict[int, tuple[int, int]] = {}
+
+    def topic_of(self, msg: Message) -> str:
+        ch = self.channels.get(msg.channel_id)
+        return ch.topic if ch else f"#{msg.channel_id}"
+
+    def metadata_dict(self) -> dict[str, dict[str, str]]:
+        out: dict[str, dict[str, str]] = {}
+        for m in self.metadata:
+            out.setdefault(m.name, {}).update(m.metadata)
+        return out
+
+    @property
+    def start_time_ns(self) -> int:
+        """Wall-clock ns of trial time 0 (0 in logs before log_time was the epoch)."""
+        try:
+            return int(self.metadata_dict().get("trial", {}).get("start_time_ns", 0))
+        except ValueError:
+            return 0
+
+    def damage_text(self) -> str:
+        parts = []
+        for d in self.damage:
+            parts.append(f"{d['error']} in the chunk covering t = {d['t_start_s']:.3f}..{d['t_end_s']:.3f} s "
+                         f"(channels lost there: {', '.join(d['channels']) or 'unknown'})")
+        return "; ".join(parts)
+
+
+def scan(path: str | os.PathLike, topics: set[str] | None = None) -> LogContent:
+    """Read every record up to the end or to where the framing breaks (never raises for damage).
+
+    Chunks are checked against their CRC; a bad one goes to ``damage`` and its
+    messages are dropped. ``topics``: keep only these channels' messages (every
+    message is still counted in ``counts`` / ``t_range``).
+    """
+    path = Path(path)
+    _sniff(path)
+    c = LogContent()
+    keep_ids: set[int] = set()
+    bad_chunk: dict | None = None
+
+    def take(rec) -> None:
+        if isinstance(rec, Message):
+            cid = rec.channel_id
+            c.counts[cid] = c.counts.get(cid, 0) + 1
+            lo, hi = c.t_range.get(cid, (rec.log_time, rec.log_time))
+            c.t_range[cid] = (min(lo, rec.log_time), max(hi, rec.log_time))
+            if topics is None or cid in keep_ids:
+                c.messages.append(rec)
+        elif isinstance(rec, Schema):
+            c.schemas[rec.id] = rec
+        elif isinstance(rec, Channel):
+            c.channels[rec.id] = rec
+            if topics is not None and rec.topic in topics:
+                keep_ids.add(rec.id)
+
+    with open(path, "rb") as fh:
+        try:
+            for rec in StreamReader(fh, emit_chunks=True, record_size_limit=max(64, path.stat().st_size)).records:
+                if isinstance(rec, Chunk):
+                    bad_chunk = None
+                    try:
+                        inner = breakup_chunk(rec, validate_crc=True)
+                    except Exception as exc:  # CRC mismatch, zstd error, broken records inside
+                        what = "CRC mismatch" if "crc" in str(exc).lower() else f"{type(exc).__name__}: {exc}"
+                        bad_chunk = {"start_ns": rec.message_start_time, "end_ns": rec.message_end_time,
+                                     "channel_ids": [], "error": what}
+                        c.damage.append(bad_chunk)
+                        continue
+                    for r in inner:
+                        take(r)
+                elif isinstance(rec, MessageIndex):
+                    if bad_chunk is not None:
+                        bad_chunk["channel_ids"].append(rec.channel_id)
+                elif isinstance(rec, (Message, Schema, Channel)):
+                    take(rec)
+                elif isinstance(rec, Header):
+                    c.header = rec
+                elif isinstance(rec, Metadata):
+                    c.metadata.append(rec)
+                elif isinstance(rec, Attachment):
+                    c.attachments.append(rec)
+                elif isinstance(rec, Footer):
+                    c.complete = True
+        except Exception as exc:  # the point where the framing broke: keep everything before it
+            name = type(exc).__name__
+            if name in ("EndOfFile", "RecordLengthLimitExceeded"):  # a record runs past the end of the file
+                c.error = "file ends in the middle of a record (truncated)"
+            elif isinstance(exc, McapError) or isinstance(exc, (ValueError, KeyError, UnicodeDecodeError)):
+                c.error = f"{name}: {exc}" if str(exc) else name
+            else:
+                c.error = f"{name}: {exc}" if str(exc) else name
+    if c.header is None:
+        raise DataFormatError(path, None, f"not a readable MCAP trial log ({c.error or 'no header'})")
+    t0 = c.start_time_ns
+    for d in c.damage:
+        d["t_start_s"] = (d.pop("start_ns") - t0) / 1e9
+        d["t_end_s"] = (d.pop("end_ns") - t0) / 1e9
+        ids = d.pop("channel_ids")
+        d["channels"] = sorted({c.channels[i].topic if i in c.channels else f"#{i}" for i in ids})
+    return c
+
+
+def read_log(path: str | os.PathLike, topics: set[str] | None = None, *, strict: bool = False) -> LogContent:
+    """A complete log, verified. Truncated -> DataFormatError naming ``rig recover``; corrupt chunks ->
+    a LogDamageWarning (DataFormatError under ``strict``)."""
+    path = Path(path)
+    c = scan(path, topics)
+    if c.error or not c.complete:
+        raise DataFormatError(path, None, f"damaged or truncated MCAP ({c.error or 'no footer'}); rewrite it "
+                                          f"with `rig recover {path} --out FIXED.mcap`")
+    if c.damage:
+        msg = f"{len(c.damage)} damaged chunk(s) skipped: {c.damage_text()}"
+        if strict:
+            raise DataFormatError(path, None, msg)
+        warnings.warn(f"{path}: {msg}", LogDamageWarning, stacklevel=3)
+    return c
+
+
+def _events(c: LogContent) -> list[dict]:
+    ev = [json.loads(m.data) for m in c.messages if c.topic_of(m) == EVENTS_TOPIC]
+    ev.sort(key=lambda e: e["t_s"])
+    return ev
+
+
+def read_metadata(path: str | os.PathLike) -> dict[str, dict[str, str]]:
+    """All metadata records of a (complete) trial log, by record name."""
+    return read_log(path, topics=set()).metadata_dict()
+
+
+def _flat_metadata(records: dict[str, dict[str, str]], channel: str) -> dict[str, str]:
+    meta: dict[str, str] = {}
+    meta.update(records.get("trial", {}))
+    if "recipe" in records and "name" in records["recipe"]:
+        meta.setdefault("recipe", records["recipe"]["name"])
+    end = records.get("trial_end", {})
+    if "status" in end:
+        meta["status"] = end["status"]
+    rec = records.get("recovery")
+    if rec:
+        meta["recovered"] = "true"
+        for k in ("recovered_from", "recovery_error"):
+            if k in rec:
+                meta[k] = rec[k]
+    meta["channel"] = channel
+    return meta
+
+
+def _channel_name(channel: str) -> str:
+    ch = channel.lower().replace(" ", "")
+    if ch in ("25", "25hz", "log25", "decimated"):
+        return "25hz"
+    if ch in ("raw", "1khz", "loop"):
+        return "raw"
+    raise ValueError(f"channel must be 'raw' or '25hz', not {channel!r}")
+
+
+def read_trial(path: str | os.PathLike, channel: str = "25hz", *, strict: bool = False) -> TrialData:
+    """Read a trial log into :class:`TrialData` (events and metadata included).
+
+    ``channel="25hz"`` (default): the decimated per-sample channel, the paper's
+    logged data (25 Hz, section 4.2). ``channel="raw"``: every loop sample, in
+    physical units whatever the raw layout (v2 counts, v1 floats, JSON); keys
+    beyond the measured-data columns (``pid_*``, ``dither``, ``true_*``) go to
+    ``extra``. Damaged chunks: see the module docstring; their description is
+    also in ``TrialData.warnings``.
+    """
+    path = Path(path)
+    ch = _channel_name(channel)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", LogDamageWarning)
+        c = read_log(path, topics={RAW_TOPIC if ch == "raw" else LOG25_TOPIC, EVENTS_TOPIC}, strict=strict)
+    notes = [str(w.message) for w in caught if issubclass(w.category, LogDamageWarning)]
+    for note in notes:
+        warnings.warn(note, LogDamageWarning, stacklevel=2)
+    records = c.metadata_dict()
+    if ch == "raw":
+        cols: dict[str, list[np.ndarray]] = {}
+        for m in c.messages:
+            if c.topic_of(m) != RAW_TOPIC:
+                continue
+            enc = c.channels[m.channel_id].message_encoding
+            try:
+                fields = decode_raw(enc, m.data)
+            except (ValueError, KeyError, TypeError) as exc:
+                raise DataFormatError(path, None, f"raw block at log_time {m.log_time} ns: {exc}") from None
+            for k, arr in fields.items():
+                cols.setdefault(k, []).append(arr)
+        arrays = {k: np.concatenate(v) for k, v in cols.items()}
+    else:
+        rows = [json.loads(m.data) for m in c.messages if c.topic_of(m) == LOG25_TOPIC]
+        names: list[str] = list(rows[0]) if rows else []
+        arrays = {nm: np.array([np.nan if r.get(nm) is None else r[nm] for r in rows], dtype=float)
+                  for nm in names}
+        arrays.pop("mu", None)  # derived: TrialData.mu recomputes it
+    if "t_s" not in arrays or arrays["t_s"].size == 0:
+        raise DataFormatError(path, None, f"no samples on the {ch} channel")
+    order = np.argsort(arrays["t_s"], kind="stable")
+    if np.any(np.diff(order) < 0):
+        arrays = {k: v[order] for k, v in arrays.items()}
+    get = {k: arrays.get(k) for k in STANDARD_COLUMNS[1:]}
+    for req in ("position_um", "friction_N"):
+        if get[req] is None:
+            raise DataFormatError(path, None, f"the {ch} channel has no {req}")
+    extra = {k: v for k, v in arrays.items() if k not in STANDARD_COLUMNS and k != "t_s"}
+    return TrialData(time_s=arrays["t_s"], position_um=get["position_um"], friction_N=get["friction_N"],
+                     normal_1_N=get["normal_1_N"], normal_2_N=get["normal_2_N"],
+                     position_ref_um=get["position_ref_um"], valve_cmd=get["valve_cmd"], extra=extra,
+                     metadata=_flat_metadata(records, ch), events=_events(c), source=str(path),
+                     warnings=notes)
+
+
+def trial_info(path: str | os.PathLike) -> dict:
+    """What ``rig info`` shows: channels and counts, duration, metadata, events, recovered, damage."""
+    path = Path(path)
+    c = scan(path, topics={EVENTS_TOPIC})
+    counts: dict[str, int] = {}
+    t_min, t_max = None, None
+    for cid, n in c.counts.items():
+        chn = c.channels.get(cid)
+        topic = chn.topic if chn else f"#{cid}"
+        counts[topic] = counts.get(topic, 0) + n
+        if topic in (RAW_TOPIC, LOG25_TOPIC):
+            lo, hi = c.t_range[cid]
+            t_min = lo if t_min is None else min(t_min, lo)
+            t_max = hi if t_max is None else max(t_max, hi)
+    records = c.metadata_dict()
+    channels = []
+    for cid, chn in sorted(c.channels.items()):
+        schema = c.schemas.get(chn.schema_id)
+        channels.append({"topic": chn.topic, "schema": schema.name if schema else "",
+                         "encoding": chn.message_encoding, "messages": counts.get(chn.topic, 0)})
+    dur = None
+    if t_max is not None:
+        dur = (t_max - t_min) / 1e9
+        end = records.get("trial_end", {}).get("duration_s")  # the last raw block reaches beyond its log_time
+        if end is not None:
+            try:
+                dur = max(dur, float(end))
+            except ValueError:
+                pass
+    problems = []
+    if c.error or not c.complete:
+        problems.append(c.error or "no footer (cut off)")
+    if c.damage:
+        problems.append(f"{len(c.damage)} corrupt chunk(s): {c.damage_text()}")
+    return {"path": str(path), "size_bytes": path.stat().st_size,
+            "complete": c.complete and not c.error and not c.damage,
+            "damage": "; ".join(problems) or None, "corrupt_chunks": c.damage,
+            "recovered": "recovery" in records, "channels": channels, "duration_s": dur,
+            "start_time_ns": c.start_time_ns, "metadata": records, "events": _events(c),
+            "attachments": [{"name": a.name, "media_type": a.media_type, "bytes": len(a.data)}
+                            for a in c.attachments]}

@@ -1,0 +1,571 @@
+"""Writing a trial log: :class:`TrialLogWriter` over the ``mcap`` package's Writer.
+
+The file is chunked (zstd), with message indexes, statistics and a summary, as
+``mcap.writer.Writer`` writes it. ``log_time`` is wall-clock nanoseconds since
+the Unix epoch: the trial's start (``start_time_ns``, the time the writer was
+opened unless given) plus the sample's trial time ``t_s``, which stays a field
+of every message. Crash safety: the writer closes the chunk in progress,
+flushes and ``os.fsync``s at least every ``flush_interval_s`` of wall time
+(1 s), so a crash loses at most the last second; ``rig recover`` rewrites a
+file cut off anywhere.
+
+Listeners (``add_listener``) receive what a live view needs, in the caller's
+thread, after it is queued for the file: ``("samples", {field: array})`` at the
+decimated rate, ``("event", {t_s, kind, ...})`` and ``("loop_stats", {t_s,
+...})``. A listener that raises is detached (``listener_errors``), never the log.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import math
+import os
+import queue
+import threading
+import time
+from pathlib import Path
+from typing import Any, Callable, Iterable
+
+import numpy as np
+from mcap.writer import CompressionType, Writer
+
+from rig import __version__
+from rig.log.schemas import (EVENTS_TOPIC, JSON_TOPICS, LOG25_TOPIC, MCAP_PROFILE, RAW_TOPIC, RAW_V2_ENCODING,
+                             RAW_V2_LAYOUT, SAMPLE_FIELDS, SCHEMAS, STATS_TOPIC, EXACT, ColumnsV2Encoder,
+                             device_columns, dumps, jsonable, meta_str)
+
+_U64_MAX = (1 << 64) - 1
+_COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE,
+                "": CompressionType.NONE}
+
+
+def _block_stats_py(ref, pos, f, n1, n2, valve, acc):  # pragma: no cover - compiled
+    """Accumulate a block's summary figures into ``acc`` (non-finite samples skipped):
+    [sum (ref-pos)^2, max |ref-pos|, n, sum f, sum |f|, n_f, sum f/(n1+n2), n |valve| >= 1, n_mu]."""
+    if ref.size == pos.size:
+        for i in range(ref.size):
+            e = ref[i] - pos[i]
+            if math.isfinite(e):
+                acc[0] += e * e
+                ae = abs(e)
+                if ae > acc[1]:
+                    acc[1] = ae
+                acc[2] += 1.0
+    with_n = n1.size == f.size and n2.size == f.size
+    for i in range(f.size):
+        fi = f[i]
+        if math.isfinite(fi):
+            acc[3] += fi
+            acc[4] += abs(fi)
+            acc[5] += 1.0
+            if with_n:
+                nn = n1[i] + n2[i]
+                if nn != 0.0:
+                    mu = fi / nn
+                    if math.isfinite(mu):
+                        acc[6] += mu
+                        acc[8] += 1.0
+    for i in range(valve.size):
+        if abs(valve[i]) >= 1.0:
+            acc[7] += 1.0
+
+
+_block_stats_jit = None
+
+
+def _block_stats(ref, pos, f, n1, n2, valve, acc) -> None:
+    """numba-compiled :func:`_block_stats_py` (compiled on first use, so reading a log needs no numba)."""
+    global _block_stats_jit
+    if _block_stats_jit is None:
+        from numba import njit
+
+        _block_stats_jit = njit(cache=True)(_block_stats_py)
+    _block_stats_jit(ref, pos, f, n1, n2, valve, acc)
+
+
+_EMPTY = np.zeros(0)
+
+
+class _Sink:
+    """Owns the ``mcap`` Writer and the file: messages, metadata, flush (+fsync), finish."""
+
+    def __init__(self, fh, fsync: bool, compression: str, chunk_size: int):
+        self.fh = fh
+        self.fsync = fsync
+        self.w = Writer(fh, chunk_size=chunk_size, compression=_COMPRESSION[compression])
+
+    def messages(self, items: list) -> None:
+        add = self.w.add_message
+        for cid, ns, data, seq in items:
+            if callable(data):  # a raw block, encoded here (in the writer thread when threaded)
+                data = data()
+            add(cid, log_time=ns, data=data, publish_time=ns, sequence=seq)
+
+    def call(self, fn: Callable, *args) -> None:
+        fn(self.w, *args)
+
+    def flush(self) -> None:
+        self.w.flush()
+        self._sync()
+
+    def _sync(self) -> None:
+        self.fh.flush()
+        if self.fsync:
+            try:
+                os.fsync(self.fh.fileno())
+            except OSError:
+                pass
+
+    def finish(self) -> None:
+        self.w.finish()
+        self._sync()
+        self.fh.close()
+
+    def abort(self) -> None:
+        self.fh.close()
+
+
+class _ThreadedSink:
+    """Runs a :class:`_Sink` in a background thread, in order.
+
+    Chunk compression (zstd releases the GIL) and file I/O overlap the loop. A
+    bounded queue keeps the backlog small; an error in the thread is raised in
+    the caller at its next call.
+    """
+
+    _STOP = object()
+
+    def __init__(self, sink: _Sink, maxsize: int = 64):
+        self._sink = sink
+        self._q: queue.Queue = queue.Queue(maxsize=maxsize)
+        self._exc: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, name="rig-log-writer", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while True:
+            item = self._q.get()
+            if item is self._STOP:
+                return
+            fn, args = item
+            if self._exc is not None:
+                continue  # drain after a failure
+            try:
+                fn(*args)
+            except BaseException as exc:  # reported to the caller
+                self._exc = exc
+
+    def _check(self) -> None:
+        if self._exc is not None:
+            raise RuntimeError(f"the log writer thread failed: {self._exc!r}") from self._exc
+
+    def _put(self, fn, *args) -> None:
+        self._check()
+        self._q.put((fn, args))
+
+    def messages(self, items: list) -> None:
+        self._put(self._sink.messages, items)
+
+    def call(self, fn: Callable, *args) -> None:
+        self._put(self._sink.call, fn, *args)
+
+    def flush(self) -> None:
+        self._put(self._sink.flush)
+
+    def _stop(self, last) -> None:
+        self._q.put((last, ()))
+        self._q.put(self._STOP)
+        while True:  # a second Ctrl-C must not leave the file unfinished
+            try:
+                self._thread.join()
+                break
+            except KeyboardInterrupt:
+                continue
+        self._check()
+
+    def finish(self) -> None:
+        self._stop(self._sink.finish)
+
+    def abort(self) -> None:
+        self._stop(self._sink.abort)
+
+
+class TrialLogWriter:
+    """Writes one trial to an MCAP file (layout: :mod:`rig.log.schemas`).
+
+    ``write_block(block)`` takes the loop's block dict (numpy arrays, one entry
+    per tick, ``t_s`` required); ``event(t_s, kind, **data)``;
+    ``loop_stats(t_s, stats)``; ``add_metadata(name, dict)``;
+    ``close(status=...)`` writes the ``trial_end`` record and the summary. As a
+    context manager an exception marks the trial ``failed``, Ctrl-C ``interrupted``.
+
+    ``start_time_ns``: wall-clock ns since the epoch of trial time 0 (default:
+    now). ``raw_columns``: ``"device"`` (default: the devices' integer counts,
+    :data:`rig.log.schemas.DEVICE_COLUMNS`) or ``"exact"`` (float64, for
+    imported data). ``threaded``: the raw-block encoding and the ``mcap``
+    Writer (compression, file I/O, fsync) run in a background thread. ``compression``: zstd, lz4 or none.
+    ``raw_encoding`` and ``raw_dtype`` are obsolete and ignored (the raw
+    channel is always ``rig.columns.v2``; older encodings are read, no longer
+    written).
+    """
+
+    def __init__(self, path: str | os.PathLike, *, loop_rate_hz: float = 1000.0,
+                 decimated_rate_hz: float = 25.0, raw_rate_hz: float | None = None,
+                 metadata: dict[str, Any] | None = None, recipe_yaml: str | None = None,
+                 recipe: dict | None = None, profile: dict | None = None,
+                 raw_encoding: str = "binary", raw_dtype: str | None = None, flush_interval_s: float = 1.0,
+                 chunk_size: int = 1 << 18, fsync: bool = True, threaded: bool = True,
+                 compression: str = "zstd", start_time_ns: int | None = None, raw_columns: str = "device"):
+        if raw_encoding not in ("binary", "base64", "json"):
+            raise ValueError(f"raw_encoding must be 'binary', not {raw_encoding!r}")
+        if compression not in _COMPRESSION:
+            raise ValueError(f"compression must be 'zstd', 'lz4' or 'none', not {compression!r}")
+        if raw_columns not in ("device", "exact"):
+            raise ValueError(f"raw_columns must be 'device' or 'exact', not {raw_columns!r}")
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.loop_rate_hz = float(loop_rate_hz)
+        self.raw_rate_hz = float(raw_rate_hz or loop_rate_hz)
+        self.decimated_rate_hz = float(decimated_rate_hz)
+        self._raw_every = max(1, int(round(self.loop_rate_hz / self.raw_rate_hz)))
+        self._dec_every = max(1, int(round(self.loop_rate_hz / self.decimated_rate_hz)))
+        self.start_time_ns = int(time.time_ns() if start_time_ns is None else start_time_ns)
+        lvdt_step = None
+        try:
+            lvdt_step = float(profile["sensors"]["lvdt"]["quantization_um"]) if profile else None
+        except (KeyError, TypeError, ValueError):
+            pass
+        cols = device_columns(lvdt_step) if raw_columns == "device" else {}
+        self._enc = ColumnsV2Encoder(cols, self.raw_rate_hz)
+        self._raw_columns = raw_columns
+        self._dec_fmt: dict[str, str] = {}
+        if raw_columns == "exact":
+            self._enc.column = lambda key: EXACT  # every column exact
+        self.flush_interval_s = float(flush_interval_s)
+        self._fh = open(self.path, "wb")
+        sink = _Sink(self._fh, fsync, compression, int(chunk_size))
+        sink.w.start(profile=MCAP_PROFILE, library=f"rig {__version__} (mcap {_mcap_version()})")
+        self._chan: dict[str, int] = {}
+        for topic, schema_name in JSON_TOPICS:
+            sid = sink.w.register_schema(schema_name, "jsonschema", dumps(SCHEMAS[schema_name]))
+            self._chan[topic] = sink.w.register_channel(topic, "json", sid)
+        self._raw_keys: tuple | None = None
+        self._seq: dict[str, int] = {RAW_TOPIC: 0, **{t: 0 for t, _ in JSON_TOPICS}}
+        self.counts: dict[str, int] = dict.fromkeys(self._seq, 0)
+        self.ticks = 0
+        self.last_t_s = 0.0
+        self.closed = False
+        self.status: str | None = None
+        self._pending: list[dict] = []
+        self._listeners: list[Callable[[str, dict], None]] = []
+        self.listener_errors: list[str] = []
+        self._stats_acc = np.zeros(9)
+        started = _dt.datetime.fromtimestamp(self.start_time_ns / 1e9, _dt.timezone.utc)
+        trial = {"software_version": __version__, "started_utc": started.isoformat(),
+                 "start_time_ns": self.start_time_ns, "log_time": "unix_ns",
+                 "loop_rate_hz": self.loop_rate_hz, "raw_rate_hz": self.raw_rate_hz,
+                 "decimated_rate_hz": self.decimated_rate_hz}
+        trial.update(metadata or {})
+        self.metadata = {k: meta_str(v) for k, v in trial.items()}
+        sink.w.add_metadata("trial", self.metadata)
+        if recipe is not None:
+            sink.w.add_metadata("recipe", {"json": json.dumps(jsonable(recipe), allow_nan=False),
+                                           "name": str(recipe.get("name", ""))})
+        if profile is not None:
+            sink.w.add_metadata("rig_profile", {"json": json.dumps(jsonable(profile), allow_nan=False)})
+        if recipe_yaml is not None:
+            sink.w.add_attachment(create_time=time.time_ns(), log_time=self.start_time_ns, name="recipe.yaml",
+                                  media_type="application/yaml", data=recipe_yaml.encode("utf-8"))
+        self._batch: list = []
+        self._sink = _ThreadedSink(sink) if threaded else sink
+        self._threaded = bool(threaded)
+        # the first chunk carries the schemas and channels: get it on disk now
+        self.event(0.0, "log_start")
+        self.flush()
+
+    # -- listeners (live view hook) --------------------------------------------
+    def add_listener(self, fn: Callable[[str, dict], None]) -> None:
+        """Call ``fn(kind, payload)`` for every decimated sample block ("samples"), event and loop stats."""
+        self._listeners.append(fn)
+
+    def remove_listener(self, fn: Callable[[str, dict], None]) -> None:
+        if fn in self._listeners:
+            self._listeners.remove(fn)
+
+    def _notify(self, kind: str, payload: dict) -> None:
+        for fn in list(self._listeners):
+            try:
+                fn(kind, payload)
+            except Exception as exc:  # a live view must never break the log
+                self.listener_errors.append(f"{getattr(fn, '__name__', fn)!s}: {type(exc).__name__}: {exc}")
+                self._listeners.remove(fn)
+
+    # -- writing ---------------------------------------------------------------
+    def _ns(self, t_s: float) -> int:
+        ns = self.start_time_ns + int(round(float(t_s) * 1e9)) if math.isfinite(t_s) else self.start_time_ns
+        return min(max(ns, 0), _U64_MAX)
+
+    def _add(self, topic: str, t_s: float, payload: bytes) -> None:
+        seq = self._seq[topic]
+        self._seq[topic] = seq + 1
+        self._batch.append((self._chan[topic], self._ns(t_s), payload, seq))
+        self.counts[topic] += 1
+
+    def _send(self) -> None:
+        if self._batch:
+            batch, self._batch = self._batch, []
+            self._sink.messages(batch)
+
+    def _raw_channel(self, keys: tuple) -> None:
+        """Register /raw on the first block: its schema lists the columns with scale, offset, unit."""
+        schema = dumps(self._enc.schema(keys))
+        meta = {"layout": RAW_V2_LAYOUT, "columns": json.dumps(list(keys)),
+                "json_twin": LOG25_TOPIC}
+
+        def register(w):
+            sid = w.register_schema(RAW_V2_ENCODING, "jsonschema+rig.columns.v2", schema)
+            self._chan[RAW_TOPIC] = w.register_channel(RAW_TOPIC, RAW_V2_ENCODING, sid, meta)
+
+        if isinstance(self._sink, _ThreadedSink):
+            # the id is needed now: register synchronously, in order, through the queue
+            done = threading.Event()
+
+            def reg(w):
+                register(w)
+                done.set()
+            self._send()
+            self._sink.call(reg)
+            while not done.wait(0.01):
+                self._sink._check()
+        else:
+            self._send()
+            register(self._sink.w)
+        self._raw_keys = keys
+
+    def write_block(self, block: dict[str, np.ndarray]) -> None:
+        """Log one block of loop samples (all keys as arrays of equal length; ``t_s`` required)."""
+        if self.closed:
+            raise RuntimeError("log closed")
+        arrays = block if all(type(v) is np.ndarray and v.dtype == np.float64 for v in block.values()) \
+            else {k: np.asarray(v, dtype=np.float64) for k, v in block.items()}
+        t = arrays["t_s"]
+        n = t.size
+        if n == 0:
+            return
+        start = self.ticks
+        if self._raw_every > 1:
+            sel = np.flatnonzero((start + np.arange(n)) % self._raw_every == 0)
+            raw = {k: v[sel] for k, v in arrays.items()}
+        else:
+            raw = arrays
+        tr = raw["t_s"]
+        if tr.size:
+            keys = tuple(raw)
+            if keys != self._raw_keys:
+                if self._raw_keys is not None:
+                    raise ValueError(f"raw block keys changed: {self._raw_keys} -> {keys}")
+                self._raw_channel(keys)
+            t0 = float(tr[0])
+            if self._threaded:  # encode in the writer thread, from a copy (the loop may reuse its arrays)
+                copy = {k: v.copy() for k, v in raw.items()}
+                self._add(RAW_TOPIC, t0, lambda: self._enc.encode(copy, t0))
+            else:
+                self._add(RAW_TOPIC, t0, self._enc.encode(raw, t0))
+        # decimated per-sample channel: ticks whose global index is a multiple of the decimation
+        first = (-start) % self._dec_every
+        if first < n:
+            idx = slice(first, n, self._dec_every)
+            names = [nm for nm in SAMPLE_FIELDS[:-1] if nm in arrays]
+            cols = {nm: self._on_grid(nm, arrays[nm][idx]) for nm in names}
+            if "normal_1_N" in cols and "normal_2_N" in cols:
+                nn = cols["normal_1_N"] + cols["normal_2_N"]
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    cols["mu"] = np.where(nn != 0.0, cols["friction_N"] / nn, np.nan)
+                names.append("mu")
+            m = np.array([cols[nm] for nm in names])
+            rows = m.T.tolist()
+            specs = [self._dec_format(nm) for nm in names]
+            if np.isfinite(m).all():
+                fmt = "{" + ",".join(f'"{nm}":{sp}' for nm, sp in zip(names, specs)) + "}"
+                payloads = [(fmt % tuple(row)).encode() for row in rows]
+            else:
+                payloads = [("{" + ",".join(f'"{nm}":' + (sp % v if math.isfinite(v) else "null")
+                                            for nm, sp, v in zip(names, specs, row)) + "}").encode()
+                            for row in rows]
+            k = len(payloads)
+            ts = m[0]
+            rel = np.clip(np.rint(np.nan_to_num(ts) * 1e9), -9e18, 9e18).astype(np.int64).tolist()
+            t0n = self.start_time_ns  # integer arithmetic: float64 cannot hold epoch ns exactly
+            ns = [min(max(t0n + v, 0), _U64_MAX) for v in rel]
+            seq0 = self._seq[LOG25_TOPIC]
+            cid = self._chan[LOG25_TOPIC]
+            self._batch.extend(zip([cid] * k, ns, payloads, range(seq0, seq0 + k)))
+            self._seq[LOG25_TOPIC] = seq0 + k
+            self.counts[LOG25_TOPIC] += k
+            if self._listeners:
+                self._notify("samples", cols)
+        self.ticks += n
+        self.last_t_s = float(t[-1])
+        self._running_stats(arrays)
+        if self._pending and self._pending[0]["t_s"] <= self.last_t_s + 0.5 / self.loop_rate_hz:
+            self._emit_pending(self.last_t_s + 0.5 / self.loop_rate_hz)
+        self._send()
+        if time.monotonic() - self._last_flush >= self.flush_interval_s:
+            self.flush()
+
+    def _on_grid(self, name: str, x: np.ndarray) -> np.ndarray:
+        """The value /raw stores for a device column (its integer count times the scale)."""
+        col = self._enc.column(name)
+        if name == "t_s" or np.dtype(col.dtype).kind != "i":
+            return x
+        with np.errstate(invalid="ignore"):
+            return np.rint((x - col.offset) / col.scale) * col.scale + col.offset
+
+    def _dec_format(self, name: str) -> str:
+        """printf format of a /log25 field: the raw column's resolution (the same values as /raw), else repr."""
+        f = self._dec_fmt.get(name)
+        if f is None:
+            col = self._enc.column(name)
+            f = "%r"
+            if name == "mu" and self._raw_columns == "device":
+                f = "%.6g"
+            elif name != "t_s" and np.dtype(col.dtype).kind == "i" and col.offset == 0.0:
+                f = "%.9g"  # e.g. the valve's k/32767
+                for d in range(10):
+                    if abs(round(col.scale, d) - col.scale) < 1e-12 * max(col.scale, 1e-300):
+                        f = f"%.{d}f"
+                        break
+            self._dec_fmt[name] = f
+        return f
+
+    def _running_stats(self, a: dict[str, np.ndarray]) -> None:
+        e = _EMPTY
+        _block_stats(a.get("position_ref_um", e), a.get("position_um", e), a.get("friction_N", e),
+                     a.get("normal_1_N", e), a.get("normal_2_N", e), a.get("valve_cmd", e), self._stats_acc)
+
+    # the running figures, read from the accumulator (see _block_stats)
+    sum_err2_um2 = property(lambda self: float(self._stats_acc[0]))
+    max_abs_err_um = property(lambda self: float(self._stats_acc[1]))
+    n_err = property(lambda self: int(self._stats_acc[2]))
+    sum_friction_N = property(lambda self: float(self._stats_acc[3]))
+    sum_abs_friction_N = property(lambda self: float(self._stats_acc[4]))
+    n_friction = property(lambda self: int(self._stats_acc[5]))
+    sum_mu = property(lambda self: float(self._stats_acc[6]))
+    n_valve_saturated = property(lambda self: int(self._stats_acc[7]))
+
+    @property
+    def tracking_error_rms_um(self) -> float:
+        """RMS of position_ref_um - position_um over everything logged (µm)."""
+        return math.sqrt(self.sum_err2_um2 / self.n_err) if self.n_err else float("nan")
+
+    @property
+    def mean_friction_N(self) -> float:
+        return self.sum_friction_N / self.n_friction if self.n_friction else float("nan")
+
+    @property
+    def mean_abs_friction_N(self) -> float:
+        """Mean |friction| (N): the sliding friction level whatever the direction."""
+        return self.sum_abs_friction_N / self.n_friction if self.n_friction else float("nan")
+
+    @property
+    def mean_mu(self) -> float:
+        """Mean friction / (normal_1 + normal_2) over the samples where it is defined (NaN if none)."""
+        n = self._stats_acc[8]
+        return float(self._stats_acc[6] / n) if n else float("nan")
+
+    def schedule_events(self, events: Iterable[dict]) -> None:
+        """Queue planned events (``{t_s, kind, ...}``); each is logged once a block reaches its time."""
+        self._pending.extend(dict(e) for e in events)
+        self._pending.sort(key=lambda e: e["t_s"])
+
+    _emitting = False
+
+    def _emit_pending(self, t_until: float) -> None:
+        self._emitting = True
+        k = 0
+        while k < len(self._pending) and self._pending[k]["t_s"] <= t_until:
+            e = dict(self._pending[k])
+            self.event(e.pop("t_s"), e.pop("kind"), **e)
+            k += 1
+        if k:
+            del self._pending[:k]
+        self._emitting = False
+
+    def event(self, t_s: float, kind: str, **data: Any) -> None:
+        """Log an event ``{t_s, kind, **data}`` (segment boundaries, steps, levels, markers)."""
+        rec = {"t_s": float(t_s), "kind": str(kind)}
+        rec.update(jsonable({k: v for k, v in data.items() if k not in ("t_s", "kind")}))
+        self._add(EVENTS_TOPIC, t_s, dumps(rec))
+        if not self._emitting:
+            self._send()
+        if self._listeners:
+            self._notify("event", rec)
+
+    def loop_stats(self, t_s: float, stats: dict[str, Any]) -> None:
+        """Log loop statistics (numbers) at time ``t_s``."""
+        rec = {"t_s": float(t_s)}
+        for k, v in stats.items():
+            if k == "t_s":
+                continue
+            v = jsonable(v)
+            rec[str(k)] = v if isinstance(v, (int, float)) or v is None else None
+        self._add(STATS_TOPIC, t_s, dumps(rec))
+        self._send()
+        if self._listeners:
+            self._notify("loop_stats", rec)
+
+    def add_metadata(self, name: str, data: dict[str, Any]) -> None:
+        self._send()
+        rec = {str(k): meta_str(v) for k, v in data.items()}
+        self._sink.call(lambda w: w.add_metadata(name, rec))
+
+    def flush(self) -> None:
+        """Close the chunk in progress, write it and fsync: everything logged so far survives a crash."""
+        self._send()
+        self._sink.flush()
+        self._last_flush = time.monotonic()
+
+    _last_flush = 0.0
+
+    def close(self, status: str = "completed", **summary: Any) -> None:
+        """Finish the file: ``trial_end`` metadata (status and summary), summary section, fsync."""
+        if self.closed:
+            return
+        self.status = status
+        end = {"status": status, "ticks": self.ticks, "duration_s": self.last_t_s,
+               "raw_blocks": self.counts[RAW_TOPIC], "samples_decimated": self.counts[LOG25_TOPIC],
+               "events": self.counts[EVENTS_TOPIC],
+               "ended_utc": _dt.datetime.now(_dt.timezone.utc).isoformat()}
+        end.update(summary)
+        self.event(self.last_t_s, "log_end", status=status)
+        self.add_metadata("trial_end", end)
+        self.closed = True
+        self._sink.finish()
+
+    def abort(self) -> None:
+        """Stop without finishing: what was flushed stays, the open chunk is lost (a crash; for tests)."""
+        if not self.closed:
+            self._batch = []
+            self.closed = True
+            self._sink.abort()
+
+    def __enter__(self) -> "TrialLogWriter":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.close("completed")
+        elif issubclass(exc_type, KeyboardInterrupt):
+            self.close("interrupted")
+        else:
+            self.close("failed", error=f"{exc_type.__name__}: {exc}")
+
+
+def _mcap_version() -> str:
+    try:
+        from importlib.metadata import version
+
+        return version("mcap")
+    except Exception:  # pragma: no cover
+        return "?"
