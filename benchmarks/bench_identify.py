@@ -8,7 +8,7 @@ import time
 
 from rig.analysis import synth
 from rig.analysis.identify import identify_trials
-from rig.friction import FrictionModel
+from rig.model.spec import FrictionModel
 
 
 def timed(fn, repeat=3):

@@ -13,7 +13,7 @@ Sections (see docs/TEAM-CONTRACTS.md and docs/sim.md):
   divided by ``actuator.full_scale_force_N``, saturated at ±1. Dither at 500 Hz,
   0.1 % of the PID output (section 3).
 * ``servovalve``, ``actuator``, ``fixture``, ``normal``, ``sensors``, ``stroke``: the
-  plant (simulated by :mod:`rig.plant`, documented in docs/sim.md).
+  plant (simulated by :mod:`rig.sim.plant`, documented in docs/sim.md).
 * ``lubricants``: per-lubricant friction parameters, Table 2 means for A, B, L; the paper
   gives no ``mu0``, so the values here are assumptions.
 * ``sim``: numerical settings of the simulated rig.
@@ -29,7 +29,7 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from rig.friction import FrictionModel
+from rig.model.spec import FrictionModel
 
 
 class ProfileError(ValueError):

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rig.friction import TABLE2
+from rig.model.paper import TABLE2
 from rig.profile import ProfileError, RigProfile, load_profile
 
 

@@ -29,7 +29,7 @@ also reproduces Table 2's k_cr errors).
 
 Beyond the paper, :func:`fit_whole_record` fits the rate-and-state model to the
 whole record at once (all steps; state integrated in slip with
-:func:`rig.friction.mu_series`), optionally with a finite machine stiffness
+:func:`rig.model.friction.mu_series`), optionally with a finite machine stiffness
 between the position sensor and the interface (needed for rock-mechanics
 records whose displacement is measured at the load point).
 """
@@ -47,7 +47,9 @@ from scipy.optimize import least_squares, minimize_scalar
 
 from rig.analysis.steps import Step, detect_steps, line_fit
 from rig.data import TrialData, atomic_write_text, load_trial
-from rig.friction import (FrictionModel, P_A, P_B, P_L, P_MU0, V0_UM_S, k_cr_eq13_N_per_um, mu_series)
+from rig.model.spec import FrictionModel
+from rig.model.friction import P_A, P_B, P_L, P_MU0, V0_UM_S, mu_series
+from rig.model.paper import k_cr_eq13_N_per_um
 from rig.kinematics import velocity_for_steps, velocity_local_poly, velocity_paper
 
 SCHEMA = "rig.identify/1"
@@ -391,7 +393,7 @@ def fit_whole_record(trial: TrialData, steps: list[Step] | None = None, *, stiff
     between the effective steps: an ideal step protocol, and free of the noise that an
     estimator passes into ``A ln v``, which biases A low as an errors-in-variables
     problem), ``local_poly`` or ``paper`` (the estimators); ``mu`` from
-    :func:`rig.friction.mu_series`.
+    :func:`rig.model.friction.mu_series`.
     With stiffness, the position is the load point, its velocity piecewise constant
     between the detected steps, and the interface velocity follows from the spring
     (:func:`_mu_series_stiff`).

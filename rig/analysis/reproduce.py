@@ -38,7 +38,8 @@ import numpy as np
 
 from rig.analysis.identify import _r, identify_trials, k_cr_table2, mean_sem
 from rig.data import atomic_write_text
-from rig.friction import TABLE2, FrictionModel
+from rig.model.paper import TABLE2
+from rig.model.spec import FrictionModel
 
 SCHEMA = "rig.reproduce/1"
 PAPER_MIN_TRIALS = 8

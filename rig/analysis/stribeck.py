@@ -23,7 +23,7 @@ import numpy as np
 from rig.analysis.identify import _r
 from rig.analysis.steps import detect_steps
 from rig.data import TrialData, atomic_write_text
-from rig.friction import V0_UM_S
+from rig.model.friction import V0_UM_S
 
 SCHEMA = "rig.stribeck/1"
 

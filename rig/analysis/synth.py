@@ -2,7 +2,7 @@
 
 The velocity history is prescribed (constant levels joined by raised-cosine
 ramps of a given 10-90 % rise time); position is its integral; the friction
-coefficient comes from the shared model (:func:`rig.friction.mu_series`,
+coefficient comes from the shared model (:func:`rig.model.friction.mu_series`,
 eqs. 5-6) evaluated at the 1 kHz loop rate; the sensors then add what the
 paper describes (section 3): the friction load cell low-pass filtered at
 100 Hz with +-0.25 N noise, the LVDT filtered at 100 Hz with +-0.25 µm noise
@@ -23,7 +23,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from rig.data import TrialData
-from rig.friction import FrictionModel, lowpass_uneven, mu_series
+from rig.model.spec import FrictionModel
+from rig.model.sensors import lowpass_uneven
+from rig.model.friction import mu_series
 
 
 @dataclass

@@ -39,7 +39,8 @@ import numpy as np
 from rig.data import TrialData
 
 from .fit import FitResult, evaluate, fit, multistart
-from .models import EXT_PARAMS, model_params, to_friction_model
+from rig.model.forward import as_model
+from rig.model.spec import EXT_PARAMS, model_params
 from .prep import Grid, prepare
 
 MIN_GAIN_PCT = 0.15
@@ -81,7 +82,7 @@ class Diagnosis:
     @property
     def model(self):
         names = model_params(self.final.baseline, self.final.extensions)
-        return to_friction_model(self.final.baseline, self.final.extensions,
+        return as_model(self.final.baseline, self.final.extensions,
                                  {k: v for k, v in self.final.params.items() if k in names})
 
     def report(self) -> dict:
@@ -577,6 +578,10 @@ def _plausible(cause: str, p: dict, grid: Grid) -> bool:
     if cause == "second_state_variable":
         # a state longer than half the record's slip cannot be told from a drift
         if p["L2_um"] > 0.5 * float(slip_of(grid)[-1]):
+            return False
+        # nor can one whose transient is shorter than the kinematics resolve, even at the
+        # fastest sliding (as sensor_lag and time_delay): it stands in for the loading/sensors
+        if p["L2_um"] / max(_speeds(grid)[1], 1e-9) < grid.time_resolution_s:
             return False
     if cause == "position_periodic":
         span = float(grid.x.max() - grid.x.min())

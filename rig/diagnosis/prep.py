@@ -232,7 +232,7 @@ def _servo_fit(t, xr, x):
     Returns (tau_s, modelled position) or (None, None) when the measured position does not follow the
     reference that way (rms misfit over 3x the LVDT noise, or a trend between them).
     """
-    from rig.friction import lowpass_uneven
+    from rig.model.sensors import lowpass_uneven
 
     # the record starts in motion: pad the past with the initial commanded velocity, so the lag
     # model starts in its steady tracking state rather than at rest

@@ -4,8 +4,8 @@ The trajectory is a sequence of constant-velocity segments (the paper's
 velocity steps 1 -> 2, 1 -> 5, 1 -> 10 µm/s, or a random staircase of
 velocities). The load point follows the commanded position through a
 critically damped second-order servo (``servo_tau_s``; the paper's steps rise
-in < 0.5 s). Friction comes from the shared model of :mod:`rig.friction`
-through :func:`rig.diagnosis.models.predict_force` evaluated on a 1 kHz
+in < 0.5 s). Friction comes from the shared model of :mod:`rig.model.friction`
+through :func:`rig.model.forward.predict_force` evaluated on a 1 kHz
 internal grid with the *true* kinematics, with any catalogue effect injected.
 The record is then sampled (25 Hz to 1 kHz, optionally jittered and with
 gaps) and the rig's sensor noise added: friction ±0.25 N, LVDT ±0.25 µm then
@@ -27,7 +27,7 @@ import numpy as np
 
 from rig.data import TrialData, write_csv
 
-from .models import predict_force
+from rig.model.forward import as_model, predict_force
 
 LVDT_Q_UM = 0.076
 NOISE_F_N = 0.25
@@ -68,7 +68,7 @@ def _servo(t, xr, tau):
     """Critically damped 2nd-order follower of ``xr`` (exact for piecewise-linear input)."""
     if tau <= 0:
         return xr.copy()
-    from rig.friction import lowpass_uneven
+    from rig.model.sensors import lowpass_uneven
 
     return lowpass_uneven(t, lowpass_uneven(t, xr, tau), tau)
 
@@ -143,8 +143,8 @@ def make_record(spec: SynthSpec) -> tuple[TrialData, dict]:
             params.pop(k, None)
     # friction always scales with the true normal force
     ext_sim = [e for e in exts if e != "normal_force_variation"] + ["normal_force_variation"]
-    F_true = predict_force(spec.baseline, ext_sim, params, tf, x_true, v_true, N1 + N2, N_NOM_N,
-                           v_init=segs[0][1])
+    F_true = predict_force(as_model(spec.baseline, ext_sim, params), tf, x_true, v_true, N1 + N2, N_NOM_N,
+                           v_init_um_s=segs[0][1])
     # sampling (after the pre-roll; the record's clock starts at 0)
     cut = tf >= pre
     tf, x_true, x_ref, F_true, N1, N2 = (a[cut] for a in (tf, x_true, x_ref, F_true, N1, N2))
