@@ -1,6 +1,6 @@
 """Velocity from a quantized, noisy LVDT position record (µm, s).
 
-Two estimators, shared by identification and diagnosis:
+The one kinematics module. Estimators shared by identification and diagnosis:
 
 * :func:`velocity_paper` - Dupont & Dunlap's: a 10-point moving average of
   position followed by a central difference (section 4.2, Fig. 8).
@@ -159,3 +159,24 @@ def cumulative_slip_um(t_s: np.ndarray, v_um_s: np.ndarray) -> np.ndarray:
 def median_dt(t_s: np.ndarray) -> float:
     d = np.diff(np.asarray(t_s, dtype=float))
     return float(np.median(d)) if d.size else math.nan
+
+
+def velocity_changes(t_s: np.ndarray, v_um_s: np.ndarray, window_s: float = 1.0,
+                     min_log_ratio: float = 0.3) -> np.ndarray:
+    """Times (s) of the velocity changes: |ln v(t + w) - ln v(t - w)| > min_log_ratio, local
+    maxima at least 2 w apart (diagnosis: transient scaling and the figure's markers)."""
+    t = np.asarray(t_s, dtype=float)
+    lv = np.log(np.maximum(np.abs(np.asarray(v_um_s, dtype=float)), 1e-2))
+    a = np.interp(t + window_s, t, lv) - np.interp(t - window_s, t, lv)
+    c = np.abs(a)
+    out: list[int] = []
+    last = -np.inf
+    for i in np.flatnonzero(c > min_log_ratio):
+        if t[i] - last < 2 * window_s:
+            if c[i] > c[out[-1]]:
+                out[-1] = i
+            last = t[i]
+            continue
+        out.append(i)
+        last = t[i]
+    return t[np.asarray(out, dtype=int)] if out else np.zeros(0)

@@ -39,6 +39,7 @@ import numpy as np
 from rig.data import TrialData
 
 from .fit import FitResult, evaluate, fit, multistart
+from rig.kinematics import velocity_changes
 from rig.model.forward import as_model
 from rig.model.spec import EXT_PARAMS, model_params
 from .prep import Grid, prepare
@@ -398,9 +399,8 @@ def transient_scaling(grid: Grid, before: np.ndarray, after: np.ndarray):
     t, v = grid.t, grid.v
     pairs = []
     tv = t
-    from .plot import velocity_changes
 
-    te = velocity_changes(grid)
+    te = velocity_changes(grid.kin["t"], grid.kin["v"])
     ev = sorted(set(int(i) for i in np.clip(np.searchsorted(t, te - 1.0), 0, t.size - 1)))
     for k, i in enumerate(ev):
         j_end = ev[k + 1] if k + 1 < len(ev) else t.size - 1
