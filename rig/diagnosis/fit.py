@@ -31,8 +31,7 @@ def param(name: str) -> Param:
     """The fitted parameter ``name`` (unit, bounds, scaling) of rig.model.spec.PARAMS."""
     if name in _REPARAM:
         return _REPARAM[name]
-    d = PARAMS[name]
-    return Param(name, d.unit, d.lo, d.hi, d.log, d.scale)
+    return Param.of(name, PARAMS[name])
 
 
 @dataclass

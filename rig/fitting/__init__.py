@@ -31,6 +31,11 @@ class Param:
     log: bool = False
     scale: float = 1.0
 
+    @classmethod
+    def of(cls, name: str, decl) -> "Param":
+        """From a declaration with ``unit, lo, hi, log, scale`` (rig.model.spec.PARAMS entries)."""
+        return cls(name, decl.unit, decl.lo, decl.hi, decl.log, decl.scale)
+
     def to_internal(self, value: float) -> float:
         if self.log:
             return math.log(min(max(value, self.lo * 1.0001), self.hi / 1.0001))
