@@ -13,7 +13,7 @@ import time
 import numpy as np
 
 from rig.diagnosis import diagnose
-from rig.diagnosis.synth import SynthSpec, make_record, random_effect
+from rig.sim.synth import SynthSpec, make_record, random_effect
 
 EFFECTS = ["second_state_variable", "aging_law", "sensor_lag", "finite_stiffness", "normal_force_variation",
            "slip_wear_drift", "force_offset_drift", "position_periodic", "time_delay"]

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import time
 
-from rig.analysis import synth
+from rig.sim import synth
 from rig.analysis.identify import identify_trials
 from rig.model.spec import FrictionModel
 

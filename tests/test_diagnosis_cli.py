@@ -9,7 +9,7 @@ from typer.testing import CliRunner
 
 from rig.cli import app
 from rig.data import write_csv
-from rig.diagnosis.synth import SynthSpec, make_record, random_effect
+from rig.sim.synth import SynthSpec, make_record, random_effect
 from rig.model.spec import FrictionModel
 
 

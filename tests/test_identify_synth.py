@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from rig.analysis import synth
+from rig.sim import synth
 from rig.analysis.identify import SCHEMA, identify_trials, k_cr_table2
 from rig.analysis.steps import detect_steps
 from rig.cli import app

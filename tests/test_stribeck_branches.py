@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from rig.analysis import synth
+from rig.sim import synth
 from rig.analysis.stribeck import stribeck
 from rig.cli import app
 from rig.data import write_csv

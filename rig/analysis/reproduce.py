@@ -105,7 +105,7 @@ def run_lubricant(lubricant: str, n_trials: int, *, seed: int = 0, profile=None,
                                model, profile=prof,
                                seed=seed * 100003 + 1000 * list(TABLE2).index(lubricant) + k).trial
         else:
-            from rig.analysis import synth
+            from rig.sim import synth
 
             tr = synth.generate(model, synth.paper_step_protocol(pre_um=max(300.0, 6 * p["L_um"]),
                                                                  back_um=max(300.0, 6 * p["L_um"])),

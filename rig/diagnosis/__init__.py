@@ -3,7 +3,7 @@
 The contract is ../shared/specs/diagnosis.md. Entry points: :func:`diagnose`
 (a :class:`rig.data.TrialData` -> :class:`Diagnosis`, whose ``.report()`` is the
 JSON report and ``.model`` the extended :class:`rig.model.spec.FrictionModel`),
-:mod:`rig.diagnosis.synth` (records with known effects), :mod:`rig.diagnosis.plot`.
+:mod:`rig.sim.synth` (records with known effects), :mod:`rig.diagnosis.plot`.
 """
 
 from .core import Diagnosis, diagnose
