@@ -11,7 +11,7 @@ from typer.testing import CliRunner
 
 from rig.sim import synth
 from rig.analysis.identify import SCHEMA, identify_trials, k_cr_table2
-from rig.analysis.steps import detect_steps
+from rig.kinematics import detect_steps
 from rig.cli import app
 from rig.data import write_csv
 from rig.model.paper import TABLE2

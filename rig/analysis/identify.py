@@ -45,10 +45,9 @@ from pathlib import Path
 import numpy as np
 from scipy.optimize import minimize_scalar
 
-from rig.analysis.steps import Step, detect_steps, line_fit
+from rig.kinematics import Step, detect_steps, estimate_velocity, line_fit
 from rig.data import TrialData, atomic_write_text, load_trial
 from rig.fitting import Param, ParamSet, least_squares_fit
-from rig.kinematics import velocity_for_steps, velocity_local_poly, velocity_paper
 from rig.model.forward import predict_force
 from rig.model.friction import V0_UM_S
 from rig.model.paper import k_cr_eq13_N_per_um
@@ -60,22 +59,6 @@ WINDOW_POINTS = 200
 LN9 = math.log(9.0)
 # nuisance of the whole-record fit with ``trend``: a linear drift of mu
 TREND = Param("drift_mu_per_s", "1/s", -1.0, 1.0, scale=1e-5)
-
-
-# ---------------------------------------------------------------------------
-# Velocity
-# ---------------------------------------------------------------------------
-def estimate_velocity(t_s: np.ndarray, x_um: np.ndarray, method: str = "local_poly") -> np.ndarray:
-    """Velocity from the LVDT: ``paper`` (10-point moving average + central difference,
-    section 4.2, Fig. 8) or ``local_poly`` (local linear fit over about 2 µm of slip at the
-    local speed; handles uneven sampling; much less noisy at µm/s)."""
-    if method == "paper":
-        return velocity_paper(t_s, x_um, 10)
-    if method == "local_poly":
-        return velocity_for_steps(t_s, x_um, slip_window_um=2.0, min_window_s=0.04, max_window_s=4.0)
-    if method == "local_poly_fixed":
-        return velocity_local_poly(t_s, x_um)
-    raise ValueError(f"unknown velocity method {method!r} (paper, local_poly)")
 
 
 # ---------------------------------------------------------------------------

@@ -37,99 +37,11 @@ from numba import njit
 from scipy.ndimage import minimum_filter1d
 
 from rig.data import TrialData
+from rig.kinematics import edge_preserving_line
 
 KIN_DT_MIN_S = 0.01
 V_SLIDE_MIN_UM_S = 0.1
 STOP_GUARD_S = 3.0
-
-
-@njit(cache=True)
-def _line_fit(t, x, lo, hi, tc):
-    """Least-squares line x = a + b (t - tc) over [lo, hi]; returns a, b, residual mean square."""
-    m = hi - lo + 1
-    if m < 3:
-        return np.nan, np.nan, np.inf
-    s1 = 0.0
-    st = 0.0
-    stt = 0.0
-    sx = 0.0
-    stx = 0.0
-    for k in range(lo, hi + 1):
-        d = t[k] - tc
-        s1 += 1.0
-        st += d
-        stt += d * d
-        sx += x[k]
-        stx += d * x[k]
-    den = s1 * stt - st * st
-    if den <= 0.0:
-        return np.nan, np.nan, np.inf
-    b = (s1 * stx - st * sx) / den
-    a = (sx - b * st) / s1
-    r = 0.0
-    for k in range(lo, hi + 1):
-        e = x[k] - a - b * (t[k] - tc)
-        r += e * e
-    return a, b, r / (m - 2)
-
-
-@njit(cache=True)
-def edge_preserving_line(t, x, half):
-    """Smoothed position and velocity: best of left, right and centred line fits (see module doc)."""
-    n = t.shape[0]
-    xs = np.empty(n)
-    vs = np.empty(n)
-    lo_l = 0
-    lo_c = 0
-    hi_c = 0
-    hi_r = 0
-    for i in range(n):
-        w = half[i]
-        # left window [t_i - 2w, t_i]
-        while t[lo_l] < t[i] - 2.0 * w:
-            lo_l += 1
-        while lo_l > 0 and t[lo_l - 1] >= t[i] - 2.0 * w:
-            lo_l -= 1
-        while t[lo_c] < t[i] - w:
-            lo_c += 1
-        while lo_c > 0 and t[lo_c - 1] >= t[i] - w:
-            lo_c -= 1
-        if hi_c < i:
-            hi_c = i
-        while hi_c + 1 < n and t[hi_c + 1] <= t[i] + w:
-            hi_c += 1
-        while hi_c > i and t[hi_c] > t[i] + w:
-            hi_c -= 1
-        if hi_r < i:
-            hi_r = i
-        while hi_r + 1 < n and t[hi_r + 1] <= t[i] + 2.0 * w:
-            hi_r += 1
-        while hi_r > i and t[hi_r] > t[i] + 2.0 * w:
-            hi_r -= 1
-        best_r = np.inf
-        best_a = x[i]
-        best_b = 0.0
-        a, b, r = _line_fit(t, x, lo_c, hi_c, t[i])
-        if r < best_r:
-            best_r, best_a, best_b = r, a, b
-        m_c = hi_c - lo_c + 1
-        # one-sided windows only when (nearly) full: a short window's scatter is no evidence
-        if i - lo_l + 1 >= 0.8 * m_c and i - lo_l + 1 >= 5:
-            a, b, r = _line_fit(t, x, lo_l, i, t[i])
-            if r < best_r * 0.999:
-                best_r, best_a, best_b = r, a, b
-        if hi_r - i + 1 >= 0.8 * m_c and hi_r - i + 1 >= 5:
-            a, b, r = _line_fit(t, x, i, hi_r, t[i])
-            if r < best_r * 0.999:
-                best_r, best_a, best_b = r, a, b
-        if not np.isfinite(best_r):
-            # too few points: difference to a neighbour
-            j = i + 1 if i + 1 < n else i - 1
-            best_a = x[i]
-            best_b = (x[j] - x[i]) / (t[j] - t[i])
-        xs[i] = best_a
-        vs[i] = best_b
-    return xs, vs
 
 
 @njit(cache=True)
