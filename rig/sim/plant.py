@@ -34,8 +34,8 @@ the v_s ~ 0 solution); the state theta is then advanced exactly over the slip
 interface position x_0 + delta (delta the slip since reset). Memoryless friction models (steady_state with
 time_delay or a slope <= 0) are ill posed on a massless interface and get an interface
 mass instead (:func:`solve_slip_mass`). Sensors: first-order low-passes (exact for a
-ramp within the tick) sampled at each tick, plus Gaussian noise, LVDT quantisation and
-range.
+ramp within the tick) sampled at each tick, Gaussian noise entering before each filter (the
+hardware's order, rig.model.sensors), LVDT quantisation and range.
 """
 
 from __future__ import annotations
@@ -81,7 +81,7 @@ Q_WP1 = 35       # waviness phase (rad)
 Q_WP2 = 36
 Q_XORG = 37      # position where the taper is zero (µm)
 Q_LV_A = 38      # LVDT low-pass exp(-dt/tau)
-Q_LV_SIG = 39
+Q_LV_SIG = 39    # noise input per tick: sigma (1 - a) sqrt((1 + a)/(1 - a)) (rig.model.sensors)
 Q_LV_Q = 40
 Q_LV_MIN = 41
 Q_LV_MAX = 42
@@ -124,7 +124,11 @@ Z_TICK = 15      # ticks since reset
 Z_RPOS = 16      # ring-buffer position
 Z_DELTA = 17     # signed slip since reset (µm)
 Z_X0 = 18        # interface position at reset (µm); the interface is at Z_X0 + Z_DELTA
-N_ZSTATE = 19
+Z_LVE = 19       # sensor noise after each analog filter (the noise enters before the filter)
+Z_FLE = 20
+Z_N1E = 21
+Z_N2E = 22
+N_ZSTATE = 23
 
 
 @njit(cache=True)
@@ -359,12 +363,19 @@ def plant_advance(q, fp, fs, st, ring, u):
 def plant_sample(q, st, z0, z1, z2, z3):
     """Sensor readings at the current tick given four standard-normal draws.
 
+    In the hardware's order (rig.model.sensors): white noise, held over the tick, enters each
+    transducer's first-order analog filter with the signal (by linearity its filtered part is
+    kept apart, ``Z_*E``; the reading's noise sigma is the profile's), then the ADC quantizes.
     Returns (position_um, friction_N, normal_1_N, normal_2_N)."""
-    x = quantize(st[Z_LVF] + q[Q_LV_SIG] * z0, q[Q_LV_Q], q[Q_LV_MIN], q[Q_LV_MAX])
+    st[Z_LVE] = q[Q_LV_A] * st[Z_LVE] + q[Q_LV_SIG] * z0
+    st[Z_FLE] = q[Q_FL_A] * st[Z_FLE] + q[Q_FL_SIG] * z1
+    st[Z_N1E] = q[Q_NL_A] * st[Z_N1E] + q[Q_NL_SIG] * z2
+    st[Z_N2E] = q[Q_NL_A] * st[Z_N2E] + q[Q_NL_SIG] * z3
+    x = quantize(st[Z_LVF] + st[Z_LVE], q[Q_LV_Q], q[Q_LV_MIN], q[Q_LV_MAX])
     t = st[Z_TICK] * q[Q_DT]
-    f = st[Z_FLF] + q[Q_FL_SIG] * z1 + q[Q_DRIFT] * t
-    n1 = st[Z_N1F] + q[Q_NL_SIG] * z2
-    n2 = st[Z_N2F] + q[Q_NL_SIG] * z3
+    f = st[Z_FLF] + st[Z_FLE] + q[Q_DRIFT] * t
+    n1 = st[Z_N1F] + st[Z_N1E]
+    n2 = st[Z_N2F] + st[Z_N2E]
     return x, f, n1, n2
 
 

@@ -40,7 +40,7 @@ import numpy as np
 from rig.control import controller_params_from_profile, new_controller_state
 from rig.model.friction import N_STATE, init_state
 from rig.model.loading import lvdt_to_interface_compliance_um_per_N
-from rig.model.sensors import cutoff_tau_s, lowpass_coefficients
+from rig.model.sensors import cutoff_tau_s, lowpass_coefficients, prefilter_noise_gain
 from rig.model.spec import FrictionModel
 from rig.sim import plant as pl
 from rig.profile import RigProfile, default_profile_path, load_profile
@@ -97,15 +97,19 @@ def build_plant_params(profile: RigProfile, model: FrictionModel, normal_force_N
     q[pl.Q_WP1], q[pl.Q_WP2] = nm.face_waviness_phase_rad
     q[pl.Q_XORG] = profile.stroke.home_um
     s = profile.sensors
-    q[pl.Q_LV_SIG] = s.lvdt.noise_sigma_um
     q[pl.Q_LV_Q] = s.lvdt.quantization_um
     q[pl.Q_LV_MIN] = s.lvdt.min_um
     q[pl.Q_LV_MAX] = s.lvdt.max_um
-    q[pl.Q_FL_SIG] = s.friction_load_cell.noise_sigma_N
-    q[pl.Q_NL_SIG] = s.normal_load_cells.noise_sigma_N
-    for ia, ig, fc in ((pl.Q_LV_A, pl.Q_LV_G, s.lvdt.cutoff_hz), (pl.Q_FL_A, pl.Q_FL_G, s.friction_load_cell.cutoff_hz),
-                       (pl.Q_NL_A, pl.Q_NL_G, s.normal_load_cells.cutoff_hz)):
-        q[ia], q[ig] = lowpass_coefficients(dt, cutoff_tau_s(fc))
+    # noise enters before each analog filter; its input per tick gives the reading the
+    # profile's sigma (rig.model.sensors.prefilter_noise_gain)
+    for ia, ig, isig, fc, sig in ((pl.Q_LV_A, pl.Q_LV_G, pl.Q_LV_SIG, s.lvdt.cutoff_hz, s.lvdt.noise_sigma_um),
+                                  (pl.Q_FL_A, pl.Q_FL_G, pl.Q_FL_SIG, s.friction_load_cell.cutoff_hz,
+                                   s.friction_load_cell.noise_sigma_N),
+                                  (pl.Q_NL_A, pl.Q_NL_G, pl.Q_NL_SIG, s.normal_load_cells.cutoff_hz,
+                                   s.normal_load_cells.noise_sigma_N)):
+        tau_f = cutoff_tau_s(fc)
+        q[ia], q[ig] = lowpass_coefficients(dt, tau_f)
+        q[isig] = sig * (1.0 - q[ia]) * prefilter_noise_gain(dt, tau_f)
     if "sensor_lag" in model.extensions:
         tau_s = model.get("tau_s", 0.0)
         if tau_s < 0:
