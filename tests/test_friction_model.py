@@ -1,4 +1,4 @@
-"""The shared friction model (rig/friction.py) against the paper's equations (5)-(8), (13)."""
+"""The friction law (rig/model/friction.py, rig/model/spec.py, rig/model/paper.py) against the paper's equations (5)-(8), (13)."""
 
 from __future__ import annotations
 

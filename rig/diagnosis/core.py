@@ -165,6 +165,7 @@ def white_z(grid: Grid, before: np.ndarray, after: np.ndarray) -> float:
     rho = float(np.sum(x[1:] * x[:-1]) / max(float(np.sum(x * x)), 1e-300))
     rho = min(max(rho, 0.0), 0.98)
     sd = 2.0 * sig * math.sqrt(float(np.sum(w * d * d))) * math.sqrt((1 + rho) / (1 - rho))
+    sd *= math.sqrt(grid.noise_corr)  # raw noise correlated within a bin (1 kHz behind the analog filter)
     return red / sd if sd > 0 else 0.0
 
 

@@ -47,6 +47,7 @@ class FitResult:
     n_par: int
     nfev: int = 0
     extra: dict = field(default_factory=dict)
+    noise_corr: float = 1.0          # Grid.noise_corr: raw samples per independent one
 
     @property
     def holdout_rms_N(self) -> float:
@@ -58,9 +59,11 @@ class FitResult:
 
     @property
     def bic(self) -> float:
-        """Gaussian BIC on the fit blocks' raw samples: n ln(SSE/n) + k ln n."""
+        """Gaussian BIC on the fit blocks' raw samples: n ln(SSE/n) + k ln n, with n the
+        effective number of independent samples (raw count / Grid.noise_corr)."""
         n = max(self.n_fit, 1)
-        return n * math.log(max(self.sse_fit, 1e-300) / n) + self.n_par * math.log(n)
+        ne = max(n / max(self.noise_corr, 1.0), 1.0)
+        return ne * math.log(max(self.sse_fit, 1e-300) / n) + self.n_par * math.log(ne)
 
 
 def _free_names(baseline: str, extensions: list[str], init: dict | None = None) -> list[str]:
@@ -117,7 +120,7 @@ def evaluate(grid: Grid, baseline: str, extensions: list[str], params: dict[str,
     sse_h = float(r2[hm].sum()) if not bad else math.inf
     npar = len(model_params(baseline, extensions))
     return FitResult(baseline, list(extensions), dict(params), pred, sse_f, sse_h, int(grid.count[fm].sum()),
-                     int(grid.count[hm].sum()), npar, nfev)
+                     int(grid.count[hm].sum()), npar, nfev, noise_corr=grid.noise_corr)
 
 
 def fit(grid: Grid, baseline: str, extensions: list[str], init: dict[str, float],

@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numba import njit
-from scipy.ndimage import minimum_filter1d
+from scipy.ndimage import minimum_filter1d, uniform_filter1d
 
 from rig.data import TrialData
 from rig.kinematics import edge_preserving_line
@@ -102,6 +102,9 @@ class Grid:
     slide_ok: np.ndarray | None = None
     # shortest time constant the kinematics can tell from their own rounding of a velocity change (s)
     time_resolution_s: float = 0.0
+    # variance of a bin's mean over that of white noise: (1 + rho) / (1 - rho), rho the lag-1
+    # autocorrelation of the raw force noise (the analog filter's memory at 1 kHz; ~1 at <= 100 Hz)
+    noise_corr: float = 1.0
 
     @property
     def n_raw(self) -> int:
@@ -178,6 +181,26 @@ def _servo_fit(t, xr, x):
     return tau, m
 
 
+def _noise_correlation(t: np.ndarray, F: np.ndarray) -> float:
+    """Variance of the mean of the raw force noise over a kinematic cell (KIN_DT_MIN_S) relative
+    to white noise's, 1 + 2 sum_k (1 - k/m) rho_k over the m samples of a cell; rho_k from the
+    force minus a running mean. 1 when a cell holds one sample (records at <= 100 Hz)."""
+    if t.size < 200:
+        return 1.0
+    m = int(round(KIN_DT_MIN_S / max(float(np.median(np.diff(t))), 1e-9)))
+    if m < 2:
+        return 1.0
+    r = F - uniform_filter1d(F, 4 * m + 1, mode="nearest")
+    r = r - r.mean()
+    v = float(np.dot(r, r))
+    if v <= 0:
+        return 1.0
+    c = 1.0
+    for k in range(1, m):
+        c += 2.0 * (1.0 - k / m) * float(np.dot(r[k:], r[:-k])) / v
+    return min(max(c, 1.0), float(m))
+
+
 def prepare(trial: TrialData, n_blocks: int = 20, slip_window_um: float = 3.0,
             bin_dt_max_s: float = 1.0, bin_slip_um: float = 1.0) -> Grid:
     """Kinematic grid + adaptive fit bins + hold-out blocks from a trial (see module doc)."""
@@ -191,6 +214,7 @@ def prepare(trial: TrialData, n_blocks: int = 20, slip_window_um: float = 3.0,
     N_nom = float(trial.normal_force_N)
     Ntot = np.asarray(trial.total_normal_N, dtype=float)
     noise_N = _robust_noise(F)
+    noise_corr = _noise_correlation(tr, F)
     if x_raw[-1] < x_raw[0] and float(np.median(F)) < 0:
         # sliding backwards throughout: the model is odd in v, so mirror the record
         x_raw, F = -x_raw, -F
@@ -287,5 +311,5 @@ def prepare(trial: TrialData, n_blocks: int = 20, slip_window_um: float = 3.0,
         nstd = float(np.std(Nk))
         normals_vary = nstd > 0.0
     return Grid(t=tb, x=xb, v=vb, F_mean=Fm, N_tot=Nb, count=bc, ss_within=ssw, block=blk, N_nom=N_nom,
-                t0=t0, has_normals=trial.has_normals, normals_vary=normals_vary, noise_N=noise_N,
+                t0=t0, has_normals=trial.has_normals, normals_vary=normals_vary, noise_N=noise_N, noise_corr=noise_corr,
                 slide_ok=slide_ok, time_resolution_s=time_res, kin={"t": tk, "x": xs, "v": vs, "F": Fs / cnt, "N": Nk, "count": cnt, "x_meas": xk})

@@ -25,6 +25,7 @@ import math
 
 import numpy as np
 from numba import njit
+from scipy.signal import lfilter
 
 
 def cutoff_tau_s(cutoff_hz: float) -> float:
@@ -96,11 +97,14 @@ def quantize(x, q, lo, hi):
 def noisy_filtered(t_s: np.ndarray, y: np.ndarray, tau_s: float, sigma: float, rng: np.random.Generator,
                    dt_s: float) -> np.ndarray:
     """A sensor's analog output on the loop grid ``t_s`` (step ``dt_s``): white noise of
-    reading sigma ``sigma`` added to ``y`` BEFORE the first-order filter ``tau_s``."""
-    y = np.asarray(y, dtype=float)
+    reading sigma ``sigma``, held over each tick, added to ``y`` BEFORE the first-order filter
+    ``tau_s`` (by linearity the noise is filtered apart, as the closed-loop kernel does)."""
+    out = lowpass_uneven(t_s, y, tau_s)
     if sigma > 0:
-        y = y + sigma * prefilter_noise_gain(dt_s, tau_s) * rng.standard_normal(y.size)
-    return lowpass_uneven(t_s, y, tau_s)
+        a = math.exp(-dt_s / tau_s) if tau_s > 0 else 0.0
+        w = sigma * prefilter_noise_gain(dt_s, tau_s) * rng.standard_normal(out.size)
+        out = out + lfilter([1.0 - a], [1.0, -a], w)
+    return out
 
 
 @njit(cache=True)
