@@ -38,7 +38,8 @@ import numpy as np
 
 from rig.analysis.identify import _r, identify_trials, k_cr_table2, mean_sem
 from rig.data import atomic_write_text
-from rig.friction import TABLE2, FrictionModel
+from rig.model.paper import TABLE2
+from rig.model.spec import FrictionModel
 
 SCHEMA = "rig.reproduce/1"
 PAPER_MIN_TRIALS = 8
@@ -104,7 +105,7 @@ def run_lubricant(lubricant: str, n_trials: int, *, seed: int = 0, profile=None,
                                model, profile=prof,
                                seed=seed * 100003 + 1000 * list(TABLE2).index(lubricant) + k).trial
         else:
-            from rig.analysis import synth
+            from rig.sim import synth
 
             tr = synth.generate(model, synth.paper_step_protocol(pre_um=max(300.0, 6 * p["L_um"]),
                                                                  back_um=max(300.0, 6 * p["L_um"])),

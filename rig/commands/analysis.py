@@ -172,7 +172,8 @@ def stability_cmd(
     """Critical stiffness by eqs. (8) and (13), PD gain advice, and the check by simulation."""
     from rig.analysis import stability as S
     from rig.data import atomic_write_text
-    from rig.friction import TABLE2, FrictionModel
+    from rig.model.paper import TABLE2
+    from rig.model.spec import FrictionModel
 
     if lubricant and params:
         _fail("give --lubricant or --params, not both")
@@ -282,7 +283,7 @@ def reproduce_cmd(
     from rich.progress import BarColumn, Progress, TimeElapsedColumn, TimeRemainingColumn
 
     from rig.analysis.reproduce import plot_reproduce, reproduce, write_json
-    from rig.friction import TABLE2
+    from rig.model.paper import TABLE2
 
     lubs = list(lubricant) if lubricant else list(TABLE2)
     for nm in lubs:
