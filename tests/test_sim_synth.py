@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from rig.model.spec import FrictionModel
-from rig.profile import default_profile_path, load_profile
+from rig.config.profile import default_profile_path, load_profile
 from rig.sim import synth
 
 

@@ -28,7 +28,7 @@ from rig.data import TrialData, write_csv
 from rig.model import sensors
 from rig.model.forward import as_model, predict_force
 from rig.model.spec import FrictionModel
-from rig.profile import RigProfile, default_profile_path, load_profile
+from rig.config.profile import RigProfile, default_profile_path, load_profile
 
 N_NOM_N = 100.0
 LOOP_DT_S = 1e-3
