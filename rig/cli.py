@@ -4,7 +4,7 @@ Each subsystem registers its commands from its own module, so the modules
 stay independent: ``rig.commands.trial`` (run, info, export, import, recover),
 ``rig.commands.analysis`` (identify, stribeck, stability, reproduce),
 ``rig.commands.diagnose`` (diagnose), ``rig.commands.hardware`` (devices,
-loop-bench). A module that is missing is simply not registered.
+loop-bench), ``rig.commands.catalog`` (catalog build, catalog query). A module that is missing is simply not registered.
 """
 
 from __future__ import annotations
@@ -32,6 +32,7 @@ COMMAND_MODULES = (
     "rig.commands.analysis",
     "rig.commands.diagnose",
     "rig.commands.hardware",
+    "rig.commands.catalog",
 )
 
 

@@ -26,7 +26,7 @@ from __future__ import annotations
 import os
 import time
 import traceback
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field
 from typing import Any, Callable, Iterable, Iterator
 
@@ -129,7 +129,7 @@ def run_tasks(fn: Callable[[Any], Any], items: Iterable[Any], *, jobs: int | Non
     total = len(items)
     if not items:
         return []
-    if client is None and scheduler is None and jobs == 1:
+    if client is None and scheduler is None and (jobs == 1 or total == 1):  # serial; one task: no cluster
         out = []
         for i, it in enumerate(items):
             r = _guarded(fn, it)
@@ -166,20 +166,35 @@ def _run_on(client, fn, items, progress) -> list[TaskResult]:
     return out  # type: ignore[return-value]
 
 
+@contextmanager
 def mapper(jobs: int | None = None, scheduler: str | None = None, progress: Callable[[], None] | None = None):
     """A ``map(fn, items) -> list`` for code that takes a mapper (``rig reproduce``, ``rig
-    stability``): results in order; the first failed task raises ``RuntimeError`` naming it
-    (those runs have no per-item failure to record). ``progress()`` is called per task."""
+    stability``), as a context manager holding one Dask client for all its calls (none when
+    ``jobs=1``): results in order; a failed task raises ``RuntimeError`` naming it (those
+    runs have no per-item failure to record). ``progress()`` is called per finished task."""
+    cb = (lambda d, t, r: progress()) if progress else None
 
-    def _map(fn, items):
-        res = run_tasks(fn, items, jobs=jobs, scheduler=scheduler,
-                        progress=(lambda d, t, r: progress()) if progress else None)
+    def _check(res):
         for r in res:
             if not r.ok:
                 raise RuntimeError(f"task {repr(r.item)[:160]} failed: {r.error}")
         return [r.value for r in res]
 
-    return _map
+    if jobs == 1 and scheduler is None:
+        yield lambda fn, items: _check(run_tasks(fn, items, jobs=1, progress=cb))
+        return
+    with ExitStack() as stack:
+        clients: list = []
+
+        def _map(fn, items):
+            items = list(items)
+            if len(items) <= 1 and scheduler is None and not clients:  # one task: no cluster to start
+                return _check(run_tasks(fn, items, jobs=1, progress=cb))
+            if not clients:  # started on first use, kept for the later calls
+                clients.append(stack.enter_context(dask_client(jobs, scheduler)))
+            return _check(run_tasks(fn, items, client=clients[0], progress=cb))
+
+        yield _map
 
 
 __all__ = ["TaskResult", "BatchError", "run_tasks", "dask_client", "mapper", "default_jobs"]
