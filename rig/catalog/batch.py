@@ -73,6 +73,9 @@ def default_jobs() -> int:
         return max(1, os.cpu_count() or 1)
 
 
+CONNECT_TIMEOUT_S = 10.0  # how long to try reaching --scheduler before giving up
+
+
 class BatchError(RuntimeError):
     """The engine could not start (bad --jobs, unreachable scheduler, Dask missing)."""
 
@@ -89,7 +92,7 @@ def dask_client(jobs: int | None = None, scheduler: str | None = None) -> Iterat
         if not scheduler.startswith(("tcp://", "tls://", "inproc://", "ws://", "wss://")):
             raise BatchError(f"--scheduler {scheduler!r}: expected an address like tcp://HOST:PORT")
         try:
-            client = Client(scheduler, timeout="10s")
+            client = Client(scheduler, timeout=f"{CONNECT_TIMEOUT_S}s")
         except (OSError, TimeoutError) as exc:
             raise BatchError(f"--scheduler {scheduler}: cannot connect ({exc})") from exc
         try:
