@@ -1,0 +1,183 @@
+"""Speed-up of the batch engine (rig.catalog.batch) on this machine's cores, and the figures
+docs/scaling.md projects from.
+
+    python benchmarks/bench_batch.py                 # everything, 2 workers
+    python benchmarks/bench_batch.py reproduce       # rig reproduce: 3 lubricants x 8 simulated trials
+    python benchmarks/bench_batch.py identify        # a 50-file identify batch (paper-protocol trials)
+    python benchmarks/bench_batch.py overhead        # scheduler overhead per task (no-op tasks)
+    options: --jobs N (default 2), --files N (default 50), --trials N (default 8), --json OUT
+
+Each figure is printed with the load average (1, 5, 15 min) before and after, because the
+machine may be shared: a speed-up below the core count on a loaded machine says as much
+about the other processes as about the engine. Two speed-ups are given:
+
+- *warm*: the cluster is up and its workers have imported rig and compiled its numba code
+  (a warm-up map runs first); this is what a long batch sees after its first seconds;
+- *end to end*: including the start of the LocalCluster and the workers' first imports.
+The serial run is in this process, also warmed up first.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from rig.catalog.batch import dask_client, run_tasks
+
+
+def load() -> str:
+    a, b, c = os.getloadavg()
+    return f"load {a:.2f} {b:.2f} {c:.2f}"
+
+
+def _noop(x):
+    return x
+
+
+def _mk_files(n: int, root: Path) -> list[Path]:
+    """n paper-protocol trials (steps 1->2, 1->5, 1->10 µm/s; 25 Hz) as CSVs, Table-2 lubricants."""
+    from rig.analysis import synth
+    from rig.data import write_csv
+    from rig.friction import FrictionModel
+
+    out = []
+    lubs = ("boundary", "dry", "paraffin")
+    for k in range(n):
+        lub = lubs[k % 3]
+        tr = synth.generate(FrictionModel.for_lubricant(lub, 0.12), synth.paper_step_protocol(), seed=k,
+                            lubricant=lub).trial
+        tr.metadata["lubricant"] = lub
+        p = root / f"trial{k:03d}.csv"
+        write_csv(tr, p)
+        out.append(p)
+    return out
+
+
+def bench_identify(jobs: int, n_files: int) -> dict:
+    from rig.catalog.tasks import identify_file
+
+    with tempfile.TemporaryDirectory() as d:
+        files = _mk_files(n_files, Path(d))
+        mb = sum(p.stat().st_size for p in files) / 1e6
+        items = [(str(p), {}) for p in files]
+        run_tasks(identify_file, items[:1], jobs=1)  # warm-up: imports, numba cache
+        print(f"identify: {n_files} files ({mb:.1f} MB CSV), {load()}")
+        t0 = time.perf_counter()
+        serial = run_tasks(identify_file, items, jobs=1)
+        t_serial = time.perf_counter() - t0
+        per_task = [r.seconds for r in serial]
+        print(f"  serial: {t_serial:.2f} s ({t_serial / n_files * 1e3:.0f} ms per file), {load()}")
+        t0 = time.perf_counter()
+        with dask_client(jobs) as client:
+            t_start = time.perf_counter() - t0
+            run_tasks(identify_file, items[:jobs * 2], client=client)  # warm-up on every worker
+            t_w = time.perf_counter()
+            par = run_tasks(identify_file, items, client=client)
+            t_warm = time.perf_counter() - t_w
+        # end to end: a fresh cluster, cold workers, the whole batch
+        t0 = time.perf_counter()
+        run_tasks(identify_file, items, jobs=jobs)
+        t_e2e = time.perf_counter() - t0
+        same = all(json.dumps(_strip(a.value), sort_keys=True) == json.dumps(_strip(b.value), sort_keys=True)
+                   for a, b in zip(serial, par))
+        print(f"  {jobs} workers, warm: {t_warm:.2f} s -> speed-up {t_serial / t_warm:.2f}x; "
+              f"end to end (cluster start {t_start:.1f} s): {t_e2e:.2f} s -> {t_serial / t_e2e:.2f}x; "
+              f"results identical: {same}; {load()}")
+        return {"n_files": n_files, "csv_MB": mb, "serial_s": t_serial, "warm_s": t_warm, "end_to_end_s": t_e2e,
+                "cluster_start_s": t_start, "per_task_s_mean": sum(per_task) / len(per_task),
+                "per_task_s_max": max(per_task), "speedup_warm": t_serial / t_warm,
+                "speedup_end_to_end": t_serial / t_e2e, "identical": same, "jobs": jobs,
+                "load_after": os.getloadavg()}
+
+
+def _strip(x):
+    if isinstance(x, dict):
+        return {k: _strip(v) for k, v in x.items() if k not in ("fit_time_s", "sim_s")}
+    if isinstance(x, list):
+        return [_strip(v) for v in x]
+    return x
+
+
+def bench_reproduce(jobs: int, n_trials: int) -> dict:
+    from rig.analysis.reproduce import reproduce
+    from rig.catalog.batch import mapper
+
+    reproduce(2, lubricants=["boundary"], seed=99)  # warm-up (numba cache, imports)
+    print(f"reproduce: 3 lubricants x {n_trials} simulated trials (full simulated rig), {load()}")
+    t0 = time.perf_counter()
+    serial = reproduce(n_trials, seed=0)
+    t_serial = time.perf_counter() - t0
+    sims = [t["sim_s"] for lub in serial["lubricants"].values() for t in lub["trials"]]
+    print(f"  serial: {t_serial:.1f} s ({t_serial / (3 * n_trials):.2f} s per trial), {load()}")
+    t0 = time.perf_counter()
+    with mapper(jobs) as map_fn:
+        t_start_w = time.perf_counter()
+        map_fn(_noop, list(range(2 * jobs)))  # starts the cluster
+        t_start = time.perf_counter() - t_start_w
+        reproduce(2, lubricants=["boundary"], seed=99, map_fn=map_fn)  # warm the workers
+        t_w = time.perf_counter()
+        par = reproduce(n_trials, seed=0, map_fn=map_fn)
+        t_warm = time.perf_counter() - t_w
+    t0 = time.perf_counter()
+    with mapper(jobs) as map_fn:
+        reproduce(n_trials, seed=0, map_fn=map_fn)
+    t_e2e = time.perf_counter() - t0
+    same = json.dumps(_strip(serial), sort_keys=True) == json.dumps(_strip(par), sort_keys=True)
+    print(f"  {jobs} workers, warm: {t_warm:.1f} s -> speed-up {t_serial / t_warm:.2f}x; "
+          f"end to end (cluster start {t_start:.1f} s): {t_e2e:.1f} s -> {t_serial / t_e2e:.2f}x; "
+          f"results identical: {same}; {load()}")
+    return {"n_trials": 3 * n_trials, "serial_s": t_serial, "warm_s": t_warm, "end_to_end_s": t_e2e,
+            "cluster_start_s": t_start, "sim_s_mean": sum(sims) / len(sims), "speedup_warm": t_serial / t_warm,
+            "speedup_end_to_end": t_serial / t_e2e, "identical": same, "jobs": jobs,
+            "load_after": os.getloadavg()}
+
+
+def bench_overhead(jobs: int, n: int = 2000) -> dict:
+    """Scheduler round trip per task: no-op tasks on a warm cluster."""
+    with dask_client(jobs) as client:
+        run_tasks(_noop, list(range(10)), client=client)
+        t0 = time.perf_counter()
+        run_tasks(_noop, list(range(n)), client=client)
+        dt = time.perf_counter() - t0
+    print(f"overhead: {n} no-op tasks on {jobs} workers: {dt:.2f} s = {dt / n * 1e3:.2f} ms per task "
+          f"(submit, schedule, run, gather, in order), {load()}")
+    return {"n": n, "seconds": dt, "per_task_ms": dt / n * 1e3, "jobs": jobs, "load_after": os.getloadavg()}
+
+
+def main(argv: list[str]) -> None:
+    args = list(argv)
+
+    def opt(name, default):
+        if name in args:
+            i = args.index(name)
+            v = args[i + 1]
+            del args[i:i + 2]
+            return v
+        return default
+
+    jobs = int(opt("--jobs", 2))
+    n_files = int(opt("--files", 50))
+    n_trials = int(opt("--trials", 8))
+    out = opt("--json", None)
+    what = args or ["overhead", "identify", "reproduce"]
+    print(f"bench_batch: {os.cpu_count()} cores, {jobs} workers, {load()}")
+    res = {}
+    for w in what:
+        if w == "identify":
+            res[w] = bench_identify(jobs, n_files)
+        elif w == "reproduce":
+            res[w] = bench_reproduce(jobs, n_trials)
+        elif w == "overhead":
+            res[w] = bench_overhead(jobs)
+        else:
+            sys.exit(f"unknown benchmark {w!r}: identify | reproduce | overhead")
+    if out:
+        Path(out).write_text(json.dumps(res, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
