@@ -66,18 +66,23 @@ def bench_identify(jobs: int, n_files: int) -> dict:
         items = [(str(p), {}) for p in files]
         run_tasks(identify_file, items[:1], jobs=1)  # warm-up: imports, numba cache
         print(f"identify: {n_files} files ({mb:.1f} MB CSV), {load()}")
-        t0 = time.perf_counter()
-        serial = run_tasks(identify_file, items, jobs=1)
-        t_serial = time.perf_counter() - t0
-        per_task = [r.seconds for r in serial]
-        print(f"  serial: {t_serial:.2f} s ({t_serial / n_files * 1e3:.0f} ms per file), {load()}")
+        # interleaved rounds (serial, then the same files on the warm cluster) so that a change
+        # of the machine's load hits both sides alike
+        rounds = [items[i:i + 10] for i in range(0, len(items), 10)]
+        serial, par, t_serial, t_warm = [], [], 0.0, 0.0
         t0 = time.perf_counter()
         with dask_client(jobs) as client:
             t_start = time.perf_counter() - t0
             run_tasks(identify_file, items[:jobs * 2], client=client)  # warm-up on every worker
-            t_w = time.perf_counter()
-            par = run_tasks(identify_file, items, client=client)
-            t_warm = time.perf_counter() - t_w
+            for rd in rounds:
+                t = time.perf_counter()
+                serial += run_tasks(identify_file, rd, jobs=1)
+                t_serial += time.perf_counter() - t
+                t = time.perf_counter()
+                par += run_tasks(identify_file, rd, client=client)
+                t_warm += time.perf_counter() - t
+        per_task = [r.seconds for r in serial]
+        print(f"  serial: {t_serial:.2f} s ({t_serial / n_files * 1e3:.0f} ms per file), {load()}")
         # end to end: a fresh cluster, cold workers, the whole batch
         t0 = time.perf_counter()
         run_tasks(identify_file, items, jobs=jobs)
@@ -108,20 +113,26 @@ def bench_reproduce(jobs: int, n_trials: int) -> dict:
 
     reproduce(2, lubricants=["boundary"], seed=99)  # warm-up (numba cache, imports)
     print(f"reproduce: 3 lubricants x {n_trials} simulated trials (full simulated rig), {load()}")
-    t0 = time.perf_counter()
-    serial = reproduce(n_trials, seed=0)
-    t_serial = time.perf_counter() - t0
-    sims = [t["sim_s"] for lub in serial["lubricants"].values() for t in lub["trials"]]
-    print(f"  serial: {t_serial:.1f} s ({t_serial / (3 * n_trials):.2f} s per trial), {load()}")
-    t0 = time.perf_counter()
+    # interleaved by lubricant: serial, then the same trials on the warm cluster
+    from rig.friction import TABLE2
+
+    serial = {"lubricants": {}}
+    par = {"lubricants": {}}
+    t_serial = t_warm = 0.0
     with mapper(jobs) as map_fn:
         t_start_w = time.perf_counter()
         map_fn(_noop, list(range(2 * jobs)))  # starts the cluster
         t_start = time.perf_counter() - t_start_w
         reproduce(2, lubricants=["boundary"], seed=99, map_fn=map_fn)  # warm the workers
-        t_w = time.perf_counter()
-        par = reproduce(n_trials, seed=0, map_fn=map_fn)
-        t_warm = time.perf_counter() - t_w
+        for lub in TABLE2:
+            t = time.perf_counter()
+            serial["lubricants"][lub] = reproduce(n_trials, seed=0, lubricants=[lub])["lubricants"][lub]
+            t_serial += time.perf_counter() - t
+            t = time.perf_counter()
+            par["lubricants"][lub] = reproduce(n_trials, seed=0, lubricants=[lub], map_fn=map_fn)["lubricants"][lub]
+            t_warm += time.perf_counter() - t
+    sims = [t["sim_s"] for lub in serial["lubricants"].values() for t in lub["trials"]]
+    print(f"  serial: {t_serial:.1f} s ({t_serial / (3 * n_trials):.2f} s per trial), {load()}")
     t0 = time.perf_counter()
     with mapper(jobs) as map_fn:
         reproduce(n_trials, seed=0, map_fn=map_fn)
