@@ -19,19 +19,37 @@ The serial run is in this process, also warmed up first.
 
 from __future__ import annotations
 
-import json
 import os
-import sys
-import tempfile
-import time
-from pathlib import Path
 
-from rig.catalog.batch import dask_client, run_tasks
+# one thread per process on both sides: Dask starts its workers with these set to 1, so the
+# serial reference must too, or its BLAS calls would use a second core and the comparison
+# would not be one core against N
+for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_v, "1")
+
+import json  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+from rig.catalog.batch import dask_client, run_tasks  # noqa: E402
 
 
 def load() -> str:
     a, b, c = os.getloadavg()
     return f"load {a:.2f} {b:.2f} {c:.2f}"
+
+
+def autogroup() -> str:
+    """Linux's per-session CPU sharing: with it on, this session's processes (the workers
+    included) share one session's slice of a busy machine, so a loaded machine caps the
+    speed-up whatever the number of workers."""
+    try:
+        on = Path("/proc/sys/kernel/sched_autogroup_enabled").read_text().strip() == "1"
+    except OSError:
+        return "autogroup unknown"
+    return "autogroup on (CPU shared per session)" if on else "autogroup off"
 
 
 def _noop(x):
@@ -89,6 +107,9 @@ def bench_identify(jobs: int, n_files: int) -> dict:
         t_e2e = time.perf_counter() - t0
         same = all(json.dumps(_strip(a.value), sort_keys=True) == json.dumps(_strip(b.value), sort_keys=True)
                    for a, b in zip(serial, par))
+        busy = sum(r.seconds for r in par)
+        print(f"  {jobs} workers busy {busy:.2f} s in {t_warm:.2f} s of wall: {busy / t_warm:.2f} tasks running "
+              f"on average (ideal {jobs})")
         print(f"  {jobs} workers, warm: {t_warm:.2f} s -> speed-up {t_serial / t_warm:.2f}x; "
               f"end to end (cluster start {t_start:.1f} s): {t_e2e:.2f} s -> {t_serial / t_e2e:.2f}x; "
               f"results identical: {same}; {load()}")
@@ -96,7 +117,7 @@ def bench_identify(jobs: int, n_files: int) -> dict:
                 "cluster_start_s": t_start, "per_task_s_mean": sum(per_task) / len(per_task),
                 "per_task_s_max": max(per_task), "speedup_warm": t_serial / t_warm,
                 "speedup_end_to_end": t_serial / t_e2e, "identical": same, "jobs": jobs,
-                "load_after": os.getloadavg()}
+                "worker_busy_s": busy, "load_after": os.getloadavg()}
 
 
 def _strip(x):
@@ -175,7 +196,7 @@ def main(argv: list[str]) -> None:
     n_trials = int(opt("--trials", 8))
     out = opt("--json", None)
     what = args or ["overhead", "identify", "reproduce"]
-    print(f"bench_batch: {os.cpu_count()} cores, {jobs} workers, {load()}")
+    print(f"bench_batch: {os.cpu_count()} cores, {jobs} workers, {autogroup()}, {load()}")
     res = {}
     for w in what:
         if w == "identify":

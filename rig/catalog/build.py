@@ -119,7 +119,7 @@ def _write_file(con, path: str, *, kind: str, size: int, mtime_ns: int, sha: str
 
 def build(root: str | Path, db: str | Path | None = None, *, jobs: int | None = 1, scheduler: str | None = None,
           files: Iterable[str | Path] | None = None, prune: bool = True,
-          progress: Callable[[int, int, TaskResult], None] | None = None) -> BuildReport:
+          progress: Callable[[int, int, TaskResult], None] | None = None, client=None) -> BuildReport:
     """Index the trial files under ``root`` (or exactly ``files``) into ``db`` (default
     ``root/catalog.duckdb``), incrementally; see the module docstring. ``prune``: drop rows
     of files under ``root`` that no longer exist (only when walking ``root``)."""
@@ -156,7 +156,7 @@ def build(root: str | Path, db: str | Path | None = None, *, jobs: int | None = 
                     rep.touched.append(key)
                     continue
             to_read.append(key)
-        results = run_tasks(index_file, to_read, jobs=jobs, scheduler=scheduler, progress=progress)
+        results = run_tasks(index_file, to_read, jobs=jobs, scheduler=scheduler, progress=progress, client=client)
         con.execute("BEGIN TRANSACTION")
         for r in results:
             key = r.item

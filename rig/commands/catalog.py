@@ -6,6 +6,7 @@ The catalogue is a DuckDB file (docs/catalog.md); batch runs use the engine of
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 import math
@@ -134,6 +135,10 @@ def query_cmd(
 # batch identify / diagnose (called by rig.commands.analysis and rig.commands.diagnose)
 # ---------------------------------------------------------------------------
 
+SUMMARY_ROWS = 50  # larger batches print counts only; the catalogue has every row
+BATCH_CHUNK = 2000  # files per round trip of a batch run (results written to the catalogue per chunk)
+
+
 def is_batch(inputs: list[str], jobs: Optional[int], scheduler: Optional[str], db: Optional[Path]) -> bool:
     """A batch run: a directory or a glob among the inputs, or --jobs/--scheduler/--db given."""
     import glob as _glob
@@ -149,7 +154,7 @@ def run_batch(kind: str, inputs: list[str], options: dict, *, jobs: Optional[int
     the engine with a progress bar, write the results into the catalogue, print a summary.
     Exit status 0 when every file was analysed, 1 when some failed (they are listed)."""
     from rig.catalog import CatalogError, build, default_db, expand_inputs
-    from rig.catalog.batch import BatchError, run_tasks
+    from rig.catalog.batch import BatchError, dask_client, run_tasks
     from rig.catalog.build import record_diagnose, record_identify
     from rig.catalog.tasks import diagnose_file, identify_file
 
@@ -170,14 +175,29 @@ def run_batch(kind: str, inputs: list[str], options: dict, *, jobs: Optional[int
     fn = identify_file if kind == "identify" else diagnose_file
     items = [(str(f), options) for f in files]
     try:
-        build(base, db, files=files, jobs=1, prune=False)
-        prog, cb = progress_bar(f"{kind} ({len(files)} files)", len(items))
-        with prog:
-            results = run_tasks(fn, items, jobs=jobs, scheduler=scheduler, progress=cb)
-        (record_identify if kind == "identify" else record_diagnose)(db, results, options)
+        with contextlib.ExitStack() as stack:
+            # one cluster for the indexing of new files and the analysis (none for --jobs 1 or one file)
+            client = None
+            if scheduler is not None or (jobs != 1 and len(items) > 1):
+                client = stack.enter_context(dask_client(jobs, scheduler))
+            build(base, db, files=files, jobs=1, prune=False, client=client)
+            prog, cb = progress_bar(f"{kind} ({len(files)} files)", len(items))
+            results = []
+            with prog:
+                # in chunks: each chunk's results go into the catalogue before the next is sent, so
+                # memory stays bounded and an interrupted archive-wide run keeps what it finished
+                for i in range(0, len(items), BATCH_CHUNK):
+                    chunk = run_tasks(fn, items[i:i + BATCH_CHUNK], jobs=1, client=client,
+                                      progress=lambda d, t, r, i=i: cb(i + d, len(items), r))
+                    (record_identify if kind == "identify" else record_diagnose)(db, chunk, options)
+                    results += chunk
     except (CatalogError, BatchError) as exc:
         _fail(str(exc), 1)
-    summarize(results)
+    if len(results) <= SUMMARY_ROWS:
+        summarize(results)
+    else:
+        console.print(f"(per-file table omitted for {len(results)} files: `rig catalog query --db {db} "
+                      f"\"SELECT * FROM {kind}_results\"`)", highlight=False)
     bad = [r for r in results if not r.ok]
     console.print(f"{kind}: {len(results) - len(bad)} of {len(results)} files done; results in {db}",
                   highlight=False)
