@@ -5,6 +5,7 @@ docs/scaling.md projects from.
     python benchmarks/bench_batch.py reproduce       # rig reproduce: 3 lubricants x 8 simulated trials
     python benchmarks/bench_batch.py identify        # a 50-file identify batch (paper-protocol trials)
     python benchmarks/bench_batch.py overhead        # scheduler overhead per task (no-op tasks)
+    python benchmarks/bench_batch.py catalog         # indexing, unchanged-file check, result writes
     options: --jobs N (default 2), --files N (default 50), --trials N (default 8), --json OUT
 
 Each figure is printed with the load average (1, 5, 15 min) before and after, because the
@@ -108,8 +109,10 @@ def bench_identify(jobs: int, n_files: int) -> dict:
         same = all(json.dumps(_strip(a.value), sort_keys=True) == json.dumps(_strip(b.value), sort_keys=True)
                    for a, b in zip(serial, par))
         busy = sum(r.seconds for r in par)
+        cpu_s, cpu_p = sum(r.cpu_seconds for r in serial), sum(r.cpu_seconds for r in par)
         print(f"  {jobs} workers busy {busy:.2f} s in {t_warm:.2f} s of wall: {busy / t_warm:.2f} tasks running "
-              f"on average (ideal {jobs})")
+              f"on average (ideal {jobs}); CPU time serial {cpu_s:.2f} s, on the workers {cpu_p:.2f} s "
+              f"(the workers got {cpu_p / t_warm:.2f} cores)")
         print(f"  {jobs} workers, warm: {t_warm:.2f} s -> speed-up {t_serial / t_warm:.2f}x; "
               f"end to end (cluster start {t_start:.1f} s): {t_e2e:.2f} s -> {t_serial / t_e2e:.2f}x; "
               f"results identical: {same}; {load()}")
@@ -117,7 +120,8 @@ def bench_identify(jobs: int, n_files: int) -> dict:
                 "cluster_start_s": t_start, "per_task_s_mean": sum(per_task) / len(per_task),
                 "per_task_s_max": max(per_task), "speedup_warm": t_serial / t_warm,
                 "speedup_end_to_end": t_serial / t_e2e, "identical": same, "jobs": jobs,
-                "worker_busy_s": busy, "load_after": os.getloadavg()}
+                "worker_busy_s": busy, "cpu_serial_s": cpu_s, "cpu_workers_s": cpu_p,
+                "load_after": os.getloadavg()}
 
 
 def _strip(x):
@@ -180,6 +184,38 @@ def bench_overhead(jobs: int, n: int = 2000) -> dict:
     return {"n": n, "seconds": dt, "per_task_ms": dt / n * 1e3, "jobs": jobs, "load_after": os.getloadavg()}
 
 
+def bench_catalog(n_files: int) -> dict:
+    """The catalogue's own costs: reading new files, the unchanged-file check, writing results."""
+    from rig.catalog import build
+    from rig.catalog.batch import TaskResult
+    from rig.catalog.build import record_identify
+
+    with tempfile.TemporaryDirectory() as d:
+        files = _mk_files(min(n_files, 20), Path(d))
+        t0 = time.perf_counter()
+        build(d)
+        t_new = (time.perf_counter() - t0) / len(files)
+        t0 = time.perf_counter()
+        for _ in range(5):
+            build(d)
+        t_same = (time.perf_counter() - t0) / 5 / len(files)
+        from rig.catalog.tasks import identify_file
+
+        r = run_tasks(identify_file, [(str(files[0]), {})], jobs=1)[0]
+        n = 2000
+        fake = [TaskResult((f"/archive/f{i:06d}.csv", {}), True, r.value, None, 0.5) for i in range(n)]
+        t0 = time.perf_counter()
+        record_identify(Path(d) / "catalog.duckdb", fake, {})
+        t_write = (time.perf_counter() - t0) / n
+        report_kb = len(json.dumps(r.value["report"])) / 1e3
+        db_mb = (Path(d) / "catalog.duckdb").stat().st_size / 1e6
+    print(f"catalog: index a new file {t_new * 1e3:.0f} ms, check an unchanged one {t_same * 1e6:.0f} µs, "
+          f"write an identify result {t_write * 1e3:.2f} ms ({report_kb:.1f} kB JSON report); "
+          f"catalogue of {n} results {db_mb:.1f} MB, {load()}")
+    return {"index_new_s": t_new, "check_unchanged_s": t_same, "write_result_s": t_write,
+            "report_kB": report_kb, "db_MB_per_2000": db_mb, "load_after": os.getloadavg()}
+
+
 def main(argv: list[str]) -> None:
     args = list(argv)
 
@@ -195,7 +231,7 @@ def main(argv: list[str]) -> None:
     n_files = int(opt("--files", 50))
     n_trials = int(opt("--trials", 8))
     out = opt("--json", None)
-    what = args or ["overhead", "identify", "reproduce"]
+    what = args or ["overhead", "identify", "reproduce", "catalog"]
     print(f"bench_batch: {os.cpu_count()} cores, {jobs} workers, {autogroup()}, {load()}")
     res = {}
     for w in what:
@@ -205,8 +241,10 @@ def main(argv: list[str]) -> None:
             res[w] = bench_reproduce(jobs, n_trials)
         elif w == "overhead":
             res[w] = bench_overhead(jobs)
+        elif w == "catalog":
+            res[w] = bench_catalog(n_files)
         else:
-            sys.exit(f"unknown benchmark {w!r}: identify | reproduce | overhead")
+            sys.exit(f"unknown benchmark {w!r}: identify | reproduce | overhead | catalog")
     if out:
         Path(out).write_text(json.dumps(res, indent=2) + "\n")
 

@@ -41,19 +41,22 @@ class TaskResult:
     error: str | None = None
     seconds: float = 0.0
     worker: str = ""
+    cpu_seconds: float = 0.0  # CPU time of the task's process while it ran (seconds < cpu: waiting for a core)
     detail: str = field(default="", repr=False)  # the traceback, for --verbose style reporting
 
 
 def _guarded(fn: Callable, item: Any) -> TaskResult:
     """Run one task, never raising: the worker-side wrapper (top level, so it pickles by name)."""
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     try:
         value = fn(item)
-        return TaskResult(item, True, value, None, time.perf_counter() - t0, _worker_name())
+        return TaskResult(item, True, value, None, time.perf_counter() - t0, _worker_name(),
+                          cpu_seconds=time.process_time() - c0)
     except Exception as exc:  # noqa: BLE001 - a failed task is data, not a crash of the batch
         msg = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
         return TaskResult(item, False, None, f"{type(exc).__name__}: {msg}" if msg else type(exc).__name__,
-                          time.perf_counter() - t0, _worker_name(), traceback.format_exc())
+                          time.perf_counter() - t0, _worker_name(), traceback.format_exc(),
+                          cpu_seconds=time.process_time() - c0)
 
 
 def _worker_name() -> str:
