@@ -55,7 +55,7 @@ def _guarded(fn: Callable, item: Any) -> TaskResult:
     except Exception as exc:  # noqa: BLE001 - a failed task is data, not a crash of the batch
         msg = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
         return TaskResult(item, False, None, f"{type(exc).__name__}: {msg}" if msg else type(exc).__name__,
-                          time.perf_counter() - t0, _worker_name(), traceback.format_exc(),
+                          time.perf_counter() - t0, _worker_name(), detail=traceback.format_exc(),
                           cpu_seconds=time.process_time() - c0)
 
 
