@@ -10,18 +10,30 @@ steps) are averaged over trials: mean ± standard error of the mean, as in Table
 **Drawing per-trial values.** Table 2 gives the standard deviation *of the mean*
 over at least eight trials, so the trial-to-trial standard deviation is
 ``sd = sem * sqrt(8)`` (the paper's minimum n; a larger n would mean a larger
-spread). Each trial's A, B, L are drawn independently from normal
-distributions with the Table-2 mean and that sd, truncated at ±2 sd (and at
-A >= 0, L >= 2 µm, B > A); the truncation is symmetric, so the population mean
-stays the Table-2 mean. Paraffin's A is "0.0*" in Table 2 (below the load cell's
-noise): the trials use the simulated rig profile's value (2e-4 by default,
-a direct jump ``2 N A ln 10 = 0.09 N`` under the ±0.25 N noise), because a
-law with no direct effect at all makes the simulated interface creep jerkily
-(see docs/sim.md); the tolerance for A there is the load cell's noise level
-``0.25 N / (2 N ln 10) = 5.4e-4``. A draw whose critical stiffness (eq. 13 in
-the fixture's force units) exceeds half of the simulated controller's kp is drawn
-again: on the rig it would stick-slip, and the paper's identification needs
-steady sliding (the paper set kp "as high as possible").
+spread). Each trial's A, B, L are drawn independently from lognormal distributions
+matched to Table 2 in mean and sd (sigma^2 = ln(1 + sd^2/mean^2), m = ln(mean) -
+sigma^2/2): positive, and nothing is redrawn, so the population means are Table 2's
+exactly (no rejection bias). Paraffin's A is "0.0*" in Table 2 (below the load cell's
+noise): the trials use the simulated rig profile's value (2e-4 by default, a direct
+jump ``2 N A ln 10 = 0.09 N`` under the ±0.25 N noise), because a law with no direct
+effect at all makes the simulated interface creep jerkily (see docs/sim.md); the
+tolerance for A there is the load cell's noise level ``0.25 N / (2 N ln 10) =
+5.4e-4``. A draw whose fixture critical stiffness (eq. 13 in force units, 2 N (B -
+A)/L) exceeds half the controller's kp is kept and flagged (``k_cr_over_half_kp``):
+such a trial may stick-slip on the rig.
+
+**The identification's own bias** (``bias``): per parameter, the mean over trials of
+recovered/true - 1 (± its standard error), i.e. the method's error on its own
+simulated trials; and the recovered mean against Table 2 in units of the paper's
+standard error (``vs_paper_z``), which also carries the sampling error of n draws.
+
+**Dry L.** Dry's L (64.7 µm) is the longest: the paper's last f2 window starts 250 µm
+after the step, 3.9 L, where exp(-250/64.7) = 2 % of the transient is still decaying
+(exp(-50/64.7) = 46 % in the first window). f2 taken from a window that still holds
+part of the decay lies on the decaying side, so the fitted exponential decays too fast:
+L comes out low, by more the longer the true L (``bias`` reports the figure). It is a
+property of the paper's method (the windows are fixed in µm, not in L), kept here
+as the paper did it; the whole-record fit (``whole_record=True``) does not have it.
 
 The recovered means are compared with the means of the values the trials were
 made with (the identification's error), and with Table 2; ``k_cr`` is eq. (13)
@@ -46,31 +58,34 @@ PARAFFIN_A_DEFAULT = 2e-4
 A_NOISE_LEVEL = 0.25 / (2 * 100.0 * math.log(10.0))
 
 
+def lognormal_params(mean: float, sd: float) -> tuple[float, float]:
+    """(m, sigma) of a lognormal with the given mean and sd."""
+    s2 = math.log1p((sd / mean) ** 2)
+    return math.log(mean) - 0.5 * s2, math.sqrt(s2)
+
+
 def draw_trial_params(lubricant: str, n: int, rng: np.random.Generator, *, paraffin_A: float = PARAFFIN_A_DEFAULT,
                       kp_max_N_per_um: float | None = None, normal_force_N: float = 100.0):
-    """Per-trial (A_mu, B_mu, L_um), see the module docstring. With ``kp_max_N_per_um``,
-    draws whose quasi-static critical stiffness of the fixture, ``2 N (B - A) / L``
-    (eq. 13 in force units), exceeds half of it are drawn again: such a trial would
-    stick-slip on the rig and could not have been a velocity-step trial."""
+    """Per-trial (A_mu, B_mu, L_um) from lognormals matched to Table 2's mean and
+    trial sd (module docstring); no draw is rejected. With ``kp_max_N_per_um``, a draw
+    whose fixture critical stiffness ``2 N (B - A) / L`` exceeds half of it is flagged
+    (``k_cr_over_half_kp``)."""
     row = TABLE2[lubricant]
     out = []
-    while len(out) < n:
+    for _ in range(n):
         vals = {}
         for k in ("A_mu", "B_mu", "L_um"):
             mean, sem = row[k]
-            sd = sem * math.sqrt(PAPER_MIN_TRIALS)
-            z = rng.standard_normal()
-            while abs(z) > 2.0:
-                z = rng.standard_normal()
-            vals[k] = mean + sd * z
+            if mean <= 0:
+                vals[k] = 0.0
+                continue
+            m, sg = lognormal_params(mean, sem * math.sqrt(PAPER_MIN_TRIALS))
+            vals[k] = float(math.exp(m + sg * rng.standard_normal()))
         if lubricant == "paraffin":
             vals["A_mu"] = paraffin_A
-        if vals["A_mu"] < 0 or vals["L_um"] < 2.0 or vals["B_mu"] <= vals["A_mu"]:
-            continue
-        if kp_max_N_per_um is not None and \
-                2 * normal_force_N * (vals["B_mu"] - vals["A_mu"]) / vals["L_um"] > 0.5 * kp_max_N_per_um:
-            continue
-        out.append(vals)
+        flag = (kp_max_N_per_um is not None
+                and 2 * normal_force_N * (vals["B_mu"] - vals["A_mu"]) / vals["L_um"] > 0.5 * kp_max_N_per_um)
+        out.append({**vals, "k_cr_over_half_kp": bool(flag)})
     return out
 
 
@@ -95,6 +110,7 @@ def run_lubricant(lubricant: str, n_trials: int, *, seed: int = 0, profile=None,
     pars = draw_trial_params(lubricant, n_trials, rng, kp_max_N_per_um=kp_max)
     trials_out = []
     for k, p in enumerate(pars):
+        flagged = p.pop("k_cr_over_half_kp", False)
         model = FrictionModel(params={"mu0": mu0, **p})
         t0 = time.perf_counter()
         if engine == "sim":
@@ -112,7 +128,7 @@ def run_lubricant(lubricant: str, n_trials: int, *, seed: int = 0, profile=None,
         t_sim = time.perf_counter() - t0
         idn = identify_trials([tr], directions="up", whole_record=whole_record)
         rep = idn.report
-        row = {"truth": {k_: _r(v) for k_, v in p.items()},
+        row = {"truth": {k_: _r(v) for k_, v in p.items()}, "k_cr_over_half_kp": flagged,
                "recovered": {k_: rep["mean"][k_] for k_ in ("A_mu", "B_mu", "L_um")},
                "n_steps": rep["n_steps"], "sim_s": round(t_sim, 2),
                "steps": [{k_: s[k_] for k_ in ("v1_um_s", "v2_um_s", "A_mu", "B_mu", "L_um", "r2", "window_um")}
@@ -147,14 +163,33 @@ def run_lubricant(lubricant: str, n_trials: int, *, seed: int = 0, profile=None,
         d = res["recovered"]["mean"][k_] - res["truth"]["mean"][k_]
         checks[k_] = {"diff": _r(d), "tolerance": _r(tol), "ok": bool(abs(d) <= tol)}
     res["checks"] = checks
+    res["bias"] = identification_bias(res)
     return res
+
+
+def identification_bias(res: dict) -> dict:
+    """Per parameter: mean over trials of recovered/true - 1 (± sem) and the recovered
+    mean's distance from Table 2 in the paper's standard errors."""
+    used = [t for t in res["trials"] if t["n_steps"] > 0]
+    out = {}
+    for k_ in ("A_mu", "B_mu", "L_um"):
+        rel = [t["recovered"][k_] / t["truth"][k_] - 1 for t in used
+               if t["recovered"].get(k_) is not None and t["truth"][k_]]
+        m, e = mean_sem(rel) if len(rel) >= 2 else (float("nan"), float("nan"))
+        p = res["paper"][k_]
+        tol = p["sem"] if p["sem"] > 0 else A_NOISE_LEVEL
+        out[k_] = {"recovered_vs_true_rel": _r(m), "recovered_vs_true_rel_sem": _r(e),
+                   "recovered_minus_paper": _r(res["recovered"]["mean"][k_] - p["mean"]),
+                   "vs_paper_z": _r((res["recovered"]["mean"][k_] - p["mean"]) / tol),
+                   "truth_vs_paper_z": _r((res["truth"]["mean"][k_] - p["mean"]) / tol)}
+    return out
 
 
 def reproduce(n_trials: int = 8, *, seed: int = 0, lubricants=None, profile=None, whole_record: bool = False,
               progress=None, engine: str = "sim") -> dict:
     lubricants = list(lubricants or TABLE2)
     out = {"schema": SCHEMA, "n_trials": n_trials, "seed": seed,
-           "per_trial_sd": "Table-2 sem x sqrt(8), normal truncated at 2 sd",
+           "per_trial_sd": "Table-2 sem x sqrt(8); lognormal matched in mean and sd, no rejection",
            "lubricants": {}}
     for lub in lubricants:
         out["lubricants"][lub] = run_lubricant(lub, n_trials, seed=seed, profile=profile, whole_record=whole_record,
