@@ -361,6 +361,18 @@ def reproduce_cmd(
             table.add_row(*row)
     console.print(table)
     for lub in lubs:
+        b = rep["lubricants"][lub]["bias"]
+        console.print(f"{lub}: identification bias, recovered/true - 1 (mean ± s.e. over trials): "
+                      + ", ".join(f"{k} {100 * (b[k]['recovered_vs_true_rel'] or 0):+.1f} ± "
+                                  f"{100 * (b[k]['recovered_vs_true_rel_sem'] or 0):.1f} %" for k in b)
+                      + "; recovered mean vs Table 2 (in the paper's s.e.): "
+                      + ", ".join(f"{k} {b[k]['vs_paper_z']:+.2f}" for k in b))
+    from rig.analysis.stability import fixture_statement
+
+    for lub in lubs:
+        m = rep["lubricants"][lub]["recovered"]["mean"]
+        console.print(f"{lub}: k_cr column = eq. (13) per rider; {fixture_statement(m['A_mu'], m['B_mu'], m['L_um'])}")
+    for lub in lubs:
         c = rep["lubricants"][lub]["checks"]
         bad = [k for k, v in c.items() if not v["ok"]]
         console.print(f"{lub}: recovered - truth within the paper's s.e.: "
