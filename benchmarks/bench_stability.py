@@ -4,7 +4,7 @@ zero-order hold, the rig's actuator and sensors) and the simulated boundary (a k
 the criterion of stability.sliding_run), for the three lubricants, PD (ki = 0) and PID
 (the profile's ki). Writes docs/stability-map.png and docs/stability-map.json.
 
-Run: python benchmarks/bench_stability.py [--quick]"""
+Run: python benchmarks/bench_stability.py [--quick | --replot]"""
 
 from __future__ import annotations
 
@@ -21,7 +21,15 @@ from rig.profile import default_profile_path, load_profile
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def replot():
+    scans = json.loads((ROOT / "docs" / "stability-map.json").read_text())
+    S.plot_map(scans, ROOT / "docs" / "stability-map.png",
+               title="full simulated rig at V0 = 1 µm/s: kp scan (criterion: stuck fraction, velocity spread)")
+
+
 def main():
+    if "--replot" in sys.argv:
+        return replot()
     quick = "--quick" in sys.argv
     prof = load_profile(default_profile_path())
     N = prof.normal.nominal_force_N

@@ -468,13 +468,13 @@ def plot_map(scans: list[dict], path, title: str = "") -> None:
         ax.scatter(kp[bad], sp[bad], marker="x", color="C3", label="stick-slip (sim)")
         ax.scatter(kp[~bad], sp[~bad], marker="o", facecolors="none", color="C2", label="steady (sim)")
         ax.axhline(SPREAD_MAX, color="0.6", lw=0.6)
-        if s.get("k_cr_eq8_N_per_um") and s["ki_N_per_um_s"] == 0:
-            ax.axvline(s["k_cr_eq8_N_per_um"] * 1e3, color="k", ls="--", label="paper eq. (8), 2N")
+        if s.get("k_cr_eq8_N_per_um"):
+            ax.axvline(s["k_cr_eq8_N_per_um"] * 1e3, color="k", ls="--",
+                       label="paper eq. (8), 2N" + (" (PD; no I term)" if s["ki_N_per_um_s"] > 0 else ""))
         if s.get("k_cr_loop_N_per_um"):
             ax.axvline(s["k_cr_loop_N_per_um"] * 1e3, color="C0", ls="-", label="rig loop analysis (1 kHz)")
         if s.get("k_sim_N_per_um"):
             ax.axvline(s["k_sim_N_per_um"] * 1e3, color="C1", ls=":", label="simulated boundary")
-        ax.set_xscale("log")
         ax.set_yscale("log")
         ax.set_xlabel("kp (kN/m)")
         ax.set_ylabel("velocity spread / V0")
