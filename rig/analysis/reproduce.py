@@ -90,6 +90,40 @@ def draw_trial_params(lubricant: str, n: int, rng: np.random.Generator, *, paraf
     return out
 
 
+def run_trial(lubricant: str, params: dict, *, mu0: float, engine: str = "sim", profile_path: str | None = None,
+              recipe_seed: int = 0, noise_seed: int = 0, whole_record: bool = False) -> dict:
+    """One simulated trial (plain values in, a JSON-able row out): the paper's step protocol
+    on the simulated rig (``engine="sim"``) or the kinematic generator (``"synth"``) with
+    friction ``params`` (A_mu, B_mu, L_um), identified by the paper's method. A top-level
+    function so that a parallel engine can run trials."""
+    model = FrictionModel(params={"mu0": mu0, **params})
+    t0 = time.perf_counter()
+    if engine == "sim":
+        from rig.analysis.simrun import run_sim_trial, step_recipe
+        from rig.profile import default_profile_path, load_profile
+
+        prof = load_profile(profile_path or default_profile_path())
+        tr = run_sim_trial(step_recipe(lubricant, seed=recipe_seed, slip_before_um=max(120.0, 6.0 * params["L_um"])),
+                           model, profile=prof, seed=noise_seed).trial
+    else:
+        from rig.analysis import synth
+
+        tr = synth.generate(model, synth.paper_step_protocol(pre_um=max(300.0, 6 * params["L_um"]),
+                                                             back_um=max(300.0, 6 * params["L_um"])),
+                            seed=noise_seed, lubricant=lubricant).trial
+    t_sim = time.perf_counter() - t0
+    rep = identify_trials([tr], directions="up", whole_record=whole_record).report
+    row = {"truth": {k_: _r(v) for k_, v in params.items()},
+           "recovered": {k_: rep["mean"][k_] for k_ in ("A_mu", "B_mu", "L_um")},
+           "n_steps": rep["n_steps"], "sim_s": round(t_sim, 2),
+           "steps": [{k_: s_[k_] for k_ in ("v1_um_s", "v2_um_s", "A_mu", "B_mu", "L_um", "r2", "window_um")}
+                     for s_ in rep["steps"]]}
+    if whole_record:
+        w = rep["whole_record"]
+        row["whole_record"] = {k_: w["params"].get(k_) for k_ in ("A_mu", "B_mu", "L_um")}
+    return row
+
+
 def run_lubricant(lubricant: str, n_trials: int, *, seed: int = 0, profile=None, whole_record: bool = False,
                   progress=None, engine: str = "sim") -> dict:
     """Simulate and identify ``n_trials`` trials of one lubricant."""
@@ -109,34 +143,14 @@ def run_lubricant(lubricant: str, n_trials: int, *, seed: int = 0, profile=None,
     elif engine == "sim":
         engine = "synth"
     pars = draw_trial_params(lubricant, n_trials, rng, kp_max_N_per_um=kp_max)
+    ppath = str(profile) if profile else None
     trials_out = []
     for k, p in enumerate(pars):
         flagged = p.pop("k_cr_over_half_kp", False)
-        model = FrictionModel(params={"mu0": mu0, **p})
-        t0 = time.perf_counter()
-        if engine == "sim":
-            from rig.analysis.simrun import run_sim_trial, step_recipe
-
-            tr = run_sim_trial(step_recipe(lubricant, seed=seed, slip_before_um=max(120.0, 6.0 * p["L_um"])),
-                               model, profile=prof,
-                               seed=seed * 100003 + 1000 * list(TABLE2).index(lubricant) + k).trial
-        else:
-            from rig.analysis import synth
-
-            tr = synth.generate(model, synth.paper_step_protocol(pre_um=max(300.0, 6 * p["L_um"]),
-                                                                 back_um=max(300.0, 6 * p["L_um"])),
-                                seed=seed * 100003 + k, lubricant=lubricant).trial
-        t_sim = time.perf_counter() - t0
-        idn = identify_trials([tr], directions="up", whole_record=whole_record)
-        rep = idn.report
-        row = {"truth": {k_: _r(v) for k_, v in p.items()}, "k_cr_over_half_kp": flagged,
-               "recovered": {k_: rep["mean"][k_] for k_ in ("A_mu", "B_mu", "L_um")},
-               "n_steps": rep["n_steps"], "sim_s": round(t_sim, 2),
-               "steps": [{k_: s[k_] for k_ in ("v1_um_s", "v2_um_s", "A_mu", "B_mu", "L_um", "r2", "window_um")}
-                         for s in rep["steps"]]}
-        if whole_record:
-            w = rep["whole_record"]
-            row["whole_record"] = {k_: w["params"].get(k_) for k_ in ("A_mu", "B_mu", "L_um")}
+        row = run_trial(lubricant, p, mu0=mu0, engine=engine, profile_path=ppath, recipe_seed=seed,
+                        noise_seed=(seed * 100003 + 1000 * list(TABLE2).index(lubricant) + k if engine == "sim"
+                                    else seed * 100003 + k), whole_record=whole_record)
+        row["k_cr_over_half_kp"] = flagged
         trials_out.append(row)
         if progress:
             progress()
