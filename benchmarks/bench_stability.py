@@ -40,7 +40,6 @@ def main():
         model = prof.friction_model(name)
         a_eff = S.effective_A_mu(model, 1.0)
         for ki in (0.0, prof.controller.ki_N_per_um_s):
-            t0 = time.perf_counter()
             k8 = S.k_cr_eq8_N_per_um(a_eff, model.get("B_mu"), model.get("L_um"), N, prof.actuator.moving_mass_kg,
                                      prof.controller.kd_N_s_per_um, 1.0)
             lm = S.LoopModel.from_profile(prof, model, ki_N_per_um_s=ki)
@@ -53,23 +52,28 @@ def main():
                 factors = (0.1, 0.2, 0.3, 0.5, 0.7, 1.0, 1.5)
             if quick:
                 factors = factors[::3]
-            r = S.scan_boundary(name, ki_N_per_um_s=ki, factors=factors, k_ref_N_per_um=k_ref)
-            r["k_cr_eq8_N_per_um"] = k8
-            r["k_cr_table2_per_rider_kN_per_m"] = TABLE2[name]["k_cr_kN_per_m"][0]
-            scans.append(r)
-            dt = time.perf_counter() - t0
-            ks = r["k_sim_N_per_um"]
-            lo, hi = r["bracket_N_per_um"]
-            print(f"{name:9s} {'PID' if ki else 'PD ':3s} ki={ki:g}: Table 2 (per rider) "
-                  f"{TABLE2[name]['k_cr_kN_per_m'][0]:6.1f}  eq.8 fixture {k8 * 1e3:7.2f}  "
-                  f"loop analysis {k_lin * 1e3 if k_lin else float('nan'):7.2f}  "
-                  f"simulated {ks * 1e3 if ks else float('nan'):7.2f} kN/m "
-                  f"[{lo * 1e3 if lo else float('nan'):.2f}, {hi * 1e3 if hi else float('nan'):.2f}]  "
-                  f"sim/analysis-1 {100 * r['rel_diff'] if r['rel_diff'] is not None else float('nan'):+.1f} %  "
-                  f"({len(r['runs'])} runs x {r['duration_s']:.0f} s, {dt:.1f} s)")
-            for x in r["runs"]:
-                print(f"      kp {x['kp_N_per_um'] * 1e3:8.2f} kN/m  stuck {x['stuck_fraction']:.3f}  spread "
-                      f"{x['spread']:.3f}  v_max {x['v_max_um_s']:.2f}  {'STICK-SLIP' if x['stick_slip'] else 'steady'}")
+            for noise, bump in ((True, 0.05), (False, 0.005)):
+                if not noise and (not ki or not k_lin):
+                    continue  # the noise-free check is for the PID's gradual (noise-driven) onset
+                t0 = time.perf_counter()
+                r = S.scan_boundary(name, ki_N_per_um_s=ki, factors=factors, k_ref_N_per_um=k_ref, bump_L=bump,
+                                    sensor_noise=noise)
+                r["k_cr_eq8_N_per_um"] = k8
+                r["k_cr_table2_per_rider_kN_per_m"] = TABLE2[name]["k_cr_kN_per_m"][0]
+                scans.append(r)
+                dt = time.perf_counter() - t0
+                ks = r["k_sim_N_per_um"]
+                lo, hi = r["bracket_N_per_um"]
+                print(f"{name:9s} {'PID' if ki else 'PD ':3s} ki={ki:g} {'noisy' if noise else 'noise-free'}: Table 2 (per rider) "
+                      f"{TABLE2[name]['k_cr_kN_per_m'][0]:6.1f}  eq.8 fixture {k8 * 1e3:7.2f}  "
+                      f"loop analysis {k_lin * 1e3 if k_lin else float('nan'):7.2f}  "
+                      f"simulated {ks * 1e3 if ks else float('nan'):7.2f} kN/m "
+                      f"[{lo * 1e3 if lo else float('nan'):.2f}, {hi * 1e3 if hi else float('nan'):.2f}]  "
+                      f"sim/analysis-1 {100 * r['rel_diff'] if r['rel_diff'] is not None else float('nan'):+.1f} %  "
+                      f"({len(r['runs'])} runs x {r['duration_s']:.0f} s, {dt:.1f} s)")
+                for x in r["runs"]:
+                    print(f"      kp {x['kp_N_per_um'] * 1e3:8.2f} kN/m  stuck {x['stuck_fraction']:.3f}  spread "
+                          f"{x['spread']:.3f}  v_max {x['v_max_um_s']:.2f}  {'STICK-SLIP' if x['stick_slip'] else 'steady'}")
     print(f"criterion: {scans[0]['criterion']}")
     print(f"total {time.perf_counter() - t_all:.0f} s, load average at end: {os.getloadavg()}")
     if not quick:

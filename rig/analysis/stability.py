@@ -324,13 +324,14 @@ SCAN_FACTORS = (0.80, 0.85, 0.90, 0.93, 0.96, 0.98, 1.00, 1.02, 1.04, 1.07, 1.10
 
 def sliding_run(profile_path: str | None, lubricant: str, kp_N_per_um: float, ki_N_per_um_s: float,
                 kd_N_s_per_um: float, duration_s: float, V0_um_s: float = 1.0, seed: int = 0,
-                bump_L: float = 0.05) -> dict:
+                bump_L: float = 0.05, sensor_noise: bool = True) -> dict:
     """One simulated run of the full rig (rig.sim.SimRig) sliding at V0 with the given PID
     gains, started in steady sliding (chain loaded with the steady friction, spool and
     actuator at their steady values; PD: the controller's bias carries the steady force,
     PID: the integral does), perturbed by a smooth step of the reference by ``bump_L`` x L
     at 1 s (a slip-velocity perturbation of about 5 % of V0 in the slow friction mode); the
-    loop's sensor noise excites the rest. Judged on the second half of the run:
+    loop's sensor noise excites the rest (``sensor_noise=False``: LVDT and load-cell noise
+    and quantisation off, so the spread measures the rig's own oscillation only). Judged on the second half of the run:
     ``stuck_fraction`` (0.1 s blocks of true slip velocity below 0.1 V0) and ``spread``
     (sd of the block means / V0); ``stick_slip`` by the criterion of the module constants.
     A top-level function of plain values (one trial for a parallel engine)."""
@@ -349,7 +350,13 @@ def sliding_run(profile_path: str | None, lubricant: str, kp_N_per_um: float, ki
     # (the physics does not depend on where the piece is; the riders' taper is held flat)
     span = prof.stroke.home_um + V0_um_s * duration_s + 1000.0
     lvdt = prof.sensors.lvdt.model_copy(update={"max_um": max(prof.sensors.lvdt.max_um, span)})
+    if not sensor_noise:
+        lvdt = lvdt.model_copy(update={"noise_sigma_um": 0.0, "quantization_um": 0.0})
     sensors = prof.sensors.model_copy(update={"lvdt": lvdt})
+    if not sensor_noise:
+        sensors = sensors.model_copy(update={
+            "friction_load_cell": sensors.friction_load_cell.model_copy(update={"noise_sigma_N": 0.0}),
+            "normal_load_cells": sensors.normal_load_cells.model_copy(update={"noise_sigma_N": 0.0})})
     normal = prof.normal.model_copy(update={"face_taper_um_per_mm": [0.0, 0.0]})
     prof = prof.model_copy(update={"controller": ctrl, "sensors": sensors, "normal": normal})
     model = prof.friction_model(lubricant)
@@ -406,7 +413,7 @@ def scan_duration_s(lm: LoopModel, k_cr: float, periods: float = 40.0, lo_s: flo
 
 def scan_boundary(lubricant: str, *, profile=None, ki_N_per_um_s: float | None = None, V0_um_s: float = 1.0,
                   factors=SCAN_FACTORS, k_ref_N_per_um: float | None = None, duration_s: float | None = None,
-                  seed: int = 0, run=None) -> dict:
+                  seed: int = 0, run=None, bump_L: float = 0.05, sensor_noise: bool = True) -> dict:
     """Scan kp = factor x k_ref (default k_ref: the discrete-time analysis of the rig's loop,
     :func:`k_cr_loop`) with :func:`sliding_run`; the simulated boundary lies between the
     highest kp that stick-slips and the next one above that slides steadily.
@@ -427,7 +434,7 @@ def scan_boundary(lubricant: str, *, profile=None, ki_N_per_um_s: float | None =
         raise ValueError(f"{lubricant}: the linear analysis finds no finite k_cr; give k_ref_N_per_um")
     dur = duration_s or scan_duration_s(lm, k_ref)
     run = run or sliding_run
-    runs = [run(ppath, lubricant, f * k_ref, ki, kd, dur, V0_um_s, seed) for f in factors]
+    runs = [run(ppath, lubricant, f * k_ref, ki, kd, dur, V0_um_s, seed, bump_L, sensor_noise) for f in factors]
     runs.sort(key=lambda r: r["kp_N_per_um"])
     unstable = [r["kp_N_per_um"] for r in runs if r["stick_slip"]]
     k_sim = lo = hi = None
@@ -441,7 +448,7 @@ def scan_boundary(lubricant: str, *, profile=None, ki_N_per_um_s: float | None =
             "k_cr_loop_N_per_um": k_lin, "k_ref_N_per_um": k_ref, "duration_s": dur,
             "k_sim_N_per_um": k_sim, "bracket_N_per_um": [lo, hi], "runs": runs,
             "rel_diff": (k_sim / k_lin - 1) if (k_sim and k_lin) else None,
-            "steady_at_every_kp": not unstable,
+            "steady_at_every_kp": not unstable, "bump_L": bump_L, "sensor_noise": sensor_noise,
             "criterion": f"stick-slip if > {STUCK_FRACTION_MAX:.0%} of {BLOCK_S:g} s blocks have mean slip velocity "
                          f"< {STUCK_BELOW_FRAC:g} V0, or their sd > {SPREAD_MAX:g} V0 (second half of the run)"}
 
@@ -451,17 +458,20 @@ def scan_boundary(lubricant: str, *, profile=None, ki_N_per_um_s: float | None =
 # ---------------------------------------------------------------------------
 def plot_map(scans: list[dict], path, title: str = "") -> None:
     """Stability map: each scanned kp (x, kN/m) per lubricant (panel) and controller (row:
-    PD, PID): stick-slip (red x) or steady sliding (green o) by the scan's criterion,
+    PD, PID, PID with the sensor noise off): stick-slip (red x) or steady sliding (green o) by the scan's criterion,
     with the paper's eq. (8) for the fixture (2 N, kd, m; PD only), the discrete-time
     analysis of the rig's loop, and the simulated boundary."""
     from rig.analysis.plots import _plt, save
 
     plt = _plt()
     lubs = list(dict.fromkeys(s["lubricant"] for s in scans))
-    rows = sorted({s["ki_N_per_um_s"] > 0 for s in scans})
+    def row_key(s):
+        return (s["ki_N_per_um_s"] > 0, not s.get("sensor_noise", True))
+
+    rows = sorted({row_key(s) for s in scans})
     fig, axs = plt.subplots(len(rows), len(lubs), figsize=(4.4 * len(lubs), 3.0 * len(rows)), squeeze=False)
     for s in scans:
-        ax = axs[rows.index(s["ki_N_per_um_s"] > 0), lubs.index(s["lubricant"])]
+        ax = axs[rows.index(row_key(s)), lubs.index(s["lubricant"])]
         kp = np.array([r["kp_N_per_um"] for r in s["runs"]]) * 1e3
         sp = np.array([r["spread"] for r in s["runs"]])
         bad = np.array([r["stick_slip"] for r in s["runs"]])
@@ -479,6 +489,8 @@ def plot_map(scans: list[dict], path, title: str = "") -> None:
         ax.set_xlabel("kp (kN/m)")
         ax.set_ylabel("velocity spread / V0")
         ctl = f"PID ki={s['ki_N_per_um_s']:g}" if s["ki_N_per_um_s"] > 0 else "PD"
+        if not s.get("sensor_noise", True):
+            ctl += ", noise-free"
         rd = s.get("rel_diff")
         ax.set_title(f"{s['lubricant']}, {ctl}" + (f": sim/analysis - 1 = {rd * 100:+.1f} %" if rd is not None
                                                    else ""), fontsize=9)
