@@ -56,8 +56,9 @@ def main():
                 if not noise and (not ki or not k_lin):
                     continue  # the noise-free check is for the PID's gradual (noise-driven) onset
                 t0 = time.perf_counter()
+                # noise-free: a 0.005 L bump must grow to the criterion by itself: 3000 s runs
                 r = S.scan_boundary(name, ki_N_per_um_s=ki, factors=factors, k_ref_N_per_um=k_ref, bump_L=bump,
-                                    sensor_noise=noise)
+                                    sensor_noise=noise, duration_s=None if noise else 3000.0)
                 r["k_cr_eq8_N_per_um"] = k8
                 r["k_cr_table2_per_rider_kN_per_m"] = TABLE2[name]["k_cr_kN_per_m"][0]
                 scans.append(r)
