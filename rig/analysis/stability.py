@@ -319,6 +319,7 @@ STUCK_BELOW_FRAC = 0.1      # a 0.1 s block with mean slip velocity < 0.1 V0 cou
 STUCK_FRACTION_MAX = 0.01   # stick-slip: more than 1 % of the judged blocks stuck ...
 SPREAD_MAX = 0.3            # ... or a spread (sd of the 0.1 s block means) above 0.3 V0
 BLOCK_S = 0.1
+ONSET_SPREAD = 0.005        # noise-free runs: a sustained oscillation (stable runs decay below 0.001 V0)
 SCAN_FACTORS = (0.80, 0.85, 0.90, 0.93, 0.96, 0.98, 1.00, 1.02, 1.04, 1.07, 1.10, 1.15, 1.25)
 
 
@@ -444,7 +445,17 @@ def scan_boundary(lubricant: str, *, profile=None, ki_N_per_um_s: float | None =
         if above:
             hi = min(above)
             k_sim = 0.5 * (lo + hi)
+    # noise-free: the onset of any sustained oscillation (for a gradual, supercritical onset
+    # the stick-slip amplitude is reached below k_cr, the linear boundary is where it starts)
+    k_onset = None
+    if not sensor_noise:
+        osc = [r["kp_N_per_um"] for r in runs if r["spread"] > ONSET_SPREAD]
+        if osc:
+            above = [r["kp_N_per_um"] for r in runs if r["kp_N_per_um"] > max(osc)]
+            k_onset = 0.5 * (max(osc) + min(above)) if above else None
     return {"lubricant": lubricant, "ki_N_per_um_s": ki, "kd_N_s_per_um": kd, "V0_um_s": V0_um_s,
+            "k_onset_N_per_um": k_onset,
+            "onset_rel_diff": (k_onset / k_lin - 1) if (k_onset and k_lin) else None,
             "k_cr_loop_N_per_um": k_lin, "k_ref_N_per_um": k_ref, "duration_s": dur,
             "k_sim_N_per_um": k_sim, "bracket_N_per_um": [lo, hi], "runs": runs,
             "rel_diff": (k_sim / k_lin - 1) if (k_sim and k_lin) else None,
