@@ -72,6 +72,9 @@ def main():
                       f"[{lo * 1e3 if lo else float('nan'):.2f}, {hi * 1e3 if hi else float('nan'):.2f}]  "
                       f"sim/analysis-1 {100 * r['rel_diff'] if r['rel_diff'] is not None else float('nan'):+.1f} %  "
                       f"({len(r['runs'])} runs x {r['duration_s']:.0f} s, {dt:.1f} s)")
+                if r.get("k_onset_N_per_um"):
+                    print(f"      onset of a sustained oscillation (spread > {S.ONSET_SPREAD:g} V0): "
+                          f"{r['k_onset_N_per_um'] * 1e3:.2f} kN/m, {100 * r['onset_rel_diff']:+.1f} % vs the analysis")
                 for x in r["runs"]:
                     print(f"      kp {x['kp_N_per_um'] * 1e3:8.2f} kN/m  stuck {x['stuck_fraction']:.3f}  spread "
                           f"{x['spread']:.3f}  v_max {x['v_max_um_s']:.2f}  {'STICK-SLIP' if x['stick_slip'] else 'steady'}")

@@ -503,9 +503,19 @@ def plot_map(scans: list[dict], path, title: str = "") -> None:
         if not s.get("sensor_noise", True):
             ctl += ", noise-free"
         rd = s.get("rel_diff")
-        ax.set_title(f"{s['lubricant']}, {ctl}" + (f": sim/analysis - 1 = {rd * 100:+.1f} %" if rd is not None
-                                                   else ""), fontsize=9)
+        od = s.get("onset_rel_diff")
+        ttl = f"{s['lubricant']}, {ctl}" + (f": sim/analysis - 1 = {rd * 100:+.1f} %" if rd is not None else "")
+        if od is not None:
+            ttl += f"\nonset of oscillation (spread > {ONSET_SPREAD:g} V0): {od * 100:+.1f} %"
+            ax.axvline(s["k_onset_N_per_um"] * 1e3, color="C4", ls="-.", label="onset (noise-free)")
+            ax.set_yscale("symlog", linthresh=1e-3)
+        ax.set_title(ttl, fontsize=8)
         ax.legend(fontsize=6)
+    used = {(rows.index(row_key(s)), lubs.index(s["lubricant"])) for s in scans}
+    for i in range(len(rows)):
+        for j in range(len(lubs)):
+            if (i, j) not in used:
+                axs[i, j].axis("off")
     if title:
         fig.suptitle(title, fontsize=9)
     fig.tight_layout()
