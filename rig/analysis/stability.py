@@ -29,13 +29,17 @@ effective ``A_eff = V0 dmu/dv = mu v_reg^2 / V0^2`` (about 1e-5 for paraffin).
 The check by simulation uses the law's own slope ``V0 dmu/dv`` at V0
 (:func:`effective_A_mu`), i.e. exactly the linearisation that eq. (8) assumes.
 
-The check by simulation (:func:`find_boundary`): closed-loop runs of the
-system of Fig. 1 (:func:`simulate_fig1`; mass, spring, dashpot, velocity source,
-friction from :mod:`rig.friction`), started with a small velocity perturbation
-at V0; the growth or decay of the velocity oscillation envelope classifies each
-kp; bisection finds the boundary. :func:`full_rig_boundary` does the same with
-the full simulated rig (:class:`rig.sim.SimRig`: PID, servovalve, actuator
-with oil compliance and leakage, fixture compliance).
+**The rig's loop** (:func:`closed_loop_matrix`, :func:`k_cr_loop`): eq. (8)'s linearisation
+extended to the PID as rig.control runs it (1 kHz, zero-order hold, integral of prior
+errors, backward-difference D) on Fig. 1's plant or on the simulated rig's (spool,
+actuator with oil compliance and leakage, moving mass, test-piece and fixture compliance,
+LVDT filter); k_cr from the roots of the characteristic polynomial det(z I - M).
+
+**The check by simulation** (:func:`scan_boundary`, :func:`sliding_run`): a kp scan of the
+full simulated rig (:class:`rig.sim.SimRig`) started in steady sliding, with a stated
+criterion: stick-slip if more than 1 % of 0.1 s blocks have mean slip velocity below
+0.1 V0, or the block means' sd exceeds 0.3 V0 (second half of the run). No growth rates.
+docs/paper.md has the figures.
 """
 
 from __future__ import annotations
