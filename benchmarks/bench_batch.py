@@ -139,7 +139,7 @@ def bench_reproduce(jobs: int, n_trials: int) -> dict:
     reproduce(2, lubricants=["boundary"], seed=99)  # warm-up (numba cache, imports)
     print(f"reproduce: 3 lubricants x {n_trials} simulated trials (full simulated rig), {load()}")
     # interleaved by lubricant: serial, then the same trials on the warm cluster
-    from rig.friction import TABLE2
+    from rig.model.paper import TABLE2
 
     serial = {"lubricants": {}}
     par = {"lubricants": {}}

@@ -152,19 +152,3 @@ def _jsonable(x):
     if x is None or isinstance(x, str):
         return x
     return str(x)
-
-
-def stability_check(task: dict) -> dict:
-    """One ``rig stability --simulate`` check: ``kind`` ``fig1`` (Fig. 1's system, by
-    :func:`rig.analysis.stability.check_lubricant`) or ``full_rig`` (the simulated rig,
-    :func:`rig.analysis.stability.full_rig_boundary`); all inputs by value or path."""
-    from rig.analysis import stability as S
-    from rig.model.spec import FrictionModel
-
-    if task["kind"] == "fig1":
-        model = FrictionModel(params={"mu0": 0.12, **task["params"]})
-        return S.check_lubricant(task["name"], mass_kg=task["mass_kg"], kd_N_s_per_um=task["kd_N_s_per_um"],
-                                 normal_force_N=task["normal_force_N"], V0_um_s=task["V0_um_s"], model=model)
-    if task["kind"] == "full_rig":
-        return S.full_rig_boundary(task["name"], profile=task["profile"], V0_um_s=task["V0_um_s"])
-    raise ValueError(f"unknown stability task kind {task['kind']!r}")

@@ -177,21 +177,21 @@ def stribeck_cmd(
 def stability_cmd(
     lubricant: Optional[str] = typer.Option(None, "--lubricant", help="dry | paraffin | boundary (Table 2 values)."),
     params: Optional[Path] = typer.Option(None, "--params", help="A rig identify JSON report (its mean A, B, L)."),
-    profile: Optional[Path] = typer.Option(None, "--profile", help="Rig profile (mass, kd, normal force); "
+    profile: Optional[Path] = typer.Option(None, "--profile", help="Rig profile (mass, gains, actuator, sensors); "
                                                                    "default config/rigs/sim.yaml."),
-    margin: float = typer.Option(2.0, "--margin", help="Advice: kp >= margin x k_cr (eq. 8)."),
+    margin: float = typer.Option(2.0, "--margin", help="Advice: kp >= margin x k_cr (the rig's loop)."),
     v0: float = typer.Option(1.0, "--v0", help="Sliding velocity V0 (µm/s)."),
-    simulate: bool = typer.Option(False, "--simulate", help="Check eq. (8) by closed-loop simulation (Fig. 1)."),
-    full_rig: bool = typer.Option(False, "--full-rig", help="With --simulate: also bisect with the full simulated "
-                                                            "rig (PD: ki = 0)."),
-    plot: Optional[Path] = typer.Option(None, "--plot", help="Write the stability map PNG."),
+    simulate: bool = typer.Option(False, "--simulate", help="Check by a kp scan on the full simulated rig "
+                                                            "(criterion: stuck fraction, velocity spread)."),
+    plot: Optional[Path] = typer.Option(None, "--plot", help="With --simulate: write the stability map PNG."),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the report as JSON."),
     jobs: Optional[int] = typer.Option(None, "--jobs", help="With --simulate: checks on N worker processes "
                                                             "(Dask; default: all cores; 1: serially)."),
     scheduler: Optional[str] = typer.Option(None, "--scheduler", help="With --simulate: an existing Dask "
                                                                       "cluster, tcp://HOST:PORT."),
 ):
-    """Critical stiffness by eqs. (8) and (13), PD gain advice, and the check by simulation."""
+    """Critical stiffness of the moving test piece: the paper's eqs. (8)/(13), the rig's PID
+    loop (1 kHz, zero-order hold), PD and PID, and optionally the simulated boundary."""
     from rig.analysis import stability as S
     from rig.data import atomic_write_text
     from rig.model.paper import TABLE2
@@ -203,8 +203,11 @@ def stability_cmd(
         _fail(f"--margin must be positive (got {margin})")
     if v0 <= 0:
         _fail(f"--v0 must be positive (got {v0})")
+    if plot and not simulate:
+        _fail("--plot needs --simulate (the map shows the scanned runs)")
     mass, kd, N = S.DEFAULT_MASS_KG, S.DEFAULT_KD_N_S_PER_UM, 100.0
     prof = None
+    ppath = None
     try:
         from rig.config.profile import default_profile_path, load_profile
 
@@ -236,74 +239,99 @@ def stability_cmd(
             if nm not in TABLE2:
                 _fail(f"unknown lubricant {nm!r}; known: {', '.join(TABLE2)}")
             sets[nm] = {k: TABLE2[nm][k][0] for k in ("A_mu", "B_mu", "L_um")}
+    ki = prof.controller.ki_N_per_um_s if prof is not None else 0.0
     analyses = {}
-    table = Table(title=f"critical stiffness at V0 = {v0:g} µm/s (m = {mass:g} kg, kd = {kd:g} N s/µm, N = {N:g} N)")
-    for c in ("set", "A_mu", "B_mu", "L (µm)", "k_cr eq.13 (kN/m, N)", "eq.13 x2 (kN/m, 2N)", "k_cr eq.8 (kN/m, 2N)",
-              "eq.8 kd=0", "mass term", f"kp min (x{margin:g})"):
+    table = Table(title=f"critical stiffness at V0 = {v0:g} µm/s (m = {mass:g} kg, kd = {kd:g} N s/µm, "
+                        f"ki = {ki:g} N/(µm s), N = {N:g} N per rider)")
+    for c in ("set", "eq.13 per rider (N; Table 2)", "moving piece eq.13 (2N)", "eq.8 (2N, kd, m)",
+              "rig loop PD", "rig loop PID", f"kp min (x{margin:g})"):
         table.add_column(c, justify="right")
     for nm, p in sets.items():
         a = S.analyse(S.StabilityInputs(p["A_mu"], p["B_mu"], p["L_um"], N, mass, kd, v0), margin)
+        if prof is not None:
+            model = (prof.friction_model(nm) if nm in getattr(prof, "lubricants", {}) and not params
+                     else FrictionModel(params={"mu0": 0.12, **p}))
+            loop = {}
+            for label, k_i in (("PD", 0.0), ("PID", ki)):
+                try:
+                    lm = S.LoopModel.from_profile(prof, model, ki_N_per_um_s=k_i, V0_um_s=v0)
+                    k = S.k_cr_loop(lm)
+                except ValueError as exc:
+                    k, loop[f"{label}_note"] = None, str(exc)
+                loop[label] = k
+            a["k_cr_loop_PD_kN_per_m"] = loop["PD"] * 1e3 if loop["PD"] is not None else None
+            a["k_cr_loop_PID_kN_per_m"] = loop["PID"] * 1e3 if loop["PID"] is not None else None
+            k_use = loop["PID"] if ki > 0 else loop["PD"]
+            if k_use == 0.0:
+                a["kp_min_N_per_um"] = margin * loop["PD"] if loop["PD"] else None
+                a["advice"] = ("the rig's PID loop has no finite k_cr (the integral term holds the slow friction "
+                               "mode); without the I term (PD) kp >= "
+                               f"{_fmt(a['kp_min_N_per_um'] * 1e3 if a['kp_min_N_per_um'] else None)} kN/m "
+                               f"= {margin:g} x k_cr")
+            elif k_use is not None:
+                a["kp_min_N_per_um"] = margin * k_use
+                a["advice"] = (f"kp >= {margin * k_use * 1e3:.4g} kN/m = {margin:g} x k_cr of the rig's loop "
+                               f"({'PID' if ki > 0 else 'PD'}, 1 kHz)")
+        a["statement"] = S.fixture_statement(p["A_mu"], p["B_mu"], p["L_um"], N)
         analyses[nm] = a
-        table.add_row(nm, _fmt(p["A_mu"], 3), _fmt(p["B_mu"], 3), _fmt(p["L_um"], 3), _fmt(a["k_cr_eq13_kN_per_m"]),
-                      _fmt(a["k_cr_eq13_fixture_kN_per_m"]), _fmt(a["k_cr_eq8_kN_per_m"]),
-                      _fmt(a["k_cr_eq8_kd0_kN_per_m"]) if a["k_cr_eq8_kd0_kN_per_m"] else "inf",
-                      _fmt(a["mass_term"], 2), _fmt(a["kp_min_N_per_um"] * 1e3 if a["kp_min_N_per_um"] else None)
-                      + " kN/m")
+
+        def k(x):
+            return "none (stable at every kp)" if x == 0 else (_fmt(x) if x is not None else "-")
+
+        table.add_row(nm, _fmt(a["k_cr_eq13_kN_per_m"]), _fmt(a["k_cr_eq13_fixture_kN_per_m"]),
+                      _fmt(a["k_cr_eq8_kN_per_m"]) if a["k_cr_eq8_kN_per_m"] else "inf",
+                      k(a.get("k_cr_loop_PD_kN_per_m")), k(a.get("k_cr_loop_PID_kN_per_m")),
+                      _fmt(a["kp_min_N_per_um"] * 1e3 if a["kp_min_N_per_um"] else None) + " kN/m")
     console.print(table)
     for nm, a in analyses.items():
+        console.print(f"{nm}: {a['statement']}")
         console.print(f"{nm}: {a['advice']}")
-    console.print("[dim]eq. (8) uses the fixture's total friction 2 N mu (A = 2 N A_mu); eq. (13) and Table 2 use N "
-                  "(one interface). With A + kv V0 = 0 eq. (8) has no finite k_cr.[/dim]")
+    console.print("[dim]All stiffnesses in kN/m. The stiffness the controller must provide is the moving test piece's "
+                  "(2 N); Table 2 prints (B - A) N / L per rider interface, half of it. The rig loop columns: "
+                  "eq. (8)'s system with the rig's discrete PID (1 kHz, zero-order hold, backward-difference D), "
+                  "actuator, compliance and LVDT filter (rig.analysis.stability.k_cr_loop).[/dim]")
     checks = []
     if simulate:
-        # every check is one task on the batch engine (rig.catalog.batch), inputs by value
-        from rig.catalog.batch import BatchError, mapper
-        from rig.catalog.tasks import stability_check
-
+        if prof is None:
+            _fail("--simulate needs the simulated rig (rig.sim) and a profile")
         if jobs is not None and jobs < 1:
             _fail(f"--jobs must be at least 1 (got {jobs})")
-        if full_rig and prof is None:
-            _fail("--full-rig needs the simulated rig (rig.sim) and a profile")
-        tasks = []
-        for nm, p in sets.items():
-            tasks.append({"kind": "fig1", "name": nm, "params": p, "mass_kg": mass, "kd_N_s_per_um": kd,
-                          "normal_force_N": N, "V0_um_s": v0})
-            if full_rig and nm in prof.lubricants:
-                tasks.append({"kind": "full_rig", "name": nm, "profile": str(ppath), "V0_um_s": v0})
-        try:
-            with err_console.status("simulating..."), mapper(jobs, scheduler) as map_fn:
-                done = {(t["kind"], t["name"]): r for t, r in zip(tasks, map_fn(stability_check, tasks))}
-        except BatchError as exc:
-            _fail(str(exc), 1)
-        for nm, p in sets.items():
-            c = done[("fig1", nm)]
-            checks.append(c)
-            console.print(f"{nm}: Fig. 1 simulation boundary {_fmt(c['k_sim_N_per_um'] * 1e3 if c['k_sim_N_per_um'] else None)}"
-                          f" kN/m vs eq. (8) {_fmt(c['k_cr_eq8_N_per_um'] * 1e3)} kN/m (A_eff = {_fmt(c['A_eff_mu'], 3)}): "
-                          f"{_fmt(100 * c['rel_diff'] if c['rel_diff'] is not None else None, 3)} %")
-            if full_rig:
-                if nm not in prof.lubricants:
-                    console.print(f"{nm}: not a lubricant of the profile; full-rig check skipped")
+        from contextlib import ExitStack
+
+        from rig.catalog.batch import mapper
+
+        stack = ExitStack()
+        map_fn = stack.enter_context(mapper(jobs, scheduler))
+        for nm in sets:
+            if params or nm not in prof.lubricants:
+                console.print(f"{nm}: not a lubricant of the profile; simulation skipped")
+                continue
+            for k_i in (0.0, ki) if ki > 0 else (0.0,):
+                lm = S.LoopModel.from_profile(prof, prof.friction_model(nm), ki_N_per_um_s=k_i, V0_um_s=v0)
+                k_lin = S.k_cr_loop(lm)
+                if not k_lin:
+                    console.print(f"{nm} ({'PID' if k_i else 'PD'}): no finite k_cr in the analysis; scan skipped")
                     continue
-                f = done[("full_rig", nm)]
-                checks.append(f)
-                console.print(f"{nm}: full simulated rig (PD, ki = 0) boundary "
-                              f"{_fmt(f['k_sim_N_per_um'] * 1e3 if f['k_sim_N_per_um'] else None)} kN/m vs eq. (8) "
-                              f"{_fmt(f['k_cr_eq8_N_per_um'] * 1e3)} kN/m; with the actuator's leakage damping "
-                              f"(kv + {f['kv_leak_N_s_per_um']:g} N s/µm) {_fmt(f['k_cr_eq8_with_leak_N_per_um'] * 1e3)} kN/m")
-                ks = f["k_sim_N_per_um"]
-                if not ks or abs(ks / f["k_cr_eq8_with_leak_N_per_um"] - 1) > 0.05:
-                    console.print(f"[yellow]{nm}: the full rig departs from eq. (8): with a small direct effect the "
-                                  "D term on the noisy LVDT makes the interface velocity jitter (peaks beyond V0) "
-                                  "and the linear analysis no longer applies; with kd = 0 the rig follows eq. (8) "
-                                  "(docs/identification.md, section 5)[/yellow]")
+                with err_console.status(f"{nm} ({'PID' if k_i else 'PD'}): scanning kp..."):
+                    r = S.scan_boundary(nm, profile=ppath, ki_N_per_um_s=k_i, V0_um_s=v0,
+                                        factors=(0.8, 0.9, 0.95, 1.05, 1.1, 1.25), map_fn=map_fn)
+                r["k_cr_eq8_N_per_um"] = analyses[nm]["k_cr_eq8_N_per_um"]
+                checks.append(r)
+                lo, hi = r["bracket_N_per_um"]
+                console.print(f"{nm} ({'PID' if k_i else 'PD'}): simulated boundary "
+                              f"{_fmt(r['k_sim_N_per_um'] * 1e3 if r['k_sim_N_per_um'] else None)} kN/m "
+                              f"(stick-slip at {_fmt(lo * 1e3 if lo else None)}, steady at "
+                              f"{_fmt(hi * 1e3 if hi else None)}) vs the rig loop's {_fmt(k_lin * 1e3)} kN/m")
+        stack.close()
+        console.print(f"[dim]criterion: {S.STUCK_FRACTION_MAX:.0%} stuck / spread {S.SPREAD_MAX:g} V0 "
+                      f"({checks[0]['criterion'] if checks else ''})[/dim]")
     if json_out:
-        doc = {"schema": "rig.stability/1", "V0_um_s": v0, "mass_kg": mass, "kd_N_s_per_um": kd,
-               "normal_force_N": N, "analyses": analyses, "checks": checks}
+        doc = {"schema": "rig.stability/2", "V0_um_s": v0, "mass_kg": mass, "kd_N_s_per_um": kd,
+               "ki_N_per_um_s": ki, "normal_force_N": N, "analyses": analyses, "checks": checks}
         atomic_write_text(json_out, json.dumps(doc, indent=2, allow_nan=False, default=float) + "\n")
         console.print(f"wrote {json_out}")
     if plot:
-        S.plot_map(checks, analyses, plot)
+        S.plot_map(checks, plot)
         console.print(f"wrote {plot}")
 
 
@@ -378,6 +406,18 @@ def reproduce_cmd(
                 row += ["", f"{w['mean'][k] * scale[k]:.3g} ± {w['sem'][k] * scale[k]:.2g}", ""]
             table.add_row(*row)
     console.print(table)
+    for lub in lubs:
+        b = rep["lubricants"][lub]["bias"]
+        console.print(f"{lub}: identification bias, recovered/true - 1 (mean ± s.e. over trials): "
+                      + ", ".join(f"{k} {100 * (b[k]['recovered_vs_true_rel'] or 0):+.1f} ± "
+                                  f"{100 * (b[k]['recovered_vs_true_rel_sem'] or 0):.1f} %" for k in b)
+                      + "; recovered mean vs Table 2 (in the paper's s.e.): "
+                      + ", ".join(f"{k} {b[k]['vs_paper_z']:+.2f}" for k in b))
+    from rig.analysis.stability import fixture_statement
+
+    for lub in lubs:
+        m = rep["lubricants"][lub]["recovered"]["mean"]
+        console.print(f"{lub}: k_cr column = eq. (13) per rider; {fixture_statement(m['A_mu'], m['B_mu'], m['L_um'])}")
     for lub in lubs:
         c = rep["lubricants"][lub]["checks"]
         bad = [k for k, v in c.items() if not v["ok"]]

@@ -70,6 +70,8 @@ class ControllerConfig(StrictModel):
     dither_reference: Literal["pid_output", "full_scale"] = Field(
         "pid_output", description="pid_output: fraction of the low-passed |PID output|; full_scale: of full_scale_force_N")
     dither_smoothing_s: float = Field(0.05, gt=0, description="time constant of the |PID output| low-pass for the dither")
+    ff1_N_s_per_um: float = Field(0.0, ge=0, description="velocity feed-forward (LinuxCNC FF1): force per unit reference "
+                                                         "velocity, N s/µm; 0 = off")
 
 
 class ServovalveConfig(StrictModel):
