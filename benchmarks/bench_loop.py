@@ -132,7 +132,9 @@ def live_bench(seconds: float, profile_path: Path, live: bool) -> dict:
                 t_end = time.monotonic() + 30
                 while not view._chan["/log25"].has_sinks() and time.monotonic() < t_end:
                     time.sleep(0.05)
+            cpu0, wall0 = time.process_time(), time.monotonic()
             result = run_trial(plan, HardwareBackend(hw, profile, emulator=emu), writer, handle_signals=False)
+            cpu_s, wall_s = time.process_time() - cpu0, time.monotonic() - wall0
         finally:
             if emu is not None:
                 emu.stop()
@@ -142,9 +144,12 @@ def live_bench(seconds: float, profile_path: Path, live: bool) -> dict:
             if view is not None:
                 view.close(linger_s=0)
     res = dict(result.summary["timing"])
-    res.update(status=result.status, loadavg_before=load_before, loadavg_after=os.getloadavg())
+    res.update(status=result.status, reason=result.reason if result.status != "completed" else "",
+               loadavg_before=load_before, loadavg_after=os.getloadavg(),
+               session_cpu_ms_per_s=1e3 * cpu_s / wall_s)  # the CLI/session process, all its threads
     if view is not None:
         res.update(live_published=sum(view.published.values()), live_dropped=view.dropped,
+                   live_thread_cpu_ms_per_s=1e3 * view.cpu_s / wall_s,
                    client_frames=got.get("frames", 0))
     return res
 
@@ -157,8 +162,11 @@ def main_live(a) -> int:
             res = live_bench(a.seconds, a.profile, live)
             rows.append((live, res))
             extra = (f"; live: {res['live_published']} messages published, {res['live_dropped']} dropped, "
+                     f"publisher thread {res['live_thread_cpu_ms_per_s']:.2f} ms CPU/s, "
                      f"{res['client_frames']} received" if live else "")
-            print(f"  {'with live   ' if live else 'without live'} run {r + 1}: {res['status']}, lateness p50 "
+            status = res["status"] + (f" ({res['reason']})" if res["reason"] else "")
+            print(f"  {'with live   ' if live else 'without live'} run {r + 1}: {status}, session process CPU "
+                  f"{res['session_cpu_ms_per_s']:.0f} ms/s, loop lateness p50 "
                   f"{res['late_p50_us']:.1f} p99 {res['late_p99_us']:.1f} p99.9 {res['late_p999_us']:.1f} max "
                   f"{res['late_max_us']:.1f} µs, {res['late_over_1000us']} cycles > 1 ms late, {res['skipped']} "
                   f"skipped, load {res['loadavg_before'][0]:.2f} -> {res['loadavg_after'][0]:.2f}{extra}",
@@ -167,7 +175,8 @@ def main_live(a) -> int:
         sel = [res for lv, res in rows if lv == live]
         print(f"  {'with live   ' if live else 'without live'} median of runs: p99 "
               f"{sorted(x['late_p99_us'] for x in sel)[len(sel) // 2]:.1f} µs, max "
-              f"{sorted(x['late_max_us'] for x in sel)[len(sel) // 2]:.1f} µs, > 1 ms late "
+              f"{sorted(x['late_max_us'] for x in sel)[len(sel) // 2]:.1f} µs, session CPU "
+              f"{sorted(x['session_cpu_ms_per_s'] for x in sel)[len(sel) // 2]:.0f} ms/s, > 1 ms late "
               f"{sum(x['late_over_1000us'] for x in sel)} in all")
     return 0
 

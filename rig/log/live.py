@@ -120,6 +120,14 @@ class LiveView:
 
     # -- the publisher thread ------------------------------------------------------------------------
     def _run(self) -> None:
+        try:
+            self._loop()
+        finally:
+            self.cpu_s = time.thread_time()  # CPU the publisher thread used (encoding + handing to the server)
+
+    cpu_s = 0.0
+
+    def _loop(self) -> None:
         q = self._q
         while True:
             try:
@@ -159,7 +167,7 @@ class LiveView:
             self.published[topic] += 1
 
     # -- end -----------------------------------------------------------------------------------------
-    def close(self, linger_s: float = 0.3) -> None:
+    def close(self, linger_s: float = 1.0) -> None:
         """Publish what is queued (at most ~2 s), give the clients ``linger_s`` to receive it, stop the server."""
         if self.closed:
             return
