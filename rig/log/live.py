@@ -126,6 +126,8 @@ class LiveView:
             self.cpu_s = time.thread_time()  # CPU the publisher thread used (encoding + handing to the server)
 
     cpu_s = 0.0
+    #: the publisher thread looks at the queue this often (s): the 25 Hz rate; the listener takes no lock to wake it
+    POLL_S = 0.04
 
     def _loop(self) -> None:
         q = self._q
@@ -135,7 +137,7 @@ class LiveView:
             except IndexError:
                 if self._stop.is_set():
                     return
-                time.sleep(0.01)
+                time.sleep(self.POLL_S)
                 continue
             try:
                 self._publish(t0, kind, payload)
