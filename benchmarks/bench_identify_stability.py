@@ -9,7 +9,8 @@ import sys
 import time
 
 from rig.analysis import stability as S
-from rig.friction import FrictionModel, TABLE2
+from rig.model.spec import FrictionModel
+from rig.model.paper import TABLE2
 
 
 def main():

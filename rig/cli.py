@@ -5,7 +5,7 @@ stay independent: ``rig.commands.trial`` (run), ``rig.commands.logs`` (info,
 export, import, recover),
 ``rig.commands.analysis`` (identify, stribeck, stability, reproduce),
 ``rig.commands.diagnose`` (diagnose), ``rig.commands.hardware`` (devices,
-loop-bench). A module that is missing is simply not registered.
+loop-bench), ``rig.commands.catalog`` (catalog build, catalog query). A module that is missing is simply not registered.
 """
 
 from __future__ import annotations
@@ -34,6 +34,7 @@ COMMAND_MODULES = (
     "rig.commands.analysis",
     "rig.commands.diagnose",
     "rig.commands.hardware",
+    "rig.commands.catalog",
 )
 
 

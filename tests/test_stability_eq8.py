@@ -11,7 +11,8 @@ from typer.testing import CliRunner
 
 from rig.analysis import stability as S
 from rig.cli import app
-from rig.friction import TABLE2, FrictionModel
+from rig.model.paper import TABLE2
+from rig.model.spec import FrictionModel
 
 
 def test_eq13_reproduces_table2_and_eq8_reduces_to_it():

@@ -38,7 +38,8 @@ import numpy as np
 
 from rig.analysis.identify import _r, identify_trials, k_cr_table2, mean_sem
 from rig.data import atomic_write_text
-from rig.friction import TABLE2, FrictionModel
+from rig.model.paper import TABLE2
+from rig.model.spec import FrictionModel
 
 SCHEMA = "rig.reproduce/1"
 PAPER_MIN_TRIALS = 8
@@ -74,9 +75,46 @@ def draw_trial_params(lubricant: str, n: int, rng: np.random.Generator, *, paraf
     return out
 
 
+def run_trial(task: dict) -> dict:
+    """Simulate and identify one trial; ``task`` holds plain values only (lubricant, k, params,
+    mu0, engine, seed, profile path, whole_record), so it runs the same in any process."""
+    lubricant, k, p, mu0, engine, seed = (task["lubricant"], task["k"], task["params"], task["mu0"],
+                                          task["engine"], task["seed"])
+    whole_record = task["whole_record"]
+    model = FrictionModel(params={"mu0": mu0, **p})
+    t0 = time.perf_counter()
+    if engine == "sim":
+        from rig.analysis.simrun import run_sim_trial, step_recipe
+        from rig.config.profile import default_profile_path, load_profile
+
+        prof = load_profile(task["profile"] or default_profile_path())
+        tr = run_sim_trial(step_recipe(lubricant, seed=seed, slip_before_um=max(120.0, 6.0 * p["L_um"])),
+                           model, profile=prof,
+                           seed=seed * 100003 + 1000 * list(TABLE2).index(lubricant) + k).trial
+    else:
+        from rig.sim import synth
+
+        tr = synth.generate(model, synth.paper_step_protocol(pre_um=max(300.0, 6 * p["L_um"]),
+                                                             back_um=max(300.0, 6 * p["L_um"])),
+                            seed=seed * 100003 + k, lubricant=lubricant).trial
+    t_sim = time.perf_counter() - t0
+    idn = identify_trials([tr], directions="up", whole_record=whole_record)
+    rep = idn.report
+    row = {"truth": {k_: _r(v) for k_, v in p.items()},
+           "recovered": {k_: rep["mean"][k_] for k_ in ("A_mu", "B_mu", "L_um")},
+           "n_steps": rep["n_steps"], "sim_s": round(t_sim, 2),
+           "steps": [{k_: s[k_] for k_ in ("v1_um_s", "v2_um_s", "A_mu", "B_mu", "L_um", "r2", "window_um")}
+                     for s in rep["steps"]]}
+    if whole_record:
+        w = rep["whole_record"]
+        row["whole_record"] = {k_: w["params"].get(k_) for k_ in ("A_mu", "B_mu", "L_um")}
+    return row
+
+
 def run_lubricant(lubricant: str, n_trials: int, *, seed: int = 0, profile=None, whole_record: bool = False,
-                  progress=None, engine: str = "sim") -> dict:
-    """Simulate and identify ``n_trials`` trials of one lubricant."""
+                  progress=None, engine: str = "sim", map_fn=None) -> dict:
+    """Simulate and identify ``n_trials`` trials of one lubricant. ``map_fn(fn, tasks)``
+    (e.g. :func:`rig.catalog.batch.mapper`) runs the trials elsewhere; default serial here."""
     from rig.analysis.simrun import SIM_AVAILABLE
 
     rng = np.random.default_rng([seed, list(TABLE2).index(lubricant)])
@@ -93,36 +131,18 @@ def run_lubricant(lubricant: str, n_trials: int, *, seed: int = 0, profile=None,
     elif engine == "sim":
         engine = "synth"
     pars = draw_trial_params(lubricant, n_trials, rng, kp_max_N_per_um=kp_max)
-    trials_out = []
-    for k, p in enumerate(pars):
-        model = FrictionModel(params={"mu0": mu0, **p})
-        t0 = time.perf_counter()
-        if engine == "sim":
-            from rig.analysis.simrun import run_sim_trial, step_recipe
-
-            tr = run_sim_trial(step_recipe(lubricant, seed=seed, slip_before_um=max(120.0, 6.0 * p["L_um"])),
-                               model, profile=prof,
-                               seed=seed * 100003 + 1000 * list(TABLE2).index(lubricant) + k).trial
-        else:
-            from rig.analysis import synth
-
-            tr = synth.generate(model, synth.paper_step_protocol(pre_um=max(300.0, 6 * p["L_um"]),
-                                                                 back_um=max(300.0, 6 * p["L_um"])),
-                                seed=seed * 100003 + k, lubricant=lubricant).trial
-        t_sim = time.perf_counter() - t0
-        idn = identify_trials([tr], directions="up", whole_record=whole_record)
-        rep = idn.report
-        row = {"truth": {k_: _r(v) for k_, v in p.items()},
-               "recovered": {k_: rep["mean"][k_] for k_ in ("A_mu", "B_mu", "L_um")},
-               "n_steps": rep["n_steps"], "sim_s": round(t_sim, 2),
-               "steps": [{k_: s[k_] for k_ in ("v1_um_s", "v2_um_s", "A_mu", "B_mu", "L_um", "r2", "window_um")}
-                         for s in rep["steps"]]}
-        if whole_record:
-            w = rep["whole_record"]
-            row["whole_record"] = {k_: w["params"].get(k_) for k_ in ("A_mu", "B_mu", "L_um")}
-        trials_out.append(row)
-        if progress:
-            progress()
+    # one task per trial, by value (rig.catalog.batch runs them on Dask; serial by default)
+    tasks = [{"lubricant": lubricant, "k": k, "params": p, "mu0": mu0, "engine": engine, "seed": seed,
+              "profile": str(profile) if profile is not None else None, "whole_record": whole_record}
+             for k, p in enumerate(pars)]
+    if map_fn is None:
+        trials_out = []
+        for t in tasks:
+            trials_out.append(run_trial(t))
+            if progress:
+                progress()
+    else:
+        trials_out = list(map_fn(run_trial, tasks))
     N = 100.0
     res = {"lubricant": lubricant, "n_trials": n_trials, "engine": engine, "mu0": mu0, "trials": trials_out,
            "n_trials_identified": sum(1 for t in trials_out if t["n_steps"] > 0)}
@@ -151,14 +171,14 @@ def run_lubricant(lubricant: str, n_trials: int, *, seed: int = 0, profile=None,
 
 
 def reproduce(n_trials: int = 8, *, seed: int = 0, lubricants=None, profile=None, whole_record: bool = False,
-              progress=None, engine: str = "sim") -> dict:
+              progress=None, engine: str = "sim", map_fn=None) -> dict:
     lubricants = list(lubricants or TABLE2)
     out = {"schema": SCHEMA, "n_trials": n_trials, "seed": seed,
            "per_trial_sd": "Table-2 sem x sqrt(8), normal truncated at 2 sd",
            "lubricants": {}}
     for lub in lubricants:
         out["lubricants"][lub] = run_lubricant(lub, n_trials, seed=seed, profile=profile, whole_record=whole_record,
-                                               progress=progress, engine=engine)
+                                               progress=progress, engine=engine, map_fn=map_fn)
     return out
 
 

@@ -24,14 +24,14 @@ stable. Any positive ``A + kv V0`` restores a finite k_cr, and because
 ``m V0^2 / L`` is tiny at µm/s (1e-6 N for 10 kg at 1 µm/s and L = 20 µm), even a
 minute one makes the mass term negligible: k_cr -> (B - A - kv V0)/L. The
 rig's derivative gain supplies ``kv V0``; the regularised law of
-:mod:`rig.friction` (a smooth sign of width ``v_reg`` when A = 0) supplies an
+:mod:`rig.model.friction` (a smooth sign of width ``v_reg`` when A = 0) supplies an
 effective ``A_eff = V0 dmu/dv = mu v_reg^2 / V0^2`` (about 1e-5 for paraffin).
 The check by simulation uses the law's own slope ``V0 dmu/dv`` at V0
 (:func:`effective_A_mu`), i.e. exactly the linearisation that eq. (8) assumes.
 
 The check by simulation (:func:`find_boundary`): closed-loop runs of the
 system of Fig. 1 (:func:`simulate_fig1`; mass, spring, dashpot, velocity source,
-friction from :mod:`rig.friction`), started with a small velocity perturbation
+friction from :mod:`rig.model.friction`), started with a small velocity perturbation
 at V0; the growth or decay of the velocity oscillation envelope classifies each
 kp; bisection finds the boundary. :func:`full_rig_boundary` does the same with
 the full simulated rig (:class:`rig.sim.SimRig`: PID, servovalve, actuator
@@ -46,8 +46,9 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from rig.friction import (FrictionModel, N_STATE, P_A, P_MU0, P_V0, P_VREG, advance_state, dmu_dv,
-                          init_state, k_cr_eq8, k_cr_eq13_N_per_um, mu_of, S_THETA, S_THETA2)
+from rig.model.spec import FrictionModel
+from rig.model.friction import N_STATE, P_A, P_MU0, P_V0, P_VREG, advance_state, dmu_dv, init_state, mu_of, S_THETA, S_THETA2
+from rig.model.paper import k_cr_eq8, k_cr_eq13_N_per_um
 
 DEFAULT_MASS_KG = 10.0
 DEFAULT_KD_N_S_PER_UM = 0.003
@@ -126,7 +127,7 @@ def _fin(x):
 @njit(cache=True)
 def _fig1_run(p, m_kg, kp, kv, two_n, v0, dt, n_steps, dv0, rec_every):
     """Mass m (kg), spring kp (N/µm), dashpot kv (N s/µm) to a velocity source V0 (µm/s);
-    friction 2 N mu (rig.friction). Implicit (Newton) in the new velocity, trapezoidal
+    friction 2 N mu (rig.model.friction). Implicit (Newton) in the new velocity, trapezoidal
     position, exact state update in slip at the mid-step velocity. Returns v samples."""
     s = np.zeros(3)
     init_state(p, s, v0)

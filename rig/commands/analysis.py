@@ -48,7 +48,8 @@ def _fmt(v, nd=4):
 
 
 def identify_cmd(
-    data: list[Path] = typer.Argument(..., help="One or more trial files (.csv or .mcap)."),
+    data: list[Path] = typer.Argument(..., help="One or more trial files (.csv or .mcap); a directory or a "
+                                                "glob runs a batch into the catalogue."),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the rig.identify/1 report here."),
     plot: Optional[Path] = typer.Option(None, "--plot", help="Write a PNG (friction after each step, fits, windows)."),
     events: bool = typer.Option(True, "--events/--no-events", help="Use the log's step events when present."),
@@ -61,8 +62,15 @@ def identify_cmd(
                                                   "file says its position is the load point)."),
     direction: str = typer.Option("both", "--direction", help="Steps to use: both | up | down."),
     min_ratio: float = typer.Option(1.25, "--min-ratio", help="Smallest velocity ratio counted as a step."),
+    jobs: Optional[int] = typer.Option(None, "--jobs", help="Batch: N worker processes (default: all cores)."),
+    scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Batch: an existing Dask cluster, "
+                                                                      "tcp://HOST:PORT."),
+    db: Optional[Path] = typer.Option(None, "--db", help="Batch: the catalogue (default DIR/catalog.duckdb)."),
 ):
-    """Identify A, B, L by the paper's velocity-step method (eqs. 10-14) and a whole-record fit."""
+    """Identify A, B, L by the paper's velocity-step method (eqs. 10-14) and a whole-record fit.
+
+    With a directory or a glob (or --jobs/--scheduler/--db), each file is identified on its
+    own, in parallel, and the results go into the catalogue (docs/catalog.md)."""
     from rig.analysis.identify import identify_trials, write_json
 
     if direction not in ("both", "up", "down"):
@@ -71,6 +79,16 @@ def identify_cmd(
         _fail(f"--velocity must be paper or local_poly (got {velocity!r})")
     if whole_velocity not in ("segments", "paper", "local_poly"):
         _fail(f"--whole-velocity must be segments, paper or local_poly (got {whole_velocity!r})")
+    from rig.commands.catalog import identify_summary, is_batch, run_batch
+
+    if is_batch([str(p) for p in data], jobs, scheduler, db):
+        if json_out or plot:
+            _fail("--json and --plot are for single runs; a batch writes its results into the catalogue")
+        run_batch("identify", [str(p) for p in data],
+                  {"use_events": events, "velocity_method": velocity, "whole_record": whole,
+                   "whole_velocity": whole_velocity, "stiffness": stiffness, "directions": direction,
+                   "min_ratio": min_ratio}, jobs=jobs, scheduler=scheduler, db=db, summarize=identify_summary)
+        return
     trials = _load(data)
     try:
         idn = identify_trials(trials, use_events=events, velocity_method=velocity, whole_record=whole,
@@ -168,11 +186,16 @@ def stability_cmd(
                                                             "rig (PD: ki = 0)."),
     plot: Optional[Path] = typer.Option(None, "--plot", help="Write the stability map PNG."),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the report as JSON."),
+    jobs: Optional[int] = typer.Option(None, "--jobs", help="With --simulate: checks on N worker processes "
+                                                            "(Dask; default: all cores; 1: serially)."),
+    scheduler: Optional[str] = typer.Option(None, "--scheduler", help="With --simulate: an existing Dask "
+                                                                      "cluster, tcp://HOST:PORT."),
 ):
     """Critical stiffness by eqs. (8) and (13), PD gain advice, and the check by simulation."""
     from rig.analysis import stability as S
     from rig.data import atomic_write_text
-    from rig.friction import TABLE2, FrictionModel
+    from rig.model.paper import TABLE2
+    from rig.model.spec import FrictionModel
 
     if lubricant and params:
         _fail("give --lubricant or --params, not both")
@@ -233,20 +256,36 @@ def stability_cmd(
                   "(one interface). With A + kv V0 = 0 eq. (8) has no finite k_cr.[/dim]")
     checks = []
     if simulate:
+        # every check is one task on the batch engine (rig.catalog.batch), inputs by value
+        from rig.catalog.batch import BatchError, mapper
+        from rig.catalog.tasks import stability_check
+
+        if jobs is not None and jobs < 1:
+            _fail(f"--jobs must be at least 1 (got {jobs})")
+        if full_rig and prof is None:
+            _fail("--full-rig needs the simulated rig (rig.sim) and a profile")
+        tasks = []
         for nm, p in sets.items():
-            model = FrictionModel(params={"mu0": 0.12, **p})
-            c = S.check_lubricant(nm, mass_kg=mass, kd_N_s_per_um=kd, normal_force_N=N, V0_um_s=v0, model=model)
+            tasks.append({"kind": "fig1", "name": nm, "params": p, "mass_kg": mass, "kd_N_s_per_um": kd,
+                          "normal_force_N": N, "V0_um_s": v0})
+            if full_rig and nm in prof.lubricants:
+                tasks.append({"kind": "full_rig", "name": nm, "profile": str(ppath), "V0_um_s": v0})
+        try:
+            with err_console.status("simulating..."), mapper(jobs, scheduler) as map_fn:
+                done = {(t["kind"], t["name"]): r for t, r in zip(tasks, map_fn(stability_check, tasks))}
+        except BatchError as exc:
+            _fail(str(exc), 1)
+        for nm, p in sets.items():
+            c = done[("fig1", nm)]
             checks.append(c)
             console.print(f"{nm}: Fig. 1 simulation boundary {_fmt(c['k_sim_N_per_um'] * 1e3 if c['k_sim_N_per_um'] else None)}"
                           f" kN/m vs eq. (8) {_fmt(c['k_cr_eq8_N_per_um'] * 1e3)} kN/m (A_eff = {_fmt(c['A_eff_mu'], 3)}): "
                           f"{_fmt(100 * c['rel_diff'] if c['rel_diff'] is not None else None, 3)} %")
             if full_rig:
-                if prof is None:
-                    _fail("--full-rig needs the simulated rig (rig.sim) and a profile")
                 if nm not in prof.lubricants:
                     console.print(f"{nm}: not a lubricant of the profile; full-rig check skipped")
                     continue
-                f = S.full_rig_boundary(nm, profile=ppath, V0_um_s=v0)
+                f = done[("full_rig", nm)]
                 checks.append(f)
                 console.print(f"{nm}: full simulated rig (PD, ki = 0) boundary "
                               f"{_fmt(f['k_sim_N_per_um'] * 1e3 if f['k_sim_N_per_um'] else None)} kN/m vs eq. (8) "
@@ -277,12 +316,16 @@ def reproduce_cmd(
     engine: str = typer.Option("sim", "--engine", help="sim (full simulated rig) | synth (kinematic generator)."),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the rig.reproduce/1 report here."),
     plot: Optional[Path] = typer.Option(None, "--plot", help="Write a PNG (paper vs recovered vs truth)."),
+    jobs: Optional[int] = typer.Option(None, "--jobs", help="Trials on N worker processes (Dask; default: all "
+                                                            "cores; 1: serially in this process)."),
+    scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Run the trials on an existing Dask "
+                                                                      "cluster, tcp://HOST:PORT."),
 ):
     """Simulated trials in the paper's protocol, identified: our Table 2 beside the paper's."""
     from rich.progress import BarColumn, Progress, TimeElapsedColumn, TimeRemainingColumn
 
     from rig.analysis.reproduce import plot_reproduce, reproduce, write_json
-    from rig.friction import TABLE2
+    from rig.model.paper import TABLE2
 
     lubs = list(lubricant) if lubricant else list(TABLE2)
     for nm in lubs:
@@ -292,11 +335,19 @@ def reproduce_cmd(
         _fail(f"--engine must be sim or synth (got {engine!r})")
     if profile is not None and not profile.exists():
         _fail(f"{profile}: no such profile")
+    from rig.catalog.batch import BatchError, mapper
+
+    if jobs is not None and jobs < 1:
+        _fail(f"--jobs must be at least 1 (got {jobs})")
     with Progress("[progress.description]{task.description}", BarColumn(), "{task.completed}/{task.total} trials",
                   TimeElapsedColumn(), TimeRemainingColumn(), console=console) as prog:
         task = prog.add_task("simulating and identifying", total=trials * len(lubs))
-        rep = reproduce(trials, seed=seed, lubricants=lubs, profile=profile, whole_record=whole,
-                        progress=lambda: prog.advance(task), engine=engine)
+        try:
+            with mapper(jobs, scheduler, progress=lambda: prog.advance(task)) as map_fn:
+                rep = reproduce(trials, seed=seed, lubricants=lubs, profile=profile, whole_record=whole,
+                                engine=engine, map_fn=map_fn)
+        except BatchError as exc:
+            _fail(str(exc), 1)
     table = Table(title=f"Table 2, paper vs {trials} simulated trials per lubricant (mean ± s.e. of the mean)")
     table.add_column("parameter")
     for lub in lubs:

@@ -16,15 +16,23 @@ import typer
 def register(app: typer.Typer) -> None:
     @app.command("diagnose")
     def diagnose_cmd(
-        data: Path = typer.Argument(..., help="Measured trial: .csv (measured-data.md) or .mcap rig log."),
+        data: Path = typer.Argument(..., help="Measured trial: .csv (measured-data.md) or .mcap rig log; a "
+                                              "directory or a glob runs a batch into the catalogue."),
         baseline: str = typer.Option("rate_state", "--baseline", help="rate_state (default) or steady_state."),
         json_out: Optional[Path] = typer.Option(None, "--json", help="Write the JSON report (rig.diagnosis/1)."),
         plot: Optional[Path] = typer.Option(None, "--plot", help="Write the diagnosis figure (PNG)."),
         model_out: Optional[Path] = typer.Option(None, "--model-out",
                                                  help="Write the extended friction model (YAML) for "
                                                       "`rig run --sim --friction-model`."),
+        jobs: Optional[int] = typer.Option(None, "--jobs", help="Batch: N worker processes (default: all cores)."),
+        scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Batch: an existing Dask cluster, "
+                                                                          "tcp://HOST:PORT."),
+        db: Optional[Path] = typer.Option(None, "--db", help="Batch: the catalogue (default DIR/catalog.duckdb)."),
     ):
-        """Fit the friction model, find and name what it misses, extend it, measure the gain on hold-out data."""
+        """Fit the friction model, find and name what it misses, extend it, measure the gain on hold-out data.
+
+        With a directory or a glob (or --jobs/--scheduler/--db), each file is diagnosed on its own,
+        in parallel, and the results go into the catalogue (docs/catalog.md)."""
         from rich.console import Console
 
         from rig.data import DataFormatError, atomic_write_text
@@ -34,6 +42,16 @@ def register(app: typer.Typer) -> None:
         if baseline not in ("rate_state", "steady_state"):
             err.print(f"[red]error:[/red] --baseline must be rate_state or steady_state, not {baseline!r}")
             raise typer.Exit(2)
+        from rig.commands.catalog import diagnose_summary, is_batch, run_batch
+
+        if is_batch([str(data)], jobs, scheduler, db):
+            if json_out or plot or model_out:
+                err.print("[red]error:[/red] --json, --plot and --model-out are for single runs; a batch writes "
+                          "its results into the catalogue")
+                raise typer.Exit(2)
+            run_batch("diagnose", [str(data)], {"baseline": baseline}, jobs=jobs, scheduler=scheduler, db=db,
+                      summarize=diagnose_summary)
+            return
         try:
             trial = load_trial(data)
         except DataFormatError as exc:

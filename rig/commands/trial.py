@@ -217,7 +217,7 @@ def run_command(
               f"(it has: {', '.join(profile.lubricants)})")
     fm = None
     if friction_model is not None:
-        from rig.friction import FrictionModel
+        from rig.model.spec import FrictionModel
         try:
             fm = FrictionModel.from_yaml(friction_model)
         except FileNotFoundError:

@@ -15,7 +15,7 @@ Sections (docs/sim.md, docs/hardware.md):
   divided by ``actuator.full_scale_force_N``, saturated at ±1. Dither at 500 Hz,
   0.1 % of the PID output (section 3).
 * ``servovalve``, ``actuator``, ``fixture``, ``normal``, ``sensors``, ``stroke``: the
-  plant (simulated by :mod:`rig.plant`, documented in docs/sim.md).
+  plant (simulated by :mod:`rig.sim.plant`, documented in docs/sim.md).
 * ``lubricants``: per-lubricant friction parameters, Table 2 means for A, B, L; the paper
   gives no ``mu0``, so the values here are assumptions.
 * ``sim``: numerical settings of the simulated rig.
@@ -34,7 +34,7 @@ from pydantic import Field, model_validator
 
 from drivers.config import HardwareConfig
 from rig.config.loader import ConfigError, StrictModel, field_error, read_yaml, validate
-from rig.friction import FrictionModel
+from rig.model.spec import FrictionModel
 from trajectories import DEFAULT_MAX_SPEED_UM_S, RigLimits
 
 
