@@ -1,12 +1,19 @@
 """Benchmark of the 1 kHz loop against the emulated rig (not a timed test).
 
     python benchmarks/bench_loop.py [--seconds 60] [--json out/bench_loop.json]
+    python benchmarks/bench_loop.py --live [--seconds 30] [--repeats 2]
 
 Same as ``rig loop-bench``: starts the emulators of config/rigs/emulated.yaml,
 runs the loop holding position for the given time and prints LinuxCNC-style
 figures: jitter = max(max_period - T, T - min_period), lateness p50/p99/p99.9/max,
 cycles more than 100 µs / 500 µs / 1 ms late, skipped cycles, and the load.
 Target on the shared 2-core machine: p99 lateness < 100 µs, no cycle > 1 ms late.
+
+``--live``: the same loop logging to an MCAP, alternately without and with a
+``rig run --live`` view (rig.log.live.LiveView) attached to the log writer and
+a WebSocket client subscribed to every channel and reading it (in a thread of
+the session's process: the worst place for it), ``--repeats`` times each;
+prints the loop's lateness figures of each run and the live view's counts.
 """
 
 from __future__ import annotations
@@ -54,6 +61,126 @@ def bare_sleeper(seconds: float, fifo: bool = True) -> dict:
             "late_over_1000us": int((late > 1000).sum()), "fifo": fifo}
 
 
+def _drain_client(url: str, stop) -> dict:
+    """Subscribe to every advertised channel and read until ``stop`` is set; count message frames."""
+    import asyncio
+    import json
+
+    from websockets.asyncio.client import connect
+
+    counts = {"frames": 0}
+
+    async def run():
+        async with connect(url, subprotocols=["foxglove.sdk.v1", "foxglove.websocket.v1"], max_size=None) as ws:
+            while not stop.is_set():
+                try:
+                    frame = await asyncio.wait_for(ws.recv(), 0.2)
+                except asyncio.TimeoutError:
+                    continue
+                if isinstance(frame, str):
+                    op = json.loads(frame)
+                    if op["op"] == "advertise":
+                        subs = [{"id": ch["id"], "channelId": ch["id"]} for ch in op["channels"]]
+                        await ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
+                else:
+                    counts["frames"] += 1
+
+    asyncio.run(run())
+    return counts
+
+
+def live_bench(seconds: float, profile_path: Path, live: bool) -> dict:
+    """The loop holding position for ``seconds`` (emulated rig), logged to an MCAP, with or without a live view."""
+    import os
+    import tempfile
+    import threading
+    import time
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from drivers.config import hardware_of_profile
+    from rig.config.profile import load_profile
+    from rig.log import TrialLogWriter
+    from rig.session import run_trial
+    from rig.session.hardware import HardwareBackend
+
+    profile = load_profile(profile_path)
+    hw = hardware_of_profile(profile)
+    rate = float(profile.loop.rate_hz)
+    x = np.full(int(round(seconds * rate)), float(profile.stroke.home_um))
+    plan = SimpleNamespace(x_ref_um=x, loop_rate_hz=rate, duration_s=(x.size - 1) / rate, n_ticks=x.size, events=[])
+    emu = None
+    if hw.emulators.autostart:
+        from rig.hardware.emulated import start_emulator_process
+
+        emu = start_emulator_process(hw, profile, lubricant="boundary")
+    view = client = None
+    stop = threading.Event()
+    got: dict = {}
+    load_before = os.getloadavg()
+    with tempfile.TemporaryDirectory() as tmp:
+        writer = TrialLogWriter(Path(tmp) / "bench.mcap", loop_rate_hz=rate)
+        try:
+            if live:
+                from rig.log.live import LiveView
+
+                view = LiveView("127.0.0.1", 0)
+                view.attach(writer)
+                client = threading.Thread(target=lambda: got.update(_drain_client(view.url, stop)), daemon=True)
+                client.start()
+                t_end = time.monotonic() + 30
+                while not view._chan["/log25"].has_sinks() and time.monotonic() < t_end:
+                    time.sleep(0.05)
+            cpu0, wall0 = time.process_time(), time.monotonic()
+            result = run_trial(plan, HardwareBackend(hw, profile, emulator=emu), writer, handle_signals=False)
+            cpu_s, wall_s = time.process_time() - cpu0, time.monotonic() - wall0
+        finally:
+            if emu is not None:
+                emu.stop()
+            stop.set()
+            if client is not None:
+                client.join(5)
+            if view is not None:
+                view.close(linger_s=0)
+    res = dict(result.summary["timing"])
+    res.update(status=result.status, reason=result.reason if result.status != "completed" else "",
+               loadavg_before=load_before, loadavg_after=os.getloadavg(),
+               session_cpu_ms_per_s=1e3 * cpu_s / wall_s)  # the CLI/session process, all its threads
+    if view is not None:
+        res.update(live_published=sum(view.published.values()), live_dropped=view.dropped,
+                   live_thread_cpu_ms_per_s=1e3 * view.cpu_s / wall_s,
+                   client_frames=got.get("frames", 0))
+    return res
+
+
+def main_live(a) -> int:
+    print(f"loop-bench with and without a live view: {a.repeats} x {a.seconds:g} s each, alternating")
+    rows = []
+    for r in range(a.repeats):
+        for live in (False, True):
+            res = live_bench(a.seconds, a.profile, live)
+            rows.append((live, res))
+            extra = (f"; live: {res['live_published']} messages published, {res['live_dropped']} dropped, "
+                     f"publisher thread {res['live_thread_cpu_ms_per_s']:.2f} ms CPU/s, "
+                     f"{res['client_frames']} received" if live else "")
+            status = res["status"] + (f" ({res['reason']})" if res["reason"] else "")
+            print(f"  {'with live   ' if live else 'without live'} run {r + 1}: {status}, session process CPU "
+                  f"{res['session_cpu_ms_per_s']:.0f} ms/s, loop lateness p50 "
+                  f"{res['late_p50_us']:.1f} p99 {res['late_p99_us']:.1f} p99.9 {res['late_p999_us']:.1f} max "
+                  f"{res['late_max_us']:.1f} µs, {res['late_over_1000us']} cycles > 1 ms late, {res['skipped']} "
+                  f"skipped, load {res['loadavg_before'][0]:.2f} -> {res['loadavg_after'][0]:.2f}{extra}",
+                  flush=True)
+    for live in (False, True):
+        sel = [res for lv, res in rows if lv == live]
+        print(f"  {'with live   ' if live else 'without live'} median of runs: p99 "
+              f"{sorted(x['late_p99_us'] for x in sel)[len(sel) // 2]:.1f} µs, max "
+              f"{sorted(x['late_max_us'] for x in sel)[len(sel) // 2]:.1f} µs, session CPU "
+              f"{sorted(x['session_cpu_ms_per_s'] for x in sel)[len(sel) // 2]:.0f} ms/s, > 1 ms late "
+              f"{sum(x['late_over_1000us'] for x in sel)} in all")
+    return 0
+
+
 def main(argv=None) -> int:
     sys.path.insert(0, str(REPO))
     from rig.commands.hardware import loop_bench
@@ -65,7 +192,12 @@ def main(argv=None) -> int:
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--baseline", action="store_true",
                     help="First run a bare SCHED_FIFO sleeper for the same time (what the machine allows).")
+    ap.add_argument("--live", action="store_true",
+                    help="Compare the loop logging to an MCAP without and with a live view and a subscribed client.")
+    ap.add_argument("--repeats", type=int, default=2, help="--live: runs of each kind (alternating).")
     a = ap.parse_args(argv)
+    if a.live:
+        return main_live(a)
     if a.baseline:
         b = bare_sleeper(a.seconds)
         print("bare 1 kHz sleeper (machine baseline): " + ", ".join(

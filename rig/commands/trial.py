@@ -164,6 +164,17 @@ def run_command(
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
     plan_only: bool = typer.Option(False, "--plan-only", help="Validate and compile the plan, print its "
                                                               "segment table, run nothing."),
+    live: bool = typer.Option(False, "--live", help="Serve the running trial to Foxglove (Open connection -> "
+                                                    "Foxglove WebSocket -> ws://127.0.0.1:8765): /log25, /events, "
+                                                    "/loop_stats, as in the MCAP (rig.log.live)."),
+    live_port: int = typer.Option(8765, "--live-port", min=0, max=65535, metavar="N",
+                                  help="Port of the --live WebSocket server (0: any free port)."),
+    live_host: str = typer.Option("127.0.0.1", "--live-host", metavar="HOST",
+                                  help="Address the --live server binds to (0.0.0.0: every interface; the "
+                                       "view has no authentication)."),
+    pace: Optional[float] = typer.Option(None, "--pace", metavar="X",
+                                         help="--sim: trial seconds per wall second (1 = real time, 10 = 10x, "
+                                              "0 = as fast as possible). Default: 1 with --live, else 0."),
 ):
     """Run a trial recipe on the simulated (--sim) or real (--hardware PROFILE) rig; log it to MCAP.
 
@@ -179,6 +190,12 @@ def run_command(
 
     if sim == (hardware is not None) and not plan_only:
         _fail("choose exactly one of --sim or --hardware PROFILE")
+    if pace is not None and not (pace >= 0 and pace < float("inf")):
+        _fail(f"--pace {pace:g}: expected a number >= 0 (1 = real time, 0 = as fast as possible)")
+    if hardware is not None and pace not in (None, 1.0):
+        _fail(f"--pace {pace:g}: the hardware runs in real time (--pace is for --sim)")
+    if pace is None:
+        pace = 1.0 if live else 0.0
     try:
         recipe = load_recipe(recipe_path)
     except RecipeError as exc:
@@ -230,6 +247,18 @@ def run_command(
     if out.suffix.lower() != ".mcap":
         _fail(f"--out {out}: the trial log is an MCAP file (use a .mcap name)")
     paths = _trial_paths(out, recipe.trials)
+    view = None
+    if live:
+        from rig.log.live import LiveView, LiveViewError
+
+        try:
+            view = LiveView(live_host, live_port, name=f"rig run {recipe.name}")
+        except LiveViewError as exc:
+            _fail(f"--live: {exc}", EXIT_FAILURE)
+        pace_txt = "" if hardware is not None else (f", pace {pace:g}x" if pace > 0 else ", unpaced")
+        err_console.print(f"live view: {view.url} (Foxglove: Open connection -> Foxglove WebSocket; "
+                          f"layout config/foxglove/rig-trial.json{pace_txt})", highlight=False, markup=False)
+        _close_at_exit(view)
     base_seed = recipe.seed if seed is None else seed
     git_commit = git_describe()
     block_ticks = max(1, int(round(recipe.log.block_s * plan.loop_rate_hz)))
@@ -248,13 +277,14 @@ def run_command(
                                       normal_force_N=recipe.normal_force_N, seed=trial_seed)
         else:
             backend = SimBackend(profile, fm if fm is not None else profile.friction_model(recipe.lubricant),
-                                 recipe.normal_force_N, trial_seed, block_ticks=block_ticks)
+                                 recipe.normal_force_N, trial_seed, block_ticks=block_ticks, pace=pace)
         title = f"trial {k + 1}/{len(paths)} " if len(paths) > 1 else ""
         try:
             with TrialProgress(plan, title=title, enabled=not quiet) as prog:
                 result = run_to_log(path, plan, recipe, profile, backend, meta, progress=prog,
                                     echo=lambda text: err_console.print(text, highlight=False, markup=False),
-                                    trial_fields={"normal_force_N": recipe.normal_force_N, "seed": trial_seed})
+                                    trial_fields={"normal_force_N": recipe.normal_force_N, "seed": trial_seed},
+                                    on_open=view.attach if view is not None else None)
         except OSError as exc:
             _fail(f"cannot write {path}: {exc.strerror or exc}", EXIT_FAILURE)
         if result.close_error:
@@ -268,6 +298,25 @@ def run_command(
             raise typer.Exit(EXIT_INTERRUPTED)
         if result.status == "failed":
             raise typer.Exit(EXIT_FAILURE)
+
+
+def _close_at_exit(view) -> None:
+    """Stop the live view when the command ends, however it ends (normally, typer.Exit, an error)."""
+    import click
+
+    def close() -> None:
+        view.close()
+        if view.dropped:
+            err_console.print(f"live view: {view.dropped} updates dropped (the publisher fell behind; the log "
+                              f"has everything)", highlight=False, markup=False)
+
+    ctx = click.get_current_context(silent=True)
+    if ctx is not None:
+        ctx.call_on_close(close)
+    else:  # called as a function, outside the CLI
+        import atexit
+
+        atexit.register(close)
 
 
 def register(app: typer.Typer) -> None:

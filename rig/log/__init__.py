@@ -15,6 +15,9 @@ Channels (layout and codecs: :mod:`rig.log.schemas`):
     (``config/foxglove/rig-trial.json``).
 ``/events`` (``rig.Event``), ``/loop_stats`` (``rig.LoopStats``), JSON.
 
+The same JSON channels are served live, while a trial runs, over the Foxglove
+WebSocket protocol by :mod:`rig.log.live` (``rig run --live``).
+
 ``log_time`` = wall-clock ns since the Unix epoch (trial start + ``t_s``);
 ``t_s`` stays a field. Metadata records: ``trial`` (recipe, lubricant,
 normal_force_N, seed, software_version, rates, ``start_time_ns``), ``recipe``,

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import subprocess
 from pathlib import Path
+from typing import Any, Callable
 
 from rig.session.core import Backend, TrialResult, run_trial
 
@@ -30,9 +31,15 @@ def open_log(path: Path, plan, recipe, profile, metadata: dict):
                           raw_encoding=recipe.log.raw_encoding, raw_dtype=recipe.log.raw_dtype)
 
 
-def run_to_log(path: Path, plan, recipe, profile, backend: Backend, metadata: dict, **session_kw) -> TrialResult:
-    """Open the log (OSError if it cannot be written), run the session on ``backend``, close the log."""
+def run_to_log(path: Path, plan, recipe, profile, backend: Backend, metadata: dict, *,
+               on_open: Callable[[Any], Any] | None = None, **session_kw) -> TrialResult:
+    """Open the log (OSError if it cannot be written), run the session on ``backend``, close the log.
+
+    ``on_open(writer)``: called once the log is open, before the trial starts (``rig run --live``
+    attaches its :class:`rig.log.live.LiveView` there)."""
     writer = open_log(path, plan, recipe, profile, metadata)
+    if on_open is not None:
+        on_open(writer)
     fields = {"recipe": recipe.name, "lubricant": recipe.lubricant}
     fields.update(session_kw.pop("trial_fields", {}))
     return run_trial(plan, backend, writer, trial_fields=fields, **session_kw)

@@ -10,6 +10,9 @@ and returns the blocks and the logged events (the 25 Hz
 
 from __future__ import annotations
 
+import math
+import time
+
 from rig.session.core import Block, Ending, TrialResult, run_trial
 from rig.session.memory import MemoryLog
 from rig.sim import SimRig
@@ -20,12 +23,28 @@ class SimBackend:
 
     ``block_ticks``: ticks per block sent to the log (``rig run``: the recipe's
     ``log.block_s`` at the loop rate).
+
+    ``pace``: trial seconds per wall-clock second (``rig run --pace``, so a
+    person can watch a simulated trial with ``--live``): 1 = real time, 10 = ten
+    times faster, 0 = as fast as the machine goes (default). A block is handed
+    over when the wall clock reaches its end's trial time / pace (counted from
+    :meth:`start`), as the hardware loop hands over a block once it has
+    happened; a paced run hands over blocks of at most ``PACED_BLOCK_WALL_S``
+    of wall time (0.1 s, ten updates a second for a live view). The simulated
+    data do not depend on the pace or the block size. A machine too slow for
+    the pace just runs behind it.
     """
+
+    PACED_BLOCK_WALL_S = 0.1
 
     name = "sim"
 
     def __init__(self, profile, friction_model, normal_force_N: float | None = None, seed: int = 0,
-                 block_ticks: int = 1000):
+                 block_ticks: int = 1000, pace: float = 0.0):
+        pace = float(pace)
+        if not (math.isfinite(pace) and pace >= 0.0):
+            raise ValueError(f"pace must be a finite number >= 0 (0 = as fast as possible), not {pace!r}")
+        self.pace = pace
         self.rig = SimRig(profile, friction_model, normal_force_N, seed)
         self.seed = seed
         self.block_ticks = max(1, int(block_ticks))
@@ -34,10 +53,28 @@ class SimBackend:
         self._ended = False
 
     def describe(self) -> dict:
-        return {"normal_force_N": self.rig.normal_force_N, "seed": self.seed}
+        d = {"normal_force_N": self.rig.normal_force_N, "seed": self.seed}
+        if self.pace > 0:
+            d["pace"] = self.pace
+        return d
 
     def start(self, plan) -> None:
-        self._blocks = self.rig.run_blocks(plan.x_ref_um, block_ticks=self.block_ticks)
+        rate = float(plan.loop_rate_hz)
+        self._dt_s = 1.0 / rate
+        ticks = self.block_ticks
+        if self.pace > 0:
+            ticks = min(ticks, max(1, int(round(self.PACED_BLOCK_WALL_S * self.pace * rate))))
+        self._blocks = self.rig.run_blocks(plan.x_ref_um, block_ticks=ticks)
+        self._wall0 = time.monotonic()
+
+    def _wait_for(self, t_end_s: float) -> None:
+        """Sleep until the wall clock reaches trial time ``t_end_s`` at the pace (from :meth:`start`)."""
+        due = self._wall0 + t_end_s / self.pace
+        while self._stop is None:
+            left = due - time.monotonic()
+            if left <= 0:
+                return
+            time.sleep(min(left, 0.05))
 
     def receive(self) -> Block | None:
         if self._stop is not None or self._ended:
@@ -46,6 +83,10 @@ class SimBackend:
         if blk is None:
             self._ended = True
             return None
+        if self.pace > 0:
+            t = blk["t_s"]
+            if t.size:
+                self._wait_for(float(t[-1]) + self._dt_s)
         return Block(blk)
 
     def request_stop(self, reason: str, insist: bool = False) -> None:
