@@ -89,7 +89,7 @@ def write_json(doc: Any, dest: Path | str, *, what: str = "report") -> None:
     """Write ``doc`` as JSON to ``dest`` (atomically, 0644) or, when ``dest`` is '-', to stdout.
 
     A file that cannot be written is exit 1 with the path named."""
-    text = json.dumps(doc, indent=2, allow_nan=False, default=_json_default) + "\n"
+    text = json.dumps(_finite(doc), indent=2, allow_nan=False, default=_json_default) + "\n"
     if str(dest) == "-":
         sys.stdout.write(text)
         sys.stdout.flush()
@@ -101,6 +101,28 @@ def write_json(doc: Any, dest: Path | str, *, what: str = "report") -> None:
     except OSError as exc:
         fail(f"cannot write {dest}: {exc.strerror or exc}", EXIT_FAILED)
     console.print(f"wrote {dest}", markup=False)
+
+
+def _finite(obj: Any) -> Any:
+    """NaN and infinities as null: valid JSON for every reader (json.dumps would write NaN)."""
+    if isinstance(obj, float):
+        return obj if obj == obj and obj not in (float("inf"), float("-inf")) else None
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite(v) for v in obj]
+    try:
+        import numpy as np
+
+        if isinstance(obj, np.floating):
+            return _finite(float(obj))
+        if isinstance(obj, np.ndarray):
+            return _finite(obj.tolist())
+        if isinstance(obj, np.generic):
+            return obj.item()
+    except ImportError:  # pragma: no cover
+        pass
+    return obj
 
 
 def _json_default(obj: Any) -> Any:
