@@ -170,8 +170,7 @@ def import_command(
     from rig.data import DataFormatError, read_csv
     from rig.log import write_trial_data
 
-    if out.suffix.lower() != ".mcap":
-        _fail(f"--out {out}: the trial log is an MCAP file (use a .mcap name)")
+    check_output_path(out, "--out", (".mcap",))
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
@@ -203,6 +202,9 @@ def recover_command(
     from rig.data import DataFormatError
     from rig.log import recover
 
+    check_output_path(out, "--out", (".mcap",))
+    if out.exists() and path.exists() and out.resolve() == path.resolve():
+        _fail(f"--out {out}: the same file as the damaged log (write the readable one beside it)")
     try:
         res = recover(path, out)
     except (DataFormatError, ValueError) as exc:
