@@ -166,7 +166,13 @@ _SEQ = "tag:yaml.org,2002:seq"
 
 
 def _compose(text: str, path: str, error: type[ConfigError]) -> tuple[yaml.Node | None, _Loader]:
-    loader = _Loader(text)
+    try:
+        loader = _Loader(text)
+    except yaml.reader.ReaderError as exc:  # a control character: the reader checks the text first
+        line = text[:max(0, exc.position)].count("\n") + 1
+        code = ord(exc.character) if isinstance(exc.character, str) else int(exc.character)
+        raise error(path, f"character U+{code:04X} is not allowed in YAML (a control character; is this a "
+                          "text file?)", line=line) from None
     try:
         return loader.get_single_node(), loader
     except _TooDeep as exc:
