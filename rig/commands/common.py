@@ -224,7 +224,11 @@ def tidy_help(cmd) -> None:
             p.display_type_rich = _no_type
             continue
         desc = getattr(p, "type_descriptor", None)
-        if desc is None or desc.is_choice:
+        if desc is None:
+            continue
+        if desc.is_choice:
+            if desc.is_list and p.metavar is None:  # a repeatable choice: the choices, not list[...]
+                p.metavar = "<" + "|".join(str(getattr(c, "value", c)) for c in desc.choices or ()) + ">"
             continue
         if p.param_type_name == "argument":
             if p.metavar is None:

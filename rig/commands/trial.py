@@ -291,6 +291,10 @@ def run_command(
         fail(f"{recipe_path}: {exc}")
     if plan_only:
         typer.echo(plan.summary())
+        est = estimate_log(plan, recipe, hardware is not None)
+        typer.echo(f"estimate: about {est['log_bytes'] * recipe.trials / 1e6:,.1f} MB of log for "
+                   f"{recipe.trials} trial(s) of {_human_s(est['duration_s'])}"
+                   + ("" if hardware is not None else f"; about {_human_s(est['wall_s'])} each on the simulated rig"))
         return
     if hardware is not None:
         from drivers.config import HardwareConfigError, hardware_of_profile
