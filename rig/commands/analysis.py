@@ -109,7 +109,8 @@ def identify_cmd(
                               whole_velocity=whole_velocity, stiffness=stiffness, directions=direction,
                               min_ratio=min_ratio, names=[str(p) for p in data])
     except ValueError as exc:
-        _fail(str(exc))
+        msg = str(exc)
+        _fail(msg if any(str(p) in msg for p in data) else f"{', '.join(map(str, data))}: {msg}")
     rep = idn.report
     if not rep["steps"]:
         _fail(f"{', '.join(map(str, data))}: no velocity steps found (ratio >= {min_ratio:g})")
@@ -169,7 +170,11 @@ def stribeck_cmd(
         _fail(f"--window-um must be positive (got {window_um:g})")
     _outputs(json=json_out, plot=plot)
     trials = _load(data)
-    rep = stribeck(trials, use_events=events, window_um=window_um, names=[str(p) for p in data])
+    try:
+        rep = stribeck(trials, use_events=events, window_um=window_um, names=[str(p) for p in data])
+    except ValueError as exc:
+        msg = str(exc)
+        _fail(msg if any(str(p) in msg for p in data) else f"{', '.join(map(str, data))}: {msg}")
     if not rep["levels"]:
         _fail(f"{', '.join(map(str, data))}: no velocity levels found")
     table = Table(title=f"steady-state friction (last {window_um:g} µm of each level)")
@@ -342,8 +347,13 @@ def reproduce_cmd(
     for nm in lubs:
         if nm not in TABLE2:
             _fail(f"unknown lubricant {nm!r}; known: {', '.join(TABLE2)}")
-    if profile is not None and not profile.exists():
-        _fail(f"{profile}: no such profile")
+    if profile is not None:
+        from rig.config.profile import ProfileError, load_profile
+
+        try:
+            load_profile(profile)
+        except ProfileError as exc:
+            _fail(str(exc))
     with Progress("[progress.description]{task.description}", BarColumn(), "{task.completed}/{task.total} trials",
                   TimeElapsedColumn(), TimeRemainingColumn(), console=console) as prog:
         task = prog.add_task("simulating and identifying", total=trials * len(lubs))

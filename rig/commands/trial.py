@@ -162,6 +162,8 @@ def estimate_log(plan, recipe, hardware: bool) -> dict:
 
 
 def _human_s(t: float) -> str:
+    if t < 1:
+        return "under 1 s"
     if t < 120:
         return f"{t:.0f} s"
     if t < 7200:

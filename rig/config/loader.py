@@ -399,7 +399,8 @@ def validate(model: type[M], doc: YamlDoc, *, root: Loc = (), error: type[Config
 
 
 #: top-level keys that say what kind of configuration file a mapping is
-_KINDS = (("a recipe", {"segments"}), ("a rig profile", {"actuator", "controller", "stroke", "servovalve"}))
+_KINDS = (("a recipe", {"segments"}), ("a rig profile", {"actuator", "controller", "stroke", "servovalve"}),
+          ("a friction model", {"friction_model", "baseline", "extensions"}))
 
 
 def kind_of(data: Any, but: set[str] = frozenset()) -> str | None:
@@ -411,6 +412,13 @@ def kind_of(data: Any, but: set[str] = frozenset()) -> str | None:
         if (keys - set(but)) & set(data):
             return name
     return None
+
+
+def expect_kind(doc: YamlDoc, model: type, what: str, error: type[ConfigError] = ConfigError) -> None:
+    """One clear error when ``doc`` is plainly another kind of file (a recipe given as a profile, ...)."""
+    other = kind_of(doc.data, but=set(getattr(model, "model_fields", {})))
+    if other is not None and other != what:
+        raise error(doc.path, f"this is {other}, not {what}", line=1)
 
 
 def load_model_yaml(path: str | os.PathLike, model: type[M], *, key: str | None = None,
@@ -435,4 +443,4 @@ def load_model_yaml(path: str | os.PathLike, model: type[M], *, key: str | None 
 
 
 __all__ = ["ConfigError", "StrictModel", "Location", "YamlDoc", "read_yaml", "parse_yaml", "validate",
-           "load_model_yaml", "kind_of", "field_error", "fmt_loc", "parse_loc", "MAX_DEPTH", "MAX_NODES"]
+           "load_model_yaml", "kind_of", "expect_kind", "field_error", "fmt_loc", "parse_loc", "MAX_DEPTH", "MAX_NODES"]
