@@ -55,6 +55,9 @@ CASES = [
      "this is a recipe, not a friction model"),
     ("run", lambda f: ["run", str(SMOKE), "--sim", "-o", str(f["dir"])], EXIT_BAD_INPUT, "is a directory"),
     ("run", lambda f: ["run", str(SMOKE), "--plan-only"], EXIT_OK, "ticks at"),
+    ("run", lambda f: ["run", str(SIM), "--sim", "--plan-only"], EXIT_BAD_INPUT, "this is a rig profile, not a recipe"),
+    ("run", lambda f: ["run", str(SMOKE), "--hardware", str(SMOKE)], EXIT_BAD_INPUT,
+     "this is a recipe, not a rig profile"),
     ("run", lambda f: ["run", str(SMOKE), "--sim", "-q", "-o", "/proc/rig-cannot-write/x.mcap"], EXIT_FAILED,
      "cannot write"),
     ("info", lambda f: ["info", str(f["dir"])], EXIT_BAD_INPUT, "is a directory"),
@@ -76,6 +79,8 @@ CASES = [
     ("stability", lambda f: ["stability", "--v0", "-1"], EXIT_BAD_INPUT, "--v0"),
     ("stability", lambda f: ["stability", "--params", str(f["bad_json"])], EXIT_BAD_INPUT, "id.json, line 1"),
     ("stability", lambda f: ["stability", "--lubricant", "dry"], EXIT_OK, "k_cr"),
+    ("stability", lambda f: ["stability", "--profile", str(SMOKE)], EXIT_BAD_INPUT, "smoke.yaml, line 1: this is a "
+                                                                                    "recipe"),
     ("reproduce", lambda f: ["reproduce", "--lubricant", "oil"], EXIT_BAD_INPUT, "--lubricant"),
     ("reproduce", lambda f: ["reproduce", "--trials", "1"], EXIT_BAD_INPUT, "--trials"),
     ("diagnose", lambda f: ["diagnose", str(f["png"])], EXIT_BAD_INPUT, "fig.png"),

@@ -51,7 +51,7 @@ def _con(json_out) -> Console:
 
 def _outputs(**paths) -> None:
     """Output paths checked before the work (a directory, a wrong suffix: exit 2 at once)."""
-    suffix = {"plot": (".png", ".pdf", ".svg"), "json": ()}
+    suffix = {"plot": (".png",), "json": ()}  # the plots are PNG (rig.analysis.plots.save)
     for name, p in paths.items():
         if p is not None:
             check_output_path(p, f"--{name}", suffix.get(name, ()))

@@ -38,7 +38,7 @@ def register(app: typer.Typer) -> None:
         from rig.data import DataFormatError
         from rig.log import load_trial
 
-        for opt, p, sfx in (("--json", json_out, ()), ("--plot", plot, (".png", ".pdf", ".svg")),
+        for opt, p, sfx in (("--json", json_out, ()), ("--plot", plot, (".png",)),
                             ("--model-out", model_out, (".yaml", ".yml"))):
             if p is not None:
                 check_output_path(p, opt, sfx)
