@@ -32,6 +32,8 @@ def files(tmp_path_factory) -> dict[str, Path]:
     good_csv = d / "good.csv"
     good_csv.write_text("# rig-trial-csv: 1\n# normal_force_N: 100\ntime_s,position_um,friction_N\n"
                         + "".join(f"{0.04 * i:.2f},{0.04 * i:.2f},10\n" for i in range(20)))
+    one_csv = d / "one.csv"
+    one_csv.write_text("# rig-trial-csv: 1\n# normal_force_N: 100\ntime_s,position_um,friction_N\n0,0,10\n")
     bad_csv = d / "bad.csv"
     bad_csv.write_text("# rig-trial-csv: 1\ntime_s,position_um,friction_N\n0,1,2\n0.04,abc,2\n")
     png = d / "fig.png"
@@ -43,7 +45,7 @@ def files(tmp_path_factory) -> dict[str, Path]:
     bad_json = d / "id.json"
     bad_json.write_text("{not json")
     return {"good_csv": good_csv, "bad_csv": bad_csv, "png": png, "mcap": mcap, "dir": d, "bad_json": bad_json,
-            "missing": d / "missing.csv"}
+            "missing": d / "missing.csv", "one_csv": one_csv}
 
 
 # (command words, args from the files, expected exit, what the error must name)
@@ -75,6 +77,7 @@ CASES = [
     ("identify", lambda f: ["identify", str(f["good_csv"]), "--direction", "sideways"], EXIT_BAD_INPUT,
      "--direction"),
     ("identify", lambda f: ["identify", str(f["bad_csv"])], EXIT_BAD_INPUT, "bad.csv, line 4"),
+    ("identify", lambda f: ["identify", str(f["one_csv"])], EXIT_BAD_INPUT, "one.csv: 1 sample(s): too few"),
     ("stribeck", lambda f: ["stribeck", str(f["png"])], EXIT_BAD_INPUT, "fig.png"),
     ("stability", lambda f: ["stability", "--v0", "-1"], EXIT_BAD_INPUT, "--v0"),
     ("stability", lambda f: ["stability", "--params", str(f["bad_json"])], EXIT_BAD_INPUT, "id.json, line 1"),

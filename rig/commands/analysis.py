@@ -44,6 +44,10 @@ class Engine(str, Enum):
     synth = "synth"
 
 
+#: fewer samples than this are no record to analyse (a 1-row file divided by zero in identify)
+MIN_SAMPLES = 3
+
+
 def _con(json_out) -> Console:
     """Where the tables go: stdout, or stderr when ``--json -`` puts the JSON there."""
     return err_console if json_to_stdout(json_out) else console
@@ -67,6 +71,8 @@ def _load(paths: list[Path]):
             trials.append(load_trial(p))
         except DataFormatError as exc:
             _fail(str(exc))
+        if len(trials[-1]) < MIN_SAMPLES:
+            _fail(f"{p}: {len(trials[-1])} sample(s): too few to analyse (at least {MIN_SAMPLES})")
     return trials
 
 
