@@ -3,6 +3,7 @@
     python benchmarks/bench_diagnose.py speed        # 25 Hz and 1 kHz one-hour records
     python benchmarks/bench_diagnose.py clean N      # false-finding rate over N clean records
     python benchmarks/bench_diagnose.py accuracy N   # per cause: named and within 25 %, over N seeds
+    ... [NOISE_SCALE]: records' sensor noise in units of the profile's (2 = the paper's ± as 1 sigma)
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ import time
 import numpy as np
 
 from rig.diagnosis import diagnose
-from rig.diagnosis.synth import SynthSpec, make_record, random_effect
+from rig.sim.synth import SynthSpec, make_record, random_effect
 
 EFFECTS = ["second_state_variable", "aging_law", "sensor_lag", "finite_stiffness", "normal_force_variation",
            "slip_wear_drift", "force_offset_drift", "position_periodic", "time_delay"]
@@ -35,12 +36,14 @@ def clean(n):
     for seed in range(n):
         rate = (25.0, 100.0, 1000.0)[seed % 3]
         proto = ("paper", "varied")[seed % 2]
-        trial, _ = make_record(SynthSpec(rate_hz=rate, duration_s=600.0, seed=1000 + seed, protocol=proto,
+        trial, _ = make_record(SynthSpec(rate_hz=rate, duration_s=600.0, seed=1000 + seed, protocol=proto, noise_scale=NOISE,
                                          with_ref=bool(seed % 4 < 2)))
         rep = diagnose(trial).report()
         ff = [f["cause"] for f in rep["findings"]] + [u["follows"] for u in rep["unexplained"]]
         bad += bool(ff)
         print(f"clean seed {1000 + seed} {rate:g} Hz {proto}: {ff or 'nothing'}", flush=True)
+    import os
+    print(f"load average {os.getloadavg()[0]:.2f}, noise scale {NOISE:g}")
     print(f"false-finding rate: {bad}/{n} = {100.0 * bad / n:.1f} %")
 
 
@@ -54,7 +57,7 @@ def accuracy(n):
             base = "steady_state" if eff == "time_delay" else "rate_state"
             rate = (25.0, 100.0)[seed % 2] if eff not in ("sensor_lag", "finite_stiffness") else 100.0
             trial, truth = make_record(SynthSpec(rate_hz=rate, effects={eff: random_effect(eff, rng)},
-                                                 seed=500 + seed, duration_s=600.0, protocol="varied",
+                                                 seed=500 + seed, duration_s=600.0, protocol="varied", noise_scale=NOISE,
                                                  baseline=base, with_ref=bool(seed % 2)))
             rep = diagnose(trial, baseline=base).report()
             if rep["findings"] and rep["findings"][0]["cause"] == eff:
@@ -65,6 +68,9 @@ def accuracy(n):
                 ok += e <= 0.25
         print(f"{eff:24s} named {named}/{n}, within 25 %: {ok}/{n}, median worst-param error "
               f"{100 * np.median(errs) if errs else float('nan'):.1f} %", flush=True)
+
+
+NOISE = float(sys.argv[3]) if len(sys.argv) > 3 else 1.0
 
 
 if __name__ == "__main__":

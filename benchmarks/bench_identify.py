@@ -6,9 +6,9 @@ from __future__ import annotations
 
 import time
 
-from rig.analysis import synth
+from rig.sim import synth
 from rig.analysis.identify import identify_trials
-from rig.friction import FrictionModel
+from rig.model.spec import FrictionModel
 
 
 def timed(fn, repeat=3):

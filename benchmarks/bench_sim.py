@@ -18,7 +18,7 @@ import time
 
 import numpy as np
 
-from rig import plant as pl
+from rig.sim import plant as pl
 from rig.sim import SimRig
 
 

@@ -5,7 +5,8 @@ stay independent: ``rig.commands.trial`` (run), ``rig.commands.logs`` (info,
 export, import, recover),
 ``rig.commands.analysis`` (identify, stribeck, stability, reproduce),
 ``rig.commands.diagnose`` (diagnose), ``rig.commands.hardware`` (devices,
-emulate, loop-bench), ``rig.commands.warmup`` (warmup). A module that is
+emulate, loop-bench), ``rig.commands.catalog`` (catalog build, catalog query),
+``rig.commands.warmup`` (warmup). A module that is
 missing is simply not registered. The conventions (exit codes, ``-o/--out``,
 ``--json PATH``) and the safety net against tracebacks are in
 :mod:`rig.commands.common`.
@@ -41,6 +42,7 @@ COMMAND_MODULES = (
     "rig.commands.diagnose",
     "rig.commands.hardware",
     "rig.commands.warmup",
+    "rig.commands.catalog",
 )
 
 

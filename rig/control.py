@@ -12,7 +12,17 @@ Units: error in µm, PID output (force demand) in N, gains ``kp_N_per_um``,
     P_n = kp e_n
     I_n = ki dt sum_{k<n} e_k        (prior errors only; anti-windup below)
     D_n = kd (e_n - e_{n-1}) / dt    (backward difference; 0 at the first tick)
-    u_n = clamp(bias + P_n + I_n + D_n, ±output_max_N)
+    F_n = ff1 v_ref,n                (velocity feed-forward, LinuxCNC's FF1; optional)
+    u_n = clamp(bias + P_n + I_n + D_n + F_n, ±output_max_N)
+
+with v_ref,n the planner's reference velocity: given explicitly
+(:func:`controller_step_v`, ``Controller.step(..., v_ref_um_s=...)``) or, as LinuxCNC
+does without a ``command-deriv`` input, the backward difference of the reference
+(x_ref,n - x_ref,n-1)/dt (exact for the planner's piecewise-linear/ramped reference;
+0 at the first tick). ``ff1_N_s_per_um`` is the force per unit reference velocity: for
+this valve-controlled actuator the natural value is the leakage slope k_h tau_L (the
+valve opening that keeps the actuator moving at v_ref), plus whatever linear share of
+the friction's rate dependence one wants to pre-empt; 0 (the default) turns it off.
 
 in the order of LinuxCNC's ``pid.c``: error; integral (the prior error e_{n-1} is added
 only if the output was not saturated in the direction of that error at the previous
@@ -53,7 +63,8 @@ C_DFREQ = 9    # dither frequency (Hz)
 C_DFRAC = 10   # dither amplitude fraction
 C_DMODE = 11   # 0: fraction of low-passed |PID output|; 1: fraction of full scale
 C_DALPHA = 12  # exp(-dt / dither_smoothing_s)
-N_CPAR = 13
+C_FF1 = 13     # velocity feed-forward gain (N s/µm)
+N_CPAR = 14
 
 # controller state vector
 K_SUM = 0      # sum of prior errors times dt (µm s)
@@ -62,14 +73,15 @@ K_SAT = 2      # saturation sign of the previous output (-1, 0, +1)
 K_FIRST = 3    # 1.0 until the first step
 K_AMP = 4      # low-passed |PID output| (N)
 K_N = 5        # tick counter
-N_CSTATE = 6
+K_PREV_REF = 6  # previous reference (µm), for the FF1 backward difference
+N_CSTATE = 7
 
 
 def make_controller_params(kp_N_per_um: float, ki_N_per_um_s: float, kd_N_s_per_um: float, dt_s: float,
                            integral_max_N: float = 500.0, output_max_N: float = 1e4, error_max_um: float = 1e9,
                            bias_N: float = 0.0, full_scale_force_N: float = 1e4, dither_frequency_hz: float = 500.0,
                            dither_amplitude_fraction: float = 0.001, dither_reference: str = "pid_output",
-                           dither_smoothing_s: float = 0.05) -> np.ndarray:
+                           dither_smoothing_s: float = 0.05, ff1_N_s_per_um: float = 0.0) -> np.ndarray:
     """Pack controller parameters (physical units) for :func:`controller_step`."""
     c = np.zeros(N_CPAR)
     c[C_KP] = kp_N_per_um
@@ -87,6 +99,9 @@ def make_controller_params(kp_N_per_um: float, ki_N_per_um_s: float, kd_N_s_per_
         raise ValueError(f"dither_reference must be 'pid_output' or 'full_scale', not {dither_reference!r}")
     c[C_DMODE] = 0.0 if dither_reference == "pid_output" else 1.0
     c[C_DALPHA] = math.exp(-dt_s / dither_smoothing_s) if dither_smoothing_s > 0 else 0.0
+    if not (math.isfinite(ff1_N_s_per_um) and ff1_N_s_per_um >= 0):
+        raise ValueError(f"ff1_N_s_per_um must be a finite number >= 0, not {ff1_N_s_per_um!r}")
+    c[C_FF1] = ff1_N_s_per_um
     return c
 
 
@@ -96,7 +111,8 @@ def controller_params_from_profile(profile) -> np.ndarray:
     return make_controller_params(
         c.kp_N_per_um, c.ki_N_per_um_s, c.kd_N_s_per_um, profile.dt_s, c.integral_max_N, profile.output_max_N,
         c.error_max_um, c.bias_N, profile.actuator.full_scale_force_N, c.dither_frequency_hz,
-        c.dither_amplitude_fraction, c.dither_reference, c.dither_smoothing_s)
+        c.dither_amplitude_fraction, c.dither_reference, c.dither_smoothing_s,
+        getattr(c, "ff1_N_s_per_um", 0.0))
 
 
 def new_controller_state() -> np.ndarray:
@@ -106,9 +122,14 @@ def new_controller_state() -> np.ndarray:
 
 
 @njit(cache=True)
-def pid_step(c, s, x_ref_um, x_meas_um):
-    """One PID tick (LinuxCNC order). Returns (output_N, p_N, i_N, d_N); updates ``s``."""
+def pid_step(c, s, x_ref_um, x_meas_um, v_ref_um_s=math.nan):
+    """One PID tick (LinuxCNC order) with FF1. Returns (output_N, p_N, i_N, d_N); updates
+    ``s``. ``v_ref_um_s`` NaN: the backward difference of the reference."""
     dt = c[C_DT]
+    first = s[K_FIRST] > 0.5
+    if v_ref_um_s != v_ref_um_s:
+        v_ref_um_s = 0.0 if first else (x_ref_um - s[K_PREV_REF]) / dt
+    s[K_PREV_REF] = x_ref_um
     e = x_ref_um - x_meas_um
     emax = c[C_EMAX]
     if e > emax:
@@ -133,7 +154,7 @@ def pid_step(c, s, x_ref_um, x_meas_um):
     p = c[C_KP] * e
     i = c[C_KI] * s[K_SUM]
     d = c[C_KD] * (e - s[K_PREV_E]) / dt
-    out = c[C_BIAS] + p + i + d
+    out = c[C_BIAS] + p + i + d + c[C_FF1] * v_ref_um_s
     omax = c[C_OMAX]
     if out > omax:
         out = omax
@@ -168,8 +189,16 @@ def dither_step(c, s, pid_out_N):
 
 @njit(cache=True)
 def controller_step(c, s, x_ref_um, x_meas_um):
-    """PID + dither -> valve command. Returns (valve_cmd, p_N, i_N, d_N, dither_N)."""
-    out, p, i, d = pid_step(c, s, x_ref_um, x_meas_um)
+    """PID (+ FF1 on the reference's backward difference) + dither -> valve command.
+    Returns (valve_cmd, p_N, i_N, d_N, dither_N)."""
+    return controller_step_v(c, s, x_ref_um, x_meas_um, math.nan)
+
+
+@njit(cache=True)
+def controller_step_v(c, s, x_ref_um, x_meas_um, v_ref_um_s):
+    """:func:`controller_step` with the planner's reference velocity given (µm/s; NaN:
+    backward difference of the reference)."""
+    out, p, i, d = pid_step(c, s, x_ref_um, x_meas_um, v_ref_um_s)
     dz = dither_step(c, s, out)
     v = (out + dz) / c[C_FFS]
     if v > 1.0:
@@ -184,9 +213,10 @@ class PID:
 
     def __init__(self, kp_N_per_um: float, ki_N_per_um_s: float, kd_N_s_per_um: float, dt_s: float = 1e-3,
                  integral_max_N: float = 500.0, output_max_N: float = 1e4, error_max_um: float = 1e9,
-                 bias_N: float = 0.0):
+                 bias_N: float = 0.0, ff1_N_s_per_um: float = 0.0):
         self.params = make_controller_params(kp_N_per_um, ki_N_per_um_s, kd_N_s_per_um, dt_s, integral_max_N,
-                                             output_max_N, error_max_um, bias_N, dither_amplitude_fraction=0.0)
+                                             output_max_N, error_max_um, bias_N, dither_amplitude_fraction=0.0,
+                                             ff1_N_s_per_um=ff1_N_s_per_um)
         self.state = new_controller_state()
 
     def reset(self) -> None:
@@ -196,9 +226,12 @@ class PID:
     def saturated(self) -> bool:
         return self.state[K_SAT] != 0.0
 
-    def step(self, x_ref_um: float, x_meas_um: float) -> tuple[float, float, float, float]:
-        """Returns (output_N, p_N, i_N, d_N)."""
-        return pid_step(self.params, self.state, float(x_ref_um), float(x_meas_um))
+    def step(self, x_ref_um: float, x_meas_um: float, v_ref_um_s: float | None = None
+             ) -> tuple[float, float, float, float]:
+        """Returns (output_N, p_N, i_N, d_N). ``v_ref_um_s``: the planner's reference
+        velocity for FF1 (None: backward difference of the reference)."""
+        return pid_step(self.params, self.state, float(x_ref_um), float(x_meas_um),
+                        math.nan if v_ref_um_s is None else float(v_ref_um_s))
 
 
 class Controller:
@@ -219,7 +252,10 @@ class Controller:
     def saturated(self) -> bool:
         return self.state[K_SAT] != 0.0
 
-    def step(self, x_ref_um: float, x_meas_um: float) -> dict:
-        """One tick: {'valve_cmd', 'pid_p', 'pid_i', 'pid_d', 'dither'} (forces in N)."""
-        v, p, i, d, dz = controller_step(self.params, self.state, float(x_ref_um), float(x_meas_um))
+    def step(self, x_ref_um: float, x_meas_um: float, v_ref_um_s: float | None = None) -> dict:
+        """One tick: {'valve_cmd', 'pid_p', 'pid_i', 'pid_d', 'dither'} (forces in N).
+        ``v_ref_um_s``: the planner's reference velocity for FF1 (None: backward
+        difference of the reference)."""
+        v, p, i, d, dz = controller_step_v(self.params, self.state, float(x_ref_um), float(x_meas_um),
+                                           math.nan if v_ref_um_s is None else float(v_ref_um_s))
         return {"valve_cmd": v, "pid_p": p, "pid_i": i, "pid_d": d, "dither": dz}

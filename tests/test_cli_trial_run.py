@@ -100,7 +100,7 @@ def test_run_numbered_trials_and_overrides(short_steps, tmp_path):
 
 
 def test_friction_model_option(short_steps, tmp_path):
-    from rig.friction import FrictionModel
+    from rig.model.spec import FrictionModel
 
     fm = tmp_path / "model.yaml"
     FrictionModel(params={"mu0": 0.3, "A_mu": 1e-3, "B_mu": 4e-3, "L_um": 19.2}).to_yaml(fm)

@@ -23,7 +23,8 @@ from conftest import REPO  # noqa: E402
 runner = CliRunner()
 SMOKE = REPO / "config" / "recipes" / "smoke.yaml"
 COMMANDS = [["run"], ["info"], ["export"], ["import"], ["recover"], ["identify"], ["stribeck"], ["stability"],
-            ["reproduce"], ["diagnose"], ["devices", "check"], ["emulate"], ["loop-bench"], ["warmup"]]
+            ["reproduce"], ["diagnose"], ["devices", "check"], ["emulate"], ["loop-bench"], ["warmup"],
+            ["catalog", "build"], ["catalog", "query"]]
 
 
 @pytest.mark.parametrize("cmd", COMMANDS, ids=[" ".join(c) for c in COMMANDS])

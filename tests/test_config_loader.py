@@ -38,7 +38,7 @@ def test_model_file_with_wrapper_key(tmp_path):
 
 def test_friction_model_file(tmp_path):
     """The real model class: what `rig diagnose --model-out` writes reads back, and a fault is placed."""
-    from rig.friction import FrictionModel
+    from rig.model.spec import FrictionModel
 
     m = FrictionModel(extensions=["position_periodic"], params={"mu0": 0.1, "A_mu": 0.001, "B_mu": 0.004,
                                                                 "L_um": 19.2, "wavelength_um": 50.0})

@@ -123,3 +123,32 @@ def test_controller_wrapper_matches_kernel():
         d = ctl.step(e, 0.0)
         ref = controller_step(c, s, e, 0.0)
         assert (d["valve_cmd"], d["pid_p"], d["pid_i"], d["pid_d"], d["dither"]) == ref
+
+
+def test_ff1_velocity_feed_forward_hand_computed():
+    """FF1 (LinuxCNC): ff1 x reference velocity, the backward difference of the reference
+    unless the planner's velocity is given; 0 at the first tick; off by default."""
+    pid = PID(0.0, 0.0, 0.0, dt_s=1e-3, ff1_N_s_per_um=0.05)
+    assert pid.step(100.0, 100.0)[0] == pytest.approx(0.0)          # first tick: no velocity yet
+    assert pid.step(100.002, 100.002)[0] == pytest.approx(0.05 * 2.0)  # 2 µm/s ramp
+    assert pid.step(100.004, 100.004, v_ref_um_s=10.0)[0] == pytest.approx(0.5)  # planner's velocity
+    off = PID(0.0, 0.0, 0.0, dt_s=1e-3)
+    off.step(100.0, 100.0)
+    assert off.step(100.002, 100.002)[0] == 0.0
+    with pytest.raises(ValueError, match="ff1"):
+        make_controller_params(1.0, 0.0, 0.0, 1e-3, ff1_N_s_per_um=-1.0)
+
+
+def test_ff1_from_the_profile_reaches_the_controller():
+    from rig.control import C_FF1, controller_params_from_profile
+    from rig.config.profile import default_profile_path, load_profile
+
+    prof = load_profile(default_profile_path())
+    assert controller_params_from_profile(prof)[C_FF1] == 0.0
+    prof = prof.model_copy(update={"controller": prof.controller.model_copy(update={"ff1_N_s_per_um": 0.05})})
+    assert controller_params_from_profile(prof)[C_FF1] == 0.05
+    c = Controller.from_profile(prof)
+    c.step(500.0, 500.0)
+    d = c.step(500.001, 500.001)
+    # valve = (bias + ff1 x 1 µm/s + dither) / full scale
+    assert d["valve_cmd"] * prof.actuator.full_scale_force_N == pytest.approx(0.05 + d["dither"], abs=1e-9)

@@ -9,8 +9,8 @@ from typer.testing import CliRunner
 
 from rig.cli import app
 from rig.data import write_csv
-from rig.diagnosis.synth import SynthSpec, make_record, random_effect
-from rig.friction import FrictionModel
+from rig.sim.synth import SynthSpec, make_record, random_effect
+from rig.model.spec import FrictionModel
 
 
 def test_cli_report_plot_model(tmp_path):

@@ -6,8 +6,8 @@ hides a catalogue effect (position-periodic friction along the test piece);
 recipe is replayed on the simulated rig with the diagnosed model and with the
 baseline alone (same seed, so the sensor noise is the same in all three runs).
 The diagnosed model's replay is closer to the data than the baseline's (measured:
-0.19 N RMS against 0.52 N; the replay keeps the friction law's extensions, not the
-rig's own compliance, see the comment in the test).
+see the printed figures; the replay includes everything the diagnosis found, the
+diagnosed stiffness in place of the rig's own fixture compliance).
 """
 
 from __future__ import annotations
@@ -15,12 +15,15 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 import yaml
 from typer.testing import CliRunner
 
 from rig.cli import app
 from rig.log import load_trial
-from rig.friction import FrictionModel
+from rig.model.spec import FrictionModel
+from rig.sim import SimRig
+from rig.sim import plant as pl
 
 RECIPE = """\
 name: closed-loop
@@ -71,26 +74,27 @@ def test_replay_with_diagnosed_model_is_closer(tmp_path):
     base.to_yaml(tmp_path / "base.yaml")
     assert yaml.safe_load(model.read_text())["friction_model"]["extensions"] == rep["model"]["extensions"]
 
-    # The simulated rig's profile already models its fixture and test-piece compliance; the
-    # diagnosis measures that compliance as finite_stiffness (k of several MN/m here), and the
-    # simulated rig would add it a second time (and its finite_stiffness, with an interface mass,
-    # replays this record worse: 1.15 N vs 0.19 N RMS when measured). So the replay uses the
-    # diagnosed friction model without the rig's own compliance -- reported to the sim's owner.
+    # The replay uses the diagnosed model as written: its finite_stiffness (the diagnosis
+    # measures the rig's LVDT-to-interface compliance) replaces the profile's fixture
+    # compliance in the simulated rig, and its periodic term acts at the interface's slip in
+    # both the simulation and the diagnosis (rig.model.loading).
     fm = FrictionModel.from_yaml(model)
-    if "finite_stiffness" in fm.extensions:
-        fm = FrictionModel(baseline=fm.baseline, extensions=[e for e in fm.extensions if e != "finite_stiffness"],
-                           params={k: v for k, v in fm.params.items() if k != "stiffness_kN_per_m"})
-        model = tmp_path / "diagnosed-for-sim.yaml"
-        fm.to_yaml(model)
+    assert "position_periodic" in fm.extensions
+    assert "finite_stiffness" in fm.extensions  # the rig's compliance is seen (several MN/m)
+    k = rep["model"]["params"]["stiffness_kN_per_m"] * 1e-3
+    assert fm.stiffness_N_per_um == pytest.approx(k, rel=1e-5)
+    q = SimRig(None, fm).q  # the replay's plant: the diagnosed compliance, not fixture + diagnosed
+    assert q[pl.Q_CLI] == pytest.approx(1.0 / k, rel=1e-5)
     rep_diag = _run(tmp_path, recipe, model, tmp_path / "replay-diag.mcap")
     rep_base = _run(tmp_path, recipe, tmp_path / "base.yaml", tmp_path / "replay-base.mcap")
     t = data.time_s
     xref = data.position_ref_um if data.position_ref_um is not None else data.position_um
-    k = 200  # velocity over 0.2 s
-    v = (np.interp(t + 0.1, t, xref) - np.interp(t - 0.1, t, xref)) / 0.2
-    sliding = v > 0.5
-    del k
-
+    # compared where the diagnosis describes the record: steady sliding after 3 L of slip from
+    # the start. The breakaway from the initial hold (the first ~60 um) is not diagnosed (the
+    # record's start is a nuisance, v_init_um_s), and the replays differ there most.
+    v = (np.interp(t + 0.1, t, xref) - np.interp(t - 0.1, t, xref)) / 0.2  # velocity over 0.2 s
+    slip = np.abs(xref - xref[0])
+    sliding = (v > 0.5) & (slip > 3.0 * 19.2)
     def rms(tr):
         f = np.interp(t, tr.time_s, tr.friction_N)
         return float(np.sqrt(np.mean((f - data.friction_N)[sliding] ** 2)))

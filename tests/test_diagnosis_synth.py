@@ -1,7 +1,7 @@
 """rig diagnose on synthetic records with exactly one hidden catalogue effect (and none, and two).
 
-Records come from rig.diagnosis.synth: velocity-step protocols, friction from
-rig/friction.py with the effect injected at a plausible size (random
+Records come from rig.sim.synth: velocity-step protocols, friction from
+rig/model (the forward model) with the effect injected at a plausible size (random
 parameters, fixed seeds), the rig's sensor noise (friction ±0.25 N, LVDT
 ±0.25 µm + 0.076 µm quantization, normals ±0.6 N), 25 Hz to 1 kHz, with and
 without position_ref_um. The diagnosis must name the effect, recover its
@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from rig.diagnosis import diagnose
-from rig.diagnosis.synth import SynthSpec, make_record, random_effect
+from rig.sim.synth import SynthSpec, make_record, random_effect
 
 # (effect, rate_hz, seed, with_ref, protocol)
 CASES = [

@@ -93,6 +93,9 @@ CASES = [
     ("loop-bench", lambda f: ["loop-bench", "--hardware", str(SIM)], EXIT_BAD_INPUT, "hardware"),
     ("loop-bench", lambda f: ["loop-bench", "--seconds", "-1"], EXIT_BAD_INPUT, "--seconds"),
     ("warmup", lambda f: ["warmup", "--no-such-option"], EXIT_BAD_INPUT, "--no-such-option"),
+    ("catalog build", lambda f: ["catalog", "build", str(f["dir"] / "nodir")], EXIT_BAD_INPUT, "no such directory"),
+    ("catalog query", lambda f: ["catalog", "query", "SELECT 1", "--db", str(f["dir"] / "none.duckdb")],
+     EXIT_BAD_INPUT, "no such catalogue"),
 ]
 
 

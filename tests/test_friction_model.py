@@ -1,4 +1,4 @@
-"""The shared friction model (rig/friction.py) against the paper's equations (5)-(8), (13)."""
+"""The friction law (rig/model/friction.py, rig/model/spec.py, rig/model/paper.py) against the paper's equations (5)-(8), (13)."""
 
 from __future__ import annotations
 
@@ -7,10 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from rig.friction import (
-    P_A, TABLE2, FrictionModel, S_THETA, advance_state, dmu_dv, init_state, k_cr_eq8,
-    k_cr_eq13_N_per_um, lowpass_uneven, mu_of, mu_regularized, mu_series,
-)
+from rig.model.friction import P_A, S_THETA, advance_state, dmu_dv, init_state, mu_of, mu_regularized, mu_series
+from rig.model.paper import TABLE2, k_cr_eq8, k_cr_eq13_N_per_um
+from rig.model.spec import FrictionModel
+from rig.model.sensors import lowpass_uneven
 
 
 def _step_record(v1, v2, slip1_um, slip2_um, dt=0.01):

@@ -8,7 +8,7 @@ import pytest
 from typer.testing import CliRunner
 
 from rig.cli import app
-from rig.friction import FrictionModel
+from rig.model.spec import FrictionModel
 
 
 def test_identify_mcap_uses_log_events(tmp_path):

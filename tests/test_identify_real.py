@@ -17,7 +17,7 @@ import pytest
 from typer.testing import CliRunner
 
 from rig.analysis.identify import fit_whole_record, identify_trials
-from rig.analysis.steps import detect_steps
+from rig.kinematics import detect_steps
 from rig.cli import app
 from rig.data import read_csv
 

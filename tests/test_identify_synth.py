@@ -9,12 +9,13 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from rig.analysis import synth
+from rig.sim import synth
 from rig.analysis.identify import SCHEMA, identify_trials, k_cr_table2
-from rig.analysis.steps import detect_steps
+from rig.kinematics import detect_steps
 from rig.cli import app
 from rig.data import write_csv
-from rig.friction import TABLE2, FrictionModel
+from rig.model.paper import TABLE2
+from rig.model.spec import FrictionModel
 
 BOUNDARY = FrictionModel.for_lubricant("boundary", 0.12)
 DRY = FrictionModel.for_lubricant("dry", 0.15)

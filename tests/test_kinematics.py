@@ -48,3 +48,14 @@ def test_cumulative_slip_is_the_integral_of_speed():
     s = cumulative_slip_um(t, v)
     assert abs(s[-1] - (2 * 5 + 3 * 5)) < 0.1
     assert np.all(np.diff(s) >= 0)
+
+
+def test_velocity_changes_finds_each_step_once():
+    from rig.kinematics import velocity_changes
+
+    t = np.arange(0.0, 60.0, 0.01)
+    v = np.where(t < 20.0, 1.0, np.where(t < 40.0, 10.0, 2.0))
+    te = velocity_changes(t, v)
+    assert te.size == 2
+    assert np.allclose(te, [20.0, 40.0], atol=1.0)
+    assert velocity_changes(t, np.full(t.size, 3.0)).size == 0

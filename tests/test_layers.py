@@ -59,9 +59,9 @@ def test_drivers_importing_rig_is_caught(copy):
 
 
 def test_lower_layer_importing_higher_is_caught(copy):
-    wrong = "rig.sim is not allowed to import rig.session"
+    wrong = "rig.model is not allowed to import rig.session"
     assert wrong not in _lint(copy, "rig-layers").stdout
-    target = copy / "rig" / "sim.py"
+    target = copy / "rig" / "model" / "friction.py"
     old = _append(target, "import rig.session.core  # a deliberately wrong import")
     try:
         r = _lint(copy, "rig-layers")

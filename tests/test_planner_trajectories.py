@@ -205,7 +205,7 @@ def test_short_run_up_is_refused_naming_the_segment():
 
 
 def test_default_run_up_is_six_L_of_the_model_in_use():
-    from rig.friction import FrictionModel
+    from rig.model.spec import FrictionModel
 
     prof = RigProfile()
     r = recipe(STEPS.format(before=""), "accel_um_s2: 20\n")

@@ -20,7 +20,11 @@ def rep():
 @pytest.mark.parametrize("lub", ["dry", "paraffin", "boundary"])
 def test_recovered_within_paper_sem_of_truth(rep, lub):
     r = rep["lubricants"][lub]
-    assert r["n_trials_identified"] == 8
+    # no draw is rejected: a draw the rig cannot slide steadily (flagged: fixture k_cr above
+    # half of kp) may stick-slip and not be identified; every other trial is
+    unflagged = [t for t in r["trials"] if not t["k_cr_over_half_kp"]]
+    assert all(t["n_steps"] > 0 for t in unflagged)
+    assert r["n_trials_identified"] >= len(unflagged) >= 6
     for k, c in r["checks"].items():
         assert c["ok"], (lub, k, c)
 
@@ -49,3 +53,34 @@ def test_cli_synth_engine(tmp_path):
     doc = json.loads(out.read_text())
     assert doc["schema"] == "rig.reproduce/1"
     assert "Table 2" in res.output and "boundary" in res.output
+
+
+def test_draws_keep_table2_means_without_rejection():
+    import math
+
+    import numpy as np
+
+    from rig.analysis.reproduce import PAPER_MIN_TRIALS, draw_trial_params
+    from rig.model.paper import TABLE2
+
+    rng = np.random.default_rng(7)
+    for lub in ("dry", "boundary"):
+        d = draw_trial_params(lub, 20000, rng, kp_max_N_per_um=0.5)
+        assert len(d) == 20000
+        for k in ("A_mu", "B_mu", "L_um"):
+            x = np.array([t[k] for t in d])
+            mean, sem = TABLE2[lub][k]
+            assert np.all(x > 0)
+            assert x.mean() == pytest.approx(mean, rel=0.01), (lub, k)
+            assert x.std() == pytest.approx(sem * math.sqrt(PAPER_MIN_TRIALS), rel=0.05), (lub, k)
+
+
+@pytest.mark.parametrize("lub", ["dry", "paraffin", "boundary"])
+def test_identification_bias_is_reported(rep, lub):
+    b = rep["lubricants"][lub]["bias"]
+    for k in ("A_mu", "B_mu", "L_um"):
+        assert set(b[k]) >= {"recovered_vs_true_rel", "recovered_vs_true_rel_sem", "vs_paper_z"}
+    # B and L are recovered within 5 % of the trials' own values (dry L: the last window
+    # still holds 2 % of the decay, docs/paper.md)
+    assert abs(b["B_mu"]["recovered_vs_true_rel"]) < 0.05
+    assert abs(b["L_um"]["recovered_vs_true_rel"]) < 0.06

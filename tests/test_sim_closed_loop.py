@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.optimize import curve_fit
 
-from rig.friction import k_cr_eq8
+from rig.model.paper import k_cr_eq8
 from rig.config.profile import load_profile
 from rig.sim import SimRig
 

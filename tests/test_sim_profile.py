@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rig.friction import TABLE2
+from rig.model.paper import TABLE2
 from rig.config.profile import ProfileError, RigProfile, load_profile
 from trajectories import RigLimits
 

@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from rig.analysis import synth
+from rig.sim import synth
 from rig.analysis.stribeck import stribeck
 from rig.cli import app
 from rig.data import write_csv
-from rig.friction import FrictionModel
+from rig.model.spec import FrictionModel
 
 PARAFFIN = FrictionModel(params={"mu0": 0.12, "A_mu": 2e-4, "B_mu": 0.0111, "L_um": 22.4})
 A_MINUS_B = 2e-4 - 0.0111

@@ -3,5 +3,5 @@ the Stribeck curve (eq. 7), stability (eqs. 8 and 13) and the Table-2 reproducti
 
 Modules: :mod:`rig.analysis.identify`, :mod:`rig.analysis.stribeck`,
 :mod:`rig.analysis.stability`, :mod:`rig.analysis.reproduce`, and
-:mod:`rig.analysis.synth` (a light kinematic record generator for tests).
+:mod:`rig.sim.synth` (the synthetic-record generator).
 """

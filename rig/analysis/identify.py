@@ -28,8 +28,9 @@ its standard error propagated to first order from those of A, B and L (which
 also reproduces Table 2's k_cr errors).
 
 Beyond the paper, :func:`fit_whole_record` fits the rate-and-state model to the
-whole record at once (all steps; state integrated in slip with
-:func:`rig.friction.mu_series`), optionally with a finite machine stiffness
+whole record at once (all steps; the forward model of :mod:`rig.model.forward`,
+parameters as :data:`rig.model.spec.PARAMS` declares them, fitted by :mod:`rig.fitting`, the
+same core diagnosis uses), optionally with a finite machine stiffness
 between the position sensor and the interface (needed for rock-mechanics
 records whose displacement is measured at the load point).
 """
@@ -42,35 +43,23 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from numba import njit
-from scipy.optimize import least_squares, minimize_scalar
+from scipy.optimize import minimize_scalar
 
-from rig.analysis.steps import Step, detect_steps, line_fit
+from rig.kinematics import Step, detect_steps, estimate_velocity, line_fit
 from rig.data import TrialData, atomic_write_text
 from rig.log import load_trial
-from rig.friction import (FrictionModel, P_A, P_B, P_L, P_MU0, V0_UM_S, k_cr_eq13_N_per_um, mu_series)
-from rig.kinematics import velocity_for_steps, velocity_local_poly, velocity_paper
+from rig.fitting import Param, ParamSet, least_squares_fit
+from rig.model.forward import predict_force
+from rig.model.friction import V0_UM_S
+from rig.model.paper import k_cr_eq13_N_per_um
+from rig.model.spec import PARAMS, FrictionModel
 
 SCHEMA = "rig.identify/1"
 WINDOW_STARTS_UM = (50.0, 100.0, 250.0)
 WINDOW_POINTS = 200
 LN9 = math.log(9.0)
-
-
-# ---------------------------------------------------------------------------
-# Velocity
-# ---------------------------------------------------------------------------
-def estimate_velocity(t_s: np.ndarray, x_um: np.ndarray, method: str = "local_poly") -> np.ndarray:
-    """Velocity from the LVDT: ``paper`` (10-point moving average + central difference,
-    section 4.2, Fig. 8) or ``local_poly`` (local linear fit over about 2 µm of slip at the
-    local speed; handles uneven sampling; much less noisy at µm/s)."""
-    if method == "paper":
-        return velocity_paper(t_s, x_um, 10)
-    if method == "local_poly":
-        return velocity_for_steps(t_s, x_um, slip_window_um=2.0, min_window_s=0.04, max_window_s=4.0)
-    if method == "local_poly_fixed":
-        return velocity_local_poly(t_s, x_um)
-    raise ValueError(f"unknown velocity method {method!r} (paper, local_poly)")
+# nuisance of the whole-record fit with ``trend``: a linear drift of mu
+TREND = Param("drift_mu_per_s", "1/s", -1.0, 1.0, scale=1e-5)
 
 
 # ---------------------------------------------------------------------------
@@ -283,68 +272,6 @@ def summarize(groups: list[list[StepResult]], N_N: float) -> tuple[dict, dict, s
 # ---------------------------------------------------------------------------
 # Whole-record fit (beyond the paper)
 # ---------------------------------------------------------------------------
-@njit(cache=True)
-def _stiff_substep(mu, th, psi, h, mu0, a, b, l_um, k, vl):
-    """One implicit sub-step of the spring-slider: trapezoidal rule for ``mu``, the exact
-    slip-law update for ``theta`` at the end-of-step velocity; a scalar Newton solve for
-    ``psi = ln(v/V0)`` at the end of the step (A-stable, so stiff springs cost nothing)."""
-    v_old = math.exp(psi)
-    p = psi
-    for _ in range(30):
-        v = math.exp(p)
-        e = math.exp(-v * h / l_um)
-        mu_n = mu + h * k * (vl - 0.5 * (v_old + v))
-        th_n = -b * p + (th + b * p) * e
-        f = a * p - (mu_n - mu0 - th_n)
-        # derivatives
-        dmu = -0.5 * h * k * v
-        dth = -b + b * e + (th + b * p) * e * (-v * h / l_um)
-        df = a - dmu + dth
-        step = f / df
-        if step > 2.0:
-            step = 2.0
-        elif step < -2.0:
-            step = -2.0
-        p -= step
-        if abs(step) < 1e-12:
-            break
-    v = math.exp(p)
-    e = math.exp(-v * h / l_um)
-    mu_n = mu + h * k * (vl - 0.5 * (v_old + v))
-    th_n = -b * p + (th + b * p) * e
-    return mu_n, th_n, p
-
-
-@njit(cache=True)
-def _mu_series_stiff(mu0, a, b, l_um, k_mu_per_um, t, v_lp, v_init):
-    """Rate-and-state with a spring between the load point (velocity ``v_lp``) and the
-    interface: ``dmu/dt = k (v_lp - v)``, ``v = V0 exp((mu - mu0 - theta)/A)`` (eq. 5 solved
-    for v), ``dtheta/ddelta = -(theta + B ln(v/V0))/L`` (eq. 6), starting at steady state
-    at ``v_init``. Implicit sub-steps of at most 0.25 L/v and 0.5 A/(k v)."""
-    n = t.shape[0]
-    out = np.empty(n)
-    psi = math.log(v_init)
-    th = -b * psi
-    mu = mu0 + (a - b) * psi
-    out[0] = mu
-    for i in range(1, n):
-        dt = t[i] - t[i - 1]
-        vl = v_lp[i - 1]
-        tleft = dt
-        while tleft > 1e-12:
-            vs = max(math.exp(psi), abs(vl), 1e-6)
-            h = min(0.25 * l_um / vs, 0.5 * a / (k_mu_per_um * vs))
-            h = max(h, dt / 50.0)
-            if h > tleft:
-                h = tleft
-            mu, th, psi = _stiff_substep(mu, th, psi, h, mu0, a, b, l_um, k_mu_per_um, vl)
-            if psi > 20.0:
-                psi = 20.0
-            tleft -= h
-        out[i] = mu
-    return out
-
-
 def _segment_velocity(t: np.ndarray, x: np.ndarray, steps: list[Step], fallback: np.ndarray | None = None,
                       skip_um: float = 0.0):
     """Velocity that is the line-fit slope on each step's constant-velocity stretches
@@ -392,10 +319,10 @@ def fit_whole_record(trial: TrialData, steps: list[Step] | None = None, *, stiff
     between the effective steps: an ideal step protocol, and free of the noise that an
     estimator passes into ``A ln v``, which biases A low as an errors-in-variables
     problem), ``local_poly`` or ``paper`` (the estimators); ``mu`` from
-    :func:`rig.friction.mu_series`.
+    the forward model (:func:`rig.model.forward.predict_force`), fitted with rig.fitting.
     With stiffness, the position is the load point, its velocity piecewise constant
     between the detected steps, and the interface velocity follows from the spring
-    (:func:`_mu_series_stiff`).
+    (the forward model's loading system, :func:`rig.model.loading.stiff_series`).
 
     ``k_fixed`` (friction units per µm) holds the stiffness at a known value.
 
@@ -434,23 +361,26 @@ def fit_whole_record(trial: TrialData, steps: list[Step] | None = None, *, stiff
     v_init = max(abs(float(np.median(v[: max(5, min(50, v.size // 20))]))), 0.01)
     t_rel = t - t[0]
 
-    names = ["mu0", "A_mu", "B_mu", "L_um"] + (["k_mu_per_um"] if stiffness else []) + \
+    N_N = trial.normal_force_N
+    F_per_mu = 2.0 * N_N  # the fixture's total friction force per unit mu (two interfaces)
+    names = ["mu0", "A_mu", "B_mu", "L_um"] + (["stiffness_kN_per_m"] if stiffness and k_fixed is None else []) + \
         (["drift_mu_per_s"] if trend else [])
-    p_arr = FrictionModel(params={"mu0": 0.1, "A_mu": 0.001, "B_mu": 0.001, "L_um": 10.0}).to_array()
+    pset = ParamSet([TREND if nm == "drift_mu_per_s" else Param.of(nm, PARAMS[nm]) for nm in names])
+    fixed = {"stiffness_kN_per_m": float(k_fixed) * F_per_mu * 1e3} if stiffness and k_fixed is not None else {}
+    # the load point (stiffness) moves with the segment velocity, piecewise constant per interval
+    x_lp = np.concatenate([[x[0]], x[0] + np.cumsum(v[:-1] * np.diff(t))]) if stiffness else x
+    ext = ["finite_stiffness"] if stiffness else []
 
-    def model(q):
-        if stiffness:
-            out = _mu_series_stiff(q[0], max(q[1], 1e-6), q[2], q[3], q[4], t, v, v_init)
-        else:
-            p = p_arr.copy()
-            p[P_MU0], p[P_A], p[P_B], p[P_L] = q[0], q[1], q[2], q[3]
-            out = mu_series(p, t, v, x, v_init)
+    def model(q: dict) -> np.ndarray:
+        fm = FrictionModel(extensions=ext, params={k_: q[k_] for k_ in ("mu0", "A_mu", "B_mu", "L_um",
+                                                                        "stiffness_kN_per_m") if k_ in q})
+        out = predict_force(fm, t, x_lp, v, None, N_N, v_init) / F_per_mu
         if trend:
-            out = out + q[-1] * t_rel
+            out = out + q["drift_mu_per_s"] * t_rel
         return out
 
-    def resid(q):
-        r = (model(q) - mu)[sliding]
+    def resid(free: dict) -> np.ndarray:
+        r = (model({**fixed, **free}) - mu)[sliding]
         return np.where(np.isfinite(r), r, 1.0)
 
     # starting values: steady state from a semi-log regression, per-step results if given
@@ -461,84 +391,53 @@ def fit_whole_record(trial: TrialData, steps: list[Step] | None = None, *, stiff
     A0 = A0 if math.isfinite(A0) and A0 > 0 else 0.002
     B0 = float(init.get("B_mu", A0 - c[0]))
     B0 = B0 if math.isfinite(B0) else A0
-    mu00 = float(c[1])
-    starts = []
-    Ls = [float(init["L_um"])] if "L_um" in init and math.isfinite(init["L_um"]) else []
-    for L0 in Ls if Ls else [5.0, 20.0, 80.0]:
-        q = [mu00, A0, B0, max(L0, 0.5)]
-        if stiffness:
-            q.append(float(init.get("k_mu_per_um", 0.005)))
-        if trend:
-            q.append(0.0)
-        starts.append(q)
-    lb = [-np.inf, 0.0 if not stiffness else 1e-5, -np.inf, 0.05] + ([1e-6] if stiffness else []) + \
-        ([-np.inf] if trend else [])
-    ub = [np.inf, np.inf, np.inf, 1e5] + ([10.0] if stiffness else []) + ([np.inf] if trend else [])
-    if k_fixed is not None:
-        lb[4] = float(k_fixed) * (1 - 1e-9)
-        ub[4] = float(k_fixed) * (1 + 1e-9)
-        for q in starts:
-            q[4] = float(k_fixed)
-    best = None
-    t0 = time.perf_counter()
-    for q0 in starts:
-        q0 = np.clip(q0, np.array(lb) + 1e-12, np.array(ub) - 1e-12)
-        try:
-            res = least_squares(resid, q0, bounds=(lb, ub), x_scale="jac", method="trf", max_nfev=200)
-        except Exception:  # noqa: BLE001 - one start failing must not end the fit
-            continue
-        if best is None or res.cost < best.cost:
-            best = res
-    if Ls and (best is None or not best.success):
-        for L0 in (Ls[0] / 3.0, Ls[0] * 3.0):
-            q0 = list(starts[0])
-            q0[3] = L0
-            q0 = np.clip(q0, np.array(lb) + 1e-12, np.array(ub) - 1e-12)
-            try:
-                res = least_squares(resid, q0, bounds=(lb, ub), x_scale="jac", method="trf", max_nfev=200)
-            except Exception:  # noqa: BLE001
-                continue
-            if best is None or res.cost < best.cost:
-                best = res
-    if best is None:
-        return {"ok": False, "reason": "least squares failed"}
-    q = best.x
-    r = best.fun
-    n, p = r.size, q.size
-    s2 = float(np.dot(r, r) / max(n - p, 1))
-    J = best.jac
-    free = np.ones(p, bool)
-    if k_fixed is not None:
-        free[4] = False
-    s2 = float(np.dot(r, r) / max(n - int(free.sum()), 1))
-    err = np.zeros(p)
-    try:
-        Jf = J[:, free]
-        cov = np.linalg.pinv(Jf.T @ Jf) * s2
-        err[free] = np.sqrt(np.maximum(np.diag(cov), 0.0))
-    except np.linalg.LinAlgError:
-        err[free] = np.nan
+    k0 = float(init.get("k_mu_per_um", 0.005)) * F_per_mu * 1e3
 
+    def start(L0: float) -> dict:
+        return {"mu0": float(c[1]), "A_mu": A0, "B_mu": B0, "L_um": max(L0, 0.5), "stiffness_kN_per_m": k0,
+                "drift_mu_per_s": 0.0}
+
+    Ls = [float(init["L_um"])] if "L_um" in init and math.isfinite(init["L_um"]) else []
+    t0 = time.perf_counter()
+    fit = least_squares_fit(resid, pset, [start(L0) for L0 in (Ls or [5.0, 20.0, 80.0])], max_nfev=200,
+                            diff_step=None, xtol=1e-8, ftol=1e-8, x_scale="jac")
+    if Ls and (fit is None or not fit.success):
+        more = least_squares_fit(resid, pset, [start(Ls[0] / 3.0), start(Ls[0] * 3.0)], max_nfev=200,
+                                 diff_step=None, xtol=1e-8, ftol=1e-8, x_scale="jac")
+        if more is not None and (fit is None or more.cost < fit.cost):
+            fit = more
+    if fit is None:
+        return {"ok": False, "reason": "least squares failed"}
+    q = {**fixed, **fit.params}
+    r = fit.residuals
+    n = r.size
+    err_of = {nm: fit.stderr.get(nm, 0.0) for nm in q}
     rho = float(np.corrcoef(r[:-1], r[1:])[0, 1]) if n > 3 else 0.0
     rho = min(max(rho, 0.0), 0.999)
     infl = math.sqrt((1 + rho) / (1 - rho))
-    params = {nm: _r(val) for nm, val in zip(names, q)}
-    errors = {nm: _r(e) for nm, e in zip(names, err)}
-    errors_corr = {nm: _r(e * infl) for nm, e in zip(names, err)}
-    N_N = trial.normal_force_N
-    out = {"ok": bool(best.success) or best.status > 0, "model": "rate_state" + ("+finite_stiffness" if stiffness else ""),
+    # report: the paper's friction units (k in mu per µm) and the stiffness in kN/m
+    order = ["mu0", "A_mu", "B_mu", "L_um"] + (["k_mu_per_um"] if stiffness else []) + \
+        (["drift_mu_per_s"] if trend else [])
+    val = dict(q)
+    if stiffness:
+        val["k_mu_per_um"] = q["stiffness_kN_per_m"] * 1e-3 / F_per_mu
+        err_of["k_mu_per_um"] = err_of.get("stiffness_kN_per_m", 0.0) * 1e-3 / F_per_mu
+    params = {nm: _r(val[nm]) for nm in order}
+    errors = {nm: _r(err_of[nm]) for nm in order}
+    errors_corr = {nm: _r(err_of[nm] * infl) for nm in order}
+    ssr = float(np.dot(r, r))
+    out = {"ok": fit.success, "model": "rate_state" + ("+finite_stiffness" if stiffness else ""),
            "params": params, "err": errors, "err_corr": errors_corr, "rho1": _r(rho),
-           "rms_mu": _r(math.sqrt(float(np.dot(r, r)) / n)), "rms_N": _r(math.sqrt(float(np.dot(r, r)) / n) * 2 * N_N),
-           "n_points": int(n), "decimation": int(k), "nfev": int(best.nfev),
+           "rms_mu": _r(math.sqrt(ssr / n)), "rms_N": _r(math.sqrt(ssr / n) * F_per_mu),
+           "n_points": int(n), "decimation": int(k), "nfev": int(fit.nfev),
            "fit_time_s": _r(time.perf_counter() - t0, 3),
            "velocity": "segments (load point)" if stiffness else velocity_method}
     if stiffness:
-        km = float(q[4])
-        out["params"]["stiffness_kN_per_m"] = _r(km * 2 * N_N * 1e3)
-        out["err"]["stiffness_kN_per_m"] = _r(err[4] * 2 * N_N * 1e3)
-        out["err_corr"]["stiffness_kN_per_m"] = _r(err[4] * infl * 2 * N_N * 1e3)
-    A, B, L = float(q[1]), float(q[2]), float(q[3])
-    kcr, skcr = k_cr_table2(A, err[1] * infl, B, err[2] * infl, L, err[3] * infl, N_N)
+        out["params"]["stiffness_kN_per_m"] = _r(q["stiffness_kN_per_m"])
+        out["err"]["stiffness_kN_per_m"] = _r(err_of.get("stiffness_kN_per_m", 0.0))
+        out["err_corr"]["stiffness_kN_per_m"] = _r(err_of.get("stiffness_kN_per_m", 0.0) * infl)
+    A, B, L = q["A_mu"], q["B_mu"], q["L_um"]
+    kcr, skcr = k_cr_table2(A, err_of["A_mu"] * infl, B, err_of["B_mu"] * infl, L, err_of["L_um"] * infl, N_N)
     out["k_cr_kN_per_m"] = _r(kcr)
     out["k_cr_err_kN_per_m"] = _r(skcr)
     out["_curve"] = (t, model(q), mu, sliding)

@@ -32,7 +32,7 @@ def plot_identification(idn, path: str | Path, max_steps: int = 9) -> None:
     """Top: the record (friction, velocity, whole-record model). Below: friction after each
     step against slip, the fitted exponential (eq. 12) for each window, the windows shaded
     (Figs. 9-11)."""
-    from rig.analysis.identify import estimate_velocity
+    from rig.kinematics import estimate_velocity
 
     plt = _plt()
     results = [r for g in idn.results for r in g][:max_steps]

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rig.data import TrialData
-from rig.friction import FrictionModel
+from rig.model.spec import FrictionModel
 
 SIM_AVAILABLE = True
 try:  # the simulated rig and the planner belong to other helpers; tolerate their absence
@@ -29,7 +29,7 @@ def step_recipe(lubricant: str, *, v1=1.0, highs=(2.0, 5.0, 10.0), slip_before_u
     ``slip_before_um`` defaults to 6 L of the lubricant's Table-2 L (at least 120 µm), so
     the state is at steady state before each step; after each step the slide covers the
     paper's last f2 window (250 µm + 200 points at 25 Hz) with a 10 % margin."""
-    from rig.friction import TABLE2
+    from rig.model.paper import TABLE2
 
     L = TABLE2[lubricant]["L_um"][0]
     before = slip_before_um if slip_before_um is not None else max(120.0, 6.0 * L)

@@ -24,18 +24,22 @@ stable. Any positive ``A + kv V0`` restores a finite k_cr, and because
 ``m V0^2 / L`` is tiny at µm/s (1e-6 N for 10 kg at 1 µm/s and L = 20 µm), even a
 minute one makes the mass term negligible: k_cr -> (B - A - kv V0)/L. The
 rig's derivative gain supplies ``kv V0``; the regularised law of
-:mod:`rig.friction` (a smooth sign of width ``v_reg`` when A = 0) supplies an
+:mod:`rig.model.friction` (a smooth sign of width ``v_reg`` when A = 0) supplies an
 effective ``A_eff = V0 dmu/dv = mu v_reg^2 / V0^2`` (about 1e-5 for paraffin).
 The check by simulation uses the law's own slope ``V0 dmu/dv`` at V0
 (:func:`effective_A_mu`), i.e. exactly the linearisation that eq. (8) assumes.
 
-The check by simulation (:func:`find_boundary`): closed-loop runs of the
-system of Fig. 1 (:func:`simulate_fig1`; mass, spring, dashpot, velocity source,
-friction from :mod:`rig.friction`), started with a small velocity perturbation
-at V0; the growth or decay of the velocity oscillation envelope classifies each
-kp; bisection finds the boundary. :func:`full_rig_boundary` does the same with
-the full simulated rig (:class:`rig.sim.SimRig`: PID, servovalve, actuator
-with oil compliance and leakage, fixture compliance).
+**The rig's loop** (:func:`closed_loop_matrix`, :func:`k_cr_loop`): eq. (8)'s linearisation
+extended to the PID as rig.control runs it (1 kHz, zero-order hold, integral of prior
+errors, backward-difference D) on Fig. 1's plant or on the simulated rig's (spool,
+actuator with oil compliance and leakage, moving mass, test-piece and fixture compliance,
+LVDT filter); k_cr from the roots of the characteristic polynomial det(z I - M).
+
+**The check by simulation** (:func:`scan_boundary`, :func:`sliding_run`): a kp scan of the
+full simulated rig (:class:`rig.sim.SimRig`) started in steady sliding, with a stated
+criterion: stick-slip if more than 1 % of 0.1 s blocks have mean slip velocity below
+0.1 V0, or the block means' sd exceeds 0.3 V0 (second half of the run). No growth rates.
+docs/paper.md has the figures.
 """
 
 from __future__ import annotations
@@ -44,10 +48,10 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
 
-from rig.friction import (FrictionModel, N_STATE, P_A, P_MU0, P_V0, P_VREG, advance_state, dmu_dv,
-                          init_state, k_cr_eq8, k_cr_eq13_N_per_um, mu_of, S_THETA, S_THETA2)
+from rig.model.friction import N_STATE, P_A, P_MU0, P_V0, P_VREG, S_THETA, S_THETA2, dmu_dv, init_state
+from rig.model.paper import k_cr_eq8, k_cr_eq13_N_per_um
+from rig.model.spec import FrictionModel
 
 DEFAULT_MASS_KG = 10.0
 DEFAULT_KD_N_S_PER_UM = 0.003
@@ -121,288 +125,414 @@ def _fin(x):
 
 
 # ---------------------------------------------------------------------------
-# The system of Fig. 1, simulated
+# Eq. (8) extended: the rig's discrete PID (1 kHz, zero-order hold) on the rig's plant
 # ---------------------------------------------------------------------------
-@njit(cache=True)
-def _fig1_run(p, m_kg, kp, kv, two_n, v0, dt, n_steps, dv0, rec_every):
-    """Mass m (kg), spring kp (N/µm), dashpot kv (N s/µm) to a velocity source V0 (µm/s);
-    friction 2 N mu (rig.friction). Implicit (Newton) in the new velocity, trapezoidal
-    position, exact state update in slip at the mid-step velocity. Returns v samples."""
-    s = np.zeros(3)
-    init_state(p, s, v0)
-    mu_ss = mu_of(p, s, v0, 0.0)
-    f_ss = two_n * mu_ss
-    # spring pre-load carries the steady friction: x_in - x = f_ss / kp at t = 0
-    x = 0.0
-    xin = f_ss / kp
-    v = v0 + dv0
-    nrec = n_steps // rec_every + 1
-    out = np.empty(nrec)
-    out[0] = v
-    k = 1
-    minv = 1e-9
-    s_new = np.zeros(3)
-    for i in range(1, n_steps + 1):
-        xin_n = xin + v0 * dt
-        vn = v
-        for it in range(30):
-            vm = 0.5 * (v + vn)
-            s_new[0] = s[0]
-            s_new[1] = s[1]
-            s_new[2] = s[2]
-            advance_state(p, s_new, vm, dt)
-            mu = mu_of(p, s_new, vn, 0.0)
-            xn = x + 0.5 * dt * (v + vn)
-            g = m_kg * 1e-6 * (vn - v) / dt - (kp * (xin_n - xn) + kv * (v0 - vn) - two_n * mu)
-            th = s_new[0] + s_new[1]
-            dg = m_kg * 1e-6 / dt + 0.5 * kp * dt + kv + two_n * dmu_dv(vn, th, p[0], p[1], p[4], p[12])
-            step = g / dg
-            vn_new = vn - step
-            if vn_new < minv:
-                vn_new = 0.5 * (vn + minv)
-            if abs(vn_new - vn) < 1e-12 * (1.0 + abs(vn)):
-                vn = vn_new
-                break
-            vn = vn_new
-        vm = 0.5 * (v + vn)
-        advance_state(p, s, vm, dt)
-        x = x + 0.5 * dt * (v + vn)
-        xin = xin_n
-        v = vn
-        if i % rec_every == 0 and k < nrec:
-            out[k] = v
-            k += 1
-    return out[:k]
+@dataclass
+class LoopModel:
+    """What the linear analysis of the closed loop needs (units: N, µm, s).
+
+    ``plant``: ``"fig1"`` (the paper's Fig. 1: the controller force acts on the mass m
+    directly, position measured exactly) or ``"rig"`` (the simulated rig of rig.sim.plant:
+    first-order spool, actuator with oil compliance and leakage, moving mass, series
+    compliance test piece + fixture, the interface, the LVDT's 100 Hz first-order filter).
+    ``dt_s = 0``: continuous-time PID (the paper's analysis); > 0: the loop as rig.control
+    runs it: I_n = ki dt sum_{k<n} e_k, D_n = kd (e_n - e_{n-1})/dt, output held (ZOH)."""
+    A_N: float
+    B_N: float
+    L_um: float
+    V0_um_s: float = 1.0
+    mass_kg: float = DEFAULT_MASS_KG
+    kd_N_s_per_um: float = DEFAULT_KD_N_S_PER_UM
+    ki_N_per_um_s: float = 0.0
+    dt_s: float = 1e-3
+    plant: str = "fig1"
+    tau_valve_s: float = 1e-3
+    tau_leak_s: float = 2e-3
+    k_h_N_per_um: float = 10.0
+    c_a_N_s_per_um: float = 0.0
+    k_tp_N_per_um: float = 1.0
+    k_fx_N_per_um: float = 10.0
+    tau_lvdt_s: float = 1.0 / (2 * math.pi * 100.0)
+
+    @classmethod
+    def from_profile(cls, prof, model: FrictionModel, *, ki_N_per_um_s: float | None = None,
+                     kd_N_s_per_um: float | None = None, V0_um_s: float = 1.0, plant: str = "rig",
+                     dt_s: float | None = None) -> "LoopModel":
+        """The simulated rig's loop (a :class:`rig.profile.RigProfile`) at V0; the friction's
+        A is the law's own slope at V0 (:func:`effective_A_mu`), in the fixture's force
+        units (2 N)."""
+        two_n = 2.0 * prof.normal.nominal_force_N
+        c, act = prof.controller, prof.actuator
+        return cls(A_N=two_n * effective_A_mu(model, V0_um_s), B_N=two_n * model.get("B_mu"),
+                   L_um=model.get("L_um"), V0_um_s=V0_um_s, mass_kg=act.moving_mass_kg,
+                   kd_N_s_per_um=c.kd_N_s_per_um if kd_N_s_per_um is None else kd_N_s_per_um,
+                   ki_N_per_um_s=c.ki_N_per_um_s if ki_N_per_um_s is None else ki_N_per_um_s,
+                   dt_s=prof.dt_s if dt_s is None else dt_s, plant=plant,
+                   tau_valve_s=prof.servovalve.time_constant_s, tau_leak_s=act.leakage_time_constant_s,
+                   k_h_N_per_um=act.hydraulic_stiffness_N_per_um, c_a_N_s_per_um=act.viscous_damping_N_s_per_um,
+                   k_tp_N_per_um=prof.fixture.test_piece_stiffness_N_per_um,
+                   k_fx_N_per_um=prof.fixture.fixture_stiffness_N_per_um,
+                   tau_lvdt_s=1.0 / (2 * math.pi * prof.sensors.lvdt.cutoff_hz))
 
 
-def linear_roots(A_N, B_N, L_um, m_kg, kp_N_per_um, kv_N_s_per_um, V0_um_s):
-    """Roots of the linearised characteristic cubic (µm, N, s units)."""
-    m = m_kg * 1e-6  # N s^2/µm
-    a = kv_N_s_per_um + A_N / V0_um_s
-    return np.roots([m, a + m * V0_um_s / L_um, kp_N_per_um + (kv_N_s_per_um * V0_um_s + A_N - B_N) / L_um,
-                     kp_N_per_um * V0_um_s / L_um])
+def plant_matrices(lm: LoopModel):
+    """Continuous-time linearised plant about steady sliding at V0: (A, b, c) with
+    dx/dt = A x + b u (u: controller force, N) and the measured position y = c x (µm).
+
+    Friction (eqs. 5-6 linearised, force units): F = (A_N/V0) dv_s + theta_N,
+    dtheta_N/dt = -(V0/L) theta_N - (B_N/L) dv_s."""
+    m = lm.mass_kg * 1e-6  # N s^2/µm
+    a_v = lm.A_N / lm.V0_um_s
+    g = lm.V0_um_s / lm.L_um
+    if lm.plant == "fig1":
+        # x, v, theta
+        if a_v <= 0:
+            raise ValueError("fig1 plant needs A > 0 (no direct effect: no finite k_cr, eq. 8)")
+        A = np.array([[0.0, 1.0, 0.0],
+                      [0.0, -a_v / m, -1.0 / m],
+                      [0.0, -lm.B_N / lm.L_um, -g]])
+        b = np.array([0.0, 1.0 / m, 0.0])
+        c = np.array([1.0, 0.0, 0.0])
+        return A, b, c
+    if lm.plant != "rig":
+        raise ValueError(f"plant must be 'fig1' or 'rig', not {lm.plant!r}")
+    if a_v <= 0:
+        raise ValueError("rig plant needs A > 0 (a massless interface without direct effect)")
+    # states: spool force S, actuator force Fa, x_a, v_a, chain force Fs, theta_N, LVDT filter xf
+    km = 1.0 / (1.0 / lm.k_tp_N_per_um + 1.0 / lm.k_fx_N_per_um)
+    # slip velocity of the massless interface: Fs = a_v v_s + theta -> v_s = (Fs - theta)/a_v
+    A = np.zeros((7, 7))
+    A[0, 0] = -1.0 / lm.tau_valve_s
+    A[1, 0] = 1.0 / lm.tau_leak_s
+    A[1, 1] = -1.0 / lm.tau_leak_s
+    A[1, 3] = -lm.k_h_N_per_um
+    A[2, 3] = 1.0
+    A[3, 1] = 1.0 / m
+    A[3, 3] = -lm.c_a_N_s_per_um / m
+    A[3, 4] = -1.0 / m
+    A[4, 3] = km
+    A[4, 4] = -km / a_v
+    A[4, 5] = km / a_v
+    A[5, 4] = -lm.B_N / lm.L_um / a_v
+    A[5, 5] = -g + lm.B_N / lm.L_um / a_v
+    tf = lm.tau_lvdt_s
+    A[6, 2] = 1.0 / tf
+    A[6, 4] = -1.0 / (tf * lm.k_tp_N_per_um)
+    A[6, 6] = -1.0 / tf
+    b = np.zeros(7)
+    b[0] = 1.0 / lm.tau_valve_s
+    c = np.zeros(7)
+    c[6] = 1.0
+    return A, b, c
 
 
-def growth_rate(v: np.ndarray, dt_rec: float, V0: float, dv0: float | None = None) -> float:
-    """Growth rate (1/s) of the oscillation envelope of ``v - V0``: log ratio of the late
-    amplitude (last fifth of the run) to the early one (after the first tenth, when the
-    fast, strongly damped mode has gone), over the time between them. Positive: growing
-    (unstable), including growth that saturates in a stick-slip limit cycle."""
-    d = np.abs(v - V0)
-    n = d.size
-    e0, e1 = n // 10, n // 5
-    l0 = n - n // 5
-    a_early = float(d[e0:e1].max()) if e1 > e0 else float(d[0])
-    a_late = float(d[l0:].max())
-    span = ((l0 + n) / 2 - (e0 + e1) / 2) * dt_rec
-    if a_late > 0.5 * V0:
-        # stick-slip (or a large limit cycle): unstable whatever the early amplitude
-        return math.log(a_late / max(a_early, 1e-300)) / span if a_late > a_early else 1.0 / span
-    if dv0:
-        # growth that has already saturated (stick-slip) before the early window
-        if a_late > 2.0 * dv0:
-            return math.log(a_late / dv0) / (n * dt_rec)
-        # decayed to the round-off floor
-        if a_late < 1e-7 * dv0:
-            return -math.log(dv0 / max(a_late, 1e-300)) / (n * dt_rec)
-    if a_early <= 0 or a_late <= 0:
-        return -math.inf if a_late <= 0 else math.inf
-    return math.log(a_late / a_early) / span
+def closed_loop_matrix(lm: LoopModel, kp_N_per_um: float) -> np.ndarray:
+    """Closed-loop matrix of the linearised loop. Discrete (dt > 0): state [x_n, s_n, e_{n-1}]
+    with the plant discretised exactly under a zero-order hold (Phi = e^{A dt},
+    Gamma = int_0^dt e^{A t} dt b), e_n = -c x_n (deviations; the reference ramp cancels),
+
+        u_n = kp e_n + ki s_n + kd (e_n - e_{n-1}) / dt,  s_{n+1} = s_n + dt e_n,
+
+    the PID of rig.control (integral of prior errors, backward-difference D). The
+    characteristic polynomial is det(z I - M). Continuous (dt = 0): PID u = kp e + ki
+    int e + kd de/dt (eq. 8's setting with ki = 0, kd = kv)."""
+    from scipy.linalg import expm
+
+    A, b, c = plant_matrices(lm)
+    n = A.shape[0]
+    kp, ki, kd = kp_N_per_um, lm.ki_N_per_um_s, lm.kd_N_s_per_um
+    use_i = ki != 0.0
+    if lm.dt_s <= 0:
+        # e = -c x, de/dt = -c A x (u has no direct feedthrough to y in either plant)
+        ca = c @ A
+        if abs(c @ b) > 0.0:
+            raise ValueError("continuous D term needs a plant without feedthrough from u to y")
+        K = -(kp * c + kd * ca)
+        M = np.zeros((n + use_i, n + use_i))
+        M[:n, :n] = A + np.outer(b, K)
+        if use_i:
+            M[:n, n] = b * ki
+            M[n, :n] = -c
+        return M
+    dt = lm.dt_s
+    E = np.zeros((n + 1, n + 1))
+    E[:n, :n] = A * dt
+    E[:n, n] = b * dt
+    Ed = expm(E)
+    Phi, Gam = Ed[:n, :n], Ed[:n, n]
+    m = n + 1 + use_i
+    M = np.zeros((m, m))
+    M[:n, :n] = Phi - np.outer(Gam, (kp + kd / dt) * c)
+    M[:n, n] = -Gam * kd / dt          # e_{n-1}
+    M[n, :n] = -c                      # e_{n-1} <- e_n
+    if use_i:
+        M[:n, n + 1] = Gam * ki
+        M[n + 1, :n] = -dt * c
+        M[n + 1, n + 1] = 1.0
+    return M
 
 
-def simulate_fig1(model: FrictionModel, *, kp_N_per_um: float, kd_N_s_per_um: float, mass_kg: float,
-                  normal_force_N: float, V0_um_s: float = 1.0, periods: float = 30.0,
-                  dv_frac: float = 0.01, steps_per_period: int = 400) -> tuple[np.ndarray, float]:
-    """Run Fig. 1's system; returns (velocity record, sample interval)."""
-    p = model.to_array()
-    two_n = 2.0 * normal_force_N
-    A_N = two_n * effective_A_mu(model, V0_um_s)
-    B_N = two_n * model.get("B_mu")
-    roots = linear_roots(A_N, B_N, model.get("L_um", 20.0), mass_kg, kp_N_per_um, kd_N_s_per_um, V0_um_s)
-    # time scale of the critical (least damped) mode; the fast mass mode is heavily damped
-    # and handled by the implicit step
-    crit = max(roots, key=lambda r: r.real)
-    w = abs(crit.imag) if abs(crit.imag) > 1e-9 else abs(crit)
-    w = min(max(w, 1e-6), 1e3)
-    T = 2 * math.pi / w
-    dt = T / steps_per_period
-    n = int(periods * steps_per_period)
-    rec = 4
-    v = _fig1_run(p, mass_kg, kp_N_per_um, kd_N_s_per_um, two_n, V0_um_s, dt, n, dv_frac * V0_um_s, rec)
-    return v, dt * rec, dv_frac * V0_um_s
+def growth_rate_linear(lm: LoopModel, kp_N_per_um: float) -> float:
+    """Largest growth rate (1/s) of the linearised closed loop: max Re(s), with s = ln(z)/dt
+    for the discrete loop. Negative: steady sliding is asymptotically stable."""
+    M = closed_loop_matrix(lm, kp_N_per_um)
+    ev = np.linalg.eigvals(M)
+    if lm.dt_s <= 0:
+        return float(ev.real.max())
+    return float(np.log(np.maximum(np.abs(ev), 1e-300)).max() / lm.dt_s)
 
 
-def find_boundary(model: FrictionModel, *, kd_N_s_per_um: float, mass_kg: float, normal_force_N: float,
-                  V0_um_s: float = 1.0, k_guess: float | None = None, iters: int = 12, periods: float = 30.0,
-                  simulate=None) -> dict:
-    """Bisection on kp (N/µm) between decaying and growing oscillation."""
-    sim = simulate or (lambda kp: simulate_fig1(model, kp_N_per_um=kp, kd_N_s_per_um=kd_N_s_per_um, mass_kg=mass_kg,
-                                                normal_force_N=normal_force_N, V0_um_s=V0_um_s, periods=periods))
-    if k_guess is None or not math.isfinite(k_guess) or k_guess <= 0:
-        k_guess = k_cr_eq13_N_per_um(model.get("A_mu"), model.get("B_mu"), model.get("L_um"), 2 * normal_force_N)
-    lo, hi = 0.5 * k_guess, 2.0 * k_guess
-    runs = []
+def characteristic_polynomial(lm: LoopModel, kp_N_per_um: float) -> np.ndarray:
+    """Coefficients (highest power first) of det(z I - M) (discrete) or det(s I - M)."""
+    return np.real(np.poly(closed_loop_matrix(lm, kp_N_per_um)))
 
-    def rate(kp):
-        out = sim(kp)
-        v, dtr = out[0], out[1]
-        g = growth_rate(v, dtr, V0_um_s, out[2] if len(out) > 2 else None)
-        g = float(min(max(g, -1e6), 1e6)) if g == g else 0.0  # finite for the JSON report
-        runs.append({"kp_N_per_um": kp, "growth_rate_per_s": g})
-        return g
 
-    g_lo, g_hi = rate(lo), rate(hi)
-    for _ in range(6):
-        if g_lo > 0:
-            break
-        lo *= 0.5
-        g_lo = rate(lo)
-    for _ in range(6):
-        if g_hi < 0:
-            break
-        hi *= 2.0
-        g_hi = rate(hi)
-    if not (g_lo > 0 and g_hi < 0):
-        return {"k_boundary_N_per_um": None, "runs": runs, "bracketed": False}
-    for _ in range(iters):
+def k_cr_loop(lm: LoopModel, k_hi_N_per_um: float | None = None, rtol: float = 1e-4) -> float | None:
+    """Critical stiffness (N/µm) of the linearised loop: the least kp above which steady
+    sliding is asymptotically stable, found on the eigenvalues (deterministic, no
+    simulation noise). ``None`` if the loop is not stable at ``k_hi`` (default: 8 x the
+    quasi-static (B_N - A_N)/L); 0.0 if it is stable at every kp down to 2 % of that (the
+    integral term can stabilise the slow friction mode: no finite k_cr)."""
+    k_qs = max((lm.B_N - lm.A_N) / lm.L_um, 1e-6)
+    hi = k_hi_N_per_um or 8.0 * k_qs
+    if growth_rate_linear(lm, hi) >= 0:
+        return None
+    lo = 0.02 * k_qs
+    if growth_rate_linear(lm, lo) < 0:
+        return 0.0
+    while hi / lo > 1 + rtol:
         mid = math.sqrt(lo * hi)
-        if rate(mid) > 0:
-            lo = mid
-        else:
+        if growth_rate_linear(lm, mid) < 0:
             hi = mid
-    return {"k_boundary_N_per_um": math.sqrt(lo * hi), "bracket_N_per_um": [lo, hi], "runs": runs,
-            "bracketed": True}
+        else:
+            lo = mid
+    return math.sqrt(lo * hi)
 
 
-def check_lubricant(name: str, *, mass_kg: float = DEFAULT_MASS_KG, kd_N_s_per_um: float = DEFAULT_KD_N_S_PER_UM,
-                    normal_force_N: float = 100.0, V0_um_s: float = 1.0, mu0: float = 0.12, iters: int = 12,
-                    periods: float = 30.0, model: FrictionModel | None = None) -> dict:
-    """Eq. (8) (with the law's own direct effect at V0) against the simulated boundary."""
-    model = model or FrictionModel.for_lubricant(name, mu0)
-    a_eff = effective_A_mu(model, V0_um_s)
-    k8 = k_cr_eq8_N_per_um(a_eff, model.get("B_mu"), model.get("L_um"), normal_force_N, mass_kg,
-                           kd_N_s_per_um, V0_um_s)
-    res = find_boundary(model, kd_N_s_per_um=kd_N_s_per_um, mass_kg=mass_kg, normal_force_N=normal_force_N,
-                        V0_um_s=V0_um_s, k_guess=k8, iters=iters, periods=periods)
-    kb = res["k_boundary_N_per_um"]
-    return {"lubricant": name, "A_mu": model.get("A_mu"), "A_eff_mu": a_eff, "B_mu": model.get("B_mu"),
-            "L_um": model.get("L_um"), "k_cr_eq8_N_per_um": k8, "k_sim_N_per_um": kb,
-            "rel_diff": (kb - k8) / k8 if kb else None, "runs": res["runs"], "model": "fig1"}
+def fixture_statement(A_mu: float, B_mu: float, L_um: float, N_N: float = 100.0) -> str:
+    """The one statement on the moving test piece of the double-shear fixture."""
+    k1 = (B_mu - A_mu) * N_N / L_um * 1e3
+    return (f"moving test piece (double shear: friction 2 N mu, so A = 2 N A_mu = {2 * N_N * A_mu:.3g} N, "
+            f"B = 2 N B_mu = {2 * N_N * B_mu:.3g} N): quasi-static k_cr = 2 N (B_mu - A_mu)/L = {2 * k1:.4g} kN/m, "
+            f"twice the paper's per-rider value (B_mu - A_mu) N / L = {k1:.4g} kN/m (Table 2, eq. 13)")
 
 
 # ---------------------------------------------------------------------------
-# The full simulated rig
+# The simulated boundary: a scan of kp with a stated criterion
 # ---------------------------------------------------------------------------
-def full_rig_boundary(name: str, *, profile=None, ki_N_per_um_s: float | None = 0.0, V0_um_s: float = 1.0,
-                      iters: int = 8, periods: float = 12.0, seed: int = 0, progress=None,
-                      bump_um: float = 0.5, kd_N_s_per_um: float | None = None) -> dict:
-    """Bisection on the PID's kp with the full simulated rig (rig.sim.SimRig), kd and the
-    actuator as in the profile, ``ki`` as given (0: PD, the paper's analysis)."""
+STUCK_BELOW_FRAC = 0.1      # a 0.1 s block with mean slip velocity < 0.1 V0 counts as stuck
+STUCK_FRACTION_MAX = 0.01   # stick-slip: more than 1 % of the judged blocks stuck ...
+SPREAD_MAX = 0.3            # ... or a spread (sd of the 0.1 s block means) above 0.3 V0
+BLOCK_S = 0.1
+ONSET_SPREAD = 0.005        # noise-free runs: a sustained oscillation (stable runs decay below 0.001 V0)
+SCAN_FACTORS = (0.80, 0.85, 0.90, 0.93, 0.96, 0.98, 1.00, 1.02, 1.04, 1.07, 1.10, 1.15, 1.25)
+
+
+def sliding_run(profile_path: str | None, lubricant: str, kp_N_per_um: float, ki_N_per_um_s: float,
+                kd_N_s_per_um: float, duration_s: float, V0_um_s: float = 1.0, seed: int = 0,
+                bump_L: float = 0.05, sensor_noise: bool = True) -> dict:
+    """One simulated run of the full rig (rig.sim.SimRig) sliding at V0 with the given PID
+    gains, started in steady sliding (chain loaded with the steady friction, spool and
+    actuator at their steady values; PD: the controller's bias carries the steady force,
+    PID: the integral does), perturbed by a smooth step of the reference by ``bump_L`` x L
+    at 1 s (a slip-velocity perturbation of about 5 % of V0 in the slow friction mode); the
+    loop's sensor noise excites the rest (``sensor_noise=False``: LVDT and load-cell noise
+    and quantisation off, so the spread measures the rig's own oscillation only). Judged on the second half of the run:
+    ``stuck_fraction`` (0.1 s blocks of true slip velocity below 0.1 V0) and ``spread``
+    (sd of the block means / V0); ``stick_slip`` by the criterion of the module constants.
+    A top-level function of plain values (one trial for a parallel engine)."""
+    from rig.sim import plant as pl
+    from rig.control import C_BIAS, K_SUM
     from rig.config.profile import default_profile_path, load_profile
     from rig.sim import SimRig
 
-    prof = load_profile(profile or default_profile_path())
-    if kd_N_s_per_um is not None:
-        prof = prof.model_copy(update={"controller": prof.controller.model_copy(
-            update={"kd_N_s_per_um": float(kd_N_s_per_um)})})
-    model = prof.friction_model(name)
-    N = prof.normal.nominal_force_N
-    kd = prof.controller.kd_N_s_per_um
-    m = prof.actuator.moving_mass_kg
-    # the actuator's leakage gives a force-velocity slope that acts as extra damping
-    try:
-        kv_leak = float(prof.actuator.hydraulic_stiffness_N_per_um * prof.actuator.leakage_time_constant_s)
-    except Exception:  # noqa: BLE001
-        kv_leak = 0.0
-    a_eff = effective_A_mu(model, V0_um_s)
-    k8 = k_cr_eq8_N_per_um(a_eff, model.get("B_mu"), model.get("L_um"), N, m, kd, V0_um_s)
-    k8_leak = k_cr_eq8_N_per_um(a_eff, model.get("B_mu"), model.get("L_um"), N, m, kd + kv_leak, V0_um_s)
-    A_N, B_N = 2 * N * a_eff, 2 * N * model.get("B_mu")
-    roots = linear_roots(A_N, B_N, model.get("L_um"), m, k8, kd, V0_um_s)
-    crit = max(roots, key=lambda r: r.real)
-    w = max(abs(crit.imag), 1e-6)
-    T = 2 * math.pi / w
-    dur = periods * T
+    prof = load_profile(profile_path or default_profile_path())
+    ctrl = prof.controller.model_copy(update={"kp_N_per_um": float(kp_N_per_um),
+                                              "ki_N_per_um_s": float(ki_N_per_um_s),
+                                              "kd_N_s_per_um": float(kd_N_s_per_um), "bias_N": 0.0})
     rate = prof.loop.rate_hz
-    f_ss = 2 * N * float(model.mu_ss(V0_um_s))
+    n = int(round(duration_s * rate))
+    # a stability run may slide further than the 5 mm stroke: the LVDT range is widened
+    # (the physics does not depend on where the piece is; the riders' taper is held flat)
+    span = prof.stroke.home_um + V0_um_s * duration_s + 1000.0
+    lvdt = prof.sensors.lvdt.model_copy(update={"max_um": max(prof.sensors.lvdt.max_um, span)})
+    if not sensor_noise:
+        lvdt = lvdt.model_copy(update={"noise_sigma_um": 0.0, "quantization_um": 0.0})
+    sensors = prof.sensors.model_copy(update={"lvdt": lvdt})
+    if not sensor_noise:
+        sensors = sensors.model_copy(update={
+            "friction_load_cell": sensors.friction_load_cell.model_copy(update={"noise_sigma_N": 0.0}),
+            "normal_load_cells": sensors.normal_load_cells.model_copy(update={"noise_sigma_N": 0.0})})
+    normal = prof.normal.model_copy(update={"face_taper_um_per_mm": [0.0, 0.0]})
+    prof = prof.model_copy(update={"controller": ctrl, "sensors": sensors, "normal": normal})
+    model = prof.friction_model(lubricant)
+    rig = SimRig(prof, model, seed=seed)
+    x0 = prof.stroke.home_um
+    t = np.arange(n) / rate
+    model_L = prof.friction_model(lubricant).get("L_um")
+    xref = x0 + V0_um_s * t + bump_L * model_L * 0.5 * (1.0 + np.tanh((t - 1.0) / 0.05))
+    # steady sliding at V0
+    rig.reset(x0, V0_um_s)
+    q, st = rig.q, rig.st
+    f_ss = float(np.sum(pl.normal_forces(q, x0))) * float(model.mu_ss(V0_um_s))
+    act = prof.actuator
+    fa = f_ss + act.viscous_damping_N_s_per_um * V0_um_s
+    s_ss = fa + act.leakage_time_constant_s * act.hydraulic_stiffness_N_per_um * V0_um_s
+    st[pl.Z_FS] = f_ss
+    st[pl.Z_FA] = fa
+    st[pl.Z_XSP] = s_ss / act.full_scale_force_N
+    st[pl.Z_VA] = V0_um_s
+    st[pl.Z_VS] = V0_um_s
+    st[pl.Z_XA] = x0 + f_ss * q[pl.Q_CTP]
+    st[pl.Z_FLF] = f_ss
+    rig.ring[:] = V0_um_s
+    if ki_N_per_um_s > 0:
+        rig.cs[K_SUM] = s_ss / ki_N_per_um_s
+    else:
+        rig.c[C_BIAS] = s_ss
+    out = rig.run(xref, reset=False)
+    v = out["true_velocity_um_s"]
+    every = max(1, int(round(BLOCK_S * rate)))
+    nb = v.size // every
+    vb = v[: nb * every].reshape(nb, every).mean(axis=1)
+    judged = vb[nb // 2:]
+    stuck = float(np.mean(judged < STUCK_BELOW_FRAC * V0_um_s))
+    spread = float(np.std(judged) / V0_um_s)
+    return {"kp_N_per_um": float(kp_N_per_um), "ki_N_per_um_s": float(ki_N_per_um_s),
+            "kd_N_s_per_um": float(kd_N_s_per_um), "duration_s": float(duration_s),
+            "stuck_fraction": stuck, "spread": spread, "v_max_um_s": float(judged.max()),
+            "stick_slip": bool(stuck > STUCK_FRACTION_MAX or spread > SPREAD_MAX)}
 
-    def sim(kp):
-        # the PID's constant bias carries the steady friction (Fig. 1's spring is pre-loaded)
-        upd = {"kp_N_per_um": kp, "bias_N": f_ss}
-        if ki_N_per_um_s is not None:
-            upd["ki_N_per_um_s"] = ki_N_per_um_s
-        ctrl = prof.controller.model_copy(update=upd)
-        p2 = prof.model_copy(update={"controller": ctrl})
-        rig = SimRig(p2, model, seed=seed)
-        n = int(dur * rate)
-        x0 = prof.stroke.home_um
-        xref = x0 + V0_um_s * np.arange(n) / rate
-        # a small perturbation: a 0.2 µm bump of the reference early on (the start from rest
-        # under the bias force is another, brief one)
-        xref = xref + bump_um * np.exp(-((np.arange(n) / rate - 0.1 * T) / (0.02 * T)) ** 2)
-        out = rig.run(xref)
-        v = out["true_velocity_um_s"]
-        # block means over T/40: the oscillation stays resolved, the loop's noise-driven
-        # jitter of the interface velocity (large when A is small) averages out
-        every = max(1, int(T / 40 * rate))
-        vv = v.reshape(-1)[: (v.size // every) * every].reshape(-1, every).mean(axis=1)
-        if progress:
-            progress()
-        return vv, every / rate
 
-    res = find_boundary(model, kd_N_s_per_um=kd, mass_kg=m, normal_force_N=N, V0_um_s=V0_um_s, k_guess=k8,
-                        iters=iters, simulate=sim)
-    kb = res["k_boundary_N_per_um"]
-    return {"lubricant": name, "k_cr_eq8_N_per_um": k8, "k_cr_eq8_with_leak_N_per_um": k8_leak,
-            "kv_leak_N_s_per_um": kv_leak, "ki_N_per_um_s": ki_N_per_um_s, "k_sim_N_per_um": kb,
-            "rel_diff": (kb - k8) / k8 if kb else None, "runs": res["runs"], "model": "SimRig"}
+def scan_duration_s(lm: LoopModel, k_cr: float, periods: float = 40.0, lo_s: float = 300.0,
+                    hi_s: float = 12000.0) -> float:
+    """Run length for the scan: ``periods`` periods of the critical mode at k_cr (at least
+    ``lo_s``, at most ``hi_s``)."""
+    M = closed_loop_matrix(lm, k_cr)
+    ev = np.linalg.eigvals(M).astype(complex)
+    s = np.log(ev) / lm.dt_s if lm.dt_s > 0 else ev
+    j = int(np.argmax(s.real))
+    w = abs(s[j].imag)
+    T = 2 * math.pi / w if w > 1e-9 else hi_s / periods
+    return float(min(max(periods * T, lo_s), hi_s))
+
+
+def sliding_run_task(args: tuple) -> dict:
+    """:func:`sliding_run` on a tuple of its positional arguments (one task of the batch engine)."""
+    return sliding_run(*args)
+
+
+def scan_boundary(lubricant: str, *, profile=None, ki_N_per_um_s: float | None = None, V0_um_s: float = 1.0,
+                  factors=SCAN_FACTORS, k_ref_N_per_um: float | None = None, duration_s: float | None = None,
+                  seed: int = 0, run=None, bump_L: float = 0.05, sensor_noise: bool = True,
+                  map_fn=None) -> dict:
+    """Scan kp = factor x k_ref (default k_ref: the discrete-time analysis of the rig's loop,
+    :func:`k_cr_loop`) with :func:`sliding_run`; the simulated boundary lies between the
+    highest kp that stick-slips and the next one above that slides steadily.
+
+    ``run``: a callable with :func:`sliding_run`'s signature; default: in process.
+    ``map_fn(fn, items)`` (e.g. :func:`rig.catalog.batch.mapper`) runs the scan's runs on a
+    parallel engine, one task per kp, by value."""
+    from rig.config.profile import default_profile_path, load_profile
+
+    ppath = str(profile or default_profile_path())
+    prof = load_profile(ppath)
+    model = prof.friction_model(lubricant)
+    ki = prof.controller.ki_N_per_um_s if ki_N_per_um_s is None else ki_N_per_um_s
+    kd = prof.controller.kd_N_s_per_um
+    lm = LoopModel.from_profile(prof, model, ki_N_per_um_s=ki, V0_um_s=V0_um_s)
+    k_lin = k_cr_loop(lm)
+    k_ref = k_ref_N_per_um or k_lin
+    if not k_ref:
+        raise ValueError(f"{lubricant}: the linear analysis finds no finite k_cr; give k_ref_N_per_um")
+    dur = duration_s or scan_duration_s(lm, k_ref)
+    args = [(ppath, lubricant, f * k_ref, ki, kd, dur, V0_um_s, seed, bump_L, sensor_noise) for f in factors]
+    if map_fn is not None and run is None:
+        runs = list(map_fn(sliding_run_task, args))
+    else:
+        run = run or sliding_run
+        runs = [run(*a) for a in args]
+    runs.sort(key=lambda r: r["kp_N_per_um"])
+    unstable = [r["kp_N_per_um"] for r in runs if r["stick_slip"]]
+    k_sim = lo = hi = None
+    if unstable:
+        lo = max(unstable)
+        above = [r["kp_N_per_um"] for r in runs if r["kp_N_per_um"] > lo]
+        if above:
+            hi = min(above)
+            k_sim = 0.5 * (lo + hi)
+    # noise-free: the onset of any sustained oscillation (for a gradual, supercritical onset
+    # the stick-slip amplitude is reached below k_cr, the linear boundary is where it starts)
+    k_onset = None
+    if not sensor_noise:
+        osc = [r["kp_N_per_um"] for r in runs if r["spread"] > ONSET_SPREAD]
+        if osc:
+            above = [r["kp_N_per_um"] for r in runs if r["kp_N_per_um"] > max(osc)]
+            k_onset = 0.5 * (max(osc) + min(above)) if above else None
+    return {"lubricant": lubricant, "ki_N_per_um_s": ki, "kd_N_s_per_um": kd, "V0_um_s": V0_um_s,
+            "k_onset_N_per_um": k_onset,
+            "onset_rel_diff": (k_onset / k_lin - 1) if (k_onset and k_lin) else None,
+            "k_cr_loop_N_per_um": k_lin, "k_ref_N_per_um": k_ref, "duration_s": dur,
+            "k_sim_N_per_um": k_sim, "bracket_N_per_um": [lo, hi], "runs": runs,
+            "rel_diff": (k_sim / k_lin - 1) if (k_sim and k_lin) else None,
+            "steady_at_every_kp": not unstable, "bump_L": bump_L, "sensor_noise": sensor_noise,
+            "criterion": f"stick-slip if > {STUCK_FRACTION_MAX:.0%} of {BLOCK_S:g} s blocks have mean slip velocity "
+                         f"< {STUCK_BELOW_FRAC:g} V0, or their sd > {SPREAD_MAX:g} V0 (second half of the run)"}
 
 
 # ---------------------------------------------------------------------------
 # Report and map
 # ---------------------------------------------------------------------------
-def plot_map(checks: list[dict], analyses: dict, path) -> None:
-    """Stability map: growth rate of the velocity oscillation against kp for each checked
-    lubricant (simulated runs; growing = unstable), with eq. (8)'s k_cr and the simulated
-    boundary; and k_cr of eq. (8) against the derivative gain (the A = 0 divergence)."""
+def plot_map(scans: list[dict], path, title: str = "") -> None:
+    """Stability map: each scanned kp (x, kN/m) per lubricant (panel) and controller (row:
+    PD, PID, PID with the sensor noise off): stick-slip (red x) or steady sliding (green o) by the scan's criterion,
+    with the paper's eq. (8) for the fixture (2 N, kd, m; PD only), the discrete-time
+    analysis of the rig's loop, and the simulated boundary."""
     from rig.analysis.plots import _plt, save
 
     plt = _plt()
-    n = max(1, len(checks))
-    fig, axs = plt.subplots(1, n + 1, figsize=(4.2 * (n + 1), 4))
-    axs = np.atleast_1d(axs)
-    for ax, c in zip(axs, checks):
-        for src, mk in (("fig1", "o"), ("SimRig", "s")):
-            runs = [r for r in c.get("runs", [])] if c.get("model") == src else []
-            if not runs:
-                continue
-            kp = np.array([r["kp_N_per_um"] for r in runs]) * 1e3
-            g = np.array([r["growth_rate_per_s"] for r in runs])
-            g = np.clip(g, -1e3, 1e3)
-            ax.scatter(kp[g > 0], g[g > 0], marker=mk, color="C3", label=f"growing ({src})")
-            ax.scatter(kp[g <= 0], g[g <= 0], marker=mk, color="C2", label=f"decaying ({src})")
-        ax.axvline(c["k_cr_eq8_N_per_um"] * 1e3, color="k", ls="--", label="eq. (8)")
-        if c.get("k_sim_N_per_um"):
-            ax.axvline(c["k_sim_N_per_um"] * 1e3, color="C1", ls=":", label="simulated boundary")
-        ax.axhline(0, color="0.6", lw=0.6)
-        ax.set_xscale("log")
-        ax.set_yscale("symlog", linthresh=1e-4)
+    lubs = list(dict.fromkeys(s["lubricant"] for s in scans))
+    def row_key(s):
+        return (s["ki_N_per_um_s"] > 0, not s.get("sensor_noise", True))
+
+    rows = sorted({row_key(s) for s in scans})
+    fig, axs = plt.subplots(len(rows), len(lubs), figsize=(4.4 * len(lubs), 3.0 * len(rows)), squeeze=False)
+    for s in scans:
+        ax = axs[rows.index(row_key(s)), lubs.index(s["lubricant"])]
+        kp = np.array([r["kp_N_per_um"] for r in s["runs"]]) * 1e3
+        sp = np.array([r["spread"] for r in s["runs"]])
+        bad = np.array([r["stick_slip"] for r in s["runs"]])
+        ax.scatter(kp[bad], sp[bad], marker="x", color="C3", label="stick-slip (sim)")
+        ax.scatter(kp[~bad], sp[~bad], marker="o", facecolors="none", color="C2", label="steady (sim)")
+        ax.axhline(SPREAD_MAX, color="0.6", lw=0.6)
+        if s.get("k_cr_eq8_N_per_um"):
+            ax.axvline(s["k_cr_eq8_N_per_um"] * 1e3, color="k", ls="--",
+                       label="paper eq. (8), 2N" + (" (PD; no I term)" if s["ki_N_per_um_s"] > 0 else ""))
+        if s.get("k_cr_loop_N_per_um"):
+            ax.axvline(s["k_cr_loop_N_per_um"] * 1e3, color="C0", ls="-", label="rig loop analysis (1 kHz)")
+        if s.get("k_sim_N_per_um"):
+            ax.axvline(s["k_sim_N_per_um"] * 1e3, color="C1", ls=":", label="simulated boundary")
+        ax.set_yscale("log")
         ax.set_xlabel("kp (kN/m)")
-        ax.set_ylabel("envelope growth rate (1/s)")
-        rd = c.get("rel_diff")
-        ax.set_title(f"{c['lubricant']} ({c.get('model')}): sim/eq.8 - 1 = "
-                     f"{rd * 100:.2f} %" if rd is not None else c["lubricant"], fontsize=9)
-        ax.legend(fontsize=7)
-    ax = axs[-1]
-    kd = np.logspace(-6, -1, 200)
-    for name, a in analyses.items():
-        inp = a["inputs"]
-        k = [k_cr_eq8_N_per_um(inp["A_mu"], inp["B_mu"], inp["L_um"], inp["normal_force_N"], inp["mass_kg"], d,
-                               inp["V0_um_s"]) * 1e3 for d in kd]
-        ax.loglog(kd, k, label=name)
-    ax.set_xlabel("derivative gain kd (N s/µm)")
-    ax.set_ylabel("k_cr, eq. (8) (kN/m)")
-    ax.set_title("eq. (8) vs derivative gain (A = 0: k_cr -> inf as kd -> 0)", fontsize=9)
-    ax.legend(fontsize=7)
+        ax.set_ylabel("velocity spread / V0")
+        ctl = f"PID ki={s['ki_N_per_um_s']:g}" if s["ki_N_per_um_s"] > 0 else "PD"
+        if not s.get("sensor_noise", True):
+            ctl += ", noise-free"
+        rd = s.get("rel_diff")
+        od = s.get("onset_rel_diff")
+        ttl = f"{s['lubricant']}, {ctl}" + (f": sim/analysis - 1 = {rd * 100:+.1f} %" if rd is not None else "")
+        if od is not None:
+            ttl += f"\nonset of oscillation (spread > {ONSET_SPREAD:g} V0): {od * 100:+.1f} %"
+            ax.axvline(s["k_onset_N_per_um"] * 1e3, color="C4", ls="-.", label="onset (noise-free)")
+            ax.set_yscale("symlog", linthresh=1e-3)
+        ax.set_title(ttl, fontsize=8)
+        ax.legend(fontsize=6)
+    used = {(rows.index(row_key(s)), lubs.index(s["lubricant"])) for s in scans}
+    for i in range(len(rows)):
+        for j in range(len(lubs)):
+            if (i, j) not in used:
+                axs[i, j].axis("off")
+    if title:
+        fig.suptitle(title, fontsize=9)
     fig.tight_layout()
     save(fig, path)

@@ -3,7 +3,7 @@
 From a stepped-velocity pass (Fig. 5): the friction of each level is the mean of
 ``mu`` over the last 50 µm of displacement at that velocity; levels come from the
 log's ``level`` events when present (their ``window_*`` times), else from the
-velocity steps detected in the data (:mod:`rig.analysis.steps`). Levels reached
+velocity steps detected in the data (:func:`rig.kinematics.detect_steps`). Levels reached
 by an increase of velocity form the *up* branch, the others the *down* branch
 (kept apart, as in Fig. 6: friction after increases exceeded friction after
 decreases). Eq. (7), ``mu_ss = mu0 + (A - B) ln(v/V0)``, is fitted by least
@@ -21,9 +21,9 @@ from pathlib import Path
 import numpy as np
 
 from rig.analysis.identify import _r
-from rig.analysis.steps import detect_steps
+from rig.kinematics import detect_steps
 from rig.data import TrialData, atomic_write_text
-from rig.friction import V0_UM_S
+from rig.model.friction import V0_UM_S
 
 SCHEMA = "rig.stribeck/1"
 

@@ -17,6 +17,9 @@ from rig.commands.common import (EXIT_BAD_INPUT, JSON_HELP, Lubricant, check_out
 
 console = Console(width=None if Console().is_terminal else 140, highlight=False)
 
+#: fewer samples than this are no record to analyse (a 1-row file divided by zero in identify)
+MIN_SAMPLES = 3
+
 
 def _fail(msg: str, code: int = EXIT_BAD_INPUT):
     fail(msg, code)
@@ -42,10 +45,6 @@ class Direction(str, Enum):
 class Engine(str, Enum):
     sim = "sim"
     synth = "synth"
-
-
-#: fewer samples than this are no record to analyse (a 1-row file divided by zero in identify)
-MIN_SAMPLES = 3
 
 
 def _con(json_out) -> Console:
@@ -76,6 +75,11 @@ def _load(paths: list[Path]):
     return trials
 
 
+def _named(msg: str, data) -> str:
+    """An analysis error with the file(s) named."""
+    return msg if any(str(p) in msg for p in data) else f"{', '.join(map(str, data))}: {msg}"
+
+
 def _fmt(v, nd=4):
     if v is None:
         return "-"
@@ -87,7 +91,8 @@ def _fmt(v, nd=4):
 
 
 def identify_cmd(
-    data: list[Path] = typer.Argument(..., help="One or more trial files (.csv or .mcap).", show_default=False),
+    data: list[Path] = typer.Argument(..., help="One or more trial files (.csv or .mcap); a directory or a "
+                                                "glob runs a batch into the catalogue."),
     json_out: Optional[Path] = typer.Option(None, "--json", help=JSON_HELP + " (rig.identify/1)"),
     plot: Optional[Path] = typer.Option(None, "--plot", help="Write a PNG (friction after each step, fits, windows)."),
     events: bool = typer.Option(True, "--events/--no-events", help="Use the log's step events when present."),
@@ -100,23 +105,39 @@ def identify_cmd(
                                                   "file says its position is the load point)."),
     direction: Direction = typer.Option(Direction.both, "--direction", help="Steps to use."),
     min_ratio: float = typer.Option(1.25, "--min-ratio", help="Smallest velocity ratio counted as a step."),
+    jobs: Optional[int] = typer.Option(None, "--jobs", help="Batch: N worker processes (default: all cores)."),
+    scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Batch: an existing Dask cluster, "
+                                                                      "tcp://HOST:PORT."),
+    db: Optional[Path] = typer.Option(None, "--db", help="Batch: the catalogue (default DIR/catalog.duckdb)."),
 ):
-    """Identify A, B, L by the paper's velocity-step method (eqs. 10-14) and a whole-record fit."""
-    con = _con(json_out)
+    """Identify A, B, L by the paper's velocity-step method (eqs. 10-14) and a whole-record fit.
+
+    With a directory or a glob (or --jobs/--scheduler/--db), each file is identified on its
+    own, in parallel, and the results go into the catalogue (docs/catalog.md)."""
     from rig.analysis.identify import identify_trials
 
+    con = _con(json_out)
     if not min_ratio > 1:
         _fail(f"--min-ratio must be more than 1 (got {min_ratio:g})")
     _outputs(json=json_out, plot=plot)
     velocity, whole_velocity, direction = velocity.value, whole_velocity.value, direction.value
+    from rig.commands.catalog import identify_summary, is_batch, run_batch
+
+    if is_batch([str(p) for p in data], jobs, scheduler, db):
+        if json_out or plot:
+            _fail("--json and --plot are for single runs; a batch writes its results into the catalogue")
+        run_batch("identify", [str(p) for p in data],
+                  {"use_events": events, "velocity_method": velocity, "whole_record": whole,
+                   "whole_velocity": whole_velocity, "stiffness": stiffness, "directions": direction,
+                   "min_ratio": min_ratio}, jobs=jobs, scheduler=scheduler, db=db, summarize=identify_summary)
+        return
     trials = _load(data)
     try:
         idn = identify_trials(trials, use_events=events, velocity_method=velocity, whole_record=whole,
                               whole_velocity=whole_velocity, stiffness=stiffness, directions=direction,
                               min_ratio=min_ratio, names=[str(p) for p in data])
     except ValueError as exc:
-        msg = str(exc)
-        _fail(msg if any(str(p) in msg for p in data) else f"{', '.join(map(str, data))}: {msg}")
+        _fail(_named(str(exc), data))
     rep = idn.report
     if not rep["steps"]:
         _fail(f"{', '.join(map(str, data))}: no velocity steps found (ratio >= {min_ratio:g})")
@@ -169,18 +190,18 @@ def stribeck_cmd(
     window_um: float = typer.Option(50.0, "--window-um", help="Average over the last this many µm of each level."),
 ):
     """Steady-state friction per velocity level, up and down branches, and A - B by eq. (7)."""
-    con = _con(json_out)
     from rig.analysis.stribeck import plot_stribeck, stribeck
 
+    con = _con(json_out)
     if not window_um > 0:
         _fail(f"--window-um must be positive (got {window_um:g})")
     _outputs(json=json_out, plot=plot)
+
     trials = _load(data)
     try:
         rep = stribeck(trials, use_events=events, window_um=window_um, names=[str(p) for p in data])
     except ValueError as exc:
-        msg = str(exc)
-        _fail(msg if any(str(p) in msg for p in data) else f"{', '.join(map(str, data))}: {msg}")
+        _fail(_named(str(exc), data))
     if not rep["levels"]:
         _fail(f"{', '.join(map(str, data))}: no velocity levels found")
     table = Table(title=f"steady-state friction (last {window_um:g} µm of each level)")
@@ -205,32 +226,39 @@ def stability_cmd(
     lubricant: Optional[Lubricant] = typer.Option(None, "--lubricant", help="Table 2's values of this lubricant "
                                                                            "(default: all three)."),
     params: Optional[Path] = typer.Option(None, "--params", help="A rig identify JSON report (its mean A, B, L)."),
-    profile: Optional[Path] = typer.Option(None, "--profile", help="Rig profile (mass, kd, normal force); "
+    profile: Optional[Path] = typer.Option(None, "--profile", help="Rig profile (mass, gains, actuator, sensors); "
                                                                    "default config/rigs/sim.yaml."),
-    margin: float = typer.Option(2.0, "--margin", help="Advice: kp >= margin x k_cr (eq. 8)."),
+    margin: float = typer.Option(2.0, "--margin", help="Advice: kp >= margin x k_cr (the rig's loop)."),
     v0: float = typer.Option(1.0, "--v0", help="Sliding velocity V0 (µm/s)."),
-    simulate: bool = typer.Option(False, "--simulate", help="Check eq. (8) by closed-loop simulation (Fig. 1)."),
-    full_rig: bool = typer.Option(False, "--full-rig", help="With --simulate: also bisect with the full simulated "
-                                                            "rig (PD: ki = 0)."),
-    plot: Optional[Path] = typer.Option(None, "--plot", help="Write the stability map PNG."),
-    json_out: Optional[Path] = typer.Option(None, "--json", help=JSON_HELP + " (rig.stability/1)"),
+    simulate: bool = typer.Option(False, "--simulate", help="Check by a kp scan on the full simulated rig "
+                                                            "(criterion: stuck fraction, velocity spread)."),
+    plot: Optional[Path] = typer.Option(None, "--plot", help="With --simulate: write the stability map PNG."),
+    json_out: Optional[Path] = typer.Option(None, "--json", help=JSON_HELP + " (rig.stability/2)"),
+    jobs: Optional[int] = typer.Option(None, "--jobs", help="With --simulate: checks on N worker processes "
+                                                            "(Dask; default: all cores; 1: serially)."),
+    scheduler: Optional[str] = typer.Option(None, "--scheduler", help="With --simulate: an existing Dask "
+                                                                      "cluster, tcp://HOST:PORT."),
 ):
-    """Critical stiffness by eqs. (8) and (13), PD gain advice, and the check by simulation."""
-    con = _con(json_out)
+    """Critical stiffness of the moving test piece: the paper's eqs. (8)/(13), the rig's PID
+    loop (1 kHz, zero-order hold), PD and PID, and optionally the simulated boundary."""
     from rig.analysis import stability as S
-    from rig.friction import TABLE2, FrictionModel
+    from rig.model.paper import TABLE2
+    from rig.model.spec import FrictionModel
 
+    con = _con(json_out)
     lubricant = lubricant.value if lubricant is not None else None
     _outputs(json=json_out, plot=plot)
-
     if lubricant and params:
         _fail("give --lubricant or --params, not both")
     if not (margin > 0 and math.isfinite(margin)):
         _fail(f"--margin must be a positive number (got {margin:g})")
     if not (v0 > 0 and math.isfinite(v0)):
         _fail(f"--v0 must be a positive number of µm/s (got {v0:g})")
+    if plot and not simulate:
+        _fail("--plot needs --simulate (the map shows the scanned runs)")
     mass, kd, N = S.DEFAULT_MASS_KG, S.DEFAULT_KD_N_S_PER_UM, 100.0
     prof = None
+    ppath = None
     try:
         from rig.config.profile import default_profile_path, load_profile
 
@@ -274,57 +302,98 @@ def stability_cmd(
             if nm not in TABLE2:
                 _fail(f"unknown lubricant {nm!r}; known: {', '.join(TABLE2)}")
             sets[nm] = {k: TABLE2[nm][k][0] for k in ("A_mu", "B_mu", "L_um")}
+    ki = prof.controller.ki_N_per_um_s if prof is not None else 0.0
     analyses = {}
-    table = Table(title=f"critical stiffness at V0 = {v0:g} µm/s (m = {mass:g} kg, kd = {kd:g} N s/µm, N = {N:g} N)")
-    for c in ("set", "A_mu", "B_mu", "L (µm)", "k_cr eq.13 (kN/m, N)", "eq.13 x2 (kN/m, 2N)", "k_cr eq.8 (kN/m, 2N)",
-              "eq.8 kd=0", "mass term", f"kp min (x{margin:g})"):
+    table = Table(title=f"critical stiffness at V0 = {v0:g} µm/s (m = {mass:g} kg, kd = {kd:g} N s/µm, "
+                        f"ki = {ki:g} N/(µm s), N = {N:g} N per rider)")
+    for c in ("set", "eq.13 per rider (N; Table 2)", "moving piece eq.13 (2N)", "eq.8 (2N, kd, m)",
+              "rig loop PD", "rig loop PID", f"kp min (x{margin:g})"):
         table.add_column(c, justify="right")
     for nm, p in sets.items():
         a = S.analyse(S.StabilityInputs(p["A_mu"], p["B_mu"], p["L_um"], N, mass, kd, v0), margin)
+        if prof is not None:
+            model = (prof.friction_model(nm) if nm in getattr(prof, "lubricants", {}) and not params
+                     else FrictionModel(params={"mu0": 0.12, **p}))
+            loop = {}
+            for label, k_i in (("PD", 0.0), ("PID", ki)):
+                try:
+                    lm = S.LoopModel.from_profile(prof, model, ki_N_per_um_s=k_i, V0_um_s=v0)
+                    k = S.k_cr_loop(lm)
+                except ValueError as exc:
+                    k, loop[f"{label}_note"] = None, str(exc)
+                loop[label] = k
+            a["k_cr_loop_PD_kN_per_m"] = loop["PD"] * 1e3 if loop["PD"] is not None else None
+            a["k_cr_loop_PID_kN_per_m"] = loop["PID"] * 1e3 if loop["PID"] is not None else None
+            k_use = loop["PID"] if ki > 0 else loop["PD"]
+            if k_use == 0.0:
+                a["kp_min_N_per_um"] = margin * loop["PD"] if loop["PD"] else None
+                a["advice"] = ("the rig's PID loop has no finite k_cr (the integral term holds the slow friction "
+                               "mode); without the I term (PD) kp >= "
+                               f"{_fmt(a['kp_min_N_per_um'] * 1e3 if a['kp_min_N_per_um'] else None)} kN/m "
+                               f"= {margin:g} x k_cr")
+            elif k_use is not None:
+                a["kp_min_N_per_um"] = margin * k_use
+                a["advice"] = (f"kp >= {margin * k_use * 1e3:.4g} kN/m = {margin:g} x k_cr of the rig's loop "
+                               f"({'PID' if ki > 0 else 'PD'}, 1 kHz)")
+        a["statement"] = S.fixture_statement(p["A_mu"], p["B_mu"], p["L_um"], N)
         analyses[nm] = a
-        table.add_row(nm, _fmt(p["A_mu"], 3), _fmt(p["B_mu"], 3), _fmt(p["L_um"], 3), _fmt(a["k_cr_eq13_kN_per_m"]),
-                      _fmt(a["k_cr_eq13_fixture_kN_per_m"]), _fmt(a["k_cr_eq8_kN_per_m"]),
-                      _fmt(a["k_cr_eq8_kd0_kN_per_m"]) if a["k_cr_eq8_kd0_kN_per_m"] else "inf",
-                      _fmt(a["mass_term"], 2), _fmt(a["kp_min_N_per_um"] * 1e3 if a["kp_min_N_per_um"] else None)
-                      + " kN/m")
+
+        def k(x):
+            return "none (stable at every kp)" if x == 0 else (_fmt(x) if x is not None else "-")
+
+        table.add_row(nm, _fmt(a["k_cr_eq13_kN_per_m"]), _fmt(a["k_cr_eq13_fixture_kN_per_m"]),
+                      _fmt(a["k_cr_eq8_kN_per_m"]) if a["k_cr_eq8_kN_per_m"] else "inf",
+                      k(a.get("k_cr_loop_PD_kN_per_m")), k(a.get("k_cr_loop_PID_kN_per_m")),
+                      _fmt(a["kp_min_N_per_um"] * 1e3 if a["kp_min_N_per_um"] else None) + " kN/m")
     con.print(table)
     for nm, a in analyses.items():
+        con.print(f"{nm}: {a['statement']}")
         con.print(f"{nm}: {a['advice']}")
-    con.print("[dim]eq. (8) uses the fixture's total friction 2 N mu (A = 2 N A_mu); eq. (13) and Table 2 use N "
-                  "(one interface). With A + kv V0 = 0 eq. (8) has no finite k_cr.[/dim]")
+    con.print("[dim]All stiffnesses in kN/m. The stiffness the controller must provide is the moving test piece's "
+                  "(2 N); Table 2 prints (B - A) N / L per rider interface, half of it. The rig loop columns: "
+                  "eq. (8)'s system with the rig's discrete PID (1 kHz, zero-order hold, backward-difference D), "
+                  "actuator, compliance and LVDT filter (rig.analysis.stability.k_cr_loop).[/dim]")
     checks = []
     if simulate:
-        for nm, p in sets.items():
-            model = FrictionModel(params={"mu0": 0.12, **p})
-            c = S.check_lubricant(nm, mass_kg=mass, kd_N_s_per_um=kd, normal_force_N=N, V0_um_s=v0, model=model)
-            checks.append(c)
-            con.print(f"{nm}: Fig. 1 simulation boundary {_fmt(c['k_sim_N_per_um'] * 1e3 if c['k_sim_N_per_um'] else None)}"
-                          f" kN/m vs eq. (8) {_fmt(c['k_cr_eq8_N_per_um'] * 1e3)} kN/m (A_eff = {_fmt(c['A_eff_mu'], 3)}): "
-                          f"{_fmt(100 * c['rel_diff'] if c['rel_diff'] is not None else None, 3)} %")
-            if full_rig:
-                if prof is None:
-                    _fail("--full-rig needs the simulated rig (rig.sim) and a profile")
-                if nm not in prof.lubricants:
-                    con.print(f"{nm}: not a lubricant of the profile; full-rig check skipped")
+        if prof is None:
+            _fail("--simulate needs the simulated rig (rig.sim) and a profile")
+        if jobs is not None and jobs < 1:
+            _fail(f"--jobs must be at least 1 (got {jobs})")
+        from contextlib import ExitStack
+
+        from rig.catalog.batch import mapper
+
+        stack = ExitStack()
+        map_fn = stack.enter_context(mapper(jobs, scheduler))
+        for nm in sets:
+            if params or nm not in prof.lubricants:
+                con.print(f"{nm}: not a lubricant of the profile; simulation skipped")
+                continue
+            for k_i in (0.0, ki) if ki > 0 else (0.0,):
+                lm = S.LoopModel.from_profile(prof, prof.friction_model(nm), ki_N_per_um_s=k_i, V0_um_s=v0)
+                k_lin = S.k_cr_loop(lm)
+                if not k_lin:
+                    con.print(f"{nm} ({'PID' if k_i else 'PD'}): no finite k_cr in the analysis; scan skipped")
                     continue
-                f = S.full_rig_boundary(nm, profile=ppath, V0_um_s=v0)
-                checks.append(f)
-                con.print(f"{nm}: full simulated rig (PD, ki = 0) boundary "
-                              f"{_fmt(f['k_sim_N_per_um'] * 1e3 if f['k_sim_N_per_um'] else None)} kN/m vs eq. (8) "
-                              f"{_fmt(f['k_cr_eq8_N_per_um'] * 1e3)} kN/m; with the actuator's leakage damping "
-                              f"(kv + {f['kv_leak_N_s_per_um']:g} N s/µm) {_fmt(f['k_cr_eq8_with_leak_N_per_um'] * 1e3)} kN/m")
-                ks = f["k_sim_N_per_um"]
-                if not ks or abs(ks / f["k_cr_eq8_with_leak_N_per_um"] - 1) > 0.05:
-                    con.print(f"[yellow]{nm}: the full rig departs from eq. (8): with a small direct effect the "
-                                  "D term on the noisy LVDT makes the interface velocity jitter (peaks beyond V0) "
-                                  "and the linear analysis no longer applies; with kd = 0 the rig follows eq. (8) "
-                                  "(docs/identification.md, section 5)[/yellow]")
+                with err_console.status(f"{nm} ({'PID' if k_i else 'PD'}): scanning kp..."):
+                    r = S.scan_boundary(nm, profile=ppath, ki_N_per_um_s=k_i, V0_um_s=v0,
+                                        factors=(0.8, 0.9, 0.95, 1.05, 1.1, 1.25), map_fn=map_fn)
+                r["k_cr_eq8_N_per_um"] = analyses[nm]["k_cr_eq8_N_per_um"]
+                checks.append(r)
+                lo, hi = r["bracket_N_per_um"]
+                con.print(f"{nm} ({'PID' if k_i else 'PD'}): simulated boundary "
+                              f"{_fmt(r['k_sim_N_per_um'] * 1e3 if r['k_sim_N_per_um'] else None)} kN/m "
+                              f"(stick-slip at {_fmt(lo * 1e3 if lo else None)}, steady at "
+                              f"{_fmt(hi * 1e3 if hi else None)}) vs the rig loop's {_fmt(k_lin * 1e3)} kN/m")
+        stack.close()
+        con.print(f"[dim]criterion: {S.STUCK_FRACTION_MAX:.0%} stuck / spread {S.SPREAD_MAX:g} V0 "
+                      f"({checks[0]['criterion'] if checks else ''})[/dim]")
     if json_out:
-        doc = {"schema": "rig.stability/1", "V0_um_s": v0, "mass_kg": mass, "kd_N_s_per_um": kd,
-               "normal_force_N": N, "analyses": analyses, "checks": checks}
+        doc = {"schema": "rig.stability/2", "V0_um_s": v0, "mass_kg": mass, "kd_N_s_per_um": kd,
+               "ki_N_per_um_s": ki, "normal_force_N": N, "analyses": analyses, "checks": checks}
         write_json(doc, json_out)
     if plot:
-        S.plot_map(checks, analyses, plot)
+        S.plot_map(checks, plot)
         con.print(f"wrote {plot}", markup=False)
 
 
@@ -339,14 +408,18 @@ def reproduce_cmd(
                                                                 "kinematic generator."),
     json_out: Optional[Path] = typer.Option(None, "--json", help=JSON_HELP + " (rig.reproduce/1)"),
     plot: Optional[Path] = typer.Option(None, "--plot", help="Write a PNG (paper vs recovered vs truth)."),
+    jobs: Optional[int] = typer.Option(None, "--jobs", help="Trials on N worker processes (Dask; default: all "
+                                                            "cores; 1: serially in this process)."),
+    scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Run the trials on an existing Dask "
+                                                                      "cluster, tcp://HOST:PORT."),
 ):
     """Simulated trials in the paper's protocol, identified: our Table 2 beside the paper's."""
-    con = _con(json_out)
     from rich.progress import BarColumn, Progress, TimeElapsedColumn, TimeRemainingColumn
 
     from rig.analysis.reproduce import plot_reproduce, reproduce
-    from rig.friction import TABLE2
+    from rig.model.paper import TABLE2
 
+    con = _con(json_out)
     lubs = [lb.value for lb in lubricant] if lubricant else list(TABLE2)
     engine = engine.value
     _outputs(json=json_out, plot=plot)
@@ -360,11 +433,19 @@ def reproduce_cmd(
             load_profile(profile)
         except ProfileError as exc:
             _fail(str(exc))
+    from rig.catalog.batch import BatchError, mapper
+
+    if jobs is not None and jobs < 1:
+        _fail(f"--jobs must be at least 1 (got {jobs})")
     with Progress("[progress.description]{task.description}", BarColumn(), "{task.completed}/{task.total} trials",
-                  TimeElapsedColumn(), TimeRemainingColumn(), console=console) as prog:
+                  TimeElapsedColumn(), TimeRemainingColumn(), console=con) as prog:
         task = prog.add_task("simulating and identifying", total=trials * len(lubs))
-        rep = reproduce(trials, seed=seed, lubricants=lubs, profile=profile, whole_record=whole,
-                        progress=lambda: prog.advance(task), engine=engine)
+        try:
+            with mapper(jobs, scheduler, progress=lambda: prog.advance(task)) as map_fn:
+                rep = reproduce(trials, seed=seed, lubricants=lubs, profile=profile, whole_record=whole,
+                                engine=engine, map_fn=map_fn)
+        except BatchError as exc:
+            _fail(str(exc), 1)
     table = Table(title=f"Table 2, paper vs {trials} simulated trials per lubricant (mean ± s.e. of the mean)")
     table.add_column("parameter")
     for lub in lubs:
@@ -395,6 +476,18 @@ def reproduce_cmd(
                 row += ["", f"{w['mean'][k] * scale[k]:.3g} ± {w['sem'][k] * scale[k]:.2g}", ""]
             table.add_row(*row)
     con.print(table)
+    for lub in lubs:
+        b = rep["lubricants"][lub]["bias"]
+        con.print(f"{lub}: identification bias, recovered/true - 1 (mean ± s.e. over trials): "
+                      + ", ".join(f"{k} {100 * (b[k]['recovered_vs_true_rel'] or 0):+.1f} ± "
+                                  f"{100 * (b[k]['recovered_vs_true_rel_sem'] or 0):.1f} %" for k in b)
+                      + "; recovered mean vs Table 2 (in the paper's s.e.): "
+                      + ", ".join(f"{k} {b[k]['vs_paper_z']:+.2f}" for k in b))
+    from rig.analysis.stability import fixture_statement
+
+    for lub in lubs:
+        m = rep["lubricants"][lub]["recovered"]["mean"]
+        con.print(f"{lub}: k_cr column = eq. (13) per rider; {fixture_statement(m['A_mu'], m['B_mu'], m['L_um'])}")
     for lub in lubs:
         c = rep["lubricants"][lub]["checks"]
         bad = [k for k, v in c.items() if not v["ok"]]

@@ -13,8 +13,8 @@ from typing import Optional
 
 import typer
 
-from rig.commands.common import (EXIT_BAD_INPUT, JSON_HELP, check_output_path, err_console, fail, json_to_stdout,
-                                 write_json)
+from rig.commands.common import (EXIT_BAD_INPUT, EXIT_FAILED, JSON_HELP, check_output_path, err_console, fail,
+                                 json_to_stdout, write_json)
 
 
 class Baseline(str, Enum):
@@ -25,7 +25,8 @@ class Baseline(str, Enum):
 def register(app: typer.Typer) -> None:
     @app.command("diagnose")
     def diagnose_cmd(
-        data: Path = typer.Argument(..., help="Measured trial: .csv (measured-data.md) or .mcap rig log.",
+        data: Path = typer.Argument(..., help="Measured trial: .csv (measured-data.md) or .mcap rig log; a "
+                                              "directory or a glob runs a batch into the catalogue.",
                                     show_default=False),
         baseline: Baseline = typer.Option(Baseline.rate_state, "--baseline", help="The model to start from."),
         json_out: Optional[Path] = typer.Option(None, "--json", help=JSON_HELP + " (rig.diagnosis/1)"),
@@ -33,11 +34,28 @@ def register(app: typer.Typer) -> None:
         model_out: Optional[Path] = typer.Option(None, "--model-out",
                                                  help="Write the extended friction model (YAML) for "
                                                       "`rig run --sim --friction-model`."),
+        jobs: Optional[int] = typer.Option(None, "--jobs", help="Batch: N worker processes (default: all cores)."),
+        scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Batch: an existing Dask cluster, "
+                                                                          "tcp://HOST:PORT."),
+        db: Optional[Path] = typer.Option(None, "--db", help="Batch: the catalogue (default DIR/catalog.duckdb)."),
     ):
-        """Fit the friction model, find and name what it misses, extend it, measure the gain on hold-out data."""
+        """Fit the friction model, find and name what it misses, extend it, measure the gain on hold-out data.
+
+        With a directory or a glob (or --jobs/--scheduler/--db), each file is diagnosed on its own,
+        in parallel, and the results go into the catalogue (docs/catalog.md)."""
         from rig.data import DataFormatError
         from rig.log import load_trial
 
+        baseline = baseline.value
+        from rig.commands.catalog import diagnose_summary, is_batch, run_batch
+
+        if is_batch([str(data)], jobs, scheduler, db):
+            if json_out or plot or model_out:
+                fail("--json, --plot and --model-out are for single runs; a batch writes its results into the "
+                     "catalogue")
+            run_batch("diagnose", [str(data)], {"baseline": baseline}, jobs=jobs, scheduler=scheduler, db=db,
+                      summarize=diagnose_summary)
+            return
         for opt, p, sfx in (("--json", json_out, ()), ("--plot", plot, (".png",)),
                             ("--model-out", model_out, (".yaml", ".yml"))):
             if p is not None:
@@ -50,8 +68,7 @@ def register(app: typer.Typer) -> None:
 
         try:
             with err_console.status("diagnosing...") as status:
-                d = diagnose(trial, baseline=baseline.value,
-                             progress=lambda m: status.update(f"diagnosing: {m}"))
+                d = diagnose(trial, baseline=baseline, progress=lambda m: status.update(f"diagnosing: {m}"))
         except ValueError as exc:
             msg = str(exc)
             fail(msg if str(data) in msg else f"{data}: {msg}", EXIT_BAD_INPUT)
@@ -72,7 +89,7 @@ def register(app: typer.Typer) -> None:
             try:
                 d.model.to_yaml(model_out)
             except OSError as exc:
-                fail(f"cannot write {model_out}: {exc.strerror or exc}", 1)
+                fail(f"cannot write {model_out}: {exc.strerror or exc}", EXIT_FAILED)
 
 
 def summary(rep: dict) -> str:

@@ -217,7 +217,7 @@ class _SignalNote:
 def _load_friction_model(path: Path):
     """The friction model YAML of --friction-model; a recipe or a profile given instead is one clear error."""
     from rig.config.loader import ConfigError, load_model_yaml
-    from rig.friction import FrictionModel
+    from rig.model.spec import FrictionModel
 
     try:
         return load_model_yaml(path, FrictionModel, key="friction_model", what="friction model")

@@ -15,7 +15,7 @@ Sections (docs/sim.md, docs/hardware.md):
   divided by ``actuator.full_scale_force_N``, saturated at ±1. Dither at 500 Hz,
   0.1 % of the PID output (section 3).
 * ``servovalve``, ``actuator``, ``fixture``, ``normal``, ``sensors``, ``stroke``: the
-  plant (simulated by :mod:`rig.plant`, documented in docs/sim.md).
+  plant (simulated by :mod:`rig.sim.plant`, documented in docs/sim.md).
 * ``lubricants``: per-lubricant friction parameters, Table 2 means for A, B, L; the paper
   gives no ``mu0``, so the values here are assumptions.
 * ``sim``: numerical settings of the simulated rig.
@@ -34,7 +34,7 @@ from pydantic import Field, model_validator
 
 from drivers.config import HardwareConfig
 from rig.config.loader import ConfigError, StrictModel, expect_kind, field_error, read_yaml, validate
-from rig.friction import FrictionModel
+from rig.model.spec import FrictionModel
 from trajectories import DEFAULT_MAX_SPEED_UM_S, RigLimits
 
 
@@ -70,6 +70,8 @@ class ControllerConfig(StrictModel):
     dither_reference: Literal["pid_output", "full_scale"] = Field(
         "pid_output", description="pid_output: fraction of the low-passed |PID output|; full_scale: of full_scale_force_N")
     dither_smoothing_s: float = Field(0.05, gt=0, description="time constant of the |PID output| low-pass for the dither")
+    ff1_N_s_per_um: float = Field(0.0, ge=0, description="velocity feed-forward (LinuxCNC FF1): force per unit reference "
+                                                         "velocity, N s/µm; 0 = off")
 
 
 class ServovalveConfig(StrictModel):

@@ -2,8 +2,8 @@
 
 The contract is ../shared/specs/diagnosis.md. Entry points: :func:`diagnose`
 (a :class:`rig.data.TrialData` -> :class:`Diagnosis`, whose ``.report()`` is the
-JSON report and ``.model`` the extended :class:`rig.friction.FrictionModel`),
-:mod:`rig.diagnosis.synth` (records with known effects), :mod:`rig.diagnosis.plot`.
+JSON report and ``.model`` the extended :class:`rig.model.spec.FrictionModel`),
+:mod:`rig.sim.synth` (records with known effects), :mod:`rig.diagnosis.plot`.
 """
 
 from .core import Diagnosis, diagnose

@@ -39,7 +39,9 @@ import numpy as np
 from rig.data import TrialData
 
 from .fit import FitResult, evaluate, fit, multistart
-from .models import EXT_PARAMS, model_params, to_friction_model
+from rig.kinematics import velocity_changes
+from rig.model.forward import as_model
+from rig.model.spec import EXT_PARAMS, model_params
 from .prep import Grid, prepare
 
 MIN_GAIN_PCT = 0.15
@@ -81,7 +83,7 @@ class Diagnosis:
     @property
     def model(self):
         names = model_params(self.final.baseline, self.final.extensions)
-        return to_friction_model(self.final.baseline, self.final.extensions,
+        return as_model(self.final.baseline, self.final.extensions,
                                  {k: v for k, v in self.final.params.items() if k in names})
 
     def report(self) -> dict:
@@ -163,6 +165,7 @@ def white_z(grid: Grid, before: np.ndarray, after: np.ndarray) -> float:
     rho = float(np.sum(x[1:] * x[:-1]) / max(float(np.sum(x * x)), 1e-300))
     rho = min(max(rho, 0.0), 0.98)
     sd = 2.0 * sig * math.sqrt(float(np.sum(w * d * d))) * math.sqrt((1 + rho) / (1 - rho))
+    sd *= math.sqrt(grid.noise_corr)  # raw noise correlated within a bin (1 kHz behind the analog filter)
     return red / sd if sd > 0 else 0.0
 
 
@@ -397,9 +400,8 @@ def transient_scaling(grid: Grid, before: np.ndarray, after: np.ndarray):
     t, v = grid.t, grid.v
     pairs = []
     tv = t
-    from .plot import velocity_changes
 
-    te = velocity_changes(grid)
+    te = velocity_changes(grid.kin["t"], grid.kin["v"])
     ev = sorted(set(int(i) for i in np.clip(np.searchsorted(t, te - 1.0), 0, t.size - 1)))
     for k, i in enumerate(ev):
         j_end = ev[k + 1] if k + 1 < len(ev) else t.size - 1
@@ -577,6 +579,10 @@ def _plausible(cause: str, p: dict, grid: Grid) -> bool:
     if cause == "second_state_variable":
         # a state longer than half the record's slip cannot be told from a drift
         if p["L2_um"] > 0.5 * float(slip_of(grid)[-1]):
+            return False
+        # nor can one whose transient is shorter than the kinematics resolve, even at the
+        # fastest sliding (as sensor_lag and time_delay): it stands in for the loading/sensors
+        if p["L2_um"] / max(_speeds(grid)[1], 1e-9) < grid.time_resolution_s:
             return False
     if cause == "position_periodic":
         span = float(grid.x.max() - grid.x.min())

@@ -4,7 +4,7 @@ The fit minimises the raw-sample sum of squares of the friction residual on
 the *fit* blocks of the record (even-numbered blocks of :mod:`.prep`); the
 *hold-out* blocks (odd) are only predicted. Parameters that must be positive
 (``L_um``, ``L2_um``, ``tau_s``, ``delay_s``, ``stiffness_kN_per_m``,
-``wavelength_um``) are fitted in ``ln``; the periodic term is fitted as a
+``wavelength_um``) are fitted in ``ln`` (rig.model.spec.PARAMS declares them, rig.fitting fits); the periodic term is fitted as a
 sine and cosine amplitude (linear) and reported as ``amplitude_mu`` and
 ``phase_rad``. All other parameters are fitted as they are, scaled to O(1).
 """
@@ -15,22 +15,23 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import least_squares
 
-from .models import model_params, predict_force
+from rig.model.forward import as_model, predict_force
+from rig.fitting import Param, ParamSet, least_squares_fit
+from rig.model.spec import PARAMS, model_params
 from .prep import Grid
 
-LOG_PARAMS = {
-    "L_um": (0.05, 1e5), "L2_um": (0.05, 1e6), "tau_s": (1e-4, 300.0), "delay_s": (1e-4, 300.0),
-    "stiffness_kN_per_m": (0.5, 1e7), "wavelength_um": (1.0, 1e6),
-    # nuisance: the velocity whose steady state the record starts in (records starting from rest)
-    "v_init_um_s": (1e-5, 1e3),
-}
-LIN_PARAMS = {
-    "mu0": (0.01, -10.0, 10.0), "A_mu": (1e-3, 0.0, 0.2), "B_mu": (1e-3, -0.2, 0.2), "c_mu": (1e-3, -0.2, 0.2),
-    "B2_mu": (1e-3, -0.2, 0.2), "rate_mu_per_mm": (1e-4, -1.0, 1.0), "rate_N_per_s": (1e-4, -10.0, 10.0),
-    "_pc": (1e-3, -0.5, 0.5), "_ps": (1e-3, -0.5, 0.5),
-}
+# the periodic term is fitted as a cosine and a sine amplitude (linear), reported as
+# amplitude_mu and phase_rad; every other parameter as rig.model.spec.PARAMS declares it
+_REPARAM = {"_pc": Param("_pc", "1", -0.5, 0.5, scale=1e-3), "_ps": Param("_ps", "1", -0.5, 0.5, scale=1e-3)}
+_NOT_CHECKED = ("mu0", "amplitude_mu", "phase_rad")
+
+
+def param(name: str) -> Param:
+    """The fitted parameter ``name`` (unit, bounds, scaling) of rig.model.spec.PARAMS."""
+    if name in _REPARAM:
+        return _REPARAM[name]
+    return Param.of(name, PARAMS[name])
 
 
 @dataclass
@@ -46,6 +47,7 @@ class FitResult:
     n_par: int
     nfev: int = 0
     extra: dict = field(default_factory=dict)
+    noise_corr: float = 1.0          # Grid.noise_corr: raw samples per independent one
 
     @property
     def holdout_rms_N(self) -> float:
@@ -57,9 +59,11 @@ class FitResult:
 
     @property
     def bic(self) -> float:
-        """Gaussian BIC on the fit blocks' raw samples: n ln(SSE/n) + k ln n."""
+        """Gaussian BIC on the fit blocks' raw samples: n ln(SSE/n) + k ln n, with n the
+        effective number of independent samples (raw count / Grid.noise_corr)."""
         n = max(self.n_fit, 1)
-        return n * math.log(max(self.sse_fit, 1e-300) / n) + self.n_par * math.log(n)
+        ne = max(n / max(self.noise_corr, 1.0), 1.0)
+        return ne * math.log(max(self.sse_fit, 1e-300) / n) + self.n_par * math.log(ne)
 
 
 def _free_names(baseline: str, extensions: list[str], init: dict | None = None) -> list[str]:
@@ -77,31 +81,8 @@ def _free_names(baseline: str, extensions: list[str], init: dict | None = None) 
     return out
 
 
-def _to_internal(names, params):
-    z = np.empty(len(names))
-    lo = np.empty(len(names))
-    hi = np.empty(len(names))
-    for i, nm in enumerate(names):
-        if nm in LOG_PARAMS:
-            a, b = LOG_PARAMS[nm]
-            val = min(max(params[nm], a * 1.0001), b / 1.0001)
-            z[i] = math.log(val)
-            lo[i], hi[i] = math.log(a), math.log(b)
-        else:
-            sc, a, b = LIN_PARAMS[nm]
-            val = min(max(params[nm], a + 1e-12), b - 1e-12)
-            z[i] = val / sc
-            lo[i], hi[i] = a / sc, b / sc
-    return z, lo, hi
-
-
-def _to_params(names, z, fixed):
-    p = dict(fixed)
-    for i, nm in enumerate(names):
-        if nm in LOG_PARAMS:
-            p[nm] = math.exp(z[i])
-        else:
-            p[nm] = z[i] * LIN_PARAMS[nm][0]
+def _fold(p: dict) -> dict:
+    p = dict(p)
     if "_pc" in p:
         pc, ps = p.pop("_pc"), p.pop("_ps")
         p["amplitude_mu"] = math.hypot(pc, ps)
@@ -119,10 +100,18 @@ def _from_params(params):
     return p
 
 
+def predict(grid: Grid, baseline: str, extensions: list[str], params: dict[str, float]) -> np.ndarray:
+    """The forward model (rig.model.forward) on the grid; ``v_init_um_s`` in params is the
+    speed whose steady state the record starts in."""
+    v_init = params.get("v_init_um_s")
+    return predict_force(as_model(baseline, extensions, params), grid.t, grid.x, grid.v, grid.N_tot, grid.N_nom,
+                         None if v_init is None else float(v_init))
+
+
 def evaluate(grid: Grid, baseline: str, extensions: list[str], params: dict[str, float],
              pred: np.ndarray | None = None, nfev: int = 0) -> FitResult:
     if pred is None:
-        pred = predict_force(baseline, extensions, params, grid.t, grid.x, grid.v, grid.N_tot, grid.N_nom)
+        pred = predict(grid, baseline, extensions, params)
     r2 = grid.count * (grid.F_mean - pred) ** 2 + grid.ss_within
     fm = grid.fit_mask()
     hm = grid.holdout_mask()
@@ -131,7 +120,7 @@ def evaluate(grid: Grid, baseline: str, extensions: list[str], params: dict[str,
     sse_h = float(r2[hm].sum()) if not bad else math.inf
     npar = len(model_params(baseline, extensions))
     return FitResult(baseline, list(extensions), dict(params), pred, sse_f, sse_h, int(grid.count[fm].sum()),
-                     int(grid.count[hm].sum()), npar, nfev)
+                     int(grid.count[hm].sum()), npar, nfev, noise_corr=grid.noise_corr)
 
 
 def fit(grid: Grid, baseline: str, extensions: list[str], init: dict[str, float],
@@ -139,7 +128,7 @@ def fit(grid: Grid, baseline: str, extensions: list[str], init: dict[str, float]
     """Least-squares fit of all the model's parameters from ``init`` on the fit blocks (or ``mask``)."""
     names = _free_names(baseline, extensions, init)
     internal = _from_params(init)
-    z0, lo, hi = _to_internal(names, internal)
+    pset = ParamSet([param(nm) for nm in names])
     fixed = {k: v for k, v in internal.items() if k not in names and not k.startswith("_")
              and k not in ("amplitude_mu", "phase_rad")}
     if "position_periodic" not in extensions:
@@ -147,13 +136,11 @@ def fit(grid: Grid, baseline: str, extensions: list[str], init: dict[str, float]
     m = grid.fit_mask() if mask is None else mask
     w = np.sqrt(grid.count[m])
     Fm = grid.F_mean[m]
-    ncall = [0]
 
-    def resid(z):
-        ncall[0] += 1
-        p = _to_params(names, z, fixed)
+    def resid(free: dict) -> np.ndarray:
+        p = _fold({**fixed, **free})
         try:
-            pr = predict_force(baseline, extensions, p, grid.t, grid.x, grid.v, grid.N_tot, grid.N_nom)
+            pr = predict(grid, baseline, extensions, p)
         except (ValueError, ZeroDivisionError, OverflowError):
             return np.full(Fm.size, 1e6)
         r = w * (Fm - pr[m])
@@ -161,15 +148,11 @@ def fit(grid: Grid, baseline: str, extensions: list[str], init: dict[str, float]
             return np.full(Fm.size, 1e6)
         return r
 
-    z0 = np.clip(z0, lo + 1e-9, hi - 1e-9)
-    try:
-        sol = least_squares(resid, z0, bounds=(lo, hi), method="trf", x_scale=1.0, diff_step=1e-6,
-                            max_nfev=max_nfev, xtol=1e-8, ftol=1e-9)
-        z = sol.x
-    except (ValueError, np.linalg.LinAlgError):
-        z = z0
-    params = _to_params(names, z, fixed)
-    return evaluate(grid, baseline, extensions, params, nfev=ncall[0])
+    out = least_squares_fit(resid, pset, [internal], max_nfev=max_nfev, diff_step=1e-6, xtol=1e-8, ftol=1e-9,
+                            x_scale=1.0)
+    free = out.params if out is not None else pset.unpack(np.clip(pset.pack(internal), *pset.bounds()))
+    nfev = out.nfev if out is not None else 0
+    return evaluate(grid, baseline, extensions, _fold({**fixed, **free}), nfev=nfev)
 
 
 def cost_at(grid: Grid, baseline: str, extensions: list[str], params: dict[str, float]) -> float:
@@ -200,14 +183,10 @@ def multistart(grid: Grid, baseline: str, extensions: list[str], starts: list[di
 def at_bound(params: dict) -> bool:
     """True when a fitted parameter sits on its bound (the fit then stands in for something else)."""
     for nm, v in params.items():
-        if nm in LOG_PARAMS:
-            lo, hi = LOG_PARAMS[nm]
-            if v <= lo * 1.01 or v >= hi / 1.01:
-                return True
-        elif nm in LIN_PARAMS and nm not in ("mu0",):
-            sc, lo, hi = LIN_PARAMS[nm]
-            if nm == "A_mu" and v <= 1e-9:
-                continue
-            if v <= lo + 1e-3 * sc or v >= hi - 1e-3 * sc:
-                return True
+        if nm not in PARAMS or nm in _NOT_CHECKED:
+            continue
+        if nm == "A_mu" and v <= 1e-9:
+            continue
+        if param(nm).at_bound(v):
+            return True
     return False

@@ -7,6 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
+from rig.kinematics import velocity_changes
+
 from .core import Diagnosis, slip_of
 
 
@@ -18,25 +20,6 @@ def _binned(q, r, w, nb=120):
     ok = den > 0
     c = 0.5 * (edges[1:] + edges[:-1])
     return c[ok], num[ok] / den[ok]
-
-
-def velocity_changes(g, window_s: float = 1.0, min_log_ratio: float = 0.3) -> np.ndarray:
-    """Times of the velocity changes: |ln v(t + w) - ln v(t - w)| > min_log_ratio, local maxima."""
-    t, v = g.kin["t"], g.kin["v"]
-    lv = np.log(np.maximum(np.abs(v), 1e-2))
-    a = np.interp(t + window_s, t, lv) - np.interp(t - window_s, t, lv)
-    c = np.abs(a)
-    out = []
-    last = -np.inf
-    for i in np.flatnonzero(c > min_log_ratio):
-        if t[i] - last < 2 * window_s:
-            if c[i] > c[out[-1]]:
-                out[-1] = i
-            last = t[i]
-            continue
-        out.append(i)
-        last = t[i]
-    return t[np.asarray(out, dtype=int)] if out else np.zeros(0)
 
 
 def plot_diagnosis(d: Diagnosis, path: str | Path) -> Path:
@@ -100,7 +83,7 @@ def plot_diagnosis(d: Diagnosis, path: str | Path) -> Path:
             ax[2].plot(s, p["rate_mu_per_mm"] * 2 * g.N_nom * (s - s.mean()) * 1e-3, "--", color="tab:purple", lw=1)
         else:
             # transients: mark the velocity changes (where they start) on the time axis
-            for te in velocity_changes(g):
+            for te in velocity_changes(g.kin["t"], g.kin["v"]):
                 ax[1].axvline(te, color="tab:purple", lw=0.5, alpha=0.5)
         notes.append(f"[{i}] {c}: {f['evidence'][:150]}  gain {f['gain_pct']:.1f}%")
     for u in d.unexplained:

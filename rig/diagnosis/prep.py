@@ -34,102 +34,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numba import njit
-from scipy.ndimage import minimum_filter1d
+from scipy.ndimage import minimum_filter1d, uniform_filter1d
 
 from rig.data import TrialData
+from rig.kinematics import edge_preserving_line
 
 KIN_DT_MIN_S = 0.01
 V_SLIDE_MIN_UM_S = 0.1
 STOP_GUARD_S = 3.0
-
-
-@njit(cache=True)
-def _line_fit(t, x, lo, hi, tc):
-    """Least-squares line x = a + b (t - tc) over [lo, hi]; returns a, b, residual mean square."""
-    m = hi - lo + 1
-    if m < 3:
-        return np.nan, np.nan, np.inf
-    s1 = 0.0
-    st = 0.0
-    stt = 0.0
-    sx = 0.0
-    stx = 0.0
-    for k in range(lo, hi + 1):
-        d = t[k] - tc
-        s1 += 1.0
-        st += d
-        stt += d * d
-        sx += x[k]
-        stx += d * x[k]
-    den = s1 * stt - st * st
-    if den <= 0.0:
-        return np.nan, np.nan, np.inf
-    b = (s1 * stx - st * sx) / den
-    a = (sx - b * st) / s1
-    r = 0.0
-    for k in range(lo, hi + 1):
-        e = x[k] - a - b * (t[k] - tc)
-        r += e * e
-    return a, b, r / (m - 2)
-
-
-@njit(cache=True)
-def edge_preserving_line(t, x, half):
-    """Smoothed position and velocity: best of left, right and centred line fits (see module doc)."""
-    n = t.shape[0]
-    xs = np.empty(n)
-    vs = np.empty(n)
-    lo_l = 0
-    lo_c = 0
-    hi_c = 0
-    hi_r = 0
-    for i in range(n):
-        w = half[i]
-        # left window [t_i - 2w, t_i]
-        while t[lo_l] < t[i] - 2.0 * w:
-            lo_l += 1
-        while lo_l > 0 and t[lo_l - 1] >= t[i] - 2.0 * w:
-            lo_l -= 1
-        while t[lo_c] < t[i] - w:
-            lo_c += 1
-        while lo_c > 0 and t[lo_c - 1] >= t[i] - w:
-            lo_c -= 1
-        if hi_c < i:
-            hi_c = i
-        while hi_c + 1 < n and t[hi_c + 1] <= t[i] + w:
-            hi_c += 1
-        while hi_c > i and t[hi_c] > t[i] + w:
-            hi_c -= 1
-        if hi_r < i:
-            hi_r = i
-        while hi_r + 1 < n and t[hi_r + 1] <= t[i] + 2.0 * w:
-            hi_r += 1
-        while hi_r > i and t[hi_r] > t[i] + 2.0 * w:
-            hi_r -= 1
-        best_r = np.inf
-        best_a = x[i]
-        best_b = 0.0
-        a, b, r = _line_fit(t, x, lo_c, hi_c, t[i])
-        if r < best_r:
-            best_r, best_a, best_b = r, a, b
-        m_c = hi_c - lo_c + 1
-        # one-sided windows only when (nearly) full: a short window's scatter is no evidence
-        if i - lo_l + 1 >= 0.8 * m_c and i - lo_l + 1 >= 5:
-            a, b, r = _line_fit(t, x, lo_l, i, t[i])
-            if r < best_r * 0.999:
-                best_r, best_a, best_b = r, a, b
-        if hi_r - i + 1 >= 0.8 * m_c and hi_r - i + 1 >= 5:
-            a, b, r = _line_fit(t, x, i, hi_r, t[i])
-            if r < best_r * 0.999:
-                best_r, best_a, best_b = r, a, b
-        if not np.isfinite(best_r):
-            # too few points: difference to a neighbour
-            j = i + 1 if i + 1 < n else i - 1
-            best_a = x[i]
-            best_b = (x[j] - x[i]) / (t[j] - t[i])
-        xs[i] = best_a
-        vs[i] = best_b
-    return xs, vs
 
 
 @njit(cache=True)
@@ -190,6 +102,9 @@ class Grid:
     slide_ok: np.ndarray | None = None
     # shortest time constant the kinematics can tell from their own rounding of a velocity change (s)
     time_resolution_s: float = 0.0
+    # variance of a bin's mean over that of white noise: (1 + rho) / (1 - rho), rho the lag-1
+    # autocorrelation of the raw force noise (the analog filter's memory at 1 kHz; ~1 at <= 100 Hz)
+    noise_corr: float = 1.0
 
     @property
     def n_raw(self) -> int:
@@ -232,7 +147,7 @@ def _servo_fit(t, xr, x):
     Returns (tau_s, modelled position) or (None, None) when the measured position does not follow the
     reference that way (rms misfit over 3x the LVDT noise, or a trend between them).
     """
-    from rig.friction import lowpass_uneven
+    from rig.model.sensors import lowpass_uneven
 
     # the record starts in motion: pad the past with the initial commanded velocity, so the lag
     # model starts in its steady tracking state rather than at rest
@@ -266,6 +181,26 @@ def _servo_fit(t, xr, x):
     return tau, m
 
 
+def _noise_correlation(t: np.ndarray, F: np.ndarray) -> float:
+    """Variance of the mean of the raw force noise over a kinematic cell (KIN_DT_MIN_S) relative
+    to white noise's, 1 + 2 sum_k (1 - k/m) rho_k over the m samples of a cell; rho_k from the
+    force minus a running mean. 1 when a cell holds one sample (records at <= 100 Hz)."""
+    if t.size < 200:
+        return 1.0
+    m = int(round(KIN_DT_MIN_S / max(float(np.median(np.diff(t))), 1e-9)))
+    if m < 2:
+        return 1.0
+    r = F - uniform_filter1d(F, 4 * m + 1, mode="nearest")
+    r = r - r.mean()
+    v = float(np.dot(r, r))
+    if v <= 0:
+        return 1.0
+    c = 1.0
+    for k in range(1, m):
+        c += 2.0 * (1.0 - k / m) * float(np.dot(r[k:], r[:-k])) / v
+    return min(max(c, 1.0), float(m))
+
+
 def prepare(trial: TrialData, n_blocks: int = 20, slip_window_um: float = 3.0,
             bin_dt_max_s: float = 1.0, bin_slip_um: float = 1.0) -> Grid:
     """Kinematic grid + adaptive fit bins + hold-out blocks from a trial (see module doc)."""
@@ -279,6 +214,7 @@ def prepare(trial: TrialData, n_blocks: int = 20, slip_window_um: float = 3.0,
     N_nom = float(trial.normal_force_N)
     Ntot = np.asarray(trial.total_normal_N, dtype=float)
     noise_N = _robust_noise(F)
+    noise_corr = _noise_correlation(tr, F)
     if x_raw[-1] < x_raw[0] and float(np.median(F)) < 0:
         # sliding backwards throughout: the model is odd in v, so mirror the record
         x_raw, F = -x_raw, -F
@@ -375,5 +311,5 @@ def prepare(trial: TrialData, n_blocks: int = 20, slip_window_um: float = 3.0,
         nstd = float(np.std(Nk))
         normals_vary = nstd > 0.0
     return Grid(t=tb, x=xb, v=vb, F_mean=Fm, N_tot=Nb, count=bc, ss_within=ssw, block=blk, N_nom=N_nom,
-                t0=t0, has_normals=trial.has_normals, normals_vary=normals_vary, noise_N=noise_N,
+                t0=t0, has_normals=trial.has_normals, normals_vary=normals_vary, noise_N=noise_N, noise_corr=noise_corr,
                 slide_ok=slide_ok, time_resolution_s=time_res, kin={"t": tk, "x": xs, "v": vs, "F": Fs / cnt, "N": Nk, "count": cnt, "x_meas": xk})

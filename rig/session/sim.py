@@ -68,7 +68,7 @@ def simulate(recipe_or_plan, profile, friction_model=None, *, recipe=None, seed:
              block_ticks: int = 20000) -> tuple[MemoryLog, TrialResult]:
     """Run a recipe (or a compiled plan with its ``recipe``) on the simulated rig, in memory.
 
-    ``friction_model``: a :class:`rig.friction.FrictionModel`, or None for the
+    ``friction_model``: a :class:`rig.model.spec.FrictionModel`, or None for the
     profile's model of the recipe's lubricant. ``seed`` / ``normal_force_N``
     default to the recipe's. Returns ``(log, result)``: ``log.blocks`` (with
     ``keep_blocks``), ``log.events`` (planned events reached, session events),

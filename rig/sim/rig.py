@@ -1,4 +1,4 @@
-"""The simulated rig: plant (rig.plant) + controller (rig.control) in a numba closed loop.
+"""The simulated rig: plant (rig.sim.plant) + controller (rig.control) in a numba closed loop.
 
     rig = SimRig(profile, "boundary", seed=0)        # or a FrictionModel
     for block in rig.run_blocks(x_ref_um, block_ticks=100):
@@ -20,12 +20,12 @@ Friction-model extensions applied here (the sensor/fixture side, diagnosis.md):
 ``sensor_lag`` (first-order lag tau_s on the friction channel, before the load cell's
 100 Hz filter), ``force_offset_drift`` (rate_N_per_s * t added to the measured
 friction), ``normal_force_variation`` (friction is always mu (N1 + N2), and the normal
-forces always vary), ``finite_stiffness`` (a compliance between the LVDT point and the
-interface), ``time_delay`` (steady_state baseline: |mu| = mu_ss of the slip velocity
+forces always vary), ``finite_stiffness`` (the compliance between the LVDT point and the
+interface, in place of the profile's fixture compliance: rig.model.loading), ``time_delay`` (steady_state baseline: |mu| = mu_ss of the slip velocity
 delay_s ago, from a ring buffer, the direction that of the current velocity; such a
 memoryless law, like one with a negative slope, is ill posed on a massless interface,
 so these models get the interface mass ``sim.interface_mass_kg``, see docs/sim.md). The friction-law extensions
-(second state, aging, wear, position-periodic) are in rig.friction's kernels.
+(second state, aging, wear, position-periodic) are in rig.model.friction's kernels.
 """
 
 from __future__ import annotations
@@ -37,9 +37,12 @@ from typing import Iterator
 
 import numpy as np
 
-from rig import plant as pl
 from rig.control import controller_params_from_profile, new_controller_state
-from rig.friction import N_STATE, FrictionModel, init_state
+from rig.model.friction import N_STATE, init_state
+from rig.model.loading import lvdt_to_interface_compliance_um_per_N
+from rig.model.sensors import cutoff_tau_s, lowpass_coefficients, prefilter_noise_gain
+from rig.model.spec import FrictionModel
+from rig.sim import plant as pl
 from rig.config.profile import RigProfile, default_profile_path, load_profile
 
 BLOCK_KEYS = pl.BLOCK_KEYS
@@ -64,17 +67,12 @@ def build_plant_params(profile: RigProfile, model: FrictionModel, normal_force_N
     q[pl.Q_MKG] = act.moving_mass_kg
     q[pl.Q_CA] = act.viscous_damping_N_s_per_um
     c_tp = 1.0 / profile.fixture.test_piece_stiffness_N_per_um
-    c_fx = 1.0 / profile.fixture.fixture_stiffness_N_per_um
-    c_ext = 0.0
-    if "finite_stiffness" in model.extensions:
-        k = model.get("stiffness_kN_per_m", 0.0)
-        if k <= 0:
-            raise ValueError("finite_stiffness needs stiffness_kN_per_m > 0")
-        c_ext = 1.0 / (k * 1e-3)
-    km = 1.0 / (c_tp + c_fx + c_ext)
+    # LVDT point -> interface: the fixture's compliance, or the model's finite_stiffness instead
+    c_li = lvdt_to_interface_compliance_um_per_N(1.0 / profile.fixture.fixture_stiffness_N_per_um,
+                                                 model.stiffness_N_per_um)
+    km = 1.0 / (c_tp + c_li)
     q[pl.Q_CTP] = c_tp
-    q[pl.Q_CEXT] = c_ext
-    q[pl.Q_CFX] = c_fx
+    q[pl.Q_CLI] = c_li
     q[pl.Q_KM] = km
     tau = act.leakage_time_constant_s
     kh = act.hydraulic_stiffness_N_per_um
@@ -99,24 +97,25 @@ def build_plant_params(profile: RigProfile, model: FrictionModel, normal_force_N
     q[pl.Q_WP1], q[pl.Q_WP2] = nm.face_waviness_phase_rad
     q[pl.Q_XORG] = profile.stroke.home_um
     s = profile.sensors
-    q[pl.Q_LV_SIG] = s.lvdt.noise_sigma_um
     q[pl.Q_LV_Q] = s.lvdt.quantization_um
     q[pl.Q_LV_MIN] = s.lvdt.min_um
     q[pl.Q_LV_MAX] = s.lvdt.max_um
-    q[pl.Q_FL_SIG] = s.friction_load_cell.noise_sigma_N
-    q[pl.Q_NL_SIG] = s.normal_load_cells.noise_sigma_N
-    for ia, ig, fc in ((pl.Q_LV_A, pl.Q_LV_G, s.lvdt.cutoff_hz), (pl.Q_FL_A, pl.Q_FL_G, s.friction_load_cell.cutoff_hz),
-                       (pl.Q_NL_A, pl.Q_NL_G, s.normal_load_cells.cutoff_hz)):
-        tau_f = 1.0 / (2.0 * math.pi * fc)
-        q[ia] = math.exp(-dt / tau_f)
-        q[ig] = (1.0 - q[ia]) * tau_f / dt
+    # noise enters before each analog filter; its input per tick gives the reading the
+    # profile's sigma (rig.model.sensors.prefilter_noise_gain)
+    for ia, ig, isig, fc, sig in ((pl.Q_LV_A, pl.Q_LV_G, pl.Q_LV_SIG, s.lvdt.cutoff_hz, s.lvdt.noise_sigma_um),
+                                  (pl.Q_FL_A, pl.Q_FL_G, pl.Q_FL_SIG, s.friction_load_cell.cutoff_hz,
+                                   s.friction_load_cell.noise_sigma_N),
+                                  (pl.Q_NL_A, pl.Q_NL_G, pl.Q_NL_SIG, s.normal_load_cells.cutoff_hz,
+                                   s.normal_load_cells.noise_sigma_N)):
+        tau_f = cutoff_tau_s(fc)
+        q[ia], q[ig] = lowpass_coefficients(dt, tau_f)
+        q[isig] = sig * (1.0 - q[ia]) * prefilter_noise_gain(dt, tau_f)
     if "sensor_lag" in model.extensions:
         tau_s = model.get("tau_s", 0.0)
         if tau_s < 0:
             raise ValueError("sensor_lag needs tau_s >= 0")
         q[pl.Q_SL_ON] = 1.0
-        q[pl.Q_SL_A] = math.exp(-dt / tau_s) if tau_s > 0 else 0.0
-        q[pl.Q_SL_G] = (1.0 - q[pl.Q_SL_A]) * tau_s / dt
+        q[pl.Q_SL_A], q[pl.Q_SL_G] = lowpass_coefficients(dt, tau_s)
     if "force_offset_drift" in model.extensions:
         q[pl.Q_DRIFT] = model.get("rate_N_per_s", 0.0)
     # memoryless (steady_state) models with a delay or a negative slope need inertia at the
@@ -198,6 +197,7 @@ class SimRig:
         st[:] = 0.0
         st[pl.Z_XA] = x0_um
         st[pl.Z_XT] = x0_um
+        st[pl.Z_X0] = x0_um
         st[pl.Z_LVF] = x0_um
         n1, n2 = pl.normal_forces(self.q, float(x0_um))
         st[pl.Z_N1] = n1

@@ -13,12 +13,14 @@ Actuator (load pressure p_L = F_a / A_p, leakage C_L, bulk modulus beta):
 Moving mass (piston + grip + test piece):
     m dv_a/dt = F_a - F_s - c_a v_a,  dx_a/dt = v_a.
 Series compliance between actuator and interface, massless (quasi-static): test piece
-k_tp, optional ``finite_stiffness`` k_ext between the LVDT point and the interface,
-fixture + friction load cell k_fx: 1/k_m = 1/k_tp + 1/k_ext + 1/k_fx,
+k_tp (actuator to LVDT point), then the LVDT-to-interface compliance c_li, which is the
+fixture + friction load cell's 1/k_fx, or a model's ``finite_stiffness`` 1/k in its place
+(rig.model.loading: the diagnosed stiffness replaces the fixture's, it does not add):
+1/k_m = 1/k_tp + c_li,
     dF_s/dt = k_m (v_a - v_s),
 with v_s the slip velocity of the interfaces and F_s the force in the chain, equal to
 the friction force of the double-shear fixture (massless interface):
-    F_s = mu(v_s, theta) (N_1 + N_2)        (eq. 5 via rig.friction, regularised)
+    F_s = mu(v_s, theta) (N_1 + N_2)        (eq. 5 via rig.model.friction, regularised)
 The LVDT point (unstressed test piece next to the interfaces) is x_t = x_a - F_s / k_tp.
 Normal forces from soft rider springs k_r on test-piece faces with taper and waviness:
     N_i = N_i0 + k_r h_i(x_t),  h_i = s_i (x_t - x_home)/1000 + a_i sin(2 pi x_t / lambda_i + phi_i).
@@ -28,11 +30,12 @@ implicit in the slip velocity: the unknown v_s is the mean slip velocity over th
 substep, found from the scalar force balance P + Q v_s = (N_1 + N_2) mu(v_s) by a
 Newton iteration in mu that converges monotonically (no NaN at v_s -> 0, sticking is
 the v_s ~ 0 solution); the state theta is then advanced exactly over the slip
-``v_s h`` (rig.friction.advance_state). Memoryless friction models (steady_state with
+``v_s h`` (rig.model.friction.advance_state); position-periodic friction at the
+interface position x_0 + delta (delta the slip since reset). Memoryless friction models (steady_state with
 time_delay or a slope <= 0) are ill posed on a massless interface and get an interface
 mass instead (:func:`solve_slip_mass`). Sensors: first-order low-passes (exact for a
-ramp within the tick) sampled at each tick, plus Gaussian noise, LVDT quantisation and
-range.
+ramp within the tick) sampled at each tick, Gaussian noise entering before each filter (the
+hardware's order, rig.model.sensors), LVDT quantisation and range.
 """
 
 from __future__ import annotations
@@ -41,8 +44,9 @@ import math
 
 from numba import njit
 
-from rig.friction import (P_A, P_AMP, P_MU0, P_PHASE, P_STATE_ON, P_V0, P_VREG, P_WAVE, P_WEAR, S_SLIP,
-                          S_THETA, S_THETA2, advance_state, mu_regularized)
+from rig.model.friction import (P_A, P_MU0, P_STATE_ON, P_V0, P_VREG, S_THETA, S_THETA2, advance_state,
+                                mu_regularized, periodic_term, wear_term)
+from rig.model.sensors import lowpass_tick, quantize
 from rig.control import controller_step
 
 # ---------------------------------------------------------------------------
@@ -59,8 +63,8 @@ Q_KH = 7         # hydraulic stiffness (N/µm)
 Q_MKG = 8        # moving mass (kg)
 Q_CA = 9         # seal damping (N s/µm)
 Q_CTP = 10       # 1/k_tp (µm/N)
-Q_CEXT = 11      # 1/k_ext (µm/N), finite_stiffness extension (0 = none)
-Q_CFX = 12       # 1/k_fx (µm/N)
+Q_CSPARE = 11    # (unused)
+Q_CLI = 12       # LVDT point -> interface compliance (µm/N): the fixture's, or the model's finite_stiffness
 Q_KM = 13        # series stiffness (N/µm)
 Q_K = 14         # 9 entries: inverse of the substep's linear system (row major)
 Q_QV = 23        # 3 entries: sensitivity of (F_a, v_a, F_s) to v_s
@@ -77,7 +81,7 @@ Q_WP1 = 35       # waviness phase (rad)
 Q_WP2 = 36
 Q_XORG = 37      # position where the taper is zero (µm)
 Q_LV_A = 38      # LVDT low-pass exp(-dt/tau)
-Q_LV_SIG = 39
+Q_LV_SIG = 39    # noise input per tick: sigma (1 - a) sqrt((1 + a)/(1 - a)) (rig.model.sensors)
 Q_LV_Q = 40
 Q_LV_MIN = 41
 Q_LV_MAX = 42
@@ -119,7 +123,12 @@ Z_N2F = 14
 Z_TICK = 15      # ticks since reset
 Z_RPOS = 16      # ring-buffer position
 Z_DELTA = 17     # signed slip since reset (µm)
-N_ZSTATE = 18
+Z_X0 = 18        # interface position at reset (µm); the interface is at Z_X0 + Z_DELTA
+Z_LVE = 19       # sensor noise after each analog filter (the noise enters before the filter)
+Z_FLE = 20
+Z_N1E = 21
+Z_N2E = 22
+N_ZSTATE = 23
 
 
 @njit(cache=True)
@@ -138,21 +147,18 @@ def normal_forces(q, x_t):
 
 
 @njit(cache=True)
-def friction_law(q, fp, fs, x_t, v_mag):
-    """(base, a) of mu(v) = sign(v) R(|v|) at LVDT-point position ``x_t``.
+def friction_law(q, fp, fs, x_i, v_mag):
+    """(base, a) of mu(v) = sign(v) R(|v|) with the interface at position ``x_i``.
 
     Rate-and-state models (and steady_state ones with a positive slope): R = a asinh(|v|/(2
     V0) e^{base/a}) (a > 0) or a smooth sign of height ``base`` (a = 0), with the state(s),
-    the position-periodic and the wear terms (rig.friction.mu_of) folded into ``base``.
+    the position-periodic term (at the interface's position, as the forward model of
+    rig.model.loading evaluates it) and the wear term (rig.model.friction) folded into ``base``.
     Memoryless models on the interface mass (Q_STEADY): a = 0 and base = mu_ss(v_mag), the
-    log argument held at v_reg near 0 (as rig.friction.mu_of does), ``v_mag`` being the
+    log argument held at v_reg near 0 (as rig.model.friction.mu_of does), ``v_mag`` being the
     delayed (time_delay) or the previous substep's slip velocity.
     """
-    extra = fs[S_THETA2]
-    if fp[P_AMP] != 0.0:
-        extra += fp[P_AMP] * math.sin(2.0 * math.pi * x_t / fp[P_WAVE] + fp[P_PHASE])
-    if fp[P_WEAR] != 0.0:
-        extra += fp[P_WEAR] * fs[S_SLIP] * 1e-3
+    extra = fs[S_THETA2] + periodic_term(fp, x_i) + wear_term(fp, fs)
     if fp[P_STATE_ON] > 0.5:
         return fp[P_MU0] + fs[S_THETA] + extra, fp[P_A]
     if q[Q_STEADY] < 0.5:
@@ -264,13 +270,6 @@ def solve_slip(p2, q2, ntot, base, a, v0, vreg):
 
 
 @njit(cache=True)
-def _lowpass(y, u_old, u_new, a, g):
-    """tau dy/dt = u - y over one tick for u linear from u_old to u_new; a = exp(-dt/tau),
-    g = (1 - a) tau / dt (as rig.friction.lowpass_uneven)."""
-    return a * y + (1.0 - g) * u_new + (g - a) * u_old
-
-
-@njit(cache=True)
 def plant_advance(q, fp, fs, st, ring, u):
     """Advance the plant by one tick with valve command ``u`` held (zero-order hold)."""
     u = min(1.0, max(-1.0, u))
@@ -322,12 +321,12 @@ def plant_advance(q, fp, fs, st, ring, u):
         p0 = q[Q_K + 0] * r0 + q[Q_K + 1] * r1 + q[Q_K + 2] * r2
         p1 = q[Q_K + 3] * r0 + q[Q_K + 4] * r1 + q[Q_K + 5] * r2
         p2 = q[Q_K + 6] * r0 + q[Q_K + 7] * r1 + q[Q_K + 8] * r2
-        x_t = st[Z_XT]
+        x_i = st[Z_X0] + st[Z_DELTA]
         if steady:
-            base, a = friction_law(q, fp, fs, x_t, v_del if delayed else st[Z_VS])
+            base, a = friction_law(q, fp, fs, x_i, v_del if delayed else st[Z_VS])
             vs, mu = solve_slip_mass(p2, q[Q_QV + 2], ntot, base, vreg, q[Q_MIH], st[Z_VS])
         else:
-            base, a = friction_law(q, fp, fs, x_t, 0.0)
+            base, a = friction_law(q, fp, fs, x_i, 0.0)
             vs, mu = solve_slip(p2, q[Q_QV + 2], ntot, base, a, v0, vreg)
         va_new = p1 + q[Q_QV + 1] * vs
         st[Z_FA] = p0 + q[Q_QV + 0] * vs
@@ -347,16 +346,16 @@ def plant_advance(q, fp, fs, st, ring, u):
     st[Z_N1] = n1
     st[Z_N2] = n2
     # first-order analog filters, exact for an input linear over the tick
-    st[Z_LVF] = _lowpass(st[Z_LVF], x_old, st[Z_XT], q[Q_LV_A], q[Q_LV_G])
+    st[Z_LVF] = lowpass_tick(st[Z_LVF], x_old, st[Z_XT], q[Q_LV_A], q[Q_LV_G])
     f_in_old = f_old
     f_in = st[Z_FS]
     if q[Q_SL_ON] > 0.5:
-        st[Z_SLF] = _lowpass(st[Z_SLF], f_old, f_in, q[Q_SL_A], q[Q_SL_G])
+        st[Z_SLF] = lowpass_tick(st[Z_SLF], f_old, f_in, q[Q_SL_A], q[Q_SL_G])
         f_in_old = slf_old
         f_in = st[Z_SLF]
-    st[Z_FLF] = _lowpass(st[Z_FLF], f_in_old, f_in, q[Q_FL_A], q[Q_FL_G])
-    st[Z_N1F] = _lowpass(st[Z_N1F], n1_old, n1, q[Q_NL_A], q[Q_NL_G])
-    st[Z_N2F] = _lowpass(st[Z_N2F], n2_old, n2, q[Q_NL_A], q[Q_NL_G])
+    st[Z_FLF] = lowpass_tick(st[Z_FLF], f_in_old, f_in, q[Q_FL_A], q[Q_FL_G])
+    st[Z_N1F] = lowpass_tick(st[Z_N1F], n1_old, n1, q[Q_NL_A], q[Q_NL_G])
+    st[Z_N2F] = lowpass_tick(st[Z_N2F], n2_old, n2, q[Q_NL_A], q[Q_NL_G])
     st[Z_TICK] += 1.0
 
 
@@ -364,19 +363,19 @@ def plant_advance(q, fp, fs, st, ring, u):
 def plant_sample(q, st, z0, z1, z2, z3):
     """Sensor readings at the current tick given four standard-normal draws.
 
+    In the hardware's order (rig.model.sensors): white noise, held over the tick, enters each
+    transducer's first-order analog filter with the signal (by linearity its filtered part is
+    kept apart, ``Z_*E``; the reading's noise sigma is the profile's), then the ADC quantizes.
     Returns (position_um, friction_N, normal_1_N, normal_2_N)."""
-    x = st[Z_LVF] + q[Q_LV_SIG] * z0
-    qs = q[Q_LV_Q]
-    if qs > 0.0:
-        x = math.floor(x / qs + 0.5) * qs
-    if x < q[Q_LV_MIN]:
-        x = q[Q_LV_MIN]
-    elif x > q[Q_LV_MAX]:
-        x = q[Q_LV_MAX]
+    st[Z_LVE] = q[Q_LV_A] * st[Z_LVE] + q[Q_LV_SIG] * z0
+    st[Z_FLE] = q[Q_FL_A] * st[Z_FLE] + q[Q_FL_SIG] * z1
+    st[Z_N1E] = q[Q_NL_A] * st[Z_N1E] + q[Q_NL_SIG] * z2
+    st[Z_N2E] = q[Q_NL_A] * st[Z_N2E] + q[Q_NL_SIG] * z3
+    x = quantize(st[Z_LVF] + st[Z_LVE], q[Q_LV_Q], q[Q_LV_MIN], q[Q_LV_MAX])
     t = st[Z_TICK] * q[Q_DT]
-    f = st[Z_FLF] + q[Q_FL_SIG] * z1 + q[Q_DRIFT] * t
-    n1 = st[Z_N1F] + q[Q_NL_SIG] * z2
-    n2 = st[Z_N2F] + q[Q_NL_SIG] * z3
+    f = st[Z_FLF] + st[Z_FLE] + q[Q_DRIFT] * t
+    n1 = st[Z_N1F] + st[Z_N1E]
+    n2 = st[Z_N2F] + st[Z_N2E]
     return x, f, n1, n2
 
 

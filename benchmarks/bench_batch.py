@@ -1,0 +1,253 @@
+"""Speed-up of the batch engine (rig.catalog.batch) on this machine's cores, and the figures
+docs/scaling.md projects from.
+
+    python benchmarks/bench_batch.py                 # everything, 2 workers
+    python benchmarks/bench_batch.py reproduce       # rig reproduce: 3 lubricants x 8 simulated trials
+    python benchmarks/bench_batch.py identify        # a 50-file identify batch (paper-protocol trials)
+    python benchmarks/bench_batch.py overhead        # scheduler overhead per task (no-op tasks)
+    python benchmarks/bench_batch.py catalog         # indexing, unchanged-file check, result writes
+    options: --jobs N (default 2), --files N (default 50), --trials N (default 8), --json OUT
+
+Each figure is printed with the load average (1, 5, 15 min) before and after, because the
+machine may be shared: a speed-up below the core count on a loaded machine says as much
+about the other processes as about the engine. Two speed-ups are given:
+
+- *warm*: the cluster is up and its workers have imported rig and compiled its numba code
+  (a warm-up map runs first); this is what a long batch sees after its first seconds;
+- *end to end*: including the start of the LocalCluster and the workers' first imports.
+The serial run is in this process, also warmed up first.
+"""
+
+from __future__ import annotations
+
+import os
+
+# one thread per process on both sides: Dask starts its workers with these set to 1, so the
+# serial reference must too, or its BLAS calls would use a second core and the comparison
+# would not be one core against N
+for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_v, "1")
+
+import json  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+from rig.catalog.batch import dask_client, run_tasks  # noqa: E402
+
+
+def load() -> str:
+    a, b, c = os.getloadavg()
+    return f"load {a:.2f} {b:.2f} {c:.2f}"
+
+
+def autogroup() -> str:
+    """Linux's per-session CPU sharing: with it on, this session's processes (the workers
+    included) share one session's slice of a busy machine, so a loaded machine caps the
+    speed-up whatever the number of workers."""
+    try:
+        on = Path("/proc/sys/kernel/sched_autogroup_enabled").read_text().strip() == "1"
+    except OSError:
+        return "autogroup unknown"
+    return "autogroup on (CPU shared per session)" if on else "autogroup off"
+
+
+def _noop(x):
+    return x
+
+
+def _mk_files(n: int, root: Path) -> list[Path]:
+    """n paper-protocol trials (steps 1->2, 1->5, 1->10 µm/s; 25 Hz) as CSVs, Table-2 lubricants."""
+    from rig.sim import synth
+    from rig.data import write_csv
+    from rig.model.spec import FrictionModel
+
+    out = []
+    lubs = ("boundary", "dry", "paraffin")
+    for k in range(n):
+        lub = lubs[k % 3]
+        tr = synth.generate(FrictionModel.for_lubricant(lub, 0.12), synth.paper_step_protocol(), seed=k,
+                            lubricant=lub).trial
+        tr.metadata["lubricant"] = lub
+        p = root / f"trial{k:03d}.csv"
+        write_csv(tr, p)
+        out.append(p)
+    return out
+
+
+def bench_identify(jobs: int, n_files: int) -> dict:
+    from rig.catalog.tasks import identify_file
+
+    with tempfile.TemporaryDirectory() as d:
+        files = _mk_files(n_files, Path(d))
+        mb = sum(p.stat().st_size for p in files) / 1e6
+        items = [(str(p), {}) for p in files]
+        run_tasks(identify_file, items[:1], jobs=1)  # warm-up: imports, numba cache
+        print(f"identify: {n_files} files ({mb:.1f} MB CSV), {load()}")
+        # interleaved rounds (serial, then the same files on the warm cluster) so that a change
+        # of the machine's load hits both sides alike
+        rounds = [items[i:i + 10] for i in range(0, len(items), 10)]
+        serial, par, t_serial, t_warm = [], [], 0.0, 0.0
+        t0 = time.perf_counter()
+        with dask_client(jobs) as client:
+            t_start = time.perf_counter() - t0
+            run_tasks(identify_file, items[:jobs * 2], client=client)  # warm-up on every worker
+            for rd in rounds:
+                t = time.perf_counter()
+                serial += run_tasks(identify_file, rd, jobs=1)
+                t_serial += time.perf_counter() - t
+                t = time.perf_counter()
+                par += run_tasks(identify_file, rd, client=client)
+                t_warm += time.perf_counter() - t
+        per_task = [r.seconds for r in serial]
+        print(f"  serial: {t_serial:.2f} s ({t_serial / n_files * 1e3:.0f} ms per file), {load()}")
+        # end to end: a fresh cluster, cold workers, the whole batch
+        t0 = time.perf_counter()
+        run_tasks(identify_file, items, jobs=jobs)
+        t_e2e = time.perf_counter() - t0
+        same = all(json.dumps(_strip(a.value), sort_keys=True) == json.dumps(_strip(b.value), sort_keys=True)
+                   for a, b in zip(serial, par))
+        busy = sum(r.seconds for r in par)
+        cpu_s, cpu_p = sum(r.cpu_seconds for r in serial), sum(r.cpu_seconds for r in par)
+        print(f"  {jobs} workers busy {busy:.2f} s in {t_warm:.2f} s of wall: {busy / t_warm:.2f} tasks running "
+              f"on average (ideal {jobs}); CPU time serial {cpu_s:.2f} s, on the workers {cpu_p:.2f} s "
+              f"(the workers got {cpu_p / t_warm:.2f} cores)")
+        print(f"  {jobs} workers, warm: {t_warm:.2f} s -> speed-up {t_serial / t_warm:.2f}x; "
+              f"end to end (cluster start {t_start:.1f} s): {t_e2e:.2f} s -> {t_serial / t_e2e:.2f}x; "
+              f"results identical: {same}; {load()}")
+        return {"n_files": n_files, "csv_MB": mb, "serial_s": t_serial, "warm_s": t_warm, "end_to_end_s": t_e2e,
+                "cluster_start_s": t_start, "per_task_s_mean": sum(per_task) / len(per_task),
+                "per_task_s_max": max(per_task), "speedup_warm": t_serial / t_warm,
+                "speedup_end_to_end": t_serial / t_e2e, "identical": same, "jobs": jobs,
+                "worker_busy_s": busy, "cpu_serial_s": cpu_s, "cpu_workers_s": cpu_p,
+                "load_after": os.getloadavg()}
+
+
+def _strip(x):
+    if isinstance(x, dict):
+        return {k: _strip(v) for k, v in x.items() if k not in ("fit_time_s", "sim_s")}
+    if isinstance(x, list):
+        return [_strip(v) for v in x]
+    return x
+
+
+def bench_reproduce(jobs: int, n_trials: int) -> dict:
+    from rig.analysis.reproduce import reproduce
+    from rig.catalog.batch import mapper
+
+    reproduce(2, lubricants=["boundary"], seed=99)  # warm-up (numba cache, imports)
+    print(f"reproduce: 3 lubricants x {n_trials} simulated trials (full simulated rig), {load()}")
+    # interleaved by lubricant: serial, then the same trials on the warm cluster
+    from rig.model.paper import TABLE2
+
+    serial = {"lubricants": {}}
+    par = {"lubricants": {}}
+    t_serial = t_warm = 0.0
+    with mapper(jobs) as map_fn:
+        t_start_w = time.perf_counter()
+        map_fn(_noop, list(range(2 * jobs)))  # starts the cluster
+        t_start = time.perf_counter() - t_start_w
+        reproduce(2, lubricants=["boundary"], seed=99, map_fn=map_fn)  # warm the workers
+        for lub in TABLE2:
+            t = time.perf_counter()
+            serial["lubricants"][lub] = reproduce(n_trials, seed=0, lubricants=[lub])["lubricants"][lub]
+            t_serial += time.perf_counter() - t
+            t = time.perf_counter()
+            par["lubricants"][lub] = reproduce(n_trials, seed=0, lubricants=[lub], map_fn=map_fn)["lubricants"][lub]
+            t_warm += time.perf_counter() - t
+    sims = [t["sim_s"] for lub in serial["lubricants"].values() for t in lub["trials"]]
+    print(f"  serial: {t_serial:.1f} s ({t_serial / (3 * n_trials):.2f} s per trial), {load()}")
+    t0 = time.perf_counter()
+    with mapper(jobs) as map_fn:
+        reproduce(n_trials, seed=0, map_fn=map_fn)
+    t_e2e = time.perf_counter() - t0
+    same = json.dumps(_strip(serial), sort_keys=True) == json.dumps(_strip(par), sort_keys=True)
+    print(f"  {jobs} workers, warm: {t_warm:.1f} s -> speed-up {t_serial / t_warm:.2f}x; "
+          f"end to end (cluster start {t_start:.1f} s): {t_e2e:.1f} s -> {t_serial / t_e2e:.2f}x; "
+          f"results identical: {same}; {load()}")
+    return {"n_trials": 3 * n_trials, "serial_s": t_serial, "warm_s": t_warm, "end_to_end_s": t_e2e,
+            "cluster_start_s": t_start, "sim_s_mean": sum(sims) / len(sims), "speedup_warm": t_serial / t_warm,
+            "speedup_end_to_end": t_serial / t_e2e, "identical": same, "jobs": jobs,
+            "load_after": os.getloadavg()}
+
+
+def bench_overhead(jobs: int, n: int = 2000) -> dict:
+    """Scheduler round trip per task: no-op tasks on a warm cluster."""
+    with dask_client(jobs) as client:
+        run_tasks(_noop, list(range(10)), client=client)
+        t0 = time.perf_counter()
+        run_tasks(_noop, list(range(n)), client=client)
+        dt = time.perf_counter() - t0
+    print(f"overhead: {n} no-op tasks on {jobs} workers: {dt:.2f} s = {dt / n * 1e3:.2f} ms per task "
+          f"(submit, schedule, run, gather, in order), {load()}")
+    return {"n": n, "seconds": dt, "per_task_ms": dt / n * 1e3, "jobs": jobs, "load_after": os.getloadavg()}
+
+
+def bench_catalog(n_files: int) -> dict:
+    """The catalogue's own costs: reading new files, the unchanged-file check, writing results."""
+    from rig.catalog import build
+    from rig.catalog.batch import TaskResult
+    from rig.catalog.build import record_identify
+
+    with tempfile.TemporaryDirectory() as d:
+        files = _mk_files(min(n_files, 20), Path(d))
+        t0 = time.perf_counter()
+        build(d)
+        t_new = (time.perf_counter() - t0) / len(files)
+        t0 = time.perf_counter()
+        for _ in range(5):
+            build(d)
+        t_same = (time.perf_counter() - t0) / 5 / len(files)
+        from rig.catalog.tasks import identify_file
+
+        r = run_tasks(identify_file, [(str(files[0]), {})], jobs=1)[0]
+        n = 2000
+        fake = [TaskResult((f"/archive/f{i:06d}.csv", {}), True, r.value, None, 0.5) for i in range(n)]
+        t0 = time.perf_counter()
+        record_identify(Path(d) / "catalog.duckdb", fake, {})
+        t_write = (time.perf_counter() - t0) / n
+        report_kb = len(json.dumps(r.value["report"])) / 1e3
+        db_mb = (Path(d) / "catalog.duckdb").stat().st_size / 1e6
+    print(f"catalog: index a new file {t_new * 1e3:.0f} ms, check an unchanged one {t_same * 1e6:.0f} µs, "
+          f"write an identify result {t_write * 1e3:.2f} ms ({report_kb:.1f} kB JSON report); "
+          f"catalogue of {n} results {db_mb:.1f} MB, {load()}")
+    return {"index_new_s": t_new, "check_unchanged_s": t_same, "write_result_s": t_write,
+            "report_kB": report_kb, "db_MB_per_2000": db_mb, "load_after": os.getloadavg()}
+
+
+def main(argv: list[str]) -> None:
+    args = list(argv)
+
+    def opt(name, default):
+        if name in args:
+            i = args.index(name)
+            v = args[i + 1]
+            del args[i:i + 2]
+            return v
+        return default
+
+    jobs = int(opt("--jobs", 2))
+    n_files = int(opt("--files", 50))
+    n_trials = int(opt("--trials", 8))
+    out = opt("--json", None)
+    what = args or ["overhead", "identify", "reproduce", "catalog"]
+    print(f"bench_batch: {os.cpu_count()} cores, {jobs} workers, {autogroup()}, {load()}")
+    res = {}
+    for w in what:
+        if w == "identify":
+            res[w] = bench_identify(jobs, n_files)
+        elif w == "reproduce":
+            res[w] = bench_reproduce(jobs, n_trials)
+        elif w == "overhead":
+            res[w] = bench_overhead(jobs)
+        elif w == "catalog":
+            res[w] = bench_catalog(n_files)
+        else:
+            sys.exit(f"unknown benchmark {w!r}: identify | reproduce | overhead | catalog")
+    if out:
+        Path(out).write_text(json.dumps(res, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

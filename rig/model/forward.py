@@ -1,0 +1,77 @@
+"""The one forward model: a kinematic record (t, x measured, v) -> the force the load cell reports.
+
+    friction law (rig.model.friction) -> loading system (rig.model.loading)
+        -> sensor chain (rig.model.sensors)
+
+driven by a :class:`~rig.model.spec.FrictionModel`. Identification's whole-record fit,
+every diagnosis candidate and the synthetic-record generator call :func:`predict_force`;
+the simulated rig's closed-loop kernel (rig.sim.plant) calls the same friction-law and
+sensor kernels tick by tick, with the loading system's compliance chosen by
+:func:`rig.model.loading.lvdt_to_interface_compliance_um_per_N`.
+
+Without ``finite_stiffness`` the interface slips with the measured position (diagnosis.md);
+with it, the interface's slip follows from the spring (:func:`rig.model.loading.stiff_series`)
+and position-periodic friction is evaluated at the interface's position.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from rig.model import sensors
+from rig.model.friction import N_STATE, P_B2, P_STATE_ON, mu_of, mu_series
+from rig.model.loading import stiff_series
+from rig.model.spec import FrictionModel
+
+
+@njit(cache=True)
+def _memoryless_series(p, v, x, slip):
+    """mu_ss(v) of a memoryless (steady_state) law with the periodic/wear terms via mu_of."""
+    n = v.shape[0]
+    out = np.empty(n)
+    s = np.zeros(N_STATE)
+    for i in range(n):
+        s[2] = slip[i]
+        out[i] = mu_of(p, s, v[i], x[i])
+    return out
+
+
+def as_model(baseline: str, extensions: list[str], params: dict[str, float]) -> FrictionModel:
+    """The :class:`FrictionModel` of a baseline, extensions and named params (nuisance
+    parameters such as ``v_init_um_s`` are not part of the model and are dropped)."""
+    return FrictionModel(baseline=baseline, extensions=list(extensions),
+                         params={k: float(v) for k, v in params.items() if k != "v_init_um_s"})
+
+
+def predict_force(model: FrictionModel, t_s: np.ndarray, x_um: np.ndarray, v_um_s: np.ndarray,
+                  N_tot_N: np.ndarray | None, N_nom_N: float, v_init_um_s: float | None = None) -> np.ndarray:
+    """Measured friction force (N) on a record (t from the file start, x measured, v, N1+N2).
+
+    ``v_init_um_s``: the speed whose steady state the record starts in (default: the median
+    of the first velocities)."""
+    ext = model.extensions
+    p = model.to_array()
+    t = np.ascontiguousarray(t_s, dtype=float)
+    x = np.ascontiguousarray(x_um, dtype=float)
+    v = np.ascontiguousarray(v_um_s, dtype=float)
+    nfac = sensors.normal_factor(t.size, N_tot_N, N_nom_N, "normal_force_variation" in ext)
+    v_eff = v
+    if "time_delay" in ext:
+        v_eff = sensors.delayed(t, v, model.get("delay_s"))
+    if v_init_um_s is None:
+        v_init_um_s = float(np.median(v_eff[: max(3, min(50, v_eff.size))]))
+    k = model.stiffness_N_per_um
+    if k is not None:
+        F = stiff_series(p, t, x, v_eff, nfac, k, float(v_init_um_s))
+    elif p[P_STATE_ON] > 0.5 or p[P_B2] != 0.0:
+        F = mu_series(p, t, v_eff, x, float(v_init_um_s)) * nfac
+    else:
+        slip = np.zeros_like(t)
+        slip[1:] = np.cumsum(0.5 * np.abs(v_eff[1:] + v_eff[:-1]) * np.diff(t))
+        F = _memoryless_series(p, np.maximum(v_eff, 1e-6) if np.all(v_eff > -1e-9) else v_eff, x, slip) * nfac
+    if "sensor_lag" in ext:
+        F = sensors.lowpass_uneven(t, F, model.get("tau_s"))
+    if "force_offset_drift" in ext:
+        F = F + sensors.offset_drift(t, model.get("rate_N_per_s"))
+    return F

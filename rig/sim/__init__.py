@@ -1,0 +1,8 @@
+"""The simulated rig (closed loop: servovalve, actuator, fixture + rig.model) and synthetic records.
+
+plant.py: the numba plant and closed-loop kernels; rig.py: :class:`SimRig`.
+"""
+
+from rig.sim.rig import BLOCK_KEYS, SimRig, build_plant_params, initial_velocity_um_s
+
+__all__ = ["BLOCK_KEYS", "SimRig", "build_plant_params", "initial_velocity_um_s"]
