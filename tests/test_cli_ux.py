@@ -48,7 +48,7 @@ def test_choices_are_shown_and_enforced():
 
 def test_lubricant_choices_are_the_recipes_and_table2():
     from rig.config.recipe import LUBRICANTS
-    from rig.friction import TABLE2
+    from rig.model.paper import TABLE2
 
     assert tuple(x.value for x in Lubricant) == tuple(LUBRICANTS) and set(LUBRICANTS) == set(TABLE2)
 
@@ -70,7 +70,7 @@ def test_json_dash_prints_json_on_stdout(log, tmp_path):
     res = runner.invoke(app, ["stability", "--lubricant", "dry", "--json", "-"])
     assert res.exit_code == 0
     doc = json.loads(res.stdout)  # the table went to stderr
-    assert doc["schema"] == "rig.stability/1" and "k_cr" in res.stderr
+    assert doc["schema"].startswith("rig.stability/") and "k_cr" in res.stderr
     out = tmp_path / "info.json"
     res = runner.invoke(app, ["info", str(log), "--json", str(out)])
     assert res.exit_code == 0 and json.loads(out.read_text())["complete"] and "channels" in res.stdout
