@@ -155,3 +155,24 @@ def test_readme_uses_the_venv_rig():
         for m in re.finditer(r"(\S*)\brig (run|identify|export|import|info|warmup)\b", b):
             assert m.group(1).endswith(".venv/bin/"), m.group(0)
     assert ".venv/bin/activate" in text and "rig warmup" in text
+
+
+def test_mcap_messages_say_what_the_file_is(tmp_path):
+    """A record length past the end of the file (mcap's RecordLengthLimitExceeded), a directory, a PNG:
+    each one line that says what is wrong, exit 2."""
+    import struct
+
+    huge = tmp_path / "huge.mcap"
+    huge.write_bytes(b"\x89MCAP0\r\n" + bytes([0x01]) + struct.pack("<Q", 2**62) + b"abc")
+    png = tmp_path / "plot.mcap"
+    png.write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(32))
+    d = tmp_path / "out"
+    d.mkdir()
+    for path, needle in ((huge, "truncated"), (png, "this is a PNG image, not an MCAP trial log"),
+                         (d, "is a directory, not an MCAP trial log")):
+        for cmd in (["info", str(path)], ["export", str(path), "-o", str(tmp_path / "x.csv")],
+                    ["identify", str(path)] if path.suffix == ".mcap" else ["info", str(path)]):
+            res = runner.invoke(app, cmd)
+            assert res.exit_code == 2 and needle in res.output, (cmd, res.output)
+            assert "RecordLengthLimitExceeded" not in res.output and "Traceback" not in res.output
+    assert not (tmp_path / "x.csv").exists()
