@@ -5,7 +5,11 @@ stay independent: ``rig.commands.trial`` (run), ``rig.commands.logs`` (info,
 export, import, recover),
 ``rig.commands.analysis`` (identify, stribeck, stability, reproduce),
 ``rig.commands.diagnose`` (diagnose), ``rig.commands.hardware`` (devices,
-loop-bench), ``rig.commands.catalog`` (catalog build, catalog query). A module that is missing is simply not registered.
+emulate, loop-bench), ``rig.commands.catalog`` (catalog build, catalog query),
+``rig.commands.warmup`` (warmup). A module that is
+missing is simply not registered. The conventions (exit codes, ``-o/--out``,
+``--json PATH``) and the safety net against tracebacks are in
+:mod:`rig.commands.common`.
 """
 
 from __future__ import annotations
@@ -15,8 +19,11 @@ import importlib
 import typer
 
 from rig import __version__
+from rig.commands.common import CONVENTIONS, RigGroup
 
 app = typer.Typer(
+    cls=RigGroup,
+    epilog=CONVENTIONS,
     name="rig",
     help=(
         "Run friction trials on a servohydraulic double-shear rig (Dupont & Dunlap 1995), "
@@ -34,11 +41,12 @@ COMMAND_MODULES = (
     "rig.commands.analysis",
     "rig.commands.diagnose",
     "rig.commands.hardware",
+    "rig.commands.warmup",
     "rig.commands.catalog",
 )
 
 
-def _version(value: bool):
+def _version(value: bool):  # noqa: FBT001
     if value:
         typer.echo(f"rig {__version__}")
         raise typer.Exit()
@@ -46,7 +54,7 @@ def _version(value: bool):
 
 @app.callback()
 def _root(version: bool = typer.Option(False, "--version", callback=_version, is_eager=True,
-                                       help="Print the version and exit.")):
+                                       help="Print the version and exit.")):  # noqa: FBT001
     """rig: friction trials, logging, identification and diagnosis."""
 
 

@@ -297,7 +297,7 @@ def read_csv(path: str | os.PathLike) -> TrialData:
     if bad.size:
         j = bad[0] + 1
         raise DataFormatError(path, row_lines[j],
-                              f"time_s not strictly increasing ({t[j - 1]!r} then {t[j]!r})")
+                              f"time_s not strictly increasing ({float(t[j - 1])!r} then {float(t[j])!r})")
 
     def opt(name):
         return cols.get(name)

@@ -150,19 +150,19 @@ def test_cli_build_and_query(archive, tmp_path):
     db = root / "catalog.duckdb"
     assert db.exists()
     sql = "SELECT lubricant, count(*) AS n FROM trials GROUP BY lubricant ORDER BY lubricant"
-    r = CliRunner().invoke(app, ["catalog", "query", sql, "--db", str(db), "--json"])
+    r = CliRunner().invoke(app, ["catalog", "query", sql, "--db", str(db), "--json", "-"])
     assert r.exit_code == 0, out_text(r)
     rows = json.loads(r.stdout)
     assert {d["lubricant"]: d["n"] for d in rows} == {"boundary": 8, "dry": 6, "paraffin": 4}
-    r = CliRunner().invoke(app, ["catalog", "query", sql, "--db", str(db), "--csv"])
+    r = CliRunner().invoke(app, ["catalog", "query", sql, "--db", str(db), "--csv", "-"])
     assert list(csv.reader(io.StringIO(r.stdout)))[0] == ["lubricant", "n"]
     r = CliRunner().invoke(app, ["catalog", "query", sql, "--db", str(db)])
     assert r.exit_code == 0 and "paraffin" in out_text(r) and "3 row(s)" in out_text(r)
-    # a bad query, a missing catalogue: one clear error, exit 1, no traceback
+    # a bad query, a missing catalogue: one clear error, exit 2 (bad input), no traceback
     r = CliRunner().invoke(app, ["catalog", "query", "SELECT nope FROM trials", "--db", str(db)])
-    assert r.exit_code == 1 and "query failed" in out_text(r) and "Traceback" not in out_text(r)
+    assert r.exit_code == 2 and "query failed" in out_text(r) and "Traceback" not in out_text(r)
     r = CliRunner().invoke(app, ["catalog", "query", "SELECT 1", "--db", str(tmp_path / "none.duckdb")])
-    assert r.exit_code == 1 and "no such catalogue" in out_text(r)
+    assert r.exit_code == 2 and "no such catalogue" in out_text(r)
     r = CliRunner().invoke(app, ["catalog", "build", str(tmp_path / "nodir")])
     assert r.exit_code == 2 and "no such directory" in out_text(r)
 

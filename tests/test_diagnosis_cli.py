@@ -54,6 +54,6 @@ def test_cli_bad_mcap(tmp_path):
     bad = tmp_path / "bad.mcap"
     bad.write_bytes(b"not an mcap file\n")
     res = CliRunner().invoke(app, ["diagnose", str(bad), "--json", str(tmp_path / "o.json")])
-    assert res.exit_code == 1
+    assert res.exit_code == 2  # bad input (rig.commands.common's exit-code table)
     assert "bad.mcap" in res.output
     assert not (tmp_path / "o.json").exists()

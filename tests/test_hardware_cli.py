@@ -16,14 +16,14 @@ def _rig(*args, timeout=90):
 
 def test_devices_check_with_and_without_emulators(tmp_path):
     prof = private_profile(tmp_path)
-    r = _rig("devices", "check", "--hardware", prof, "--start-emulators", "--json")
+    r = _rig("devices", "check", "--hardware", prof, "--start-emulators", "--json", "-")
     assert r.returncode == 0, r.stdout + r.stderr
     rows = json.loads(r.stdout)
     assert [x["device"] for x in rows] == ["load cells", "LVDT", "servovalve"]
     assert all(x["ok"] for x in rows)
     assert "normal 1 " in rows[0]["reading"] and "position" in rows[1]["reading"]
     # nothing listening: each device named with its address, exit 1
-    r = _rig("devices", "check", "--hardware", prof, "--json")
+    r = _rig("devices", "check", "--hardware", prof, "--json", "-")
     assert r.returncode == 1
     rows = json.loads(r.stdout)
     assert not any(x["ok"] for x in rows)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from enum import Enum
 from pathlib import Path
 from typing import Optional
 
@@ -11,13 +12,52 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-console = Console(width=None if Console().is_terminal else 140)
-err_console = Console(stderr=True)
+from rig.commands.common import (EXIT_BAD_INPUT, JSON_HELP, Lubricant, check_output_path, err_console, fail,
+                                 json_to_stdout, write_json)
+
+console = Console(width=None if Console().is_terminal else 140, highlight=False)
+
+#: fewer samples than this are no record to analyse (a 1-row file divided by zero in identify)
+MIN_SAMPLES = 3
 
 
-def _fail(msg: str, code: int = 2):
-    err_console.print(f"[red]error:[/red] {msg}", soft_wrap=True)
-    raise typer.Exit(code)
+def _fail(msg: str, code: int = EXIT_BAD_INPUT):
+    fail(msg, code)
+
+
+class Velocity(str, Enum):
+    paper = "paper"
+    local_poly = "local_poly"
+
+
+class WholeVelocity(str, Enum):
+    segments = "segments"
+    local_poly = "local_poly"
+    paper = "paper"
+
+
+class Direction(str, Enum):
+    both = "both"
+    up = "up"
+    down = "down"
+
+
+class Engine(str, Enum):
+    sim = "sim"
+    synth = "synth"
+
+
+def _con(json_out) -> Console:
+    """Where the tables go: stdout, or stderr when ``--json -`` puts the JSON there."""
+    return err_console if json_to_stdout(json_out) else console
+
+
+def _outputs(**paths) -> None:
+    """Output paths checked before the work (a directory, a wrong suffix: exit 2 at once)."""
+    suffix = {"plot": (".png",), "json": ()}  # the plots are PNG (rig.analysis.plots.save)
+    for name, p in paths.items():
+        if p is not None:
+            check_output_path(p, f"--{name}", suffix.get(name, ()))
 
 
 def _load(paths: list[Path]):
@@ -26,15 +66,18 @@ def _load(paths: list[Path]):
 
     trials = []
     for p in paths:
-        if not p.exists():
-            _fail(f"{p}: no such file")
         try:
             trials.append(load_trial(p))
         except DataFormatError as exc:
             _fail(str(exc))
-        except Exception as exc:  # noqa: BLE001 - e.g. a damaged MCAP
-            _fail(f"{p}: cannot read: {exc}")
+        if len(trials[-1]) < MIN_SAMPLES:
+            _fail(f"{p}: {len(trials[-1])} sample(s): too few to analyse (at least {MIN_SAMPLES})")
     return trials
+
+
+def _named(msg: str, data) -> str:
+    """An analysis error with the file(s) named."""
+    return msg if any(str(p) in msg for p in data) else f"{', '.join(map(str, data))}: {msg}"
 
 
 def _fmt(v, nd=4):
@@ -50,17 +93,17 @@ def _fmt(v, nd=4):
 def identify_cmd(
     data: list[Path] = typer.Argument(..., help="One or more trial files (.csv or .mcap); a directory or a "
                                                 "glob runs a batch into the catalogue."),
-    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the rig.identify/1 report here."),
+    json_out: Optional[Path] = typer.Option(None, "--json", help=JSON_HELP + " (rig.identify/1)"),
     plot: Optional[Path] = typer.Option(None, "--plot", help="Write a PNG (friction after each step, fits, windows)."),
     events: bool = typer.Option(True, "--events/--no-events", help="Use the log's step events when present."),
-    velocity: str = typer.Option("local_poly", "--velocity", help="Velocity estimator for plots: paper | local_poly."),
+    velocity: Velocity = typer.Option(Velocity.local_poly, "--velocity", help="Velocity estimator for plots."),
     whole: bool = typer.Option(True, "--whole/--no-whole", help="Also fit the model to the whole record."),
-    whole_velocity: str = typer.Option("segments", "--whole-velocity",
-                                       help="Velocity for the whole-record fit: segments | local_poly | paper."),
+    whole_velocity: WholeVelocity = typer.Option(WholeVelocity.segments, "--whole-velocity",
+                                                 help="Velocity for the whole-record fit."),
     stiffness: Optional[bool] = typer.Option(None, "--stiffness/--no-stiffness",
                                              help="Whole-record fit with a machine stiffness (default: when the "
                                                   "file says its position is the load point)."),
-    direction: str = typer.Option("both", "--direction", help="Steps to use: both | up | down."),
+    direction: Direction = typer.Option(Direction.both, "--direction", help="Steps to use."),
     min_ratio: float = typer.Option(1.25, "--min-ratio", help="Smallest velocity ratio counted as a step."),
     jobs: Optional[int] = typer.Option(None, "--jobs", help="Batch: N worker processes (default: all cores)."),
     scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Batch: an existing Dask cluster, "
@@ -71,14 +114,13 @@ def identify_cmd(
 
     With a directory or a glob (or --jobs/--scheduler/--db), each file is identified on its
     own, in parallel, and the results go into the catalogue (docs/catalog.md)."""
-    from rig.analysis.identify import identify_trials, write_json
+    from rig.analysis.identify import identify_trials
 
-    if direction not in ("both", "up", "down"):
-        _fail(f"--direction must be both, up or down (got {direction!r})")
-    if velocity not in ("paper", "local_poly"):
-        _fail(f"--velocity must be paper or local_poly (got {velocity!r})")
-    if whole_velocity not in ("segments", "paper", "local_poly"):
-        _fail(f"--whole-velocity must be segments, paper or local_poly (got {whole_velocity!r})")
+    con = _con(json_out)
+    if not min_ratio > 1:
+        _fail(f"--min-ratio must be more than 1 (got {min_ratio:g})")
+    _outputs(json=json_out, plot=plot)
+    velocity, whole_velocity, direction = velocity.value, whole_velocity.value, direction.value
     from rig.commands.catalog import identify_summary, is_batch, run_batch
 
     if is_batch([str(p) for p in data], jobs, scheduler, db):
@@ -95,10 +137,10 @@ def identify_cmd(
                               whole_velocity=whole_velocity, stiffness=stiffness, directions=direction,
                               min_ratio=min_ratio, names=[str(p) for p in data])
     except ValueError as exc:
-        _fail(str(exc))
+        _fail(_named(str(exc), data))
     rep = idn.report
     if not rep["steps"]:
-        _fail(f"{', '.join(map(str, data))}: no velocity steps found (ratio >= {min_ratio})", 1)
+        _fail(f"{', '.join(map(str, data))}: no velocity steps found (ratio >= {min_ratio:g})")
     table = Table(title="velocity steps (eqs. 10-12)")
     for c in ("trial", "t (s)", "v1 (µm/s)", "v2 (µm/s)", "A_mu", "B_mu", "L (µm)", "r2", "window (µm)", "t_r (s)"):
         table.add_column(c, justify="right")
@@ -106,27 +148,26 @@ def identify_cmd(
         table.add_row(str(s["trial"]), _fmt(s["t_s"], 6), _fmt(s["v1_um_s"]), _fmt(s["v2_um_s"]), _fmt(s["A_mu"], 3),
                       _fmt(s["B_mu"], 3), _fmt(s["L_um"], 3), _fmt(s["r2"], 2), str(s["window_um"]),
                       _fmt(s.get("t_r_s"), 3) + (" [red]rejected[/red]" if "rejected" in s else ""))
-    console.print(table)
+    con.print(table)
     m, e = rep["mean"], rep["sem"]
-    console.print(f"mean ± s.e. over {rep['sem_over']} (n={rep['n_steps'] if rep['sem_over'] == 'steps' else rep['n_trials']}): "
+    con.print(f"mean ± s.e. over {rep['sem_over']} (n={rep['n_steps'] if rep['sem_over'] == 'steps' else rep['n_trials']}): "
                   f"A_mu = {_fmt(m['A_mu'], 3)} ± {_fmt(e['A_mu'], 2)}, B_mu = {_fmt(m['B_mu'], 3)} ± {_fmt(e['B_mu'], 2)}, "
                   f"L = {_fmt(m['L_um'], 3)} ± {_fmt(e['L_um'], 2)} µm, k_cr (eq. 13) = {_fmt(m['k_cr_kN_per_m'], 3)} ± "
                   f"{_fmt(e['k_cr_kN_per_m'], 2)} kN/m, t_r (eq. 14) = {_fmt(m['t_r_s'], 3)} s")
     wr = rep.get("whole_record")
     for w in ([wr] if isinstance(wr, dict) else (wr or [])):
         if not w.get("ok", True) and "params" not in w:
-            console.print(f"whole-record fit failed: {w.get('reason')}")
+            con.print(f"whole-record fit failed: {w.get('reason')}")
             continue
         parts = ", ".join(f"{k} = {_fmt(v, 4)} ± {_fmt(w['err_corr'].get(k), 2)}" for k, v in w["params"].items())
-        console.print(f"whole-record fit ({w['model']}, velocity {w['velocity']}): {parts}; rms {_fmt(w['rms_N'], 3)} N")
+        con.print(f"whole-record fit ({w['model']}, velocity {w['velocity']}): {parts}; rms {_fmt(w['rms_N'], 3)} N")
     if json_out:
         write_json(rep, json_out)
-        console.print(f"wrote {json_out}")
     if plot:
         from rig.analysis.plots import plot_identification
 
         plot_identification(idn, plot)
-        console.print(f"wrote {plot}")
+        con.print(f"wrote {plot}", markup=False)
 
 
 def register(app: typer.Typer) -> None:
@@ -142,40 +183,48 @@ def _optional(name: str):
 
 
 def stribeck_cmd(
-    data: list[Path] = typer.Argument(..., help="Stepped-velocity pass(es), .csv or .mcap."),
-    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the rig.stribeck/1 report here."),
+    data: list[Path] = typer.Argument(..., help="Stepped-velocity pass(es), .csv or .mcap.", show_default=False),
+    json_out: Optional[Path] = typer.Option(None, "--json", help=JSON_HELP + " (rig.stribeck/1)"),
     plot: Optional[Path] = typer.Option(None, "--plot", help="Write a PNG like Figs. 6 and 7."),
     events: bool = typer.Option(True, "--events/--no-events", help="Use the log's level events when present."),
     window_um: float = typer.Option(50.0, "--window-um", help="Average over the last this many µm of each level."),
 ):
     """Steady-state friction per velocity level, up and down branches, and A - B by eq. (7)."""
-    from rig.analysis.stribeck import plot_stribeck, stribeck, write_json
+    from rig.analysis.stribeck import plot_stribeck, stribeck
+
+    con = _con(json_out)
+    if not window_um > 0:
+        _fail(f"--window-um must be positive (got {window_um:g})")
+    _outputs(json=json_out, plot=plot)
 
     trials = _load(data)
-    rep = stribeck(trials, use_events=events, window_um=window_um, names=[str(p) for p in data])
+    try:
+        rep = stribeck(trials, use_events=events, window_um=window_um, names=[str(p) for p in data])
+    except ValueError as exc:
+        _fail(_named(str(exc), data))
     if not rep["levels"]:
-        _fail(f"{', '.join(map(str, data))}: no velocity levels found", 1)
+        _fail(f"{', '.join(map(str, data))}: no velocity levels found")
     table = Table(title=f"steady-state friction (last {window_um:g} µm of each level)")
     for c in ("branch", "v (µm/s)", "mu", "sd over trials", "trials"):
         table.add_column(c, justify="right")
     for d in ("up", "down"):
         for b in rep["branches"][d]:
             table.add_row(d, _fmt(b["v_um_s"]), _fmt(b["mu"], 5), _fmt(b["mu_sd"], 2), str(b["n_trials"]))
-    console.print(table)
+    con.print(table)
     for key, label in (("fit", "all levels"), ("fit_up", "up branch"), ("fit_down", "down branch")):
         f = rep[key]
-        console.print(f"eq. (7), {label}: A - B = {_fmt(f['A_minus_B'], 4)} ± {_fmt(f['A_minus_B_err'], 2)}, "
+        con.print(f"eq. (7), {label}: A - B = {_fmt(f['A_minus_B'], 4)} ± {_fmt(f['A_minus_B_err'], 2)}, "
                       f"mu0 = {_fmt(f['mu0'], 5)} (n={f['n']})")
     if json_out:
         write_json(rep, json_out)
-        console.print(f"wrote {json_out}")
     if plot:
         plot_stribeck(rep, plot)
-        console.print(f"wrote {plot}")
+        con.print(f"wrote {plot}", markup=False)
 
 
 def stability_cmd(
-    lubricant: Optional[str] = typer.Option(None, "--lubricant", help="dry | paraffin | boundary (Table 2 values)."),
+    lubricant: Optional[Lubricant] = typer.Option(None, "--lubricant", help="Table 2's values of this lubricant "
+                                                                           "(default: all three)."),
     params: Optional[Path] = typer.Option(None, "--params", help="A rig identify JSON report (its mean A, B, L)."),
     profile: Optional[Path] = typer.Option(None, "--profile", help="Rig profile (mass, gains, actuator, sensors); "
                                                                    "default config/rigs/sim.yaml."),
@@ -184,7 +233,7 @@ def stability_cmd(
     simulate: bool = typer.Option(False, "--simulate", help="Check by a kp scan on the full simulated rig "
                                                             "(criterion: stuck fraction, velocity spread)."),
     plot: Optional[Path] = typer.Option(None, "--plot", help="With --simulate: write the stability map PNG."),
-    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the report as JSON."),
+    json_out: Optional[Path] = typer.Option(None, "--json", help=JSON_HELP + " (rig.stability/2)"),
     jobs: Optional[int] = typer.Option(None, "--jobs", help="With --simulate: checks on N worker processes "
                                                             "(Dask; default: all cores; 1: serially)."),
     scheduler: Optional[str] = typer.Option(None, "--scheduler", help="With --simulate: an existing Dask "
@@ -193,16 +242,18 @@ def stability_cmd(
     """Critical stiffness of the moving test piece: the paper's eqs. (8)/(13), the rig's PID
     loop (1 kHz, zero-order hold), PD and PID, and optionally the simulated boundary."""
     from rig.analysis import stability as S
-    from rig.data import atomic_write_text
     from rig.model.paper import TABLE2
     from rig.model.spec import FrictionModel
 
+    con = _con(json_out)
+    lubricant = lubricant.value if lubricant is not None else None
+    _outputs(json=json_out, plot=plot)
     if lubricant and params:
         _fail("give --lubricant or --params, not both")
-    if margin <= 0:
-        _fail(f"--margin must be positive (got {margin})")
-    if v0 <= 0:
-        _fail(f"--v0 must be positive (got {v0})")
+    if not (margin > 0 and math.isfinite(margin)):
+        _fail(f"--margin must be a positive number (got {margin:g})")
+    if not (v0 > 0 and math.isfinite(v0)):
+        _fail(f"--v0 must be a positive number of µm/s (got {v0:g})")
     if plot and not simulate:
         _fail("--plot needs --simulate (the map shows the scanned runs)")
     mass, kd, N = S.DEFAULT_MASS_KG, S.DEFAULT_KD_N_S_PER_UM, 100.0
@@ -224,15 +275,27 @@ def stability_cmd(
         _fail(str(exc))
     sets: dict[str, dict] = {}
     if params:
-        if not params.exists():
-            _fail(f"{params}: no such file")
+        if not params.is_file():
+            _fail(f"{params}: no such file" if not params.exists() else f"{params}: not a file")
         try:
-            rep = json.loads(params.read_text())
+            text = params.read_text(encoding="utf-8")
+        except (OSError, UnicodeDecodeError) as exc:
+            _fail(f"{params}: cannot read: {getattr(exc, 'strerror', None) or exc}")
+        try:
+            rep = json.loads(text)
+        except ValueError as exc:
+            _fail(f"{params}, line {getattr(exc, 'lineno', '?')}: not JSON ({getattr(exc, 'msg', exc)}); expected a "
+                  "`rig identify --json` report")
+        try:
             m = rep["mean"]
             sets[params.stem] = {"A_mu": float(m["A_mu"]), "B_mu": float(m["B_mu"]), "L_um": float(m["L_um"])}
             N = float(rep.get("normal_force_N", N))
-        except (KeyError, TypeError, ValueError) as exc:
-            _fail(f"{params}: not a rig identify report with mean A_mu, B_mu, L_um ({exc})")
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
+            _fail(f"{params}: not a rig identify report with mean A_mu, B_mu, L_um ({type(exc).__name__}: {exc})")
+        bad = [k for k, v in sets[params.stem].items() if not math.isfinite(v)] + ([] if N > 0 else ["normal_force_N"])
+        if bad or not sets[params.stem]["L_um"] > 0:
+            _fail(f"{params}: mean {', '.join(bad) or 'L_um'} is not a usable number (L_um must be positive, "
+                  "all finite)")
     else:
         names = [lubricant] if lubricant else list(TABLE2)
         for nm in names:
@@ -282,11 +345,11 @@ def stability_cmd(
                       _fmt(a["k_cr_eq8_kN_per_m"]) if a["k_cr_eq8_kN_per_m"] else "inf",
                       k(a.get("k_cr_loop_PD_kN_per_m")), k(a.get("k_cr_loop_PID_kN_per_m")),
                       _fmt(a["kp_min_N_per_um"] * 1e3 if a["kp_min_N_per_um"] else None) + " kN/m")
-    console.print(table)
+    con.print(table)
     for nm, a in analyses.items():
-        console.print(f"{nm}: {a['statement']}")
-        console.print(f"{nm}: {a['advice']}")
-    console.print("[dim]All stiffnesses in kN/m. The stiffness the controller must provide is the moving test piece's "
+        con.print(f"{nm}: {a['statement']}")
+        con.print(f"{nm}: {a['advice']}")
+    con.print("[dim]All stiffnesses in kN/m. The stiffness the controller must provide is the moving test piece's "
                   "(2 N); Table 2 prints (B - A) N / L per rider interface, half of it. The rig loop columns: "
                   "eq. (8)'s system with the rig's discrete PID (1 kHz, zero-order hold, backward-difference D), "
                   "actuator, compliance and LVDT filter (rig.analysis.stability.k_cr_loop).[/dim]")
@@ -304,13 +367,13 @@ def stability_cmd(
         map_fn = stack.enter_context(mapper(jobs, scheduler))
         for nm in sets:
             if params or nm not in prof.lubricants:
-                console.print(f"{nm}: not a lubricant of the profile; simulation skipped")
+                con.print(f"{nm}: not a lubricant of the profile; simulation skipped")
                 continue
             for k_i in (0.0, ki) if ki > 0 else (0.0,):
                 lm = S.LoopModel.from_profile(prof, prof.friction_model(nm), ki_N_per_um_s=k_i, V0_um_s=v0)
                 k_lin = S.k_cr_loop(lm)
                 if not k_lin:
-                    console.print(f"{nm} ({'PID' if k_i else 'PD'}): no finite k_cr in the analysis; scan skipped")
+                    con.print(f"{nm} ({'PID' if k_i else 'PD'}): no finite k_cr in the analysis; scan skipped")
                     continue
                 with err_console.status(f"{nm} ({'PID' if k_i else 'PD'}): scanning kp..."):
                     r = S.scan_boundary(nm, profile=ppath, ki_N_per_um_s=k_i, V0_um_s=v0,
@@ -318,31 +381,32 @@ def stability_cmd(
                 r["k_cr_eq8_N_per_um"] = analyses[nm]["k_cr_eq8_N_per_um"]
                 checks.append(r)
                 lo, hi = r["bracket_N_per_um"]
-                console.print(f"{nm} ({'PID' if k_i else 'PD'}): simulated boundary "
+                con.print(f"{nm} ({'PID' if k_i else 'PD'}): simulated boundary "
                               f"{_fmt(r['k_sim_N_per_um'] * 1e3 if r['k_sim_N_per_um'] else None)} kN/m "
                               f"(stick-slip at {_fmt(lo * 1e3 if lo else None)}, steady at "
                               f"{_fmt(hi * 1e3 if hi else None)}) vs the rig loop's {_fmt(k_lin * 1e3)} kN/m")
         stack.close()
-        console.print(f"[dim]criterion: {S.STUCK_FRACTION_MAX:.0%} stuck / spread {S.SPREAD_MAX:g} V0 "
+        con.print(f"[dim]criterion: {S.STUCK_FRACTION_MAX:.0%} stuck / spread {S.SPREAD_MAX:g} V0 "
                       f"({checks[0]['criterion'] if checks else ''})[/dim]")
     if json_out:
         doc = {"schema": "rig.stability/2", "V0_um_s": v0, "mass_kg": mass, "kd_N_s_per_um": kd,
                "ki_N_per_um_s": ki, "normal_force_N": N, "analyses": analyses, "checks": checks}
-        atomic_write_text(json_out, json.dumps(doc, indent=2, allow_nan=False, default=float) + "\n")
-        console.print(f"wrote {json_out}")
+        write_json(doc, json_out)
     if plot:
         S.plot_map(checks, plot)
-        console.print(f"wrote {plot}")
+        con.print(f"wrote {plot}", markup=False)
 
 
 def reproduce_cmd(
     trials: int = typer.Option(8, "--trials", min=2, help="Simulated trials per lubricant (the paper: >= 8)."),
     seed: int = typer.Option(0, "--seed", help="Seed of the parameter draws and the sensor noise."),
-    lubricant: Optional[list[str]] = typer.Option(None, "--lubricant", help="Only these lubricants."),
+    lubricant: Optional[list[Lubricant]] = typer.Option(None, "--lubricant", help="Only this lubricant (repeat "
+                                                                                  "for several; default all)."),
     profile: Optional[Path] = typer.Option(None, "--profile", help="Rig profile (default config/rigs/sim.yaml)."),
     whole: bool = typer.Option(False, "--whole/--no-whole", help="Also the whole-record fit of every trial."),
-    engine: str = typer.Option("sim", "--engine", help="sim (full simulated rig) | synth (kinematic generator)."),
-    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the rig.reproduce/1 report here."),
+    engine: Engine = typer.Option(Engine.sim, "--engine", help="sim: the full simulated rig; synth: the "
+                                                                "kinematic generator."),
+    json_out: Optional[Path] = typer.Option(None, "--json", help=JSON_HELP + " (rig.reproduce/1)"),
     plot: Optional[Path] = typer.Option(None, "--plot", help="Write a PNG (paper vs recovered vs truth)."),
     jobs: Optional[int] = typer.Option(None, "--jobs", help="Trials on N worker processes (Dask; default: all "
                                                             "cores; 1: serially in this process)."),
@@ -352,23 +416,29 @@ def reproduce_cmd(
     """Simulated trials in the paper's protocol, identified: our Table 2 beside the paper's."""
     from rich.progress import BarColumn, Progress, TimeElapsedColumn, TimeRemainingColumn
 
-    from rig.analysis.reproduce import plot_reproduce, reproduce, write_json
+    from rig.analysis.reproduce import plot_reproduce, reproduce
     from rig.model.paper import TABLE2
 
-    lubs = list(lubricant) if lubricant else list(TABLE2)
+    con = _con(json_out)
+    lubs = [lb.value for lb in lubricant] if lubricant else list(TABLE2)
+    engine = engine.value
+    _outputs(json=json_out, plot=plot)
     for nm in lubs:
         if nm not in TABLE2:
             _fail(f"unknown lubricant {nm!r}; known: {', '.join(TABLE2)}")
-    if engine not in ("sim", "synth"):
-        _fail(f"--engine must be sim or synth (got {engine!r})")
-    if profile is not None and not profile.exists():
-        _fail(f"{profile}: no such profile")
+    if profile is not None:
+        from rig.config.profile import ProfileError, load_profile
+
+        try:
+            load_profile(profile)
+        except ProfileError as exc:
+            _fail(str(exc))
     from rig.catalog.batch import BatchError, mapper
 
     if jobs is not None and jobs < 1:
         _fail(f"--jobs must be at least 1 (got {jobs})")
     with Progress("[progress.description]{task.description}", BarColumn(), "{task.completed}/{task.total} trials",
-                  TimeElapsedColumn(), TimeRemainingColumn(), console=console) as prog:
+                  TimeElapsedColumn(), TimeRemainingColumn(), console=con) as prog:
         task = prog.add_task("simulating and identifying", total=trials * len(lubs))
         try:
             with mapper(jobs, scheduler, progress=lambda: prog.advance(task)) as map_fn:
@@ -405,10 +475,10 @@ def reproduce_cmd(
                 w = rep["lubricants"][lub]["whole_record"]
                 row += ["", f"{w['mean'][k] * scale[k]:.3g} ± {w['sem'][k] * scale[k]:.2g}", ""]
             table.add_row(*row)
-    console.print(table)
+    con.print(table)
     for lub in lubs:
         b = rep["lubricants"][lub]["bias"]
-        console.print(f"{lub}: identification bias, recovered/true - 1 (mean ± s.e. over trials): "
+        con.print(f"{lub}: identification bias, recovered/true - 1 (mean ± s.e. over trials): "
                       + ", ".join(f"{k} {100 * (b[k]['recovered_vs_true_rel'] or 0):+.1f} ± "
                                   f"{100 * (b[k]['recovered_vs_true_rel_sem'] or 0):.1f} %" for k in b)
                       + "; recovered mean vs Table 2 (in the paper's s.e.): "
@@ -417,16 +487,15 @@ def reproduce_cmd(
 
     for lub in lubs:
         m = rep["lubricants"][lub]["recovered"]["mean"]
-        console.print(f"{lub}: k_cr column = eq. (13) per rider; {fixture_statement(m['A_mu'], m['B_mu'], m['L_um'])}")
+        con.print(f"{lub}: k_cr column = eq. (13) per rider; {fixture_statement(m['A_mu'], m['B_mu'], m['L_um'])}")
     for lub in lubs:
         c = rep["lubricants"][lub]["checks"]
         bad = [k for k, v in c.items() if not v["ok"]]
-        console.print(f"{lub}: recovered - truth within the paper's s.e.: "
+        con.print(f"{lub}: recovered - truth within the paper's s.e.: "
                       + ("all" if not bad else f"[red]not for {', '.join(bad)}[/red]")
                       + f" ({rep['lubricants'][lub]['engine']})")
     if json_out:
         write_json(rep, json_out)
-        console.print(f"wrote {json_out}")
     if plot:
         plot_reproduce(rep, plot)
-        console.print(f"wrote {plot}")
+        con.print(f"wrote {plot}", markup=False)

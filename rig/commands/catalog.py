@@ -100,10 +100,12 @@ def _cell(v) -> str:
 def query_cmd(
     sql: str = typer.Argument(..., help='SQL on the catalogue, e.g. "SELECT * FROM catalog WHERE B_mu > 5e-3".'),
     db: Path = typer.Option(Path("catalog.duckdb"), "--db", help="Catalogue file."),
-    json_out: bool = typer.Option(False, "--json", help="Print the rows as JSON."),
-    csv_out: bool = typer.Option(False, "--csv", help="Print the rows as CSV."),
+    json_out: Optional[Path] = typer.Option(None, "--json", metavar="PATH", help="Write the rows as JSON to this "
+                                            "file ('-': print them on standard output)."),
+    csv_out: Optional[Path] = typer.Option(None, "--csv", metavar="PATH", help="Write the rows as CSV to this "
+                                           "file ('-': print them on standard output)."),
 ):
-    """Run SQL on the catalogue: a table, or --json / --csv."""
+    """Run SQL on the catalogue: a table, or --json PATH / --csv PATH ('-' prints)."""
     from rig.catalog import CatalogError, query
 
     if json_out and csv_out:
@@ -111,9 +113,14 @@ def query_cmd(
     try:
         res = query(db, sql)
     except CatalogError as exc:
-        _fail(str(exc), 1)
+        _fail(str(exc), 2)  # no such catalogue, a query that fails: bad input (rig.commands.common)
     if json_out:
-        typer.echo(res.to_json())
+        if str(json_out) == "-":
+            typer.echo(res.to_json())
+        else:
+            from rig.data import atomic_write_text
+
+            atomic_write_text(json_out, res.to_json() + "\n")
         return
     if csv_out:
         buf = io.StringIO()
@@ -121,7 +128,12 @@ def query_cmd(
         w.writerow(res.columns)
         for r in res.rows:
             w.writerow(["" if v is None else (";".join(map(str, v)) if isinstance(v, list) else v) for v in r])
-        typer.echo(buf.getvalue(), nl=False)
+        if str(csv_out) == "-":
+            typer.echo(buf.getvalue(), nl=False)
+        else:
+            from rig.data import atomic_write_text
+
+            atomic_write_text(csv_out, buf.getvalue())
         return
     table = Table(title=f"{len(res.rows)} row(s)")
     for c in res.columns:

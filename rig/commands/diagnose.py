@@ -1,25 +1,35 @@
 """``rig diagnose DATA``: what the simulation's friction model gets wrong, why, and the gain of fixing it.
 
-Contract: ../shared/specs/diagnosis.md. Exit status 0 whenever the analysis ran
-(whatever it found); a bad input file is one clear error and exit status 1.
+Contract: ../shared/specs/diagnosis.md. Exit status (:mod:`rig.commands.common`):
+0 whenever the analysis ran (whatever it found); 2 a bad input file or option
+(one clear error naming the file); 1 an output that cannot be written.
 """
 
 from __future__ import annotations
 
-import json
+from enum import Enum
 from pathlib import Path
 from typing import Optional
 
 import typer
+
+from rig.commands.common import (EXIT_BAD_INPUT, EXIT_FAILED, JSON_HELP, check_output_path, err_console, fail,
+                                 json_to_stdout, write_json)
+
+
+class Baseline(str, Enum):
+    rate_state = "rate_state"
+    steady_state = "steady_state"
 
 
 def register(app: typer.Typer) -> None:
     @app.command("diagnose")
     def diagnose_cmd(
         data: Path = typer.Argument(..., help="Measured trial: .csv (measured-data.md) or .mcap rig log; a "
-                                              "directory or a glob runs a batch into the catalogue."),
-        baseline: str = typer.Option("rate_state", "--baseline", help="rate_state (default) or steady_state."),
-        json_out: Optional[Path] = typer.Option(None, "--json", help="Write the JSON report (rig.diagnosis/1)."),
+                                              "directory or a glob runs a batch into the catalogue.",
+                                    show_default=False),
+        baseline: Baseline = typer.Option(Baseline.rate_state, "--baseline", help="The model to start from."),
+        json_out: Optional[Path] = typer.Option(None, "--json", help=JSON_HELP + " (rig.diagnosis/1)"),
         plot: Optional[Path] = typer.Option(None, "--plot", help="Write the diagnosis figure (PNG)."),
         model_out: Optional[Path] = typer.Option(None, "--model-out",
                                                  help="Write the extended friction model (YAML) for "
@@ -33,54 +43,53 @@ def register(app: typer.Typer) -> None:
 
         With a directory or a glob (or --jobs/--scheduler/--db), each file is diagnosed on its own,
         in parallel, and the results go into the catalogue (docs/catalog.md)."""
-        from rich.console import Console
-
-        from rig.data import DataFormatError, atomic_write_text
+        from rig.data import DataFormatError
         from rig.log import load_trial
 
-        err = Console(stderr=True)
-        if baseline not in ("rate_state", "steady_state"):
-            err.print(f"[red]error:[/red] --baseline must be rate_state or steady_state, not {baseline!r}")
-            raise typer.Exit(2)
+        baseline = baseline.value
         from rig.commands.catalog import diagnose_summary, is_batch, run_batch
 
         if is_batch([str(data)], jobs, scheduler, db):
             if json_out or plot or model_out:
-                err.print("[red]error:[/red] --json, --plot and --model-out are for single runs; a batch writes "
-                          "its results into the catalogue")
-                raise typer.Exit(2)
+                fail("--json, --plot and --model-out are for single runs; a batch writes its results into the "
+                     "catalogue")
             run_batch("diagnose", [str(data)], {"baseline": baseline}, jobs=jobs, scheduler=scheduler, db=db,
                       summarize=diagnose_summary)
             return
+        for opt, p, sfx in (("--json", json_out, ()), ("--plot", plot, (".png",)),
+                            ("--model-out", model_out, (".yaml", ".yml"))):
+            if p is not None:
+                check_output_path(p, opt, sfx)
         try:
             trial = load_trial(data)
         except DataFormatError as exc:
-            err.print(f"[red]error:[/red] {exc}")
-            raise typer.Exit(1)
-        except Exception as exc:  # OSError, ValueError, a broken MCAP: one clear error
-            err.print(f"[red]error:[/red] {data}: cannot read the trial: {exc}", highlight=False)
-            raise typer.Exit(1)
+            fail(str(exc))
         from rig.diagnosis import diagnose
 
         try:
-            with err.status("diagnosing...") as status:
+            with err_console.status("diagnosing...") as status:
                 d = diagnose(trial, baseline=baseline, progress=lambda m: status.update(f"diagnosing: {m}"))
         except ValueError as exc:
             msg = str(exc)
-            err.print(f"[red]error:[/red] {msg if str(data) in msg else f'{data}: {msg}'}", markup=True,
-                      highlight=False)
-            raise typer.Exit(1)
+            fail(msg if str(data) in msg else f"{data}: {msg}", EXIT_BAD_INPUT)
         rep = d.report()
         rep["data"] = str(data)
-        typer.echo(summary(dict(rep, _noise_N=d.grid.noise_N)))
+        text = summary(dict(rep, _noise_N=d.grid.noise_N))
+        if json_to_stdout(json_out):
+            err_console.print(text, markup=False)
+        else:
+            typer.echo(text)
         if json_out is not None:
-            atomic_write_text(json_out, json.dumps(rep, indent=2) + "\n")
+            write_json(rep, json_out)
         if plot is not None:
             from rig.diagnosis.plot import plot_diagnosis
 
             plot_diagnosis(d, plot)
         if model_out is not None:
-            d.model.to_yaml(model_out)
+            try:
+                d.model.to_yaml(model_out)
+            except OSError as exc:
+                fail(f"cannot write {model_out}: {exc.strerror or exc}", EXIT_FAILED)
 
 
 def summary(rep: dict) -> str:

@@ -2,7 +2,7 @@
 
 ``rig devices check --hardware PROFILE [--start-emulators]`` connects to every
 device of the profile's ``hardware`` section, reads each once and says what
-answered (and where). ``rig emulate PROFILE`` serves the emulated devices in
+answered (and where). ``rig emulate --hardware PROFILE`` serves the emulated devices in
 the foreground until Ctrl-C. ``rig loop-bench`` runs the 1 kHz loop against
 the emulators holding position and prints a LinuxCNC-style latency report.
 """
@@ -18,18 +18,15 @@ from types import SimpleNamespace
 from typing import Optional
 
 import typer
-from rich.console import Console
 from rich.table import Table
 
-console = Console()
-err_console = Console(stderr=True)
+from rig.commands.common import JSON_HELP, Lubricant, console, err_console, fail, json_to_stdout, write_json
 
 DEFAULT_EMULATED = Path("config/rigs/emulated.yaml")
 
 
 def _fail(msg: str, code: int = 2):
-    err_console.print(f"[bold red]error:[/] {msg}", highlight=False)
-    raise typer.Exit(code)
+    fail(msg, code)
 
 
 def _load(profile_path: Path):
@@ -88,7 +85,7 @@ def devices_check(
     hardware: Path = typer.Option(..., "--hardware", metavar="PROFILE", help="Rig profile with a hardware section."),
     start_emulators: bool = typer.Option(False, "--start-emulators",
                                          help="Start the emulated devices first (rig.hardware.emulated)."),
-    as_json: bool = typer.Option(False, "--json", help="Print the result as JSON."),
+    json_out: Optional[Path] = typer.Option(None, "--json", metavar="PATH", help=JSON_HELP),
 ):
     """Connect to every device, read each once, say what answered. Exit 1 if any did not."""
     profile, hw = _load(hardware)
@@ -105,9 +102,9 @@ def devices_check(
     finally:
         if emu is not None:
             emu.stop()
-    if as_json:
-        typer.echo(json.dumps(rows, indent=2))
-    else:
+    if json_out is not None:
+        write_json(rows, json_out)
+    if not json_to_stdout(json_out):
         tab = Table(title=f"devices of {hardware}")
         for col in ("device", "address", "answered", "reading"):
             tab.add_column(col, overflow="fold")
@@ -119,16 +116,17 @@ def devices_check(
 
 
 def emulate(
-    profile_path: Path = typer.Argument(..., metavar="PROFILE", help="Rig profile with a hardware section."),
-    lubricant: str = typer.Option("boundary", "--lubricant", help="Friction of the simulated plant."),
-    seconds: Optional[float] = typer.Option(None, "--seconds", help="Stop after this long (default: Ctrl-C)."),
+    profile_path: Path = typer.Option(DEFAULT_EMULATED, "--hardware", metavar="PROFILE",
+                                      help="Rig profile with a hardware section."),
+    lubricant: Lubricant = typer.Option(Lubricant.boundary, "--lubricant", help="Friction of the simulated plant."),
+    seconds: Optional[float] = typer.Option(None, "--seconds", min=0.0, help="Stop after this long (s; default: Ctrl-C)."),
 ):
     """Serve the emulated devices of PROFILE (Modbus, LVDT pty, CAN valve) until Ctrl-C."""
     from rig.hardware.emulated import EmulatorError, start_emulator_process
 
     profile, hw = _load(profile_path)
     try:
-        emu = start_emulator_process(hw, profile, lubricant=lubricant)
+        emu = start_emulator_process(hw, profile, lubricant=lubricant.value)
     except EmulatorError as exc:
         _fail(str(exc), 1)
     console.print(f"emulators up: {hw.loadcells.address_text}; {hw.lvdt.address_text}; "
@@ -201,30 +199,33 @@ class LoopBenchFailed(RuntimeError):
 
 
 def loop_bench_command(
-    seconds: float = typer.Option(60.0, "--seconds", help="How long to run the loop."),
+    seconds: float = typer.Option(60.0, "--seconds", min=0.01, max=86400.0, help="How long to run the loop (s)."),
     hardware: Path = typer.Option(DEFAULT_EMULATED, "--hardware", metavar="PROFILE",
                                   help="Rig profile (default: the emulated rig; its emulators are started)."),
-    out_json: Optional[Path] = typer.Option(None, "--json", help="Also write the figures to this JSON file."),
+    out_json: Optional[Path] = typer.Option(None, "--json", help=JSON_HELP + " (the figures)"),
 ):
     """Run the 1 kHz loop holding position against the devices; print jitter, lateness, misses."""
     from rig.hardware.timing import format_stats
 
     _load(hardware)
     try:
-        res = loop_bench(seconds, hardware, out_json)
+        res = loop_bench(seconds, hardware)
     except LoopBenchFailed as exc:
         _fail(f"the loop stopped: {exc}", 1)
-    console.print(format_stats(res, f"loop-bench {seconds:g} s"), highlight=False)
+    if out_json is not None:
+        write_json(res, out_json)
+    out = err_console if json_to_stdout(out_json) else console
+    out.print(format_stats(res, f"loop-bench {seconds:g} s"), highlight=False)
     rt = res.get("realtime") or {}
-    console.print(f"  scheduling {rt.get('sched')} (priority {rt.get('priority')}) {rt.get('note') or ''}; "
+    out.print(f"  scheduling {rt.get('sched')} (priority {rt.get('priority')}) {rt.get('note') or ''}; "
                   f"load average before {res['loadavg_before'][0]:.2f}, after {res['loadavg_after'][0]:.2f} "
                   f"on {res['cpus']} CPUs", highlight=False)
     target_ok = res.get("late_p99_us", 1e9) < 100 and res.get("late_over_1000us", 1) == 0
     em = res.get("emulator") or {}
     if em.get("steps"):
-        console.print(f"  emulator: {em['steps']} plant steps ({em['lock_steps']} on setpoints), longest gap "
+        out.print(f"  emulator: {em['steps']} plant steps ({em['lock_steps']} on setpoints), longest gap "
                       f"{1e3 * (em['max_gap_s'] or 0):.1f} ms, {em['gaps_over_5ms']} gaps over 5 ms", highlight=False)
-    console.print(f"  target (p99 lateness < 100 µs, no cycle > 1 ms late): "
+    out.print(f"  target (p99 lateness < 100 µs, no cycle > 1 ms late): "
                   f"{'[green]met[/]' if target_ok else '[yellow]not met[/]'}")
     sys.stdout.flush()
 

@@ -1,41 +1,32 @@
 """Log commands: ``rig info``, ``rig export``, ``rig import``, ``rig recover`` (:mod:`rig.log`).
 
-Exit status: 0 done; 2 bad input (a file that is not a readable log or CSV, a
-damaged log under ``--strict``); 1 a file that cannot be written.
+Exit status (:mod:`rig.commands.common`): 0 done; 2 bad input (a file that is
+not a readable log or CSV, a damaged log under ``--strict``); 1 a file that
+cannot be written.
 """
 
 from __future__ import annotations
 
-import json
 import warnings
 from enum import Enum
 from pathlib import Path
 from typing import Optional
 
 import typer
-from rich.console import Console
 from rich.table import Table
 
-EXIT_BAD_INPUT = 2
-EXIT_FAILURE = 1
+from rig.commands.common import (EXIT_BAD_INPUT, EXIT_FAILED, JSON_HELP, check_output_path, console, fail,
+                                 json_to_stdout, warn, write_json)
 
-err_console = Console(stderr=True, soft_wrap=True)
-console = Console(soft_wrap=True)
-
-
-def _fail(message: str, code: int = EXIT_BAD_INPUT) -> None:
-    err_console.print(f"[bold red]error:[/] {message}", markup=True, highlight=False, soft_wrap=True)
-    raise typer.Exit(code)
-
-
-def _warn(message: str) -> None:
-    err_console.print(f"[yellow]warning:[/] {message}", highlight=False, soft_wrap=True)
+_fail = fail
+_warn = warn
 
 
 def info_command(
     path: Path = typer.Argument(..., help="Trial log (.mcap).", show_default=False, metavar="FILE.mcap"),
     events: int = typer.Option(20, "--events", "-n", help="How many events to list (0: none, -1: all)."),
-    as_json: bool = typer.Option(False, "--json", help="Print everything as JSON instead of tables."),
+    json_out: Optional[Path] = typer.Option(None, "--json", metavar="PATH", help=JSON_HELP + " Everything "
+                                            "the tables show, and the full event list.", show_default=False),
 ):
     """Show a trial log: channels with message counts, duration, metadata, events, recovered, damage.
 
@@ -47,9 +38,10 @@ def info_command(
         info = trial_info(path)
     except DataFormatError as exc:
         _fail(str(exc))
-    if as_json:
-        typer.echo(json.dumps(info, indent=2, allow_nan=False, default=str))
-        return
+    if json_out is not None:
+        write_json(info, json_out)
+        if json_to_stdout(json_out):
+            return
     state = "complete, every chunk's CRC verified" if info["complete"] else \
         f"DAMAGED/TRUNCATED ({info['damage']}) -- `rig recover` keeps the intact chunks"
     console.print(f"[bold]{info['path']}[/]  {info['size_bytes'] / 1e6:.2f} MB  {state}", highlight=False)
@@ -106,10 +98,13 @@ class Rate(str, Enum):
 
 def export_command(
     path: Path = typer.Argument(..., help="Trial log (.mcap).", show_default=False, metavar="TRIAL.mcap"),
-    csv: Optional[Path] = typer.Option(None, "--csv", help="CSV file to write (measured-data format, version 1).",
-                                       show_default=False),
-    parquet: Optional[Path] = typer.Option(None, "--parquet", help="Parquet file to write (same columns; "
-                                                                   "for pandas and polars).", show_default=False),
+    out: Optional[Path] = typer.Option(None, "--out", "-o", metavar="PATH", show_default=False,
+                                       help="File to write: a .csv (measured-data format, version 1) or a "
+                                            ".parquet (same columns; for pandas and polars), by its suffix."),
+    csv: Optional[Path] = typer.Option(None, "--csv", metavar="PATH", show_default=False,
+                                       help="CSV file to write (as -o PATH.csv)."),
+    parquet: Optional[Path] = typer.Option(None, "--parquet", metavar="PATH", show_default=False,
+                                           help="Parquet file to write (as -o PATH.parquet)."),
     rate: Rate = typer.Option(Rate.r25, "--rate", help="'25': the decimated per-sample channel (the paper's "
                                                        "25 Hz log); 'raw': every loop sample."),
     extra: bool = typer.Option(True, "--extra/--no-extra", help="Keep extra columns (raw: pid_*, dither, "
@@ -126,8 +121,19 @@ def export_command(
     from rig.data import DataFormatError, write_csv
     from rig.log import LogDamageWarning, read_trial, write_parquet
 
+    if out is not None:
+        kind = out.suffix.lower()
+        if kind == ".csv" and csv is None:
+            csv = out
+        elif kind == ".parquet" and parquet is None:
+            parquet = out
+        else:
+            _fail(f"--out {out}: expected a .csv or .parquet file name (or give --csv and --parquet)")
     if csv is None and parquet is None:
-        _fail("nothing to write: give --csv OUT.csv and/or --parquet OUT.parquet")
+        _fail("nothing to write: give -o OUT.csv and/or -o OUT.parquet (or --csv/--parquet)")
+    for opt, p in (("--csv", csv), ("--parquet", parquet)):
+        if p is not None:
+            check_output_path(p, opt)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", LogDamageWarning)  # shown below from trial.warnings
@@ -138,14 +144,14 @@ def export_command(
         _warn(w)
     if not extra:
         trial.extra = {}
-    for out, write in ((csv, write_csv), (parquet, write_parquet)):
-        if out is None:
+    for target, write in ((csv, write_csv), (parquet, write_parquet)):
+        if target is None:
             continue
         try:
-            write(trial, out)
+            write(trial, target)
         except OSError as exc:
-            _fail(f"cannot write {out}: {exc.strerror or exc}", EXIT_FAILURE)
-        console.print(f"wrote {out}: {len(trial)} rows, columns {', '.join(trial.columns())}", highlight=False)
+            _fail(f"cannot write {target}: {exc.strerror or exc}", EXIT_FAILED)
+        console.print(f"wrote {target}: {len(trial)} rows, columns {', '.join(trial.columns())}", highlight=False)
 
 
 def import_command(
@@ -164,8 +170,7 @@ def import_command(
     from rig.data import DataFormatError, read_csv
     from rig.log import write_trial_data
 
-    if out.suffix.lower() != ".mcap":
-        _fail(f"--out {out}: the trial log is an MCAP file (use a .mcap name)")
+    check_output_path(out, "--out", (".mcap",))
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
@@ -179,7 +184,7 @@ def import_command(
     except DataFormatError as exc:
         _fail(str(exc))
     except OSError as exc:
-        _fail(f"cannot write {out}: {exc.strerror or exc}", EXIT_FAILURE)
+        _fail(f"cannot write {out}: {exc.strerror or exc}", EXIT_FAILED)
     console.print(f"wrote {out}: {len(trial)} samples, columns {', '.join(trial.columns())}", highlight=False)
 
 
@@ -197,12 +202,15 @@ def recover_command(
     from rig.data import DataFormatError
     from rig.log import recover
 
+    check_output_path(out, "--out", (".mcap",))
+    if out.exists() and path.exists() and out.resolve() == path.resolve():
+        _fail(f"--out {out}: the same file as the damaged log (write the readable one beside it)")
     try:
         res = recover(path, out)
     except (DataFormatError, ValueError) as exc:
         _fail(str(exc))
     except OSError as exc:
-        _fail(f"cannot write {out}: {exc.strerror or exc}", EXIT_FAILURE)
+        _fail(f"cannot write {out}: {exc.strerror or exc}", EXIT_FAILED)
     n = sum(res["messages"].values())
     if res["complete_before"]:
         what = "was complete"

@@ -14,6 +14,10 @@ finished with what was logged and marked ``interrupted``).
 
 from __future__ import annotations
 
+import math
+import signal
+import sys
+import threading
 import time
 from pathlib import Path
 from typing import Any, Optional
@@ -23,17 +27,23 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-EXIT_BAD_INPUT = 2
-EXIT_FAILURE = 1
-EXIT_INTERRUPTED = 130
+from rig.commands.common import (EXIT_ABORTED, EXIT_BAD_INPUT, EXIT_FAILED, Lubricant, check_output_path, console,
+                                 err_console, fail, warn)
 
-err_console = Console(stderr=True, soft_wrap=True)
-console = Console(soft_wrap=True)
+EXIT_FAILURE = EXIT_FAILED
+EXIT_INTERRUPTED = EXIT_ABORTED
 
 
-def _fail(message: str, code: int = EXIT_BAD_INPUT) -> None:
-    err_console.print(f"[bold red]error:[/] {message}", markup=True, highlight=False, soft_wrap=True)
-    raise typer.Exit(code)
+#: log size of the raw 1 kHz channel (rig.columns.v2) per second of trial, measured: ~55 MB per hour
+RAW_LOG_BYTES_PER_S_AT_1KHZ = 55e6 / 3600
+#: the per-sample JSON channel (/log25) per message, measured
+LOG25_BYTES_PER_SAMPLE = 40.0  # zstd-compressed JSON
+#: past this estimated log size `rig run` asks before starting (--yes skips; without a terminal it warns)
+LOG_SIZE_ASK_BYTES = 500e6
+#: a trial longer than this gets its estimate printed
+LONG_TRIAL_S = 600.0
+#: the simulated rig's speed with the log, a conservative figure for the estimate (README: 440-1500x)
+SIM_REALTIME_FACTOR = 400.0
 
 
 # ---------------------------------------------------------------------------
@@ -141,6 +151,79 @@ def _trial_paths(out: Path, n: int) -> list[Path]:
     return [out.with_name(f"{out.stem}-{k + 1:02d}{out.suffix}") for k in range(n)]
 
 
+def estimate_log(plan, recipe, hardware: bool) -> dict:
+    """What a trial will cost before it starts: duration, log size, wall time (estimates)."""
+    dur = float(plan.duration_s)
+    raw = RAW_LOG_BYTES_PER_S_AT_1KHZ * dur * float(recipe.log.raw_rate_hz) / 1000.0
+    dec = LOG25_BYTES_PER_SAMPLE * dur * float(recipe.log.decimated_rate_hz)
+    wall = dur if hardware else dur / SIM_REALTIME_FACTOR
+    return {"duration_s": dur, "log_bytes": raw + dec, "wall_s": wall}
+
+
+def _human_s(t: float) -> str:
+    if t < 1:
+        return "under 1 s"
+    if t < 120:
+        return f"{t:.0f} s"
+    if t < 7200:
+        return f"{t / 60:.0f} min"
+    return f"{t / 3600:.1f} h"
+
+
+def _check_size(est: dict, n_trials: int, out: Path, yes: bool, hardware: bool) -> None:
+    """Print the estimate of a long trial; past LOG_SIZE_ASK_BYTES ask (unless --yes) or warn (no terminal)."""
+    total = est["log_bytes"] * n_trials
+    if est["duration_s"] < LONG_TRIAL_S and total < LOG_SIZE_ASK_BYTES:
+        return
+    what = (f"{n_trials} trials of " if n_trials > 1 else "") + f"{_human_s(est['duration_s'])} of trial time"
+    where = "on the rig" if hardware else f"about {_human_s(est['wall_s'] * n_trials)} on the simulated rig"
+    text = (f"{what}: about {total / 1e6:,.0f} MB of log in {out.parent or Path('.')} ({where}; "
+            f"~{RAW_LOG_BYTES_PER_S_AT_1KHZ * 3.6e3 / 1e6:.0f} MB per hour of 1 kHz raw data)")
+    if total < LOG_SIZE_ASK_BYTES or yes:
+        err_console.print(f"estimate: {text}", markup=False)
+        return
+    if not sys.stdin.isatty():
+        warn(f"{text}; past {LOG_SIZE_ASK_BYTES / 1e6:.0f} MB (lower log.raw_rate_hz in the recipe to write less; "
+             "--yes silences this)")
+        return
+    if not typer.confirm(f"{text}. Start?", default=False, err=True):
+        fail("not started (answer was no; --yes skips the question)", EXIT_ABORTED)
+
+
+class _SignalNote:
+    """Ctrl-C / SIGTERM noted for the whole of `rig run` (the session installs its own handlers for the
+    run itself and restores these): a signal while the log is opened or finished is not lost, and a
+    second signal then is not a traceback. ``caught``: names of the signals noted."""
+
+    def __init__(self):
+        self.caught: list[str] = []
+        self._old: dict = {}
+
+    def _note(self, signum, _frame) -> None:
+        self.caught.append(signal.Signals(signum).name)
+
+    def __enter__(self) -> "_SignalNote":
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                self._old[sig] = signal.signal(sig, self._note)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for sig, h in self._old.items():
+            signal.signal(sig, h)
+
+
+def _load_friction_model(path: Path):
+    """The friction model YAML of --friction-model; a recipe or a profile given instead is one clear error."""
+    from rig.config.loader import ConfigError, load_model_yaml
+    from rig.model.spec import FrictionModel
+
+    try:
+        return load_model_yaml(path, FrictionModel, key="friction_model", what="friction model")
+    except ConfigError as exc:
+        fail(f"--friction-model: {exc}")
+
+
 def run_command(
     recipe_path: Path = typer.Argument(..., help="Recipe YAML (config/recipes/*.yaml).", show_default=False,
                                      metavar="RECIPE"),
@@ -148,19 +231,19 @@ def run_command(
     hardware: Optional[Path] = typer.Option(None, "--hardware", metavar="PROFILE",
                                             help="Run on the real rig described by this hardware profile YAML "
                                                  "(rig.session.hardware.HardwareBackend)."),
-    lubricant: Optional[str] = typer.Option(None, "--lubricant",
-                                            help="Override the recipe's lubricant: dry, paraffin or boundary."),
-    out: Optional[Path] = typer.Option(None, "--out", "-o",
+    lubricant: Optional[Lubricant] = typer.Option(None, "--lubricant", help="Override the recipe's lubricant."),
+    out: Optional[Path] = typer.Option(None, "--out", "-o", metavar="PATH",
                                        help="MCAP file to write (default out/<recipe name>.mcap); with "
                                             "trials > 1 the files are numbered NAME-01.mcap, NAME-02.mcap, ..."),
-    profile_path: Optional[Path] = typer.Option(None, "--profile",
+    profile_path: Optional[Path] = typer.Option(None, "--profile", metavar="PROFILE",
                                                 help="Rig profile YAML for --sim (default: the recipe's "
                                                      "'profile', else config/rigs/sim.yaml)."),
     friction_model: Optional[Path] = typer.Option(None, "--friction-model", metavar="MODEL.yaml",
                                                   help="Friction model YAML (e.g. from `rig diagnose "
                                                        "--model-out`) replacing the profile's lubricant model."),
-    seed: Optional[int] = typer.Option(None, "--seed", help="Random seed (default: the recipe's); trial k "
-                                                            "of several uses seed + k - 1."),
+    seed: Optional[int] = typer.Option(None, "--seed", min=0, max=2**32 - 1001, metavar="N",
+                                       help="Random seed, 0 or more (default: the recipe's); trial k of "
+                                            "several uses seed + k - 1."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
     plan_only: bool = typer.Option(False, "--plan-only", help="Validate and compile the plan, print its "
                                                               "segment table, run nothing."),
@@ -175,35 +258,39 @@ def run_command(
     pace: Optional[float] = typer.Option(None, "--pace", metavar="X",
                                          help="--sim: trial seconds per wall second (1 = real time, 10 = 10x, "
                                               "0 = as fast as possible). Default: 1 with --live, else 0."),
+    yes: bool = typer.Option(False, "--yes", "-y", help="Start a trial whose log is estimated past "
+                                                        f"{LOG_SIZE_ASK_BYTES / 1e6:.0f} MB without asking."),
 ):
     """Run a trial recipe on the simulated (--sim) or real (--hardware PROFILE) rig; log it to MCAP.
 
     Everything is checked before anything moves: the recipe (file, field, line
     in the error), the profile, the friction model, and the compiled reference
-    against the stroke and the actuator's speed. Ctrl-C stops the run, finishes
-    the MCAP with what was logged (status 'interrupted') and exits with 130.
+    against the stroke and the actuator's speed. A trial longer than 10 min gets
+    an estimate of its log size and duration first; past 500 MB `rig run` asks
+    (--yes skips). Ctrl-C stops the run, finishes the MCAP with what was logged
+    (status 'interrupted') and exits with 130.
 
     Exit status: 0 done; 2 bad input (nothing written); 1 failure while running; 130 interrupted.
     """
-    from rig.config.recipe import LUBRICANTS, RecipeError, compile_recipe, load_recipe
+    from rig.config.recipe import RecipeError, compile_recipe, load_recipe
     from trajectories import PlanError
 
     if sim == (hardware is not None) and not plan_only:
-        _fail("choose exactly one of --sim or --hardware PROFILE")
+        fail("choose exactly one of --sim or --hardware PROFILE")
     if pace is not None and not (pace >= 0 and pace < float("inf")):
-        _fail(f"--pace {pace:g}: expected a number >= 0 (1 = real time, 0 = as fast as possible)")
+        fail(f"--pace {pace:g}: expected a number >= 0 (1 = real time, 0 = as fast as possible)")
     if hardware is not None and pace not in (None, 1.0):
-        _fail(f"--pace {pace:g}: the hardware runs in real time (--pace is for --sim)")
+        fail(f"--pace {pace:g}: the hardware runs in real time (--pace is for --sim)")
     if pace is None:
         pace = 1.0 if live else 0.0
+    if out is not None:
+        check_output_path(out, "--out", (".mcap",))
     try:
         recipe = load_recipe(recipe_path)
     except RecipeError as exc:
-        _fail(str(exc))
+        fail(str(exc))
     if lubricant is not None:
-        if lubricant not in LUBRICANTS:
-            _fail(f"--lubricant {lubricant!r}: expected one of {', '.join(LUBRICANTS)}")
-        recipe.lubricant = lubricant
+        recipe.lubricant = lubricant.value
 
     from rig.config.profile import ProfileError, default_profile_path, load_profile
 
@@ -211,25 +298,21 @@ def run_command(
     try:
         profile = load_profile(ppath)
     except ProfileError as exc:
-        _fail(str(exc))
+        fail(str(exc))
     if recipe.lubricant not in profile.lubricants:
-        _fail(f"{recipe_path}: lubricant {recipe.lubricant!r} is not in the profile {ppath} "
-              f"(it has: {', '.join(profile.lubricants)})")
-    fm = None
-    if friction_model is not None:
-        from rig.model.spec import FrictionModel
-        try:
-            fm = FrictionModel.from_yaml(friction_model)
-        except FileNotFoundError:
-            _fail(f"{friction_model}: no such file")
-        except Exception as exc:  # pydantic / yaml
-            _fail(f"{friction_model}: not a valid friction model: {exc}")
+        fail(f"{recipe_path}: lubricant {recipe.lubricant!r} is not in the profile {ppath} "
+             f"(it has: {', '.join(profile.lubricants)})")
+    fm = _load_friction_model(friction_model) if friction_model is not None else None
     try:
         plan = compile_recipe(recipe, profile, friction_model=fm)
     except PlanError as exc:
-        _fail(f"{recipe_path}: {exc}")
+        fail(f"{recipe_path}: {exc}")
     if plan_only:
         typer.echo(plan.summary())
+        est = estimate_log(plan, recipe, hardware is not None)
+        typer.echo(f"estimate: about {est['log_bytes'] * recipe.trials / 1e6:,.1f} MB of log for "
+                   f"{recipe.trials} trial(s) of {_human_s(est['duration_s'])}"
+                   + ("" if hardware is not None else f"; about {_human_s(est['wall_s'])} each on the simulated rig"))
         return
     if hardware is not None:
         from drivers.config import HardwareConfigError, hardware_of_profile
@@ -238,14 +321,12 @@ def run_command(
         try:
             hw = hardware_of_profile(profile, where=str(hardware))
         except HardwareConfigError as exc:
-            _fail(str(exc))
+            fail(str(exc))
 
     from rig.session.logfile import git_describe, run_to_log
     from rig.session.sim import SimBackend
 
     out = out or Path("out") / f"{recipe.name}.mcap"
-    if out.suffix.lower() != ".mcap":
-        _fail(f"--out {out}: the trial log is an MCAP file (use a .mcap name)")
     paths = _trial_paths(out, recipe.trials)
     view = None
     if live:
@@ -254,50 +335,67 @@ def run_command(
         try:
             view = LiveView(live_host, live_port, name=f"rig run {recipe.name}")
         except LiveViewError as exc:
-            _fail(f"--live: {exc}", EXIT_FAILURE)
+            fail(f"--live: {exc}", EXIT_FAILURE)
         pace_txt = "" if hardware is not None else (f", pace {pace:g}x" if pace > 0 else ", unpaced")
         err_console.print(f"live view: {view.url} (Foxglove: Open connection -> Foxglove WebSocket; "
                           f"layout config/foxglove/rig-trial.json{pace_txt})", highlight=False, markup=False)
         _close_at_exit(view)
     base_seed = recipe.seed if seed is None else seed
+    if base_seed + len(paths) - 1 > 2**32 - 1:
+        fail(f"--seed {seed}: seed + trials - 1 must stay below 2**32")
+    _check_size(estimate_log(plan, recipe, hardware is not None), len(paths), out, yes, hardware is not None)
     git_commit = git_describe()
     block_ticks = max(1, int(round(recipe.log.block_s * plan.loop_rate_hz)))
-    for k, path in enumerate(paths):
-        trial_seed = base_seed + k
-        meta = {"recipe": recipe.name, "recipe_file": str(recipe_path), "lubricant": recipe.lubricant,
-                "normal_force_N": recipe.normal_force_N, "seed": trial_seed, "trial": k + 1,
-                "trials": len(paths), "profile": str(ppath), "profile_name": profile.name,
-                "backend": "hardware" if hardware is not None else "sim",
-                "friction_model": str(friction_model) if friction_model else f"profile:{recipe.lubricant}",
-                "plan_duration_s": plan.duration_s, "git_commit": git_commit}
-        if fm is not None:
-            meta["friction_model_json"] = fm.model_dump_json()
-        if hardware is not None:
-            backend = HardwareBackend(hw, profile, lubricant=recipe.lubricant,
-                                      normal_force_N=recipe.normal_force_N, seed=trial_seed)
-        else:
-            backend = SimBackend(profile, fm if fm is not None else profile.friction_model(recipe.lubricant),
-                                 recipe.normal_force_N, trial_seed, block_ticks=block_ticks, pace=pace)
-        title = f"trial {k + 1}/{len(paths)} " if len(paths) > 1 else ""
-        try:
-            with TrialProgress(plan, title=title, enabled=not quiet) as prog:
-                result = run_to_log(path, plan, recipe, profile, backend, meta, progress=prog,
-                                    echo=lambda text: err_console.print(text, highlight=False, markup=False),
-                                    trial_fields={"normal_force_N": recipe.normal_force_N, "seed": trial_seed},
-                                    on_open=view.attach if view is not None else None)
-        except OSError as exc:
-            _fail(f"cannot write {path}: {exc.strerror or exc}", EXIT_FAILURE)
-        if result.close_error:
-            _fail(f"cannot finish {path}: {result.close_error}; `rig recover {path} --out FIXED.mcap` keeps "
-                  f"what reached the disk", EXIT_FAILURE)
-        if result.status == "failed":
-            err_console.print(f"[bold red]error:[/] trial {k + 1} failed: {result.reason}", highlight=False)
-        console.print(_summary_table(result, path))
-        if result.status == "interrupted":
-            err_console.print(f"interrupted: {path} holds what was logged (status 'interrupted')")
-            raise typer.Exit(EXIT_INTERRUPTED)
-        if result.status == "failed":
-            raise typer.Exit(EXIT_FAILURE)
+    with _SignalNote() as note:
+        for k, path in enumerate(paths):
+            if note.caught:
+                err_console.print(f"interrupted ({note.caught[0]}) before trial {k + 1}: not started",
+                                  markup=False)
+                raise typer.Exit(EXIT_INTERRUPTED)
+            trial_seed = base_seed + k
+            meta = {"recipe": recipe.name, "recipe_file": str(recipe_path), "lubricant": recipe.lubricant,
+                    "normal_force_N": recipe.normal_force_N, "seed": trial_seed, "trial": k + 1,
+                    "trials": len(paths), "profile": str(ppath), "profile_name": profile.name,
+                    "backend": "hardware" if hardware is not None else "sim",
+                    "friction_model": str(friction_model) if friction_model else f"profile:{recipe.lubricant}",
+                    "plan_duration_s": plan.duration_s, "git_commit": git_commit}
+            if fm is not None:
+                meta["friction_model_json"] = fm.model_dump_json()
+            try:
+                if hardware is not None:
+                    backend = HardwareBackend(hw, profile, lubricant=recipe.lubricant,
+                                              normal_force_N=recipe.normal_force_N, seed=trial_seed)
+                else:
+                    backend = SimBackend(profile, fm if fm is not None else profile.friction_model(recipe.lubricant),
+                                         recipe.normal_force_N, trial_seed, block_ticks=block_ticks, pace=pace)
+            except ValueError as exc:  # e.g. a seed numpy cannot take: bad input, nothing written yet
+                fail(f"{recipe_path}: trial {k + 1} (seed {trial_seed}): {exc}")
+            title = f"trial {k + 1}/{len(paths)} " if len(paths) > 1 else ""
+            try:
+                with TrialProgress(plan, title=title, enabled=not quiet) as prog:
+                    result = run_to_log(path, plan, recipe, profile, backend, meta, progress=prog,
+                                        echo=lambda text: err_console.print(text, highlight=False, markup=False),
+                                        trial_fields={"normal_force_N": recipe.normal_force_N,
+                                                      "seed": trial_seed},
+                                        on_open=view.attach if view is not None else None)
+            except OSError as exc:
+                fail(f"cannot write {path}: {exc.strerror or exc}", EXIT_FAILURE)
+            if result.close_error:
+                fail(f"cannot finish {path}: {result.close_error}; `rig recover {path} --out FIXED.mcap` keeps "
+                     f"what reached the disk", EXIT_FAILURE)
+            if result.status == "failed":
+                err_console.print(f"[bold red]error:[/] trial {k + 1} failed: {result.reason}", highlight=False)
+            console.print(_summary_table(result, path))
+            if result.status == "interrupted":
+                err_console.print(f"interrupted: {path} holds what was logged (status 'interrupted')",
+                                  markup=False)
+                raise typer.Exit(EXIT_INTERRUPTED)
+            if result.status == "failed":
+                raise typer.Exit(EXIT_FAILURE)
+            if note.caught:  # arrived while the log was being opened or finished: the trial itself completed
+                err_console.print(f"interrupted ({note.caught[0]}) while {path} was being finished: it holds the "
+                                  "complete trial (status 'completed'); no further trial started", markup=False)
+                raise typer.Exit(EXIT_INTERRUPTED)
 
 
 def _close_at_exit(view) -> None:

@@ -166,7 +166,13 @@ _SEQ = "tag:yaml.org,2002:seq"
 
 
 def _compose(text: str, path: str, error: type[ConfigError]) -> tuple[yaml.Node | None, _Loader]:
-    loader = _Loader(text)
+    try:
+        loader = _Loader(text)
+    except yaml.reader.ReaderError as exc:  # a control character: the reader checks the text first
+        line = text[:max(0, exc.position)].count("\n") + 1
+        code = ord(exc.character) if isinstance(exc.character, str) else int(exc.character)
+        raise error(path, f"character U+{code:04X} is not allowed in YAML (a control character; is this a "
+                          "text file?)", line=line) from None
     try:
         return loader.get_single_node(), loader
     except _TooDeep as exc:
@@ -392,20 +398,49 @@ def validate(model: type[M], doc: YamlDoc, *, root: Loc = (), error: type[Config
         raise error(at.file, msg, field=fmt_loc(loc) or None, line=at.line) from None
 
 
+#: top-level keys that say what kind of configuration file a mapping is
+_KINDS = (("a recipe", {"segments"}), ("a rig profile", {"actuator", "controller", "stroke", "servovalve"}),
+          ("a friction model", {"friction_model", "baseline", "extensions"}))
+
+
+def kind_of(data: Any, but: set[str] = frozenset()) -> str | None:
+    """'a recipe', 'a rig profile' or None: what a YAML mapping looks like, from its top-level keys
+    (keys in ``but``, the fields of the expected model, say nothing)."""
+    if not isinstance(data, dict):
+        return None
+    for name, keys in _KINDS:
+        if (keys - set(but)) & set(data):
+            return name
+    return None
+
+
+def expect_kind(doc: YamlDoc, model: type, what: str, error: type[ConfigError] = ConfigError) -> None:
+    """One clear error when ``doc`` is plainly another kind of file (a recipe given as a profile, ...)."""
+    other = kind_of(doc.data, but=set(getattr(model, "model_fields", {})))
+    if other is not None and other != what:
+        raise error(doc.path, f"this is {other}, not {what}", line=1)
+
+
 def load_model_yaml(path: str | os.PathLike, model: type[M], *, key: str | None = None,
-                    error: type[ConfigError] = ConfigError) -> M:
+                    error: type[ConfigError] = ConfigError, what: str | None = None) -> M:
     """Read and validate a model file (e.g. a friction model) with the pydantic class ``model``.
 
     ``key``: an optional top-level wrapper (``friction_model:``) around the fields.
+    ``what``: the file's kind in messages (default the class name). A recipe or a
+    rig profile given instead is one clear error ("this is a recipe, not a ...").
     """
-    doc = read_yaml(path, error=error, what=f"a {model.__name__} mapping")
+    what = what or model.__name__
+    doc = read_yaml(path, error=error, what=f"a {what} mapping")
+    other = kind_of(doc.data, but=set(getattr(model, "model_fields", {})))
+    if other is not None and (key is None or key not in doc.data):
+        raise error(doc.path, f"this is {other}, not a {what}", line=1)
     root: Loc = ()
     if key is not None and set(doc.data) == {key}:
         if not isinstance(doc.data[key], dict):
-            raise error(doc.path, f"expected a {model.__name__} mapping", key, doc.location((key,)).line)
+            raise error(doc.path, f"expected a {what} mapping", key, doc.location((key,)).line)
         root = (key,)
     return validate(model, doc, root=root, error=error)
 
 
 __all__ = ["ConfigError", "StrictModel", "Location", "YamlDoc", "read_yaml", "parse_yaml", "validate",
-           "load_model_yaml", "field_error", "fmt_loc", "parse_loc", "MAX_DEPTH", "MAX_NODES"]
+           "load_model_yaml", "kind_of", "expect_kind", "field_error", "fmt_loc", "parse_loc", "MAX_DEPTH", "MAX_NODES"]

@@ -33,7 +33,7 @@ from typing import Literal
 from pydantic import Field, model_validator
 
 from drivers.config import HardwareConfig
-from rig.config.loader import ConfigError, StrictModel, field_error, read_yaml, validate
+from rig.config.loader import ConfigError, StrictModel, expect_kind, field_error, read_yaml, validate
 from rig.model.spec import FrictionModel
 from trajectories import DEFAULT_MAX_SPEED_UM_S, RigLimits
 
@@ -282,6 +282,7 @@ def load_profile(path: str | os.PathLike) -> RigProfile:
 
     Raises :class:`ProfileError` naming the file, the field and the line on any fault."""
     doc = read_yaml(path, error=ProfileError, what="a rig profile (a mapping of sections)", allow_extends=True)
+    expect_kind(doc, RigProfile, "a rig profile", ProfileError)
     return validate(RigProfile, doc, error=ProfileError)
 
 

@@ -41,7 +41,7 @@ import yaml
 from pydantic import Field, PrivateAttr, field_validator, model_validator
 
 import trajectories as tj
-from rig.config.loader import ConfigError, StrictModel, parse_yaml, read_yaml, validate
+from rig.config.loader import ConfigError, StrictModel, expect_kind, parse_yaml, read_yaml, validate
 from rig.config.profile import MAX_NORMAL_FORCE_N, RigProfile
 
 LUBRICANTS = ("dry", "paraffin", "boundary")
@@ -266,6 +266,7 @@ def parse_recipe(text: str, path: str | os.PathLike = "<recipe>") -> Recipe:
 def load_recipe(path: str | os.PathLike) -> Recipe:
     """Read and validate a recipe file. Raises :class:`RecipeError` (file, field, line) on any fault."""
     doc = read_yaml(path, error=RecipeError, what=_WHAT)
+    expect_kind(doc, Recipe, "a recipe", RecipeError)
     recipe = validate(Recipe, doc, error=RecipeError)
     recipe._source_path = str(path)
     recipe._source_text = doc.text

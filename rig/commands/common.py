@@ -1,0 +1,284 @@
+"""What every ``rig`` command shares: the exit-code table, the error and warning printers,
+the ``--json PATH`` convention, and the safety net that keeps tracebacks from operators.
+
+Exit codes (one table, kept by every subcommand; ``tests/test_exit_codes.py`` checks it):
+
+====  =====================================================================
+0     done (an analysis that ran, whatever it found)
+1     a failed run: a trial that failed or tripped, a device that did not
+      answer, a file that could not be written, an internal error
+2     bad input: a file, option or value rig cannot use (nothing is written)
+130   aborted by the operator (Ctrl-C, SIGTERM)
+====  =====================================================================
+
+Conventions (``rig --help`` shows them): ``-o/--out PATH`` names a command's
+main output file; ``--json PATH`` writes the JSON report to PATH and
+``--json -`` prints it on standard output; ``--plot PATH`` writes a PNG.
+Every error is one line, ``error: FILE, line N: what is wrong`` where there is
+a file and a line; warnings are one line, ``warning: ...`` (never a Python
+source line). An unexpected exception is reported as an internal error in one
+line (``RIG_DEBUG=1`` shows the traceback).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import warnings
+from enum import Enum, IntEnum
+from pathlib import Path
+from typing import Any, NoReturn
+
+import typer
+from rich.console import Console
+from typer.core import TyperGroup
+
+
+class ExitCode(IntEnum):
+    """The exit status of every ``rig`` command."""
+
+    OK = 0
+    FAILED = 1
+    BAD_INPUT = 2
+    ABORTED = 130
+
+
+EXIT_OK = ExitCode.OK
+EXIT_FAILED = ExitCode.FAILED
+EXIT_BAD_INPUT = ExitCode.BAD_INPUT
+EXIT_ABORTED = ExitCode.ABORTED
+
+EXIT_TABLE = ("Exit status: 0 done; 1 failed run, trip or write; 2 bad input (nothing written); "
+              "130 aborted (Ctrl-C).")
+
+CONVENTIONS = (
+    "Conventions: -o/--out PATH is a command's main output file; --json PATH writes the JSON report "
+    "(--json - prints it); --plot PATH writes a PNG. Files are written atomically (complete or absent) "
+    "and readable by others (0644 under the usual umask). " + EXIT_TABLE
+    + " The first command of a fresh install compiles the simulation kernels (numba) for up to about "
+    "a minute; `rig warmup` does it ahead."
+)
+
+#: help text of every ``--json`` option
+JSON_HELP = "Write the JSON report to this file ('-': print it on standard output)."
+
+# soft_wrap: one error is one line however narrow the terminal (tests grep it; so do operators)
+err_console = Console(stderr=True, soft_wrap=True, highlight=False)
+console = Console(soft_wrap=True, highlight=False)
+
+
+def fail(message: str, code: int = EXIT_BAD_INPUT) -> NoReturn:
+    """Print ``error: message`` on stderr and exit with ``code`` (default 2, bad input)."""
+    err_console.print(f"[bold red]error:[/] {_escape(message)}")
+    raise typer.Exit(int(code))
+
+
+def warn(message: str) -> None:
+    """Print ``warning: message`` on stderr (one line)."""
+    err_console.print(f"[yellow]warning:[/] {_escape(message)}")
+
+
+def _escape(text: str) -> str:
+    from rich.markup import escape
+
+    return escape(str(text))
+
+
+def write_json(doc: Any, dest: Path | str, *, what: str = "report") -> None:
+    """Write ``doc`` as JSON to ``dest`` (atomically, 0644) or, when ``dest`` is '-', to stdout.
+
+    A file that cannot be written is exit 1 with the path named."""
+    text = json.dumps(_finite(doc), indent=2, allow_nan=False, default=_json_default) + "\n"
+    if str(dest) == "-":
+        sys.stdout.write(text)
+        sys.stdout.flush()
+        return
+    from rig.data import atomic_write_text
+
+    try:
+        atomic_write_text(dest, text)
+    except OSError as exc:
+        fail(f"cannot write {dest}: {exc.strerror or exc}", EXIT_FAILED)
+    console.print(f"wrote {dest}", markup=False)
+
+
+def _finite(obj: Any) -> Any:
+    """NaN and infinities as null: valid JSON for every reader (json.dumps would write NaN)."""
+    if isinstance(obj, float):
+        return obj if obj == obj and obj not in (float("inf"), float("-inf")) else None
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite(v) for v in obj]
+    try:
+        import numpy as np
+
+        if isinstance(obj, np.floating):
+            return _finite(float(obj))
+        if isinstance(obj, np.ndarray):
+            return _finite(obj.tolist())
+        if isinstance(obj, np.generic):
+            return obj.item()
+    except ImportError:  # pragma: no cover
+        pass
+    return obj
+
+
+def _json_default(obj: Any) -> Any:
+    try:
+        import numpy as np
+
+        if isinstance(obj, np.generic):
+            return obj.item()
+        if isinstance(obj, np.ndarray):
+            return obj.tolist()
+    except ImportError:  # pragma: no cover
+        pass
+    if isinstance(obj, Path):
+        return str(obj)
+    return str(obj)
+
+
+def json_to_stdout(dest: Path | str | None) -> bool:
+    """True when ``--json -`` asks for JSON on stdout (then the tables are not printed there)."""
+    return dest is not None and str(dest) == "-"
+
+
+def check_output_path(path: Path, option: str, suffixes: tuple[str, ...] = ()) -> None:
+    """An output path that is a directory, or has the wrong suffix, is bad input (exit 2) before any work."""
+    if path is None or str(path) == "-":
+        return
+    if path.is_dir():
+        fail(f"{option} {path}: is a directory (give a file name)")
+    if suffixes and path.suffix.lower() not in suffixes:
+        fail(f"{option} {path}: expected a {' or '.join(suffixes)} file name")
+
+
+# ---------------------------------------------------------------------------
+# warnings: one clean line, no Python source
+# ---------------------------------------------------------------------------
+
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:  # noqa: ARG001
+    text = str(message)
+    name = getattr(category, "__name__", "")
+    if name in ("RuntimeWarning",) and "encountered" in text:
+        return  # numpy's 'invalid value encountered in ...': noise to an operator, the result says what matters
+    warn(text)
+
+
+class _CleanWarnings:
+    def __enter__(self):
+        self._old = warnings.showwarning
+        warnings.showwarning = _show_warning
+        return self
+
+    def __exit__(self, *exc):
+        warnings.showwarning = self._old
+        return False
+
+
+# ---------------------------------------------------------------------------
+# the safety net
+# ---------------------------------------------------------------------------
+
+class RigGroup(TyperGroup):
+    """The root command group: warnings as one line; no traceback ever reaches an operator.
+
+    Errors the commands did not catch become one line: a data or configuration
+    error (they name file and line) is exit 2; an OSError names the file, exit 1;
+    anything else is an internal error (a bug: exit 1, ``RIG_DEBUG=1`` shows the
+    traceback). Ctrl-C is exit 130 (typer).
+    """
+
+    def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
+        tidy_help(self)
+        with _CleanWarnings():
+            try:
+                return super().main(args=args, prog_name=prog_name, complete_var=complete_var,
+                                    standalone_mode=standalone_mode, **extra)
+            except Exception as exc:  # noqa: BLE001 - the last line of defence
+                if os.environ.get("RIG_DEBUG"):
+                    raise
+                code = report_exception(exc)
+                if standalone_mode:
+                    sys.exit(int(code))
+                return int(code)
+
+
+_METAVARS = {"float": "NUMBER", "int": "INTEGER", "str": "TEXT"}
+
+
+def _no_type(ctx) -> None:  # noqa: ARG001
+    return None
+
+
+def tidy_help(cmd) -> None:
+    """Help without Python types: no ``<bool>`` beside a flag, ``PATH`` / ``NUMBER`` / ``INTEGER`` / ``TEXT``
+    instead of ``<path>``, ``<list[Path]>``, ``<float>``; fixed choices stay ``<a|b|c>``. Idempotent."""
+    for p in getattr(cmd, "params", ()):
+        if getattr(p, "_rig_tidy", False):
+            continue
+        p._rig_tidy = True
+        if getattr(p, "is_flag", False):
+            p.display_type_rich = _no_type
+            continue
+        desc = getattr(p, "type_descriptor", None)
+        if desc is None:
+            continue
+        if desc.is_choice:
+            if desc.is_list and p.metavar is None:  # a repeatable choice: the choices, not list[...]
+                p.metavar = "<" + "|".join(str(getattr(c, "value", c)) for c in desc.choices or ()) + ">"
+            continue
+        if p.param_type_name == "argument":
+            if p.metavar is None:
+                p.metavar = p.name.upper()
+            p.display_type_rich = _no_type
+        elif p.metavar is None:
+            p.metavar = "PATH" if desc.is_path else _METAVARS.get(getattr(p, "bare_type", lambda: "")(), "VALUE")
+    if not getattr(cmd, "_rig_tidy_help", False) and hasattr(cmd, "get_help_option"):
+        cmd._rig_tidy_help = True
+        plain = cmd.get_help_option
+
+        def get_help_option(ctx, _plain=plain):
+            opt = _plain(ctx)
+            if opt is not None:
+                opt.display_type_rich = _no_type
+            return opt
+
+        cmd.get_help_option = get_help_option
+    for sub in getattr(cmd, "commands", {}).values():
+        tidy_help(sub)
+
+
+def report_exception(exc: BaseException) -> ExitCode:
+    """Print an exception a command did not handle as one line; return its exit code."""
+    from rig.data import DataFormatError
+
+    try:
+        from rig.config.loader import ConfigError
+    except ImportError:  # pragma: no cover
+        ConfigError = DataFormatError  # type: ignore[misc,assignment]
+    if isinstance(exc, (DataFormatError, ConfigError)):
+        err_console.print(f"[bold red]error:[/] {_escape(exc)}")
+        return EXIT_BAD_INPUT
+    if isinstance(exc, OSError):
+        where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
+        err_console.print(f"[bold red]error:[/] {_escape(where)}{_escape(exc.strerror or exc)}")
+        return EXIT_FAILED
+    err_console.print(f"[bold red]internal error:[/] {type(exc).__name__}: {_escape(exc)} -- a bug in rig; "
+                      "please report it with the command and its input (RIG_DEBUG=1 shows the traceback)")
+    return EXIT_FAILED
+
+
+__all__ = ["ExitCode", "EXIT_OK", "EXIT_FAILED", "EXIT_BAD_INPUT", "EXIT_ABORTED", "EXIT_TABLE", "CONVENTIONS",
+           "JSON_HELP", "err_console", "console", "fail", "warn", "write_json", "json_to_stdout",
+           "check_output_path", "RigGroup", "report_exception", "Lubricant", "tidy_help"]
+
+
+class Lubricant(str, Enum):
+    """The lubricants of the paper's Table 2 (``rig.config.recipe.LUBRICANTS``; a test keeps them equal)."""
+
+    dry = "dry"
+    paraffin = "paraffin"
+    boundary = "boundary"
