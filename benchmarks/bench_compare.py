@@ -11,8 +11,8 @@ Quantities (a step that fails in one tree prints ``failed: <reason>`` in its cel
 
 1. closed-loop simulation speed without the log: ``SimRig(None, "boundary")`` (the tree's
    config/rigs/sim.yaml) through ``run_blocks`` (100-tick blocks) on one fixed reference,
-   10 min at 1 kHz of 1 and 10 µm/s velocity steps (benchmarks/bench_sim.py's), numba warm-up
-   excluded: ticks/s and x real time;
+   1 h (--quick: 10 min) at 1 kHz of 1 and 10 µm/s velocity steps (benchmarks/bench_sim.py's),
+   numba warm-up excluded: ticks/s and x real time by wall and by the process's CPU time;
 2. with the log: ``rig run config/recipes/velocity-steps.yaml --sim --out T.mcap -q``, whole-process
    wall time, the simulated duration (the recipes differ a little between trees) and
    simulated/wall (x real time);
@@ -136,8 +136,8 @@ class Cell:
 
 
 def fmt(v: float) -> str:
-    if v == 0:
-        return "0"
+    if v == int(v) and abs(v) < 1e4:
+        return str(int(v))
     a = abs(v)
     if a >= 1e4:
         return f"{v:,.0f}"
@@ -145,8 +145,6 @@ def fmt(v: float) -> str:
         return f"{v:.0f}"
     if a >= 10:
         return f"{v:.1f}"
-    if a >= 0.01:
-        return f"{v:.3g}"
     return f"{v:.3g}"
 
 
@@ -227,7 +225,7 @@ def main() -> int:
     q = args.quick
     repeat = args.repeat or (1 if q else 3)
     n_acc, n_clean, n_rep, loop_s = (1, 3, 2, 5.0) if q else (3, 12, 4, 20.0)
-    sim_minutes = 10.0
+    sim_minutes = 10.0 if q else 60.0
     trees = {"before": args.before.resolve(), "after": args.after.resolve()}
     for lab, t in trees.items():
         if not (t / ".venv" / "bin" / "rig").exists():
@@ -252,7 +250,7 @@ def main() -> int:
     # 1. closed-loop simulation speed, no log
     snippet = work / "sim_speed.py"
     snippet.write_text(SIM_SNIPPET)
-    ticks_s, xrt = cells(), cells()
+    ticks_s, xrt, xrt_cpu = cells(), cells(), cells()
     for r, lab, tree in interleave(trees, repeat):
         log(f"sim speed {lab} #{r + 1}")
         try:
@@ -260,10 +258,12 @@ def main() -> int:
             d = json.loads(out.strip().splitlines()[-1])
             ticks_s[lab].add(d["ticks"] / d["wall_s"])
             xrt[lab].add(d["sim_s"] / d["wall_s"])
+            xrt_cpu[lab].add(d["sim_s"] / d["cpu_s"])
         except (StepFailed, ValueError, KeyError) as e:
-            ticks_s[lab].error = xrt[lab].error = str(e)
+            ticks_s[lab].error = xrt[lab].error = xrt_cpu[lab].error = str(e)
     row(f"sim closed loop, no log ({sim_minutes:g} min at 1 kHz, run_blocks): ticks/s", ticks_s, True)
-    row("sim closed loop, no log: x real time", xrt, True, "x")
+    row("sim closed loop, no log: x real time (wall)", xrt, True, "x")
+    row("sim closed loop, no log: x real time (CPU time of the process)", xrt_cpu, True, "x")
 
     # 2. rig run --sim (with the log)
     run_wall, run_sim, run_xrt, run_loop_xrt = cells(), cells(), cells(), cells()
@@ -274,16 +274,16 @@ def main() -> int:
         try:
             wall, out = run(tree, ["rig", "run", "config/recipes/velocity-steps.yaml", "--sim", "--out", str(out_path),
                                    "-q"], 3600, "rig run")
-            m = re.search(r"simulated/trial time\s+([\d.]+)\s*s", out)
+            m = re.search(r"simulated/trial time\s+([\d.,]+)\s*s", out)
             if not m:
                 raise StepFailed("rig run: no 'simulated/trial time' in its output")
-            sim_s = float(m.group(1))
+            sim_s = float(m.group(1).replace(",", ""))
             run_wall[lab].add(wall)
             run_sim[lab].add(sim_s)
             run_xrt[lab].add(sim_s / wall)
-            m = re.search(r"([\d.]+)x real time", out)
+            m = re.search(r"([\d.,]+)x real time", out)
             if m:
-                run_loop_xrt[lab].add(float(m.group(1)))
+                run_loop_xrt[lab].add(float(m.group(1).replace(",", "")))
             if r > 0:
                 out_path.unlink(missing_ok=True)
         except StepFailed as e:
