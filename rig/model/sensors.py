@@ -25,7 +25,6 @@ import math
 
 import numpy as np
 from numba import njit
-from scipy.signal import lfilter
 
 
 def cutoff_tau_s(cutoff_hz: float) -> float:
@@ -103,6 +102,8 @@ def noisy_filtered(t_s: np.ndarray, y: np.ndarray, tau_s: float, sigma: float, r
     if sigma > 0:
         a = math.exp(-dt_s / tau_s) if tau_s > 0 else 0.0
         w = sigma * prefilter_noise_gain(dt_s, tau_s) * rng.standard_normal(out.size)
+        from scipy.signal import lfilter  # here, not at import: scipy.signal costs ~1 s of start-up
+
         out = out + lfilter([1.0 - a], [1.0, -a], w)
     return out
 
