@@ -72,6 +72,13 @@ def decode_frame(buf: bytes) -> can.Message | None:
                        timestamp=time.time(), check=False)
 
 
+def _peer_closed(sock: socket.socket) -> bool:
+    """After a zero-length read: EOF (the peer hung up) or an empty seqpacket message?"""
+    p = select.poll()
+    p.register(sock, select.POLLIN | select.POLLHUP | getattr(select, "POLLRDHUP", 0x2000))
+    return any(ev & (select.POLLHUP | getattr(select, "POLLRDHUP", 0x2000)) for _, ev in p.poll(0))
+
+
 class UnixCanBus(can.BusABC):
     """python-can bus over abstract Unix seqpacket sockets (one machine, one channel)."""
 
@@ -165,22 +172,26 @@ class UnixCanBus(can.BusABC):
         deadline = None if timeout is None else time.monotonic() + timeout
         while True:
             for c in tuple(self._conns):
-                try:
-                    buf = c.recv(256)
-                except BlockingIOError:
-                    continue
-                except OSError:
-                    self._drop(c)
-                    continue
-                if not buf:
-                    self._drop(c)  # the peer closed
-                    continue
-                msg = decode_frame(buf)
-                if msg is None:
-                    self.n_malformed += 1
-                    continue
-                msg.channel = self.channel
-                return msg, False
+                while True:  # this peer's queue, until a valid frame or empty
+                    try:
+                        buf = c.recv(256)
+                    except BlockingIOError:
+                        break
+                    except OSError:
+                        self._drop(c)
+                        break
+                    if not buf:
+                        if _peer_closed(c):
+                            self._drop(c)
+                            break
+                        self.n_malformed += 1  # an empty message, not the end of the connection
+                        continue
+                    msg = decode_frame(buf)
+                    if msg is None:
+                        self.n_malformed += 1
+                        continue
+                    msg.channel = self.channel
+                    return msg, False
             self._accept()
             wait = None if deadline is None else deadline - time.monotonic()
             if wait is not None and wait <= 0:

@@ -133,6 +133,7 @@ class ValveStatus:
 
     spool_actual: float = 0.0        # 0x6301:01, fraction of full scale
     spool_command: float = 0.0       # the set-point the host sent last
+    spool_command_echoed: float = 0.0  # the set-point of the tick the valve reports (0x2001)
     status_word: int = 0
     enabled: bool = False
     fault: bool = False
@@ -144,7 +145,8 @@ class ValveStatus:
     valve_rejected: int = 0          # 0x2002: frames the valve rejected
     emcy: list = field(default_factory=list)   # active EMCYs: (code, register)
     foreign_frames: int = 0          # frames only the master may send, or from nobody expected
-    malformed_frames: int = 0        # wrong length / undecodable, on the host side
+    malformed_frames: int = 0        # wrong length / undecodable CANopen frames, host side
+    bus_malformed: int = 0           # datagrams the transport could not decode at all
     counter_errors: int = 0          # TPDO echo not a counter the host sent recently
     n_tpdo: int = 0
     tpdo_age_s: float = math.inf
@@ -303,6 +305,7 @@ class CanopenValve:
         st.tpdo_age_s = now - self._t_tpdo
         st.heartbeat_age_s = now - self._t_hb
         st.emcy = [(e.code, e.register) for e in self.node.emcy.active]
+        st.bus_malformed = getattr(self.bus, "n_malformed", 0)
         return st
 
     def _pump(self, timeout: float) -> None:
@@ -373,6 +376,7 @@ class CanopenValve:
                 st.counter_errors += 1
             cmd = 0.0
         now = time.monotonic()
+        st.spool_command_echoed = cmd
         if st.enabled and abs(cmd - st.spool_actual) > self.cfg.follow_max:
             if self._t_follow_bad is None:
                 self._t_follow_bad = now
@@ -390,8 +394,8 @@ class CanopenValve:
             ids = ", ".join(f"0x{i:03x}" for i in sorted(self.foreign_ids))
             out.append(f"{st.foreign_frames} foreign CAN frames (COB-ID {ids}) on the bus of {a}: "
                        "another master or node is sending")
-        if st.malformed_frames or getattr(self.bus, "n_malformed", 0):
-            out.append(f"{st.malformed_frames + getattr(self.bus, 'n_malformed', 0)} malformed CAN frames on {a}")
+        if st.malformed_frames or st.bus_malformed:
+            out.append(f"{st.malformed_frames + st.bus_malformed} malformed CAN frames on {a}")
         if st.valve_rejected:
             out.append(f"{a} rejected {st.valve_rejected} frames (foreign or malformed)")
         if st.counter_errors:
@@ -410,7 +414,8 @@ class CanopenValve:
         if self._n_sync and st.n_tpdo and not st.enabled:
             out.append(f"{a} is not enabled")
         if self._t_follow_bad is not None and time.monotonic() - self._t_follow_bad > c.follow_time_s:
-            out.append(f"{a} does not follow: spool {st.spool_actual:+.3f} vs command {st.spool_command:+.3f}")
+            out.append(f"{a} does not follow: spool {st.spool_actual:+.3f} vs command "
+                       f"{st.spool_command_echoed:+.3f} for over {c.follow_time_s * 1e3:.0f} ms")
         if self.nan_setpoints:
             out.append(f"{self.nan_setpoints} non-finite set-points for {a} (sent as null)")
         return out

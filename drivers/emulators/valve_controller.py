@@ -246,7 +246,7 @@ class ValveControllerEmulator:
         pending, self._pending = self._pending, []
         if len(pending) > 1:
             self._reject(protocol=True)  # a second set-point producer
-        elif pending and not self.faults.get("ignore_setpoints"):
+        elif pending:
             sp, cw, counter = RPDO_FMT.unpack(pending[0])
             if self._last_counter is not None and counter != (self._last_counter + 1) & 0xFF:
                 self._reject(protocol=True)
@@ -254,7 +254,8 @@ class ValveControllerEmulator:
             self._t_rpdo = now
             self.n_setpoints += 1
             self._control(cw)
-            self.setpoint = sp / FULL_SCALE if self.enabled else 0.0
+            if not self.faults.get("ignore_setpoints"):  # the link works, the spool does not follow
+                self.setpoint = sp / FULL_SCALE if self.enabled else 0.0
         self._move(now)
         if self.on_sync is not None:
             self.on_sync(self.spool)
