@@ -92,6 +92,7 @@ class UnixCanBus(can.BusABC):
         self._lock = threading.Lock()
         self._conns: list[socket.socket] = []
         self._listener = None
+        self._next_accept = 0.0
         lst = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
         self.slot = -1
         for s in range(slots):
@@ -150,7 +151,10 @@ class UnixCanBus(can.BusABC):
     def _send_datagram(self, data: bytes) -> None:
         if self._listener is None:
             raise can.CanOperationError(f"rig_unix:{self.channel}: bus is shut down")
-        self._accept()
+        now = time.monotonic()
+        if now >= self._next_accept:  # new peers: also accepted on every recv
+            self._next_accept = now + 0.005
+            self._accept()
         for c in tuple(self._conns):
             try:
                 c.send(data)

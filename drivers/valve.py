@@ -186,6 +186,7 @@ class CanopenValve:
     # -- setup -----------------------------------------------------------------------------
     def connect(self) -> None:
         """Open the bus, find the valve's heartbeat, check and configure it by SDO (pre-operational)."""
+        import can
         import canopen
 
         try:
@@ -201,6 +202,11 @@ class CanopenValve:
         self._tpdo, self._rpdo = self.node.tpdo[1], self.node.rpdo[1]
         self._check_layout()
         self._tpdo.add_callback(self._on_tpdo)
+        # the per-tick frames, built once from canopen's maps (COB-IDs, sizes) and reused
+        self._rpdo_msg = can.Message(arbitration_id=self._rpdo.cob_id, data=bytearray(RPDO_FMT.size),
+                                     is_extended_id=False)
+        self._sync_msg = can.Message(arbitration_id=self.network.sync.cob_id, data=bytearray(1),
+                                     is_extended_id=False)
         self._expected = {self._tpdo.cob_id: 6, 0x700 + n: 1, 0x080 + n: 8, 0x580 + n: 8}
         self._master_ids = {NMT_COB, SYNC_COB, self._rpdo.cob_id, 0x600 + n, 0x700 + self.cfg.host_node_id}
         stop = threading.Event()
@@ -281,9 +287,13 @@ class CanopenValve:
         self._recent.pop((self._counter - 16) & 0xFF, None)
         self._st.spool_command = cmd
         self._sync_count = self._sync_count % SYNC_OVERFLOW + 1
+        rp, sy = self._rpdo_msg, self._sync_msg
+        rp.data[:] = RPDO_FMT.pack(to_counts(cmd), self._cw, self._counter)
+        sy.data[0] = self._sync_count
         try:
-            self.network.send_message(self._rpdo.cob_id, RPDO_FMT.pack(to_counts(cmd), self._cw, self._counter))
-            self.network.sync.transmit(self._sync_count)
+            with self.network.send_lock:
+                self.bus.send(rp)
+                self.bus.send(sy)
             self._n_sync += 1
             self._heartbeat_if_due(time.monotonic())
         except Exception as exc:  # noqa: BLE001 - can.CanError, OSError
