@@ -196,8 +196,11 @@ class UnixCanBus(can.BusABC):
                         continue
                     msg.channel = self.channel
                     return msg, False
-            self._accept()
-            wait = None if deadline is None else deadline - time.monotonic()
+            now = time.monotonic()
+            if now >= self._next_accept:
+                self._next_accept = now + 0.005
+                self._accept()
+            wait = None if deadline is None else deadline - now
             if wait is not None and wait <= 0:
                 return None, False
             lst = self._listener
@@ -206,6 +209,8 @@ class UnixCanBus(can.BusABC):
             r, _, _ = select.select([lst, *self._conns], [], [], wait)
             if not r:
                 return None, False
+            if lst in r:
+                self._accept()
 
     def fileno(self) -> int:
         return -1  # several sockets: python-can's Notifier falls back to polling recv(timeout)

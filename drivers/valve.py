@@ -84,6 +84,7 @@ RPDO_FMT = struct.Struct("<hHB")   # set-point, control word, counter
 TPDO_FMT = struct.Struct("<hHBB")  # actual, status word, accepted counter, rejected frames
 SYNC_COB, NMT_COB = 0x080, 0x000
 SYNC_OVERFLOW = 240
+RECENT = 128  # ticks of set-points the host remembers to check the valve's counter echo (half of u8)
 
 
 class CanopenValveConfig(BaseModel):
@@ -171,7 +172,7 @@ class CanopenValve:
         self._counter = 0
         self._sync_count = 0
         self._n_sync = 0
-        self._recent: dict[int, float] = {}   # counter -> command, last 16 ticks
+        self._recent: dict[int, float] = {}   # counter -> command, last RECENT ticks
         self._next_hb = 0.0
         self._t_tpdo = -math.inf
         self._t_hb = -math.inf
@@ -284,7 +285,7 @@ class CanopenValve:
         self._cw = (CW_ENABLE if enable else 0) | (CW_FAULT_RESET if reset else 0)
         cmd = max(-1.0, min(1.0, setpoint)) if enable else 0.0
         self._recent[self._counter] = cmd
-        self._recent.pop((self._counter - 16) & 0xFF, None)
+        self._recent.pop((self._counter - RECENT) & 0xFF, None)
         self._st.spool_command = cmd
         self._sync_count = self._sync_count % SYNC_OVERFLOW + 1
         rp, sy = self._rpdo_msg, self._sync_msg
