@@ -278,6 +278,8 @@ class CanopenValve:
     # -- per tick ----------------------------------------------------------------------------
     def write(self, setpoint: float, enable: bool = True, reset: bool = False) -> None:
         """This tick's set-point (fraction of full spool, saturated) as RPDO1, then SYNC."""
+        if self.bus is None:
+            raise DeviceError(DEVICE, self.address, "CAN bus not open")
         if not math.isfinite(setpoint):
             self.nan_setpoints += 1
             setpoint, enable = 0.0, False

@@ -279,15 +279,41 @@ def test_watchdog_null_needs_reset():
         emu.close()
 
 
-def test_valve_ignoring_setpoints_is_unhealthy(inproc):
+@pytest.mark.parametrize("fault", ["ignore_setpoints", "stuck"])
+def test_valve_not_following_is_unhealthy_within_100_ticks(fault):
+    """Profile defaults (follow_max 0.1, follow_time_s 0.05): caught within 100 ms of ticks."""
+    cfg = _cfg(follow_max=0.1, follow_time_s=0.05)
+    emu = EmuThread(cfg)
+    v = CanopenValve(cfg)
+    try:
+        v.connect()
+        v.start()
+        _ticks(v, 10, 0.3)
+        emu.em.inject(fault)
+        ticks = 0
+        while ticks < 1000:
+            v.read()
+            if any("does not follow" in p for p in v.health()):
+                break
+            v.write(-0.3)
+            ticks += 1
+            time.sleep(0.001)
+        assert 0 < ticks <= 100, ticks
+        st = v.read()
+        assert st.enabled and abs(st.spool_actual - st.spool_command_echoed) > 0.1
+    finally:
+        v.close()
+        emu.close()
+
+
+def test_nan_setpoint_is_sent_as_null_and_reported(inproc):
     cfg, em, v = inproc
     v.connect()
     v.start()
-    em.inject("ignore_setpoints")
-    t0 = time.monotonic()
-    assert _until(lambda: any("does not follow" in p for p in (v.read(), v.health())[1]), 3.0,
-                  every=lambda: v.write(0.5))
-    assert time.monotonic() - t0 < 3.0
+    _ticks(v, 5, 0.3)
+    _ticks(v, 5, float("nan"))
+    assert em.spool == 0.0 and not em.enabled
+    assert any("non-finite" in p for p in v.health())
 
 
 # -- foreign and malformed frames --------------------------------------------------------------
