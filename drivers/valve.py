@@ -46,6 +46,24 @@ list of problems (empty = healthy; any entry should trip); ``v.safe_stop()`` nul
 and disables and returns True only when a TPDO (or the valve leaving OPERATIONAL)
 confirms it; ``v.close()``. Nothing here blocks inside ``read``/``write``: frames are
 drained with ``recv(0)`` and dispatched to canopen on the caller's thread.
+
+For the loop integrator: per tick ``st = v.read()``; ``probs = v.health()``; trip on
+any entry of ``probs`` (it covers foreign/malformed frames, EMCY/fault, watchdog,
+lost heartbeat, not OPERATIONAL/not enabled, stale TPDO, a spool that does not
+follow its command for ``follow_time_s``, non-finite set-points); else
+``v.write(cmd)``. On a trip: ``v.safe_stop()`` (returns whether the valve confirmed)
+and never ``start()`` again by itself: ``start()`` is the explicit reset (operator
+action). ``st.spool_actual`` vs ``st.spool_command_echoed`` is the valve's own
+following; ``st.enabled``, ``st.watchdog_tripped``, ``st.nulled``, ``st.fault``,
+``st.reset_required``, ``st.emcy`` are the valve's bits. In the emulated rig, the
+emulator's ``on_sync(spool)`` callback steps the plant (lock step with SYNC); when
+no SYNC arrives (``em.n_sync`` unchanged after ``em.poll``) the plant free-runs with
+``em.spool`` (which the watchdog/heartbeat consumer null).
+
+Limits: CAN has no sender address, so a foreign node is detected by what only the
+master sends (NMT, SYNC, RPDO, the host heartbeat), by what only the valve sends
+arriving too often (more TPDOs than SYNCs), by COB-IDs nobody should use, and by the
+valve's counter checks; not prevented. The transport keeps all of it on one machine.
 """
 
 from __future__ import annotations
@@ -93,7 +111,8 @@ class CanopenValveConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     interface: Literal["rig_unix", "virtual", "socketcan"] = "rig_unix"
-    channel: str = Field(default="rig", description="rig_unix: one name per rig (e.g. its run dir)")
+    channel: str = Field(default="rig", pattern=r"^[A-Za-z0-9._-]{1,64}$",
+                         description="rig_unix: one name per rig (two rigs on one host use two names)")
     node_id: int = Field(default=1, ge=1, le=126)
     host_node_id: int = Field(default=127, ge=1, le=127, description="the host's heartbeat 0x700+id")
     heartbeat_period_s: float = Field(default=0.01, gt=0, description="both sides' heartbeat period")

@@ -357,6 +357,39 @@ def test_foreign_frame_detected(inproc, kind):
         intruder.shutdown()
 
 
+def test_foreign_sdo_cannot_disable_the_heartbeat_consumer(inproc):
+    import canopen
+
+    cfg, em, v = inproc
+    v.connect()
+    v.start()
+    _ticks(v, 5, 0.1)
+    consumer = em._consumer_s
+    net = canopen.Network(_raw(cfg.channel))
+    node = canopen.RemoteNode(NODE, str(v.eds))
+    net.add_node(node)
+    stop = threading.Event()
+
+    def pump():
+        while not stop.is_set():
+            m = net.bus.recv(0.002)
+            if m is not None:
+                net.notify(m.arbitration_id, m.data, m.timestamp)
+
+    th = threading.Thread(target=pump, daemon=True)
+    th.start()
+    try:
+        with pytest.raises(canopen.SdoAbortedError):
+            node.sdo[0x1016][1].raw = 0
+        assert em._consumer_s == consumer
+        assert _until(lambda: 0x603 in (v.read(), v.foreign_ids)[1], 3.0, every=lambda: v.write(0.1))
+        assert any("foreign CAN frames" in p and "0x603" in p for p in v.health())
+    finally:
+        stop.set()
+        th.join(2)
+        net.bus.shutdown()
+
+
 def test_two_rigs_on_one_channel_detected():
     cfg = _cfg()
     e1, e2 = EmuThread(cfg), EmuThread(cfg.model_copy(update={"node_id": NODE + 1}))

@@ -111,6 +111,9 @@ class ValveControllerEmulator:
             self.bus = None
 
     def _on_od_write(self, index, subindex, od, data):
+        if self._state == 5 and index in (0x1016, 0x1017, 0x2003) or 0x1400 <= index <= 0x1BFF:
+            # no reconfiguring the safety timers or the PDOs while OPERATIONAL
+            raise canopen.SdoAbortedError(0x08000022)
         if index == 0x1016 and subindex == 1:
             v = int.from_bytes(data, "little")
             self._consumer_s = (v & 0xFFFF) / 1e3 if (v >> 16) & 0x7F == self.cfg.host_node_id else 0.0
