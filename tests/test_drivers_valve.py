@@ -236,6 +236,21 @@ def test_host_heartbeat_alone_is_consumed():
         emu.close()
 
 
+def test_silent_valve_is_unhealthy(inproc):
+    cfg, em, v = inproc
+    v.connect()
+    v.start()
+    _ticks(v, 5, 0.1)
+    assert v.health() == []
+    em.inject("silent")
+    def both():
+        v.read()
+        h = v.health()
+        return any("no heartbeat" in p for p in h) and any("no status PDO" in p for p in h)
+
+    assert _until(both, 5.0, every=lambda: v.write(0.1))
+
+
 def test_emcy_on_fault_and_reset_required(inproc):
     cfg, em, v = inproc
     v.connect()
@@ -516,12 +531,16 @@ def _is_loopback(entry: str) -> bool:
 
 def test_loopback_only(xproc):
     cfg, emu, v = xproc
+    before = set(_inet_sockets_of(os.getpid()))   # other tests' sockets in this process are not ours
     v.connect()
     v.start()
     _ticks(v, 10, 0.1)
-    for pid in (os.getpid(), emu.p.pid):
-        bad = [e for e in _inet_sockets_of(pid) if not _is_loopback(e)]
-        assert bad == [], f"process {pid} holds non-loopback sockets: {bad}"
+    mine = set(_inet_sockets_of(os.getpid())) - before
+    theirs = set(_inet_sockets_of(emu.p.pid))
+    for who, socks in (("host", mine), ("emulator", theirs)):
+        bad = [e for e in socks if not _is_loopback(e)]
+        assert bad == [], f"the {who} holds non-loopback sockets: {bad}"
+    assert mine == set() and theirs == set()   # in fact no IP socket at all
     # the bus's sockets are AF_UNIX in the abstract namespace, named by the channel
     names = [ln.split()[-1] for ln in open("/proc/net/unix") if f"rig-can/{cfg.channel}/" in ln]
     assert len(names) >= 2 and all(n.startswith("@rig-can/") for n in names)
