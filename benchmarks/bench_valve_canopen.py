@@ -82,7 +82,51 @@ def main() -> int:
     row("read+write", both)
     print(f"TPDOs received {st.n_tpdo} of {n} SYNCs, health {probs or 'ok'}, safe_stop verified {ok}")
     print(f"load average {load0[0]:.2f} -> {load1[0]:.2f} on {os.cpu_count()} CPUs")
+    emulator_cost(cfg, min(n, 5000))
     return 0
+
+
+def emulator_cost(cfg0: CanopenValveConfig, n: int) -> None:
+    """The emulator's side: one ``poll(0)`` that takes the tick's RPDO + SYNC and sends the TPDO.
+
+    Host and emulator in this one process, stepped alternately (no thread), so only
+    the emulator's work is timed."""
+    from drivers.emulators.valve_controller import ValveControllerEmulator
+
+    cfg = cfg0.model_copy(update={"channel": cfg0.channel + "-em"})
+    em = ValveControllerEmulator(cfg, on_sync=lambda spool: None)
+    em.start()
+    v = CanopenValve(cfg)
+    stop = False
+
+    import threading
+
+    def pump():  # only while connecting (SDO needs the emulator to answer)
+        while not stop:
+            em.poll(0.001)
+
+    th = threading.Thread(target=pump, daemon=True)
+    th.start()
+    try:
+        v.connect()
+        v.start()
+        stop = True
+        th.join()
+        t_poll = np.empty(n)
+        for i in range(n):
+            v.read()
+            v.write(0.2)
+            time.sleep(0.0002)  # let the frames land
+            t0 = time.perf_counter_ns()
+            em.poll(0.0)
+            t_poll[i] = (time.perf_counter_ns() - t0) / 1e3
+        q = np.percentile(t_poll, [50, 99])
+        print(f"emulator poll (RPDO+SYNC in, TPDO out): p50 {q[0]:.1f}  p99 {q[1]:.1f}  max {t_poll.max():.1f} µs, "
+              f"{em.n_tpdo} TPDOs")
+    finally:
+        stop = True
+        v.close()
+        em.stop()
 
 
 if __name__ == "__main__":

@@ -147,7 +147,8 @@ def test_frame_codec_exact_bytes_and_rejects():
 def test_bus_broadcast_isolated_channels_and_garbage():
     a, b = UnixCanBus(channel="t-" + uuid.uuid4().hex), None
     try:
-        b = UnixCanBus(channel=a.channel)
+        b = can.Bus(interface="rig_unix", channel=a.channel)  # python-can's plugin entry point
+        assert isinstance(b, UnixCanBus)
         other = UnixCanBus(channel=a.channel + "x")  # another rig on the same host
         a.send(can.Message(arbitration_id=0x80, data=b"\x01", is_extended_id=False))
         got = b.recv(2.0)
