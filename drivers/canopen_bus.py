@@ -91,6 +91,7 @@ class UnixCanBus(can.BusABC):
         self.n_tx_dropped = 0
         self._lock = threading.Lock()
         self._conns: list[socket.socket] = []
+        self._gone: set[socket.socket] = set()
         self._listener = None
         self._next_accept = 0.0
         lst = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
@@ -140,6 +141,7 @@ class UnixCanBus(can.BusABC):
         with self._lock:
             if c in self._conns:
                 self._conns.remove(c)
+            self._gone.discard(c)
         c.close()
 
     @property
@@ -156,12 +158,15 @@ class UnixCanBus(can.BusABC):
             self._next_accept = now + 0.005
             self._accept()
         for c in tuple(self._conns):
+            if c in self._gone:
+                continue
             try:
                 c.send(data)
             except BlockingIOError:
                 self.n_tx_dropped += 1  # that peer's queue is full: a lost frame, as on a busy bus
             except OSError:
-                self._drop(c)
+                # the peer left; what it sent may still be queued: recv reads it, then drops c
+                self._gone.add(c)
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         self._send_datagram(encode_frame(msg))
@@ -181,6 +186,8 @@ class UnixCanBus(can.BusABC):
                         buf = c.recv(256)
                     except BlockingIOError:
                         break
+                    except ConnectionResetError:
+                        continue  # the peer left with unread frames; what it sent is still queued
                     except OSError:
                         self._drop(c)
                         break
@@ -214,6 +221,15 @@ class UnixCanBus(can.BusABC):
 
     def fileno(self) -> int:
         return -1  # several sockets: python-can's Notifier falls back to polling recv(timeout)
+
+    def linger(self, seconds: float = 0.05) -> None:
+        """Stay on the bus ``seconds`` reading (and discarding) what arrives, so that peers
+        accept this node's connection and read its frames before it leaves (a node that
+        closes with unread frames resets its connections, and the kernel may discard what
+        it sent to a peer that had not accepted yet)."""
+        t_end = time.monotonic() + seconds
+        while (left := t_end - time.monotonic()) > 0:
+            self.recv(min(left, 0.005))
 
     def shutdown(self) -> None:
         super().shutdown()

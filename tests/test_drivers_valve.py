@@ -21,7 +21,7 @@ import can
 import pytest
 
 from drivers.canopen_bus import UnixCanBus, decode_frame, encode_frame
-from drivers.emulators.valve_controller import ValveControllerEmulator
+from drivers.emulators.valve_controller import ValveControllerEmulator, send_foreign, send_malformed
 from drivers.errors import DeviceError
 from drivers.valve import (
     EMCY_DEVICE_HW, EMCY_HEARTBEAT, EMCY_RPDO_TIMEOUT, RPDO_FMT, SW_HEARTBEAT_LOST, SW_PROTOCOL,
@@ -159,6 +159,18 @@ def test_bus_broadcast_isolated_channels_and_garbage():
         got = b.recv(2.0)
         assert got.arbitration_id == 0x81 and b.n_malformed == 1
         assert a.recv(0.02) is None  # no own frames
+        # a node that sends and leaves at once, with unread frames, while a keeps sending:
+        # its frame is still read (the reset connection is drained before it is dropped)
+        c = UnixCanBus(channel=a.channel)
+        a.send(can.Message(arbitration_id=0x82, data=b"", is_extended_id=False))
+        c.send(can.Message(arbitration_id=0x000, data=b"\x01\x00", is_extended_id=False))
+        c.shutdown()
+        for _ in range(3):
+            time.sleep(0.006)
+            a.send(can.Message(arbitration_id=0x83, data=b"", is_extended_id=False))
+        got = [a.recv(0.5) for _ in range(1)]
+        assert got[0] is not None and got[0].arbitration_id == 0x000
+        assert a.recv(0.05) is None and a.n_peers == 1   # c is gone, b stays
         other.shutdown()
     finally:
         a.shutdown()
@@ -338,6 +350,16 @@ def _raw(channel):
     return UnixCanBus(channel=channel)
 
 
+def _while_ticking(v, cmd, fn, *args, **kw):
+    """Run ``fn`` (a second node on the bus) on a thread while the host keeps ticking."""
+    th = threading.Thread(target=fn, args=args, kwargs=kw, daemon=True)
+    th.start()
+    while th.is_alive():
+        v.read()
+        v.write(cmd)
+        time.sleep(0.001)
+
+
 def _send(bus, cid, data):
     bus.send(can.Message(arbitration_id=cid, data=data, is_extended_id=False))
 
@@ -349,28 +371,14 @@ def test_foreign_frame_detected(inproc, kind):
     v.start()
     _ticks(v, 10, 0.1)
     assert v.health() == []
-    intruder = _raw(cfg.channel)
-    try:
-        _ticks(v, 3, 0.1)   # both sides accept the intruder's connection
-        if kind == "rpdo":   # a second set-point producer, with a plausible counter
-            _send(intruder, 0x200 + NODE, RPDO_FMT.pack(16384, 1, (v._counter + 1) & 0xFF))
-        elif kind == "sync":
-            _send(intruder, 0x80, bytes([v._sync_count % 240 + 1]))
-        elif kind == "nmt":  # "start all nodes" from someone else
-            _send(intruder, 0x000, b"\x01\x00")
-        elif kind == "status":  # a spoofed status PDO
-            _send(intruder, 0x180 + NODE, struct.pack("<hHBB", 0, 1, v._counter, 0))
-            _send(intruder, 0x180 + NODE, struct.pack("<hHBB", 0, 1, v._counter, 0))
-        else:
-            _send(intruder, 0x185, b"\x00" * 6)
-        probs = _until(lambda: (v.read(), v.health())[1], 3.0, every=lambda: v.write(0.1))
-        assert any("foreign CAN frames" in p for p in probs), probs
-        if kind == "rpdo":   # the valve saw two set-points in one SYNC period or a broken sequence
-            assert _until(lambda: em.latched & SW_PROTOCOL, 3.0, every=lambda: v.write(0.1))
-            assert em.spool == 0.0 and not em.enabled
-            assert em.n_setpoints > 0
-    finally:
-        intruder.shutdown()
+    _while_ticking(v, 0.1, send_foreign, cfg.channel, kind, NODE, counter=v._counter + 2,
+                   sync_count=v._sync_count % 240 + 2)
+    probs = _until(lambda: (v.read(), v.health())[1], 3.0, every=lambda: v.write(0.1))
+    assert any("foreign CAN frames" in p for p in probs), probs
+    if kind == "rpdo":   # the valve saw two set-points in one SYNC period or a broken sequence
+        assert _until(lambda: em.latched & SW_PROTOCOL, 3.0, every=lambda: v.write(0.1))
+        assert em.spool == 0.0 and not em.enabled
+        assert em.n_setpoints > 0
 
 
 def test_foreign_sdo_cannot_disable_the_heartbeat_consumer(inproc):
@@ -452,34 +460,19 @@ def test_malformed_frames_never_crash(xproc):
     v.connect()
     v.start()
     _ticks(v, 10, 0.2)
-    bad = _raw(cfg.channel)
-    try:
-        _ticks(v, 3, 0.2)
-        for junk in (b"\xff" * 10, b"", b"\x00", os.urandom(64), bytes(range(15)),
-                     bytes.fromhex("000003020000") + b"\x09" + b"\x00" * 9):
-            bad.send_raw(junk)
-        _send(bad, 0x000, b"\x01")                      # NMT, 1 byte
-        _send(bad, 0x080, b"\x01\x02\x03")              # SYNC, 3 bytes
-        _send(bad, 0x200 + NODE, b"\x00\x01")           # RPDO, 2 bytes
-        _send(bad, 0x600 + NODE, b"\x40")               # SDO request, 1 byte
-        _send(bad, 0x700 + cfg.host_node_id, b"")       # host heartbeat, 0 bytes
-        _send(bad, 0x180 + NODE, b"\x01\x02\x03")       # TPDO, 3 bytes (to the host)
-        _send(bad, 0x080 + NODE, b"\x10")               # EMCY, 1 byte (to the host)
-        _send(bad, 0x700 + NODE, b"\x05\x05\x05")       # valve heartbeat, 3 bytes
-        probs = _until(lambda: (v.read(), v.health())[1], 3.0, every=lambda: v.write(0.2))
-        assert probs
-        st = emu.stats()                                # the emulator process is alive and answers
-        assert emu.p.poll() is None and st["bus_malformed"] >= 5 and st["rejected"] >= 4
-        assert st["latched"] & SW_PROTOCOL and st["spool"] == 0.0   # wrong-length set-point nulls
-        st_h = v.read()
-        assert st_h.malformed_frames >= 1 and any("malformed" in p for p in v.health()), (st_h, v.foreign_ids, v.bus.n_malformed)
-        assert _until(lambda: any("rejected" in p for p in (v.read(), v.health())[1]), 3.0,
-                      every=lambda: v.write(0.2))
-        v.start()                                       # and it recovers by the explicit reset
-        st_h = _ticks(v, 10, 0.2)
-        assert st_h.enabled and emu.stats()["spool"] == pytest.approx(0.2, abs=1e-3)
-    finally:
-        bad.shutdown()
+    _while_ticking(v, 0.2, send_malformed, cfg.channel, NODE, cfg.host_node_id)
+    probs = _until(lambda: (v.read(), v.health())[1], 3.0, every=lambda: v.write(0.2))
+    assert probs
+    st = emu.stats()                                # the emulator process is alive and answers
+    assert emu.p.poll() is None and st["bus_malformed"] >= 5 and st["rejected"] >= 4
+    assert st["latched"] & SW_PROTOCOL and st["spool"] == 0.0   # wrong-length set-point nulls
+    st_h = v.read()
+    assert st_h.malformed_frames >= 1 and any("malformed" in p for p in v.health()), (st_h, v.foreign_ids, v.bus.n_malformed)
+    assert _until(lambda: any("rejected" in p for p in (v.read(), v.health())[1]), 3.0,
+                  every=lambda: v.write(0.2))
+    v.start()                                       # and it recovers by the explicit reset
+    st_h = _ticks(v, 10, 0.2)
+    assert st_h.enabled and emu.stats()["spool"] == pytest.approx(0.2, abs=1e-3)
 
 
 # -- across processes over the real transport ------------------------------------------------

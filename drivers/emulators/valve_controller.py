@@ -28,6 +28,10 @@ API (what the emulated rig calls)::
 ``on_sync(spool)`` is called once per SYNC (lock step with the host's tick) with the
 spool position actual (fraction of full scale) after the set-point was applied.
 
+Fault injection from a second node (for the ``--hardware`` fault tests):
+:func:`send_foreign` (``rpdo``, ``sync``, ``nmt``, ``status``, ``other_node``) and
+:func:`send_malformed` (garbage datagrams and wrong-length frames).
+
 Its own process: ``python -m drivers.emulators.valve_controller --channel C --node-id N``
 prints one JSON line ``{"ready": ...}`` and reads commands from stdin: ``inject NAME
 [VALUE]``, ``clear NAME``, ``stats`` (prints a JSON line), ``quit``.
@@ -325,6 +329,62 @@ class ValveControllerEmulator:
                 "n_sync": self.n_sync, "n_setpoints": self.n_setpoints, "n_tpdo": self.n_tpdo,
                 "emcy_sent": list(self.emcy_sent), "faults": dict(self.faults),
                 "bus_malformed": getattr(self.bus, "n_malformed", 0)}
+
+
+# -- fault injection from outside: a second node on the same bus --------------------------------
+
+FOREIGN_KINDS = ("rpdo", "sync", "nmt", "status", "other_node")
+
+
+def send_foreign(channel: str, kind: str, node_id: int = 1, counter: int = 0, sync_count: int = 1) -> None:
+    """Send, from a bus of its own on ``channel``, a frame only the master or the valve may send:
+    ``rpdo`` (a full-scale set-point with counter ``counter``), ``sync`` (count ``sync_count``),
+    ``nmt`` (start all nodes), ``status`` (two spoofed TPDOs), ``other_node`` (a TPDO of node
+    ``node_id + 2``). Used by the fault-injection tests; the host must report it in ``health()``."""
+    import can
+
+    from drivers.canopen_bus import UnixCanBus
+
+    frames = {
+        "rpdo": [(0x200 + node_id, RPDO_FMT.pack(FULL_SCALE, CW_ENABLE, counter & 0xFF))],
+        "sync": [(SYNC_COB, bytes([sync_count]))],
+        "nmt": [(NMT_COB, b"\x01\x00")],
+        "status": [(0x180 + node_id, TPDO_FMT.pack(0, SW_ENABLED, counter & 0xFF, 0))] * 2,
+        "other_node": [(0x180 + node_id + 2, bytes(6))],
+    }
+    if kind not in frames:
+        raise ValueError(f"foreign frame kind {kind!r} is not one of {', '.join(FOREIGN_KINDS)}")
+    bus = UnixCanBus(channel=channel)
+    try:
+        for cid, data in frames[kind]:
+            bus.send(can.Message(arbitration_id=cid, data=data, is_extended_id=False))
+        bus.linger(0.05)
+    finally:
+        bus.shutdown()
+
+
+def send_malformed(channel: str, node_id: int = 1, host_node_id: int = 127, seed: int = 1) -> None:
+    """Send garbage datagrams and wrong-length CANopen frames to both sides of ``channel``."""
+    import random
+
+    import can
+
+    from drivers.canopen_bus import UnixCanBus
+
+    rnd = random.Random(seed)
+    bus = UnixCanBus(channel=channel)
+    try:
+        for junk in (b"\xff" * 10, b"", b"\x00", bytes(rnd.getrandbits(8) for _ in range(64)), bytes(range(15)),
+                     bytes.fromhex("000003020000") + b"\x09" + b"\x00" * 9):
+            bus.send_raw(junk)
+        for cid, data in ((NMT_COB, b"\x01"), (SYNC_COB, b"\x01\x02\x03"), (0x200 + node_id, b"\x00\x01"),
+                          (0x600 + node_id, b"\x40"), (0x700 + host_node_id, b""),
+                          (0x180 + node_id, b"\x01\x02\x03"), (0x080 + node_id, b"\x10"),
+                          (0x700 + node_id, b"\x05\x05\x05")):
+            bus.send(can.Message(arbitration_id=cid, data=data, is_extended_id=False))
+        bus.linger(0.05)
+    finally:
+        bus.shutdown()
 
 
 def main(argv=None) -> int:
