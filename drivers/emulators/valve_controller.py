@@ -34,7 +34,9 @@ Fault injection from a second node (for the ``--hardware`` fault tests):
 
 Its own process: ``python -m drivers.emulators.valve_controller --channel C --node-id N``
 prints one JSON line ``{"ready": ...}`` and reads commands from stdin: ``inject NAME
-[VALUE]``, ``clear NAME``, ``stats`` (prints a JSON line), ``quit``.
+[VALUE]``, ``clear NAME``, ``stats`` (prints a JSON line), ``quit``. With
+``--send-foreign KIND`` or ``--send-malformed`` it is instead a short-lived intruder
+process that sends those frames on the channel and exits.
 """
 
 from __future__ import annotations
@@ -393,7 +395,15 @@ def main(argv=None) -> int:
     p.add_argument("--node-id", type=int, default=1)
     p.add_argument("--host-node-id", type=int, default=127)
     p.add_argument("--spool-tau-s", type=float, default=0.0)
+    p.add_argument("--send-foreign", choices=FOREIGN_KINDS, help="send one foreign frame and exit")
+    p.add_argument("--send-malformed", action="store_true", help="send malformed frames and exit")
     a = p.parse_args(argv)
+    if a.send_foreign or a.send_malformed:
+        if a.send_foreign:
+            send_foreign(a.channel, a.send_foreign, a.node_id)
+        if a.send_malformed:
+            send_malformed(a.channel, a.node_id, a.host_node_id)
+        return 0
     cfg = CanopenValveConfig(channel=a.channel, node_id=a.node_id, host_node_id=a.host_node_id)
     em = ValveControllerEmulator(cfg, spool_tau_s=a.spool_tau_s)
     em.start()
