@@ -278,9 +278,12 @@ class CanopenValve:
         self.node.nmt.state = "OPERATIONAL"
         t_end = time.monotonic() + timeout_s
         phase = 0
+        n0 = self.read().n_tpdo
         while True:
             st = self.read()
-            if phase == 0 and st.operational and st.n_tpdo and not st.reset_required and not st.enabled:
+            # phase 0: enable low (+ fault reset) until 3 fresh TPDOs show OPERATIONAL, no latch
+            if phase == 0 and st.operational and st.n_tpdo >= n0 + 3 and not st.reset_required \
+                    and not st.enabled:
                 phase = 1
             if phase == 1 and st.enabled:
                 return
@@ -289,7 +292,7 @@ class CanopenValve:
                                   f"did not enable within {timeout_s:g} s (NMT {st.nmt_state}, status word "
                                   f"0x{st.status_word:04x}, EMCY {st.emcy})")
             if phase == 0:
-                self.write(0.0, enable=False, reset=st.reset_required or not st.n_tpdo)
+                self.write(0.0, enable=False, reset=st.reset_required or st.n_tpdo < n0 + 3)
             else:
                 self.write(0.0, enable=True)
             time.sleep(0.001)

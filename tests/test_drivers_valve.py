@@ -213,6 +213,8 @@ def test_nmt_start_required_then_follows(inproc):
     assert v.safe_stop() is True
     assert em.spool == 0.0 and not em.enabled
     assert _until(lambda: em.nmt_state == "PRE-OPERATIONAL")
+    v.start()                        # a clean restart after a verified stop
+    assert _drive(v, -0.1, lambda: abs(em.spool + 0.1) < 1e-3)
 
 
 def test_heartbeat_loss_nulls_and_leaves_operational(inproc):
