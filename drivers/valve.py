@@ -8,6 +8,10 @@ EMCY consumer, SDO, SYNC) over a python-can bus; the default bus is the machine-
 
 Objects used (the CiA 408 subset; ``n`` = node id, ``h`` = host id)
 -------------------------------------------------------------------
+The indexes follow CiA 408 (device control/status word, spool set-point/actual
+value); the bits inside the control and status words are this project's simplified
+assignment (``CW_*``, ``SW_*`` below), not the profile's full device state machine.
+
 ==============  =======================================================================
 0x1000          device type 0x00000198 (profile 408), checked by SDO at connect
 0x1016:01       consumer heartbeat time: ``h << 16 | ms`` (written by SDO at connect)
