@@ -166,7 +166,7 @@ class ValveStatus:
     reset_required: bool = False
     nmt_state: str = "UNKNOWN"       # from the valve's heartbeat
     accepted_counter: int = -1       # 0x2001 echo
-    valve_rejected: int = 0          # 0x2002: frames the valve rejected
+    valve_rejected: int = 0          # 0x2002: frames the valve rejected (total, unwrapped)
     emcy: list = field(default_factory=list)   # active EMCYs: (code, register)
     foreign_frames: int = 0          # frames only the master may send, or from nobody expected
     malformed_frames: int = 0        # wrong length / undecodable CANopen frames, host side
@@ -201,6 +201,7 @@ class CanopenValve:
         self._t_hb = -math.inf
         self._t_follow_bad = None
         self._cw = 0
+        self._rej_last = 0
         self._sdo_open = False
         self._pump_lock = threading.Lock()
         self.nan_setpoints = 0
@@ -407,7 +408,8 @@ class CanopenValve:
         st.watchdog_tripped = bool(sw & SW_WATCHDOG)
         st.nulled = bool(sw & SW_NULL)
         st.reset_required = bool(sw & SW_RESET_REQUIRED)
-        st.valve_rejected = rej
+        st.valve_rejected += (rej - self._rej_last) & 0xFF  # 0x2002 is a wrapping u8: keep the total
+        self._rej_last = rej
         st.accepted_counter = acc
         cmd = self._recent.get(acc)
         if cmd is None:
