@@ -80,8 +80,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
-
+from drivers.config import CanopenValveConfig
 from drivers.errors import DeviceError
 
 DEVICE = "servovalve controller"
@@ -107,29 +106,6 @@ TPDO_FMT = struct.Struct("<hHBB")  # actual, status word, accepted counter, reje
 SYNC_COB, NMT_COB = 0x080, 0x000
 SYNC_OVERFLOW = 240
 RECENT = 128  # ticks of set-points the host remembers to check the valve's counter echo (half of u8)
-
-
-class CanopenValveConfig(BaseModel):
-    """The CANopen servovalve link (to be wired into the profile's ``hardware.valve``)."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    interface: Literal["rig_unix", "virtual", "socketcan"] = "rig_unix"
-    channel: str = Field(default="rig", pattern=r"^[A-Za-z0-9._-]{1,64}$",
-                         description="rig_unix: one name per rig (two rigs on one host use two names)")
-    node_id: int = Field(default=1, ge=1, le=126)
-    host_node_id: int = Field(default=127, ge=1, le=127, description="the host's heartbeat 0x700+id")
-    heartbeat_period_s: float = Field(default=0.01, gt=0, description="both sides' heartbeat period")
-    heartbeat_timeout_s: float = Field(default=0.05, gt=0, description="a heartbeat older than this is lost")
-    watchdog_s: float = Field(default=0.02, gt=0, description="valve nulls without a set-point this long")
-    tpdo_timeout_s: float = Field(default=0.05, gt=0, description="host: no TPDO this long is unhealthy")
-    follow_max: float = Field(default=0.1, gt=0, description="|spool command - actual|, full scale")
-    follow_time_s: float = Field(default=0.05, gt=0, description="... for longer than this is unhealthy")
-    connect_timeout_s: float = Field(default=2.0, gt=0)
-
-    @property
-    def address_text(self) -> str:
-        return f"canopen-{self.interface}:{self.channel} node {self.node_id}"
 
 
 def open_bus(cfg: CanopenValveConfig):
@@ -429,36 +405,45 @@ class CanopenValve:
         """Problems that must trip the loop, each naming the valve (empty list = healthy).
 
         Call after :meth:`read` (it uses that status)."""
+        return [msg for _, msg in self.problems()]
+
+    def problems(self) -> list[tuple[str, str]]:
+        """:meth:`health` with a trip name for each problem: ``can_foreign_frames``,
+        ``can_malformed_frames``, ``valve_rejected_frames``, ``valve_counter``, ``valve_fault``,
+        ``valve_watchdog``, ``valve_heartbeat``, ``valve_nmt_state``, ``valve_status_stale``,
+        ``valve_disabled``, ``valve_following``, ``non_finite_setpoint``."""
         st, c, a = self._st, self.cfg, self.address
         out = []
         if st.foreign_frames:
             ids = ", ".join(f"0x{i:03x}" for i in sorted(self.foreign_ids))
-            out.append(f"{st.foreign_frames} foreign CAN frames (COB-ID {ids}) on the bus of {a}: "
-                       "another master or node is sending")
+            out.append(("can_foreign_frames", f"{st.foreign_frames} foreign CAN frames (COB-ID {ids}) on the bus "
+                        f"of {a}: another master or node is sending"))
         if st.malformed_frames or st.bus_malformed:
-            out.append(f"{st.malformed_frames + st.bus_malformed} malformed CAN frames on {a}")
+            out.append(("can_malformed_frames", f"{st.malformed_frames + st.bus_malformed} malformed CAN frames "
+                        f"on {a}"))
         if st.valve_rejected:
-            out.append(f"{a} rejected {st.valve_rejected} frames (foreign or malformed)")
+            out.append(("valve_rejected_frames", f"{a} rejected {st.valve_rejected} frames (foreign or malformed)"))
         if st.counter_errors:
-            out.append(f"{a} applied {st.counter_errors} set-points the host did not send")
+            out.append(("valve_counter", f"{a} applied {st.counter_errors} set-points the host did not send"))
         if st.fault or st.emcy:
-            out.append(f"{a} reports a fault (status word 0x{st.status_word:04x}, EMCY "
-                       f"{', '.join(f'0x{e[0]:04x}' for e in st.emcy) or 'none'})")
+            out.append(("valve_fault", f"{a} reports a fault (status word 0x{st.status_word:04x}, EMCY "
+                        f"{', '.join(f'0x{e[0]:04x}' for e in st.emcy) or 'none'})"))
         if st.watchdog_tripped:
-            out.append(f"{a} nulled on its set-point watchdog")
+            out.append(("valve_watchdog", f"{a} nulled on its set-point watchdog"))
         if st.heartbeat_age_s > c.heartbeat_timeout_s:
-            out.append(f"no heartbeat from {a} for {st.heartbeat_age_s * 1e3:.0f} ms")
+            out.append(("valve_heartbeat", f"no heartbeat from {a} for {st.heartbeat_age_s * 1e3:.0f} ms"))
         elif not st.operational:
-            out.append(f"{a} is {st.nmt_state}, not OPERATIONAL")
+            out.append(("valve_nmt_state", f"{a} is {st.nmt_state}, not OPERATIONAL"))
         if self._n_sync and st.tpdo_age_s > c.tpdo_timeout_s:
-            out.append(f"no status PDO from {a} for {st.tpdo_age_s * 1e3:.0f} ms")
+            out.append(("valve_status_stale", f"no status PDO from {a} for {st.tpdo_age_s * 1e3:.0f} ms"))
         if self._n_sync and st.n_tpdo and not st.enabled:
-            out.append(f"{a} is not enabled")
+            out.append(("valve_disabled", f"{a} is not enabled"))
         if self._t_follow_bad is not None and time.monotonic() - self._t_follow_bad > c.follow_time_s:
-            out.append(f"{a} does not follow: spool {st.spool_actual:+.3f} vs command "
-                       f"{st.spool_command_echoed:+.3f} for over {c.follow_time_s * 1e3:.0f} ms")
+            out.append(("valve_following", f"{a} does not follow: spool {st.spool_actual:+.3f} vs command "
+                        f"{st.spool_command_echoed:+.3f} for over {c.follow_time_s * 1e3:.0f} ms"))
         if self.nan_setpoints:
-            out.append(f"{self.nan_setpoints} non-finite set-points for {a} (sent as null)")
+            out.append(("non_finite_setpoint", f"{self.nan_setpoints} non-finite set-points for {a} "
+                        "(sent as null)"))
         return out
 
     def safe_stop(self, timeout_s: float = 0.1) -> bool:

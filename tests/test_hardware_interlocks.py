@@ -12,7 +12,8 @@ from rig.hardware.interlocks import Interlocks
 
 CFG = InterlockConfig(friction_max_N=150, normal_min_N=50, normal_max_N=150, stale_s=0.005,
                       max_checksum_errors=5, max_modbus_errors=3, max_can_errors=2,
-                      max_consecutive_late=3, late_threshold_s=0.001, max_following_error_um=100)
+                      max_consecutive_late=3, late_threshold_s=0.001, following_error_um=1000,
+                      min_following_error_um=100, max_velocity_um_s=1000)
 OK = dict(x_ref=500.0, x=500.0, f=20.0, n1=100.0, n2=100.0, late_s=0.0)
 
 
@@ -77,7 +78,7 @@ def test_checksum_errors_per_second():
     assert _check(il, h) is None
     h["lvdt"].frames_bad = 6
     tr = _check(il, h)
-    assert tr.name == "serial_checksum_errors" and tr.values["bad_frames"] == 6
+    assert tr.name == "serial_checksum_errors" and tr.values["frames_bad"] == 6
 
 
 def test_device_fault_bits():

@@ -101,7 +101,7 @@ def devices_check(
         except EmulatorError as exc:
             _fail(str(exc), 1)
     try:
-        rows = check_devices(hw)
+        rows = check_devices(emu.hw if emu is not None else hw)
     finally:
         if emu is not None:
             emu.stop()
