@@ -107,7 +107,7 @@ def test_kill9_logger_then_recover(tmp_path):
 
     prof = private_profile(tmp_path, autostart=False)
     profile = load_profile(prof)
-    emu = start_emulator_process(hardware_of_profile(profile), profile, lubricant="boundary")
+    emu = start_emulator_process(hardware_of_profile(profile), profile, lubricant="boundary", private=False)
     try:
         out = tmp_path / "kill-logger.mcap"
         p = _rig("run", SMOKE, "--hardware", prof, "--out", out, "-q")

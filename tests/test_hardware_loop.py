@@ -73,7 +73,9 @@ def _run(rig_env, x, w):
 
 def _clear(emu):
     for dev, fault in (("valve", "fault"), ("valve", "silent"), ("loadcells", "exception"), ("loadcells", "slow_s"),
-                       ("loadcells", "silent"), ("lvdt", "silent"), ("lvdt", "corrupt_every")):
+                       ("loadcells", "silent"), ("lvdt", "silent"), ("lvdt", "corrupt_every"),
+                       ("lvdt", "drop_every"), ("lvdt", "garbage_every"), ("loadcells", "nan_friction"),
+                       ("valve", "ignore_setpoints"), ("valve", "stuck")):
         emu.inject(dev, fault, None)
 
 
@@ -95,7 +97,7 @@ def test_clean_run_blocks_stats_and_tracking(rig_env):
     w = MemWriter()
     res = _run(rig_env, x, w)
     s = res.summary
-    assert res.status == "completed" and w.status == "completed" and s["status"] == "completed"
+    assert res.status == "completed" and w.status == "completed" and s["status"] == "completed", res.reason
     assert [h[0] for h in res.history] == [Phase.RUNNING, Phase.STOPPING, Phase.SAFE, Phase.DONE]
     assert set(s["devices"]) == {"lvdt", "loadcells", "valve"} and s["devices"]["lvdt"]["frames_ok"] > 1000
     assert set(BLOCK_KEYS) <= set(w.blocks[0])
@@ -133,13 +135,17 @@ def _run_with_fault(rig_env, x, inject, after_s=0.3, confirmed_safe=True):
     ("lvdt", "silent", True, "stale_position"),
     ("lvdt", "corrupt_every", 2, "serial_checksum_errors"),
     ("loadcells", "exception", True, "modbus_errors"),
-    ("loadcells", "slow_s", 0.01, "modbus_errors"),  # slower than the 2 ms timeout
+    ("loadcells", "slow_s", 0.01, "modbus_errors|frame_loss"),  # slower than the 2 ms timeout
+    ("loadcells", "slow_s", 0.0015, "frame_loss"),  # answers within the timeout, but every other tick
+    ("lvdt", "drop_every", 2, "frame_loss"),
+    ("lvdt", "garbage_every", 2, "stream_garbage"),
+    ("loadcells", "nan_friction", True, "non_finite"),
 ])
 def test_device_fault_trips_to_safe_state(rig_env, dev, fault, value, expect):
     x = np.full(3000, 500.0)
     res, trip, w, _ = _run_with_fault(rig_env, x, lambda emu: emu.inject(dev, fault, value),
                                       confirmed_safe=(dev, fault) != ("valve", "silent"))
-    assert res.summary["trip"]["name"] == expect == trip["name"]
+    assert res.summary["trip"]["name"] == trip["name"] and trip["name"] in expect.split("|")
     assert trip["t_s"] > 0.2 and trip["message"] in res.reason
 
 

@@ -107,7 +107,7 @@ class RigDevices:
 
 
 def build_devices(hw: HardwareConfig) -> RigDevices:
-    return RigDevices(position=LvdtReader(hw.lvdt), forces=LoadCellReader(hw.loadcells),
+    return RigDevices(position=LvdtReader(hw.lvdt), forces=LoadCellReader(hw.loadcells, pipelined=True),
                       valve=ValveDevice(CanopenValve(hw.valve)))
 
 

@@ -407,10 +407,13 @@ _CHANNELS = 0
 
 def start_emulator_process(hw: HardwareConfig | dict, profile=None, lubricant: str | None = None,
                            normal_force_N: float | None = None, seed: int | None = None,
-                           plant: str = "sim", timeout_s: float = 60.0) -> EmulatorHandle:
+                           plant: str = "sim", timeout_s: float = 60.0, private: bool = True) -> EmulatorHandle:
     """Start the emulated rig in its own process on a private CAN channel (``handle.hw``: the hardware
-    section to drive it with); returns when its devices answer."""
-    hw = private_channel(parse_hardware(hw) if not isinstance(hw, HardwareConfig) else hw)
+    section to drive it with; ``private=False``: the channel of ``hw``, for a ``rig run`` in another
+    process given the same profile); returns when its devices answer."""
+    hw = parse_hardware(hw) if not isinstance(hw, HardwareConfig) else hw
+    if private:
+        hw = private_channel(hw)
     ctx = mp.get_context("spawn")
     parent, child = ctx.Pipe()
     em = hw.emulators
