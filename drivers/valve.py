@@ -177,7 +177,7 @@ class CanopenValve:
         self._t_hb = -math.inf
         self._t_follow_bad = None
         self._cw = 0
-        self._rej_last = 0
+        self._rej_last: int | None = None  # the valve's 0x2002 at this host's first TPDO: the baseline
         self._sdo_open = False
         self._pump_lock = threading.Lock()
         self.nan_setpoints = 0
@@ -384,6 +384,8 @@ class CanopenValve:
         st.watchdog_tripped = bool(sw & SW_WATCHDOG)
         st.nulled = bool(sw & SW_NULL)
         st.reset_required = bool(sw & SW_RESET_REQUIRED)
+        if self._rej_last is None:
+            self._rej_last = rej  # what the valve rejected before this host connected is not this run's
         st.valve_rejected += (rej - self._rej_last) & 0xFF  # 0x2002 is a wrapping u8: keep the total
         self._rej_last = rej
         st.accepted_counter = acc
