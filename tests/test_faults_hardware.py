@@ -170,19 +170,24 @@ def test_sigstop_of_the_loop(env):
     p = _start(env, out)
     _wait_running(env, p)
     loop = find_child(p.pid, "rig-rt-loop")
+    t0 = time.monotonic()
     os.kill(loop, signal.SIGSTOP)
     time.sleep(0.1)  # below stall_trip_s (0.25 s in the emulated profile): an event
     os.kill(loop, signal.SIGCONT)
+    short_s = time.monotonic() - t0  # the test itself may be descheduled: what it really was
     time.sleep(0.5)
-    os.kill(loop, signal.SIGSTOP)
-    time.sleep(0.6)  # above it: a trip
-    os.kill(loop, signal.SIGCONT)
+    with contextlib.suppress(ProcessLookupError):  # (gone if the short stall was a long one)
+        os.kill(loop, signal.SIGSTOP)
+        time.sleep(0.6)  # above it: a trip
+        os.kill(loop, signal.SIGCONT)
     text = _finish(p)
     assert p.returncode == 1, text
     _safe_valve(env)
     trip, tr = _trip(out, {"loop_stall", "valve_watchdog", "valve_heartbeat", "valve_fault"})
     stalls = [e for e in tr.events if e["kind"] == "stall" and e["gap_s"] > 0.08]
-    assert len(stalls) >= 2 and stalls[0]["gap_s"] < 0.25 <= stalls[-1]["gap_s"], stalls
+    assert stalls and stalls[-1]["gap_s"] >= 0.25, stalls
+    if short_s < 0.2:
+        assert len(stalls) >= 2 and stalls[0]["gap_s"] < 0.25 and stalls[0]["t_s"] < trip["t_s"], stalls
     # the reference never jumps: time is held across the stalls (no gaps in t_s, steps <= v dt)
     t, ref = tr.time_s, tr.position_ref_um
     assert np.allclose(np.diff(t), 1e-3, atol=1e-9)
