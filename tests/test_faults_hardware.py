@@ -79,15 +79,16 @@ def _start(env, out: Path, preexec_fn=None) -> subprocess.Popen:
                             stderr=subprocess.STDOUT, text=True, preexec_fn=preexec_fn)
 
 
-def _wait_running(env, p, ticks: int = 700, timeout_s: float = 60.0) -> None:
-    """Until the loop has sent ``ticks`` set-points of this run to the valve (it is following)."""
+def _wait_running(env, p, ticks: int = 700, timeout_s: float = 60.0) -> int:
+    """Until the loop has sent ``ticks`` set-points of this run to the valve (it is following); returns
+    the valve's set-point count at the start (the run's tick k is about ``n_setpoints - n0``)."""
     n0 = env.emu.stats()["n_setpoints"]
     t_end = time.monotonic() + timeout_s
     while time.monotonic() < t_end:
         if p.poll() is not None:
             raise AssertionError(f"rig exited early ({p.returncode}):\n{p.stdout.read()}")
         if env.emu.stats()["n_setpoints"] - n0 >= ticks:
-            return
+            return n0
         time.sleep(0.02)
     raise AssertionError("the loop did not start")
 
@@ -124,13 +125,16 @@ def _trip(out: Path, names: set[str]) -> tuple[dict, object]:
 def _run_fault(env, name: str, inject, names: set[str]) -> tuple[dict, object, str]:
     out = env.tmp / f"{name}.mcap"
     p = _start(env, out)
-    _wait_running(env, p)
+    n0 = _wait_running(env, p)
+    k_inject = env.emu.stats()["n_setpoints"] - n0
     inject()
     text = _finish(p)
     assert p.returncode == 1, text
     assert "INTERLOCK" in text, text
     _safe_valve(env)
     trip, tr = _trip(out, names)
+    # for docs/hardware.md (pytest -s): ticks from the injection to the trip (± the few set-points of start())
+    print(f"\nFAULT {name}: trip {trip['name']} {round(trip['t_s'] * 1000) - k_inject} ticks after the injection")
     return trip, tr, text
 
 
