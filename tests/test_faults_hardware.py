@@ -227,6 +227,7 @@ def test_disk_full_ends_the_trial_safely(env):
         assert "No space left on device" in text or "File too large" in text, text
         st = _safe_valve(env)
         assert st["valve"]["nmt"] in ("PRE-OPERATIONAL", "OPERATIONAL")
+        assert not st["valve_watchdog"]  # nulled by the loop (told by the session), not by the valve's watchdog
         # what reached the disk before it filled reads back after `rig recover`
         rec = env.tmp / "full-recovered.mcap"
         r = subprocess.run([sys.executable, "-m", "rig.cli", "recover", str(out), "--out", str(rec)], cwd=REPO,
@@ -240,9 +241,11 @@ def test_kill9_of_the_logger(env):
     out = env.tmp / "kill-logger.mcap"
     p = _start(env, out)
     _wait_running(env, p, ticks=1500)
+    t_kill = time.monotonic()
     os.kill(p.pid, signal.SIGKILL)
-    p.wait(10)
     st = _safe_valve(env)
+    print(f"\nFAULT kill -9 logger: valve disabled {(st['t_valve_disabled'] - t_kill) * 1e3:.1f} ms after the kill")
+    p.wait(10)
     assert not st["valve_watchdog"]  # nulled by the loop's safe stop, not by the valve's watchdog
     rec = env.tmp / "kill-logger-recovered.mcap"
     r = subprocess.run([sys.executable, "-m", "rig.cli", "recover", str(out), "--out", str(rec)], cwd=REPO,

@@ -129,6 +129,8 @@ class EmulatedRig:
         self.gaps_over_5ms = 0
         self._last_step_t = None
         self.running = False
+        self._was_enabled = False
+        self.t_disabled = None  # when the valve last went from enabled to disabled (time.monotonic)
 
     def start(self) -> None:
         if self.hw.loadcells.transport == "rtu":
@@ -201,6 +203,10 @@ class EmulatedRig:
     def _on_sync(self, spool: float) -> None:
         self.step(spool)
         self.lock_steps += 1
+        en = self.valve.enabled
+        if self._was_enabled and not en:
+            self.t_disabled = time.monotonic()  # CLOCK_MONOTONIC: comparable across processes
+        self._was_enabled = en
 
     def inject(self, device: str, fault: str, value=True) -> None:
         """Set (value) or clear (None/False) a fault on 'loadcells', 'lvdt' or 'valve'."""
@@ -314,7 +320,7 @@ def _emulator_main(hw_dict, profile, lubricant, normal_force_N, seed, conn, plan
                                      "valve_enabled": rig.valve.enabled,
                                      "valve_output": rig.valve.spool,
                                      "valve_watchdog": bool(rig.valve.latched & SW_WATCHDOG),
-                                     "valve": rig.valve.stats(),
+                                     "valve": rig.valve.stats(), "t_valve_disabled": rig.t_disabled,
                                      "n_setpoints": rig.valve.n_setpoints,
                                      "modbus_requests": rig.modbus_requests(),
                                      "lvdt_sent": rig.lvdt.sent, "max_gap_s": rig.max_gap_s,
