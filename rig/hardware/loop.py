@@ -78,10 +78,12 @@ class _Block:
 ABORT_NONE, ABORT_OPERATOR, ABORT_FAIL = 0, 1, 2
 
 
-def loop_main(hw_dict, profile, x_ref_um, out_q, abort_flag, options=None, logger_ack=None):
+def loop_main(hw_dict, profile, x_ref_um, out_q, abort_flag, options=None, logger_ack=None, logger_alive=None):
     """Entry point of the loop process. ``abort_flag``: a shared ``multiprocessing.Value('i')``
     (1: operator abort, hold then safe; 2: the session failed, e.g. its log: safe at once);
-    ``logger_ack``: a shared ``Value('q')``, the number of blocks the session has logged."""
+    ``logger_ack``: a shared ``Value('q')``, the number of blocks the session has logged;
+    ``logger_alive``: a shared ``Value('d')``, the ``time.monotonic()`` of the logger's last heartbeat
+    (0: not started)."""
     options = options or {}
     set_process_name("rig-rt-loop")
     set_pdeathsig(signal.SIGTERM)
@@ -94,7 +96,7 @@ def loop_main(hw_dict, profile, x_ref_um, out_q, abort_flag, options=None, logge
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's: it sets abort_flag
     try:
         _run(hw_dict, profile, np.asarray(x_ref_um, dtype=float), out_q, abort_flag, stop_req, options,
-             logger_ack)
+             logger_ack, logger_alive)
     except BaseException as exc:  # noqa: BLE001 - report, never die silently
         out_q.put(("done", {"status": "error", "message": f"{type(exc).__name__}: {exc}",
                             "traceback": traceback.format_exc()}))
@@ -111,7 +113,7 @@ def _device_counters(devices) -> dict:
     return out
 
 
-def _run(hw_dict, profile, x_ref, out_q, abort_flag, stop_req, options, logger_ack=None):
+def _run(hw_dict, profile, x_ref, out_q, abort_flag, stop_req, options, logger_ack=None, logger_alive=None):
     import logging
     import os
     import sys
@@ -204,6 +206,7 @@ def _run(hw_dict, profile, x_ref, out_q, abort_flag, stop_req, options, logger_a
     # the logger: blocks sent and when; the session acknowledges each block it has logged
     sent_t: list[float] = []
     log_timeout = ilc.logger_timeout_s
+    log_hb = ilc.logger_heartbeat_s
     kr = 0
     xr_prev = float(x_ref[0])
     inv_dt = 1.0 / period
@@ -251,6 +254,11 @@ def _run(hw_dict, profile, x_ref, out_q, abort_flag, stop_req, options, logger_a
                     tr = Trip("logger_stalled", f"the logger has not taken block {ack + 1} for "
                               f"{(wake - sent_t[ack]) * 1e3:.0f} ms", t_s,
                               {"blocks_sent": len(sent_t), "blocks_logged": ack, "timeout_s": log_timeout})
+            if tr is None and logger_alive is not None:
+                hb = logger_alive.value
+                if hb > 0.0 and not (wake - hb <= log_hb):
+                    tr = Trip("logger_died", f"no heartbeat from the logger for {(wake - hb) * 1e3:.0f} ms "
+                              f"(limit {log_hb * 1e3:g} ms)", t_s, {"age_s": wake - hb, "limit_s": log_hb})
             if tr is None:
                 if abort_flag.value == ABORT_FAIL:
                     tr = Trip("logger_failed", "the session failed (its log): stop at once", t_s,
@@ -339,7 +347,7 @@ def _run(hw_dict, profile, x_ref, out_q, abort_flag, stop_req, options, logger_a
         valve.write(mono())
     except DeviceError:
         pass
-    if trip is not None and trip.name in ("logger_failed", "logger_stalled"):
+    if trip is not None and trip.name in ("logger_failed", "logger_stalled", "logger_died"):
         out_q.cancel_join_thread()  # nobody may read the queue any more: never wait for it at exit
     confirmed = False
     try:

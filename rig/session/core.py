@@ -355,7 +355,9 @@ def warm_up_writer(writer) -> None:
 
 
 class _WriterMonitor:
-    """A thread that watches the log writer while the trial runs: when it fails (disk full, a write
+    """A thread that beats the backend's logger heartbeat (``backend.heartbeat()``, at
+    ``backend.heartbeat_priority`` SCHED_FIFO when permitted) and watches the log writer while the
+    trial runs: when it fails (disk full, a write
     error, its thread dead) the backend is told at once (``fail_stop``: the hardware loop nulls and
     disables the valve at its next tick), without waiting for the next block. When a write hangs
     for ``hang_exit_s`` (a dead disk), the backend is stopped the same way and, once it has had
@@ -386,7 +388,18 @@ class _WriterMonitor:
 
     def _run(self) -> None:
         s = self.s
+        beat = getattr(s.backend, "heartbeat", None)
+        prio = getattr(s.backend, "heartbeat_priority", None)
+        if beat is not None and prio:
+            try:  # the heartbeat must not wait behind the machine's other work (this thread only)
+                import os
+
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(prio))
+            except (OSError, AttributeError):
+                pass
         while not self._stop.wait(self.poll_s):
+            if beat is not None:
+                beat()
             why = writer_failure(s.writer)
             if why:
                 self._fail(why)

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import queue as queue_mod
+import time
 
 import numpy as np
 
@@ -52,6 +53,7 @@ class HardwareBackend:
             self.hw = emulator.hw  # the emulated rig's private CAN channel
         self._own_emulator = None
         self.logger_ack = None
+        self.logger_alive = None
         self._blocks_logged = 0
         self.lubricant, self.normal_force_N, self.seed = lubricant, normal_force_N, seed
         self.controller = controller
@@ -67,6 +69,12 @@ class HardwareBackend:
         self._realtime: dict | None = None
         self._t_last = 0.0
         self._stop_reason: str | None = None
+
+    @property
+    def heartbeat_priority(self) -> int | None:
+        """SCHED_FIFO priority of the session's heartbeat thread (below the loop's), None: not real-time."""
+        rt = self.hw.realtime
+        return max(1, rt.priority - 20) if rt.sched_fifo else None
 
     def describe(self) -> dict:
         return {"loadcells": self.hw.loadcells.address_text, "lvdt": self.hw.lvdt.address_text,
@@ -93,10 +101,11 @@ class HardwareBackend:
         self.q = ctx.Queue()
         self.abort = ctx.Value("i", 0, lock=False)
         self.logger_ack = ctx.Value("q", 0, lock=False)
+        self.logger_alive = ctx.Value("d", 0.0, lock=False)
         self.proc = ctx.Process(target=loop_main, name="rig-rt-loop", daemon=True,
                                 args=(self.hw.model_dump(), self.profile, x_ref, self.q, self.abort,
                                       {"period_s": 1.0 / self.rate_hz, "controller": self.controller},
-                                      self.logger_ack))
+                                      self.logger_ack, self.logger_alive))
         self.proc.start()
 
     # -- run -------------------------------------------------------------------
@@ -144,6 +153,12 @@ class HardwareBackend:
         self._blocks_logged += 1
         if self.logger_ack is not None:
             self.logger_ack.value = self._blocks_logged
+
+    def heartbeat(self) -> None:
+        """The logger is alive (the session's monitor thread, every few ms): the loop trips when the
+        heartbeat is older than ``interlocks.logger_heartbeat_s`` (a killed logger stops at once)."""
+        if self.logger_alive is not None:
+            self.logger_alive.value = time.monotonic()
 
     def fail_stop(self, reason: str) -> None:
         """The session failed (its log): the loop nulls and disables the valve at its next tick (no hold).
