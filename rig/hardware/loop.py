@@ -18,9 +18,18 @@ time; the parent (:class:`rig.session.hardware.HardwareBackend`) logs them.
 The loop's own stop states (:class:`Mode`): ``RUN`` -> ``HOLD`` (operator
 abort: the reference frozen where it was, for ``stop_hold_s``) -> ``SAFE``
 (valve nulled and disabled; the sensors are still logged for ``stop_hold_s``
-after a process-limit trip, one tick after a device trip) -> end. The end of
-the plan goes from ``RUN`` to ``SAFE`` for the last tick. Parent death
-(PR_SET_PDEATHSIG -> SIGTERM) is an abort.
+after a process-limit trip, one tick after a device trip) -> end, where the
+valve's ``safe_stop()`` confirms it. The end of the plan goes from ``RUN`` to
+``SAFE`` for the last tick.
+
+Trial time is the reference's: the reference index advances by one per
+executed tick, so across a stall (skipped deadlines) the reference resumes
+where it was instead of jumping; each stall is a ``stall`` event, a long one a
+``loop_stall`` trip. The session talks to the loop through shared values:
+``abort_flag`` (operator abort: hold then safe; session failure, e.g. its log:
+safe at once), ``logger_ack`` (blocks logged: ``logger_stalled`` when they stop)
+and ``logger_alive`` (the logger's heartbeat: ``logger_died`` when it stops;
+PR_SET_PDEATHSIG -> SIGTERM with the parent gone is the same trip).
 """
 
 from __future__ import annotations
@@ -280,7 +289,7 @@ def _run(hw_dict, profile, x_ref, out_q, abort_flag, stop_req, options, logger_a
                 mode = Mode.SAFE
         if mode is Mode.SAFE or not use_ctl:
             cmd = p = i_ = d_ = dz = 0.0
-        else:  # noqa: PLR5501
+        else:
             cmd, p, i_, d_, dz = controller_step(cpar, cst, xr, x)
             s_ = cmd + p + i_ + d_ + dz
             if s_ - s_ != 0.0:  # a non-finite controller output: never sent (the driver would null it)
