@@ -167,3 +167,26 @@ def test_port_vanishes_mid_run_trips_device_lost(rig_env):
     assert res.summary["trip"]["name"] == "device_lost"
     assert "LVDT conditioner at serial:" in trip["message"]
     assert trip["values"]["address"].startswith("serial:")
+
+
+def test_a_hung_log_writer_trips_logger_stalled(rig_env):
+    """The writer blocks (a dead disk): the loop stops taking the session's word for it after
+    logger_timeout_s (1 s) of unacknowledged blocks and goes to the safe state by itself."""
+    _clear(rig_env.emu)
+    w = MemWriter(0.3, lambda: time.sleep(1.6))
+    res = _run(rig_env, np.full(4000, 500.0), w)
+    assert res.status == "failed" and res.summary["trip"]["name"] == "logger_stalled", res.reason
+    _safe_state(rig_env.emu)
+
+
+def test_a_failed_log_writer_stops_the_loop_at_once(rig_env):
+    """The writer reports a failure (its thread hit a full disk): the session's monitor sets the fail
+    flag and the loop goes to the safe state without the operator-abort hold."""
+    _clear(rig_env.emu)
+    w = MemWriter()
+    w.failure = lambda: "OSError: [Errno 28] No space left on device" if w.ticks >= 500 else None
+    res = _run(rig_env, np.full(4000, 500.0), w)
+    assert res.status == "failed" and res.summary["trip"]["name"] == "logger_failed", res.reason
+    assert w.ticks < 1500  # stopped soon after, not at the end of the plan
+    assert not any(e["kind"] == "abort" for e in w.events)  # no hold
+    _safe_state(rig_env.emu)

@@ -356,8 +356,10 @@ def _run(hw_dict, profile, x_ref, out_q, abort_flag, stop_req, options, logger_a
         valve.write(mono())
     except DeviceError:
         pass
-    if trip is not None and trip.name in ("logger_failed", "logger_stalled", "logger_died"):
-        out_q.cancel_join_thread()  # nobody may read the queue any more: never wait for it at exit
+    if trip is not None and trip.name == "logger_died" and os.getppid() != parent:
+        # nobody reads the queue any more: never wait for it at exit (only then: cancelling can leave a
+        # half-written message in the pipe, which would block a reader that is still there)
+        out_q.cancel_join_thread()
     confirmed = False
     try:
         confirmed = valve.safe_stop()
