@@ -190,9 +190,10 @@ class InterlockConfig(StrictModel):
     max_velocity_um_s: float = Field(default=1000.0, gt=0, description="velocity at which FERROR applies")
     logger_timeout_s: float = Field(default=1.0, gt=0,
                                     description="the logger has not taken a block for this long: trip")
-    logger_heartbeat_s: float = Field(default=0.03, gt=0,
-                                      description="no heartbeat from the logger process for this long: trip "
-                                                  "(a killed logger: its teardown delays PDEATHSIG by ~80 ms)")
+    logger_heartbeat_s: float = Field(default=0.02, gt=0,
+                                      description="no heartbeat from the logger for this long and the logger "
+                                                  "process exiting: trip (a killed logger's teardown delays "
+                                                  "PDEATHSIG by ~80 ms)")
     stop_hold_s: float = Field(default=0.2, ge=0, description="time logged in the safe state")
 
 

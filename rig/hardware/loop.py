@@ -111,6 +111,18 @@ def loop_main(hw_dict, profile, x_ref_um, out_q, abort_flag, options=None, logge
                             "traceback": traceback.format_exc()}))
 
 
+def _process_exiting(pid: int) -> bool:
+    """Is process ``pid`` gone or dying (PF_EXITING in /proc/PID/stat, zombie)? A killed process is
+    marked exiting at once, while the kernel still tears down its memory (~80 ms for the logger)
+    before its children get their PR_SET_PDEATHSIG; a merely slow logger is not exiting."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            rest = f.read().rsplit(b")", 1)[1].split()
+    except (OSError, IndexError):
+        return True
+    return rest[0] in (b"Z", b"X") or bool(int(rest[6]) & 0x4)  # state, flags & PF_EXITING
+
+
 def _device_counters(devices) -> dict:
     out = {}
     for d in devices:
@@ -265,7 +277,7 @@ def _run(hw_dict, profile, x_ref, out_q, abort_flag, stop_req, options, logger_a
                               {"blocks_sent": len(sent_t), "blocks_logged": ack, "timeout_s": log_timeout})
             if tr is None and logger_alive is not None:
                 hb = logger_alive.value
-                if hb > 0.0 and not (wake - hb <= log_hb):
+                if hb > 0.0 and not (wake - hb <= log_hb) and _process_exiting(parent):
                     tr = Trip("logger_died", f"no heartbeat from the logger for {(wake - hb) * 1e3:.0f} ms "
                               f"(limit {log_hb * 1e3:g} ms)", t_s, {"age_s": wake - hb, "limit_s": log_hb})
             if tr is None:
