@@ -160,15 +160,6 @@ def test_stroke_limit_trips_and_holds(rig_env):
     assert pos.max() < 545.0  # stopped within a few hundred ms of travel
 
 
-def test_port_vanishes_mid_run_trips_device_lost(rig_env):
-    # last test of the module: the emulator's LVDT is gone afterwards
-    x = np.full(3000, 500.0)
-    res, trip, w, _ = _run_with_fault(rig_env, x, lambda emu: emu.inject("lvdt", "vanish", True))
-    assert res.summary["trip"]["name"] == "device_lost"
-    assert "LVDT conditioner at serial:" in trip["message"]
-    assert trip["values"]["address"].startswith("serial:")
-
-
 def test_a_hung_log_writer_trips_logger_stalled(rig_env):
     """The writer blocks (a dead disk): the loop stops taking the session's word for it after
     logger_timeout_s (1 s) of unacknowledged blocks and goes to the safe state by itself."""
@@ -190,3 +181,12 @@ def test_a_failed_log_writer_stops_the_loop_at_once(rig_env):
     assert w.ticks < 1500  # stopped soon after, not at the end of the plan
     assert not any(e["kind"] == "abort" for e in w.events)  # no hold
     _safe_state(rig_env.emu)
+
+
+def test_port_vanishes_mid_run_trips_device_lost(rig_env):
+    # last test of the module: the emulator's LVDT is gone afterwards
+    x = np.full(3000, 500.0)
+    res, trip, w, _ = _run_with_fault(rig_env, x, lambda emu: emu.inject("lvdt", "vanish", True))
+    assert res.summary["trip"]["name"] == "device_lost"
+    assert "LVDT conditioner at serial:" in trip["message"]
+    assert trip["values"]["address"].startswith("serial:")
