@@ -16,8 +16,8 @@ Dupont & Dunlap (1995, section 3) and how the real-time loop guards them:
   (+-0.6 N), read over Modbus TCP or RTU in one request;
 * ``lvdt``: the LVDT conditioner (5 mm stroke, 0.076 µm quantization step)
   streaming frames over a serial line (format in :mod:`drivers.lvdt`);
-* ``valve``: the servovalve controller on a CAN bus (setpoint every tick,
-  enable/disable, status with fault bits and heartbeat; :mod:`drivers.valve`);
+* ``valve``: the servovalve controller on CANopen (NMT, heartbeats, SYNC + set-point
+  RPDO every tick, status TPDO with the actual spool, EMCY; :mod:`drivers.valve`);
 * ``interlocks``: limits and staleness thresholds checked every tick;
 * ``realtime``: scheduling of the loop process;
 * ``emulators``: whether ``rig run --hardware`` starts the emulators itself.
@@ -116,42 +116,84 @@ class LvdtConfig(StrictModel):
         return f"serial:{self.port}@{self.baudrate}"
 
 
-class ValveConfig(StrictModel):
-    """Servovalve controller on CAN (:mod:`drivers.valve`)."""
+class CanopenValveConfig(StrictModel):
+    """The servovalve controller on CANopen (CiA 301 + a CiA 408 subset; :mod:`drivers.valve`).
 
-    interface: Literal["udp_multicast", "virtual", "socketcan"] = "socketcan"
-    channel: str = "can0"
-    port: int | None = Field(default=None, description="udp_multicast UDP port")
-    node_id: int = Field(default=1, ge=1, le=127)
-    heartbeat_timeout_s: float = Field(default=0.05, gt=0)
+    ``interface``: ``rig_unix`` (the machine-local bus of :mod:`drivers.canopen_bus`,
+    the emulated rig), ``socketcan`` (the real rig), ``virtual`` (one process). The
+    heartbeat, set-point watchdog and follow figures are written to the valve by SDO
+    at connect; ``follow_max`` / ``follow_time_s``: the valve's reported spool must
+    stay within ``follow_max`` (fraction of full scale) of the commanded one, or the
+    host trips after ``follow_time_s`` (defaults catch a valve ignoring its
+    set-points within 100 ms).
+    """
+
+    interface: Literal["rig_unix", "virtual", "socketcan"] = "rig_unix"
+    channel: str = Field(default="rig", pattern=r"^[A-Za-z0-9._-]{1,64}$",
+                         description="rig_unix: one name per rig (two rigs on one host use two names)")
+    node_id: int = Field(default=1, ge=1, le=126)
+    host_node_id: int = Field(default=127, ge=1, le=127, description="the host's heartbeat 0x700+id")
+    heartbeat_period_s: float = Field(default=0.01, gt=0, description="both sides' heartbeat period")
+    heartbeat_timeout_s: float = Field(default=0.05, gt=0, description="a heartbeat older than this is lost")
+    watchdog_s: float = Field(default=0.02, gt=0, description="valve nulls without a set-point this long")
+    tpdo_timeout_s: float = Field(default=0.05, gt=0, description="host: no TPDO this long is unhealthy")
+    follow_max: float = Field(default=0.1, gt=0, description="|spool command - actual|, full scale")
+    follow_time_s: float = Field(default=0.05, gt=0, description="... for longer than this is unhealthy")
+    connect_timeout_s: float = Field(default=2.0, gt=0)
+    start_timeout_s: float = Field(default=1.0, gt=0, description="NMT start + reset + enable, verified")
 
     @property
     def address_text(self) -> str:
-        extra = f":{self.port}" if self.port else ""
-        return f"can-{self.interface}:{self.channel}{extra} node {self.node_id}"
+        return f"canopen-{self.interface}:{self.channel} node {self.node_id}"
 
 
 class InterlockConfig(StrictModel):
     """Trip thresholds, checked every tick (:mod:`rig.hardware.interlocks`).
 
     Stroke limits default to the profile's stroke when not given (the paper's
-    LVDT and actuator allow 5 mm).
+    LVDT and actuator allow 5 mm). Every limit is written so that a value not
+    provably inside it (NaN included) trips.
+
+    Following error (always on), as LinuxCNC's ``FERROR`` / ``MIN_FERROR``:
+    ``limit = max(min_following_error_um, following_error_um * |v_ref| / max_velocity_um_s)``
+    with ``v_ref`` the reference velocity of the tick.
+
+    Timing health: a stall (no tick for longer than ``stall_event_s``) is a
+    ``stall`` event, longer than ``stall_trip_s`` a trip; skipped cycles above
+    ``max_skipped_fraction`` of the last second trip; per device, lost frames or
+    missed answers (``max_lost_frames``), bad checksums (``max_checksum_errors``)
+    and stream garbage (``max_garbage_bytes``) within one second trip.
     """
 
     stroke_min_um: float | None = None
     stroke_max_um: float | None = None
-    friction_max_N: float = 200.0
+    friction_max_N: float = Field(default=200.0, gt=0)
     normal_min_N: float = 5.0
     normal_max_N: float = 500.0
     stale_s: float = Field(default=0.005, gt=0, description="sensor data older than this trips")
-    max_checksum_errors: int = Field(default=50, ge=0, description="serial frames rejected in a run")
+    max_checksum_errors: int = Field(default=50, ge=0, description="frames with a bad checksum within 1 s")
+    max_lost_frames: int = Field(default=50, ge=0,
+                                 description="lost frames (sequence gaps) or missed answers within 1 s")
+    max_garbage_bytes: int = Field(default=1000, ge=0, description="bytes skipped on a stream within 1 s")
     max_modbus_errors: int = Field(default=3, ge=1, description="consecutive exceptions/timeouts")
     max_can_errors: int = Field(default=3, ge=1, description="consecutive CAN send errors")
     max_consecutive_late: int = Field(default=10, ge=1,
                                       description="run of cycles more than late_threshold_s late")
-    late_threshold_s: float = 0.001
-    max_following_error_um: float | None = Field(default=None,
-                                                 description="|x_ref - x| trip; None: off")
+    late_threshold_s: float = Field(default=0.001, gt=0)
+    stall_event_s: float = Field(default=0.005, gt=0, description="a gap between ticks longer than this: event")
+    stall_trip_s: float = Field(default=0.05, gt=0, description="... longer than this: trip")
+    max_skipped_fraction: float = Field(default=0.02, ge=0, le=1,
+                                        description="skipped cycles within the last second, fraction")
+    following_error_um: float = Field(default=200.0, gt=0,
+                                      description="FERROR: |x_ref - x| limit at max_velocity_um_s")
+    min_following_error_um: float = Field(default=50.0, gt=0, description="MIN_FERROR: the limit at rest")
+    max_velocity_um_s: float = Field(default=1000.0, gt=0, description="velocity at which FERROR applies")
+    logger_timeout_s: float = Field(default=1.0, gt=0,
+                                    description="the logger has not taken a block for this long: trip")
+    logger_heartbeat_s: float = Field(default=0.02, gt=0,
+                                      description="no heartbeat from the logger for this long and the logger "
+                                                  "process exiting: trip (a killed logger's teardown delays "
+                                                  "PDEATHSIG by ~80 ms)")
     stop_hold_s: float = Field(default=0.2, ge=0, description="time logged in the safe state")
 
 
@@ -172,15 +214,13 @@ class EmulatorConfig(StrictModel):
     normal_force_N: float | None = None
     sched_fifo: bool = True
     priority: int = Field(default=70, ge=1, le=99)
-    status_period_s: float = 0.01
-    watchdog_s: float = Field(default=0.02, gt=0, description="valve nulls after this silence")
     run_dir: str = "/tmp/rig-emulated"
 
 
 class HardwareConfig(StrictModel):
     loadcells: LoadCellConfig
     lvdt: LvdtConfig
-    valve: ValveConfig
+    valve: CanopenValveConfig
     interlocks: InterlockConfig = InterlockConfig()
     realtime: RealtimeConfig = RealtimeConfig()
     emulators: EmulatorConfig = EmulatorConfig()

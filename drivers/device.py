@@ -16,7 +16,7 @@ The interlocks see :class:`DeviceHealth` only, never a driver's internals.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from typing import Protocol, runtime_checkable
 
 
@@ -31,7 +31,9 @@ class DeviceHealth:
     ticks without new data (with ``age_s``: a stall of the machine is not a
     dead device); ``errors`` failed requests or sends, ``consecutive_errors``
     the current run of them; ``status`` the device's status word and
-    ``fault`` its fault bit(s) set; ``fault_code`` what it says about it.
+    ``fault`` its fault bit(s) set; ``fault_code`` what it says about it;
+    ``problems`` what the device's own checks found, as ``(trip name, sentence)``
+    pairs (e.g. the servovalve's foreign frames, watchdog, following); each trips.
     """
 
     device: str                 # "LVDT conditioner", "load-cell conditioner", "servovalve controller"
@@ -47,6 +49,7 @@ class DeviceHealth:
     status: int = 0
     fault: bool = False
     fault_code: int = 0
+    problems: list = field(default_factory=list)  # (trip name, sentence): each must trip the loop
 
     def as_dict(self) -> dict:
         return asdict(self)

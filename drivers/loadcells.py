@@ -22,10 +22,23 @@ friction +-0.25 N, normal forces +-0.6 N).
 
 Staleness: the age of the data is the time since the sample counter last
 changed (or since the last good read if there is no counter).
+
+Pipelined (``LoadCellReader(cfg, pipelined=True)``, Modbus TCP; what the 1 kHz
+loop uses): no blocking request inside the tick. ``read(now)`` collects the
+answer to the request sent one tick earlier from a non-blocking socket, then
+sends the next request at once, so the conditioner answers while the loop
+does its other work and the forces are one tick older than a blocking read's.
+Each request has its own MBAP transaction id: a late answer is recognised and
+dropped, never taken for the next one. A tick whose answer has not arrived
+counts one missed answer (``frames_lost``, so a slow conditioner shows as a
+rate); no answer within ``timeout_s`` is an error (``consecutive_errors``)
+and the request is sent again; a closed connection raises at once.
 """
 
 from __future__ import annotations
 
+import errno
+import socket
 import struct
 import time
 
@@ -70,8 +83,16 @@ class LoadCellReader:
 
     name = "loadcells"
 
-    def __init__(self, cfg: LoadCellConfig):
+    def __init__(self, cfg: LoadCellConfig, pipelined: bool = False):
         self.cfg = cfg
+        self.pipelined = pipelined and cfg.transport == "tcp"
+        self._sock: socket.socket | None = None
+        self._rx = bytearray()
+        self._tid = 0
+        self._out_tid: int | None = None   # transaction id of the request in flight
+        self._out_t = 0.0
+        self.late_answers = 0              # answers that came after their request timed out
+        self.missed = 0                    # ticks whose answer had not arrived (frames_lost)
         self.address = cfg.address_text
         self._health = DeviceHealth(DEVICE, self.address)
         self.forces_N: tuple[float, float, float] = (float("nan"),) * 3
@@ -88,6 +109,9 @@ class LoadCellReader:
 
     # -- lifecycle -----------------------------------------------------------------
     def connect(self) -> None:
+        if self.pipelined:
+            self._connect_socket()
+            return
         import logging
 
         from pymodbus.client import ModbusSerialClient, ModbusTcpClient
@@ -111,7 +135,29 @@ class LoadCellReader:
             raise DeviceError(DEVICE, self.address, "cannot connect (refused or no such port)")
         self._last_change_t = time.monotonic()
 
+    def _connect_socket(self) -> None:
+        c = self.cfg
+        try:
+            sk = socket.create_connection((c.host, c.port), timeout=max(0.5, c.timeout_s))
+        except OSError as exc:
+            raise DeviceError(DEVICE, self.address, f"cannot connect: {exc}") from exc
+        sk.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        sk.setblocking(False)
+        self._sock = sk
+        self._rx.clear()
+        self._out_tid = None
+        fc = 4 if c.register_type == "input" else 3
+        self._req_tail = struct.pack(">HHBBHH", 0, 6, c.device_id, fc, self._first, self._count)
+        self._fc = fc
+        self._last_change_t = time.monotonic()
+
     def close(self) -> None:
+        if self._sock is not None:
+            try:
+                self._sock.close()
+            except OSError:
+                pass
+            self._sock = None
         if self._client is not None:
             try:
                 self._client.close()
@@ -170,10 +216,90 @@ class LoadCellReader:
                            self.cfg.word_order)
         return raw * cal.scale + cal.offset - cal.tare_N
 
+    # -- pipelined Modbus TCP ----------------------------------------------------------
+    def _send_request(self, now: float) -> None:
+        self._tid = (self._tid + 1) & 0xFFFF
+        try:
+            self._sock.send(struct.pack(">H", self._tid) + self._req_tail)
+        except OSError as exc:
+            self._error()
+            raise DeviceError(DEVICE, self.address, f"connection lost: {exc}") from exc
+        self._out_tid, self._out_t = self._tid, now
+
+    def _collect(self, now: float) -> list[int] | None:
+        """The answer to the request in flight if it has arrived (registers), else None."""
+        try:
+            while True:
+                chunk = self._sock.recv(4096)
+                if not chunk:
+                    raise DeviceError(DEVICE, self.address, "connection lost (closed by the conditioner)")
+                self._rx += chunk
+        except BlockingIOError:
+            pass
+        except OSError as exc:
+            if exc.errno not in (errno.EAGAIN, errno.EWOULDBLOCK):
+                raise DeviceError(DEVICE, self.address, f"connection lost: {exc}") from exc
+        rx = self._rx
+        regs = None
+        while len(rx) >= 8:
+            tid, _pid, ln = struct.unpack_from(">HHH", rx)
+            if ln < 2 or ln > 260:
+                rx.clear()  # not Modbus: drop what we have, the request will time out
+                break
+            if len(rx) < 6 + ln:
+                break
+            frame = bytes(rx[6:6 + ln])
+            del rx[:6 + ln]
+            if tid != self._out_tid:
+                self.late_answers += 1  # an answer to a request that timed out: never used
+                continue
+            self._out_tid = None
+            fc = frame[1]
+            if fc & 0x80:
+                self._error()
+                raise DeviceError(DEVICE, self.address, f"Modbus exception response (code {frame[2]})",
+                                  kind="protocol")
+            nbytes = frame[2] if len(frame) > 2 else 0
+            if fc != self._fc or nbytes != 2 * self._count or len(frame) != 3 + nbytes:
+                self._error()
+                raise DeviceError(DEVICE, self.address, f"short or malformed response ({len(frame)} bytes)",
+                                  kind="protocol")
+            regs = list(struct.unpack_from(f">{self._count}H", frame, 3))
+        return regs
+
+    def _read_pipelined(self, now: float) -> list[int] | None:
+        if self._sock is None:
+            raise DeviceError(DEVICE, self.address, "not connected")
+        regs = None
+        try:
+            if self._out_tid is not None:
+                regs = self._collect(now)
+                if regs is None:
+                    if now - self._out_t > self.cfg.timeout_s:
+                        self._out_tid = None
+                        self._error()
+                        raise DeviceError(DEVICE, self.address,
+                                          f"no answer within {self.cfg.timeout_s * 1e3:g} ms")
+                    self.missed += 1
+                    self.reads_since_new += 1
+        finally:
+            if self._out_tid is None and self._sock is not None:
+                self._send_request(now)  # the next request goes out now, answered while the loop works
+        if regs is not None:
+            self.consecutive_errors = 0
+            self.n_reads += 1
+        return regs
+
     def read(self, now: float | None = None) -> tuple[float, float, float]:
         """One request: ``forces_N`` = (friction_N, normal_1_N, normal_2_N), calibrated and tared
-        (also returned)."""
-        regs = self.read_raw()
+        (also returned). Pipelined: the answer to the previous tick's request, if it has arrived."""
+        if self.pipelined:
+            now = time.monotonic() if now is None else now
+            regs = self._read_pipelined(now)
+            if regs is None:
+                return self.forces_N
+        else:
+            regs = self.read_raw()
         now = time.monotonic() if now is None else now
         c = self.cfg
         if c.counter_address is not None:
@@ -199,6 +325,7 @@ class LoadCellReader:
     def health(self, now: float | None = None) -> DeviceHealth:
         h = self._health
         h.frames_ok, h.errors, h.consecutive_errors = self.n_reads, self.n_errors, self.consecutive_errors
+        h.frames_lost = self.missed
         h.age_s = self.age_s(now)
         h.polls_since_new = self.reads_since_new
         h.status = self.status

@@ -26,6 +26,7 @@ naming the port.
 from __future__ import annotations
 
 import binascii
+import os
 import struct
 import time
 
@@ -122,6 +123,12 @@ class LvdtReader:
             self._ser = serial.Serial(self.cfg.port, self.cfg.baudrate, timeout=0)
         except Exception as exc:  # noqa: BLE001 - SerialException, OSError
             raise DeviceError(DEVICE, self.address, f"cannot open port: {exc}") from exc
+        # per tick: one non-blocking read(2) on the port's descriptor (pyserial's in_waiting + read
+        # cost ~35 µs a tick; this ~3 µs); pyserial configured the line (baud rate, raw mode)
+        import fcntl
+
+        self._fd = self._ser.fileno()
+        fcntl.fcntl(self._fd, fcntl.F_SETFL, fcntl.fcntl(self._fd, fcntl.F_GETFL) | os.O_NONBLOCK)
         self.last_frame_t = time.monotonic()
 
     def close(self) -> None:
@@ -137,15 +144,20 @@ class LvdtReader:
             self._ser.reset_input_buffer()
             self.parser.buf.clear()
 
+    _fd = -1
+
     def poll(self, now: float | None = None) -> int:
         """Read what arrived, keep the newest good frame; returns the number of good frames."""
         if self._ser is None:
             raise DeviceError(DEVICE, self.address, "not open")
         try:
-            n = self._ser.in_waiting
-            data = self._ser.read(n) if n else b""
-        except Exception as exc:  # noqa: BLE001 - port vanished
+            data = os.read(self._fd, 65536)
+        except BlockingIOError:
+            data = b""
+        except Exception as exc:  # noqa: BLE001 - port vanished (EIO once the other end is gone)
             raise DeviceError(DEVICE, self.address, f"port lost: {exc}") from exc
+        if not data and self._ser is not None and not os.path.exists(self.cfg.port):
+            raise DeviceError(DEVICE, self.address, "port lost: the device vanished")
         if not data:
             self.polls_since_frame += 1
             return 0

@@ -1,188 +1,491 @@
-"""Servovalve controller on CAN (python-can).
+"""Servovalve controller on CANopen (CiA 301 + a subset of the CiA 408 fluid-power profile).
 
-Frames (11-bit ids, ``n`` = ``node_id``; multi-byte fields little-endian):
+The host is the bus's one NMT master and SYNC producer; the valve controller is node
+``node_id`` with the object dictionary ``drivers/eds/servovalve.eds``. Everything goes
+through the ``canopen`` package (Network, RemoteNode, PDO maps read from the EDS, NMT,
+EMCY consumer, SDO, SYNC) over a python-can bus; the default bus is the machine-local
+:class:`drivers.canopen_bus.UnixCanBus` (AF_UNIX only, nothing binds an IP address).
 
-==========  ======  =============================================================
-id          dlc     content
-==========  ======  =============================================================
-0x200 + n   4       setpoint, sent every tick: int16 command (+-32767 = +-1.0
-                    full-scale spool), uint8 sequence, uint8 flags (bit0 enable)
-0x100 + n   2       command: byte0 = 0x01 enable, 0x02 disable, 0x03 clear fault
-0x180 + n   6       status (controller -> host, every 10 ms and after a command):
-                    byte0 bits (bit0 enabled, bit1 fault, bit2 watchdog nulled,
-                    bit3 output at null), byte1 heartbeat counter (+1 each frame),
-                    int16 actual spool output, uint16 fault code
-==========  ======  =============================================================
+Objects used (the CiA 408 subset; ``n`` = node id, ``h`` = host id)
+-------------------------------------------------------------------
+The indexes follow CiA 408 (device control/status word, spool set-point/actual
+value); the bits inside the control and status words are this project's simplified
+assignment (``CW_*``, ``SW_*`` below), not the profile's full device state machine.
 
-The controller nulls its output by itself when setpoints stop (watchdog), so a
-dead host cannot leave the valve open. The host trips when the status shows a
-fault or when no status arrived within ``heartbeat_timeout_s``.
+==============  =======================================================================
+0x1000          device type 0x00000198 (profile 408), checked by SDO at connect
+0x1016:01       consumer heartbeat time: ``h << 16 | ms`` (written by SDO at connect)
+0x1017          producer heartbeat time, ms (written by SDO at connect)
+0x2003          set-point watchdog time, ms (written by SDO at connect)
+0x6040          device control word (bit0 enable, bit3 fault reset), RPDO1
+0x6041          device status word, TPDO1 (``SW_*`` bits below)
+0x6300:01       spool position set-point, int16 (+-16384 = +-100 %), RPDO1
+0x6301:01       spool position actual value, int16, TPDO1
+0x2000          set-point counter, u8, +1 every tick, RPDO1
+0x2001          accepted set-point counter (echo of the counter applied), TPDO1
+0x2002          rejected frame counter (foreign/malformed frames the valve saw), TPDO1
+==============  =======================================================================
+
+Frames: RPDO1 ``0x200+n`` (5 bytes: set-point, control word, counter, transmission
+type 1 = applied at the next SYNC); SYNC ``0x080`` with a counter 1..240; TPDO1
+``0x180+n`` (6 bytes, sent by the valve on every SYNC while OPERATIONAL); heartbeats
+``0x700+n`` (valve) and ``0x700+h`` (host); EMCY ``0x080+n``.
+
+The valve's rules (see :mod:`drivers.emulators.valve_controller`): it enters
+OPERATIONAL only on the host's NMT start and then starts disabled; it follows only
+while enabled (an enable *rising edge* of the control word); it nulls, disables and
+latches ``SW_RESET_REQUIRED`` on a fault, on a set-point watchdog (no RPDO within
+0x2003), on a lost host heartbeat (then also leaves OPERATIONAL) and on a protocol
+error (a second set-point within one SYNC period, a counter out of sequence, a
+wrong-length PDO); each of these sends an EMCY. Only the control word's fault-reset
+bit clears the latch, then enable must go low and high again.
+
+Host API (what the real-time loop calls)
+----------------------------------------
+``v = CanopenValve(cfg)``; ``v.connect()`` (bus, valve heartbeat, SDO checks and
+configuration); ``v.start()`` (NMT start, fault reset, enable, verified by TPDO);
+each tick ``st = v.read()`` then ``v.write(setpoint)`` (RPDO + SYNC, + host heartbeat
+when due; setpoint in [-1, 1], saturated, NaN -> 0 and counted); ``v.health()`` ->
+list of problems (empty = healthy; any entry should trip); ``v.safe_stop()`` nulls
+and disables and returns True only when a TPDO (or the valve leaving OPERATIONAL)
+confirms it; ``v.close()``. Nothing here blocks inside ``read``/``write``: frames are
+drained with ``recv(0)`` and dispatched to canopen on the caller's thread.
+
+For the loop integrator: per tick ``st = v.read()``; ``probs = v.health()``; trip on
+any entry of ``probs`` (it covers foreign/malformed frames, EMCY/fault, watchdog,
+lost heartbeat, not OPERATIONAL/not enabled, stale TPDO, a spool that does not
+follow its command for ``follow_time_s``, non-finite set-points); else
+``v.write(cmd)``. On a trip: ``v.safe_stop()`` (returns whether the valve confirmed)
+and never ``start()`` again by itself: ``start()`` is the explicit reset (operator
+action). ``st.spool_actual`` vs ``st.spool_command_echoed`` is the valve's own
+following; ``st.enabled``, ``st.watchdog_tripped``, ``st.nulled``, ``st.fault``,
+``st.reset_required``, ``st.emcy`` are the valve's bits. In the emulated rig, the
+emulator's ``on_sync(spool)`` callback steps the plant (lock step with SYNC); when
+no SYNC arrives (``em.n_sync`` unchanged after ``em.poll``) the plant free-runs with
+``em.spool`` (which the watchdog/heartbeat consumer null).
+
+Limits: CAN has no sender address, so a foreign node is detected by what only the
+master sends (NMT, SYNC, RPDO, the host heartbeat), by what only the valve sends
+arriving too often (more TPDOs than SYNCs), by COB-IDs nobody should use, and by the
+valve's counter checks; not prevented. The transport keeps all of it on one machine.
 """
 
 from __future__ import annotations
 
+import math
 import struct
+import threading
 import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
 
-from drivers.config import ValveConfig
+from drivers.config import CanopenValveConfig
 from drivers.errors import DeviceError
 
 DEVICE = "servovalve controller"
-CMD_ENABLE, CMD_DISABLE, CMD_CLEAR_FAULT = 0x01, 0x02, 0x03
-ST_ENABLED, ST_FAULT, ST_WATCHDOG, ST_NULL = 0x01, 0x02, 0x04, 0x08
-FULL_SCALE = 32767
+EDS_PATH = Path(__file__).with_name("eds") / "servovalve.eds"
+DEVICE_TYPE_408 = 0x00000198
+FULL_SCALE = 16384  # CiA 408: 0x4000 = 100 %
+
+# control word 0x6040
+CW_ENABLE, CW_FAULT_RESET = 0x0001, 0x0008
+# status word 0x6041
+SW_ENABLED, SW_FAULT, SW_WATCHDOG, SW_NULL, SW_RESET_REQUIRED, SW_HEARTBEAT_LOST, SW_PROTOCOL = (
+    0x0001, 0x0002, 0x0004, 0x0008, 0x0010, 0x0020, 0x0040)
+
+# EMCY codes (CiA 301 / device specific)
+EMCY_DEVICE_HW = 0x5000      # device hardware fault
+EMCY_PROTOCOL = 0x8200       # protocol error: foreign set-point, counter out of sequence
+EMCY_PDO_LENGTH = 0x8210     # PDO not processed due to length error
+EMCY_HEARTBEAT = 0x8130      # life guard / heartbeat error
+EMCY_RPDO_TIMEOUT = 0x8250   # RPDO timeout (set-point watchdog)
+
+RPDO_FMT = struct.Struct("<hHB")   # set-point, control word, counter
+TPDO_FMT = struct.Struct("<hHBB")  # actual, status word, accepted counter, rejected frames
+SYNC_COB, NMT_COB = 0x080, 0x000
+SYNC_OVERFLOW = 240
+RECENT = 128  # ticks of set-points the host remembers to check the valve's counter echo (half of u8)
 
 
-def setpoint_id(node: int) -> int:
-    return 0x200 + node
-
-
-def command_id(node: int) -> int:
-    return 0x100 + node
-
-
-def status_id(node: int) -> int:
-    return 0x180 + node
-
-
-def encode_setpoint(cmd: float, seq: int, enable: bool = True) -> bytes:
-    v = int(round(max(-1.0, min(1.0, cmd)) * FULL_SCALE))
-    return struct.pack("<hBB", v, seq & 0xFF, 1 if enable else 0)
-
-
-def decode_setpoint(data: bytes) -> tuple[float, int, int]:
-    v, seq, flags = struct.unpack("<hBB", bytes(data[:4]))
-    return v / FULL_SCALE, seq, flags
-
-
-def encode_status(bits: int, heartbeat: int, output: float, fault_code: int = 0) -> bytes:
-    v = int(round(max(-1.0, min(1.0, output)) * FULL_SCALE))
-    return struct.pack("<BBhH", bits & 0xFF, heartbeat & 0xFF, v, fault_code & 0xFFFF)
-
-
-def decode_status(data: bytes) -> tuple[int, int, float, int]:
-    bits, hb, v, code = struct.unpack("<BBhH", bytes(data[:6]))
-    return bits, hb, v / FULL_SCALE, code
-
-
-def open_bus(cfg: ValveConfig):
+def open_bus(cfg: CanopenValveConfig):
+    """The python-can bus of ``cfg`` (``rig_unix``: the machine-local bus)."""
     import can
 
+    if cfg.interface == "rig_unix":
+        from drivers.canopen_bus import UnixCanBus
+
+        return UnixCanBus(channel=cfg.channel)
     kwargs = {"interface": cfg.interface, "channel": cfg.channel}
-    if cfg.interface == "udp_multicast" and cfg.port:
-        kwargs["port"] = cfg.port
     if cfg.interface == "virtual":
         kwargs["receive_own_messages"] = False
     return can.Bus(**kwargs)
 
 
-class ValveController:
-    """Host side of the valve controller: setpoints, enable/disable, status."""
+def to_counts(x: float) -> int:
+    """Spool fraction [-1, 1] -> int16 counts (saturated)."""
+    return int(round(max(-1.0, min(1.0, x)) * FULL_SCALE))
 
-    def __init__(self, cfg: ValveConfig):
+
+@dataclass
+class ValveStatus:
+    """What the valve last reported (TPDO1, heartbeat, EMCY) and what the host saw on the bus."""
+
+    spool_actual: float = 0.0        # 0x6301:01, fraction of full scale
+    spool_command: float = 0.0       # the set-point the host sent last
+    spool_command_echoed: float = 0.0  # the set-point of the tick the valve reports (0x2001)
+    status_word: int = 0
+    enabled: bool = False
+    fault: bool = False
+    watchdog_tripped: bool = False
+    nulled: bool = True
+    reset_required: bool = False
+    nmt_state: str = "UNKNOWN"       # from the valve's heartbeat
+    accepted_counter: int = -1       # 0x2001 echo
+    valve_rejected: int = 0          # 0x2002: frames the valve rejected (total, unwrapped)
+    emcy: list = field(default_factory=list)   # active EMCYs: (code, register)
+    foreign_frames: int = 0          # frames only the master may send, or from nobody expected
+    malformed_frames: int = 0        # wrong length / undecodable CANopen frames, host side
+    bus_malformed: int = 0           # datagrams the transport could not decode at all
+    counter_errors: int = 0          # TPDO echo not a counter the host sent recently
+    n_tpdo: int = 0
+    tpdo_age_s: float = math.inf
+    heartbeat_age_s: float = math.inf
+
+    @property
+    def operational(self) -> bool:
+        return self.nmt_state == "OPERATIONAL"
+
+
+class CanopenValve:
+    """Host side (NMT master, SYNC producer) of the CANopen servovalve controller."""
+
+    def __init__(self, cfg: CanopenValveConfig, eds: str | Path = EDS_PATH):
         self.cfg = cfg
+        self.eds = str(eds)
         self.address = cfg.address_text
-        self._bus = None
-        self._seq = 0
-        self._sp_id = setpoint_id(cfg.node_id)
-        self._cmd_id = command_id(cfg.node_id)
-        self._st_id = status_id(cfg.node_id)
-        self.status_bits = 0
-        self.heartbeat = -1
-        self.output = 0.0
-        self.fault_code = 0
-        self.last_status_t = 0.0
-        self.n_status = 0
+        self.bus = None
+        self.network = None
+        self.node = None
+        self._st = ValveStatus()
+        self._counter = 0
+        self._sync_count = 0
+        self._n_sync = 0
+        self._recent: dict[int, float] = {}   # counter -> command, last RECENT ticks
+        self._next_hb = 0.0
+        self._t_tpdo = -math.inf
+        self._t_hb = -math.inf
+        self._t_follow_bad = None
+        self._cw = 0
+        self._rej_last: int | None = None  # the valve's 0x2002 at this host's first TPDO: the baseline
+        self._sdo_open = False
+        self._pump_lock = threading.Lock()
+        self.nan_setpoints = 0
         self.send_errors = 0
-        self.consecutive_send_errors = 0
-        self.bus_error_frames = 0
-        self.polls_since_status = 0
+        self.foreign_ids: dict[int, int] = {}
 
+    # -- setup -----------------------------------------------------------------------------
     def connect(self) -> None:
+        """Open the bus, find the valve's heartbeat, check and configure it by SDO (pre-operational)."""
+        import can
+        import canopen
+
         try:
-            self._bus = open_bus(self.cfg)
+            self.bus = open_bus(self.cfg)
         except Exception as exc:  # noqa: BLE001
             raise DeviceError(DEVICE, self.address, f"cannot open CAN bus: {exc}") from exc
-        self.last_status_t = time.monotonic()
-
-    def close(self) -> None:
-        if self._bus is not None:
-            try:
-                self._bus.shutdown()
-            except Exception:  # noqa: BLE001
-                pass
-            self._bus = None
-
-    def _send(self, arb_id: int, data: bytes) -> None:
-        import can
-
-        if self._bus is None:
-            raise DeviceError(DEVICE, self.address, "CAN bus not open")
+        self.network = canopen.Network(self.bus)
+        self.node = canopen.RemoteNode(self.cfg.node_id, self.eds)
+        self.network.add_node(self.node)
+        n = self.cfg.node_id
+        self.node.tpdo.read(from_od=True)
+        self.node.rpdo.read(from_od=True)
+        self._tpdo, self._rpdo = self.node.tpdo[1], self.node.rpdo[1]
+        self._check_layout()
+        self._tpdo.add_callback(self._on_tpdo)
+        # the per-tick frames, built once from canopen's maps (COB-IDs, sizes) and reused
+        self._rpdo_msg = can.Message(arbitration_id=self._rpdo.cob_id, data=bytearray(RPDO_FMT.size),
+                                     is_extended_id=False)
+        self._sync_msg = can.Message(arbitration_id=self.network.sync.cob_id, data=bytearray(1),
+                                     is_extended_id=False)
+        self._expected = {self._tpdo.cob_id: 6, 0x700 + n: 1, 0x080 + n: 8, 0x580 + n: 8}
+        self._master_ids = {NMT_COB, SYNC_COB, self._rpdo.cob_id, 0x600 + n, 0x700 + self.cfg.host_node_id}
+        stop = threading.Event()
+        pump = threading.Thread(target=self._pump_until, args=(stop,), daemon=True, name="canopen-connect")
+        pump.start()
         try:
-            self._bus.send(can.Message(arbitration_id=arb_id, data=data, is_extended_id=False))
+            t_end = time.monotonic() + self.cfg.connect_timeout_s
+            while self._t_hb == -math.inf:
+                if time.monotonic() > t_end:
+                    raise DeviceError(DEVICE, self.address,
+                                      f"no heartbeat from node {n} within {self.cfg.connect_timeout_s:g} s")
+                time.sleep(0.002)
+            self._sdo_open = True
+            self.node.nmt.state = "PRE-OPERATIONAL"
+            sdo = self.node.sdo
+            dtype = sdo[0x1000].raw
+            if dtype != DEVICE_TYPE_408:
+                raise DeviceError(DEVICE, self.address, f"device type 0x{dtype:08x} is not a CiA 408 valve")
+            hb_ms = max(1, round(self.cfg.heartbeat_period_s * 1e3))
+            sdo[0x1016][1].raw = (self.cfg.host_node_id << 16) | max(1, round(self.cfg.heartbeat_timeout_s * 1e3))
+            sdo[0x1017].raw = hb_ms
+            sdo[0x2003].raw = max(1, round(self.cfg.watchdog_s * 1e3))
+        except DeviceError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - SDO timeout/abort
+            raise DeviceError(DEVICE, self.address, f"configuration by SDO failed: {exc}") from exc
+        finally:
+            self._sdo_open = False
+            stop.set()
+            pump.join(1.0)
+
+    def _check_layout(self) -> None:
+        """The PDO layouts the EDS defines must be the ones this driver packs."""
+        want_r = [(0x6300, 1, 16), (0x6040, 0, 16), (0x2000, 0, 8)]
+        want_t = [(0x6301, 1, 16), (0x6041, 0, 16), (0x2001, 0, 8), (0x2002, 0, 8)]
+        got_r = [(v.index, v.subindex, v.length) for v in self._rpdo.map]
+        got_t = [(v.index, v.subindex, v.length) for v in self._tpdo.map]
+        if got_r != want_r or got_t != want_t:
+            raise DeviceError(DEVICE, self.address, f"EDS {self.eds}: PDO mapping {got_r} / {got_t} "
+                                                    f"is not {want_r} / {want_t}")
+
+    def _pump_until(self, stop: threading.Event) -> None:
+        while not stop.is_set():
+            self._heartbeat_if_due(time.monotonic())
+            self._pump(0.002)
+
+    def start(self, timeout_s: float = 1.0) -> None:
+        """NMT start, fault reset, enable; returns once a TPDO shows the valve enabled."""
+        self.node.nmt.state = "OPERATIONAL"
+        t_end = time.monotonic() + timeout_s
+        phase = 0
+        n0 = self.read().n_tpdo
+        while True:
+            st = self.read()
+            # phase 0: enable low (+ fault reset) until 3 fresh TPDOs show OPERATIONAL, no latch
+            if phase == 0 and st.operational and st.n_tpdo >= n0 + 3 and not st.reset_required \
+                    and not st.enabled:
+                phase = 1
+            if phase == 1 and st.enabled:
+                return
+            if time.monotonic() > t_end:
+                raise DeviceError(DEVICE, self.address,
+                                  f"did not enable within {timeout_s:g} s (NMT {st.nmt_state}, status word "
+                                  f"0x{st.status_word:04x}, EMCY {st.emcy})")
+            if phase == 0:
+                self.write(0.0, enable=False, reset=st.reset_required or st.n_tpdo < n0 + 3)
+            else:
+                self.write(0.0, enable=True)
+            time.sleep(0.001)
+
+    # -- per tick ----------------------------------------------------------------------------
+    def write(self, setpoint: float, enable: bool = True, reset: bool = False) -> None:
+        """This tick's set-point (fraction of full spool, saturated) as RPDO1, then SYNC."""
+        if self.bus is None:
+            raise DeviceError(DEVICE, self.address, "CAN bus not open")
+        if not math.isfinite(setpoint):
+            self.nan_setpoints += 1
+            setpoint, enable = 0.0, False
+        self._counter = (self._counter + 1) & 0xFF
+        self._cw = (CW_ENABLE if enable else 0) | (CW_FAULT_RESET if reset else 0)
+        cmd = max(-1.0, min(1.0, setpoint)) if enable else 0.0
+        self._recent[self._counter] = cmd
+        self._recent.pop((self._counter - RECENT) & 0xFF, None)
+        self._st.spool_command = cmd
+        self._sync_count = self._sync_count % SYNC_OVERFLOW + 1
+        rp, sy = self._rpdo_msg, self._sync_msg
+        rp.data[:] = RPDO_FMT.pack(to_counts(cmd), self._cw, self._counter)
+        sy.data[0] = self._sync_count
+        try:
+            with self.network.send_lock:
+                self.bus.send(rp)
+                self.bus.send(sy)
+            self._n_sync += 1
+            self._heartbeat_if_due(time.monotonic())
         except Exception as exc:  # noqa: BLE001 - can.CanError, OSError
             self.send_errors += 1
-            self.consecutive_send_errors += 1
             raise DeviceError(DEVICE, self.address, f"CAN send failed: {exc}", kind="bus") from exc
-        self.consecutive_send_errors = 0
 
-    def write(self, cmd: float, enable: bool = True) -> None:
-        """Send the setpoint of this tick (``cmd`` in [-1, 1], saturated)."""
-        self._seq = (self._seq + 1) & 0xFF
-        self._send(self._sp_id, encode_setpoint(cmd, self._seq, enable))
+    def _heartbeat_if_due(self, now: float) -> None:
+        if now >= self._next_hb:
+            self._next_hb = now + self.cfg.heartbeat_period_s
+            self.network.send_message(0x700 + self.cfg.host_node_id, b"\x05")
 
-    def command(self, code: int) -> None:
-        self._send(self._cmd_id, bytes([code, 0]))
-
-    def enable(self) -> None:
-        self.command(CMD_ENABLE)
-
-    def disable(self) -> None:
-        self.command(CMD_DISABLE)
-
-    def poll(self, now: float | None = None) -> int:
-        """Drain received frames (non-blocking); returns the number of status frames."""
-        if self._bus is None:
+    def read(self) -> ValveStatus:
+        """Drain the received frames (non-blocking) and return the valve's status."""
+        if self.bus is None:
             raise DeviceError(DEVICE, self.address, "CAN bus not open")
-        n = 0
-        while True:
-            try:
-                msg = self._bus.recv(0)
-            except Exception as exc:  # noqa: BLE001
-                raise DeviceError(DEVICE, self.address, f"CAN receive failed: {exc}",
-                                  kind="bus") from exc
-            if msg is None:
-                break
-            if msg.is_error_frame:
-                self.bus_error_frames += 1
-                continue
-            if msg.arbitration_id == self._st_id and len(msg.data) >= 6:
-                self.status_bits, self.heartbeat, self.output, self.fault_code = decode_status(msg.data)
-                self.n_status += 1
-                n += 1
-        if n:
-            self.last_status_t = time.monotonic() if now is None else now
-            self.polls_since_status = 0
-        else:
-            self.polls_since_status += 1
-        return n
+        self._pump(0.0)
+        st = self._st
+        now = time.monotonic()
+        st.tpdo_age_s = now - self._t_tpdo
+        st.heartbeat_age_s = now - self._t_hb
+        st.emcy = [(e.code, e.register) for e in self.node.emcy.active]
+        st.bus_malformed = getattr(self.bus, "n_malformed", 0)
+        return st
 
-    def wait_status(self, timeout_s: float = 0.5) -> None:
-        t_end = time.monotonic() + timeout_s
-        while time.monotonic() < t_end:
-            if self.poll():
+    def _pump(self, timeout: float) -> None:
+        with self._pump_lock:
+            first = True
+            while True:
+                try:
+                    msg = self.bus.recv(timeout if first else 0.0)
+                except Exception as exc:  # noqa: BLE001
+                    raise DeviceError(DEVICE, self.address, f"CAN receive failed: {exc}", kind="bus") from exc
+                first = False
+                if msg is None:
+                    return
+                self._on_frame(msg)
+
+    def _on_frame(self, msg) -> None:
+        st = self._st
+        cid = msg.arbitration_id
+        if msg.is_error_frame:
+            st.malformed_frames += 1
+            return
+        if msg.is_remote_frame or msg.is_extended_id or cid in self._master_ids \
+                or (cid == 0x580 + self.cfg.node_id and not self._sdo_open):
+            self._foreign(cid)
+            return
+        want = self._expected.get(cid)
+        if want is None:
+            self._foreign(cid)
+            return
+        if len(msg.data) != want and not (cid == 0x580 + self.cfg.node_id):
+            st.malformed_frames += 1
+            return
+        now = time.monotonic()
+        if cid == 0x700 + self.cfg.node_id:
+            self._t_hb = now
+        elif cid == self._tpdo.cob_id:
+            if st.n_tpdo >= self._n_sync:  # more status frames than SYNCs: someone else sends them
+                self._foreign(cid)
                 return
-            time.sleep(0.001)
-        raise DeviceError(DEVICE, self.address, f"no status frame within {timeout_s:g} s")
+            self._t_tpdo = now
+            # the per-tick status: unpacked here with the layout checked against the EDS at connect
+            # (canopen's generic PDO dispatch costs ~20 µs a tick); canopen handles everything else
+            self._on_tpdo_data(bytes(msg.data))
+            return
+        try:
+            self.network.notify(cid, msg.data, msg.timestamp)
+        except Exception:  # noqa: BLE001 - canopen could not decode it
+            st.malformed_frames += 1
+        if cid == 0x700 + self.cfg.node_id:
+            st.nmt_state = self.node.nmt.state
 
-    @property
-    def fault(self) -> bool:
-        return bool(self.status_bits & ST_FAULT)
+    def _foreign(self, cid: int) -> None:
+        self._st.foreign_frames += 1
+        self.foreign_ids[cid] = self.foreign_ids.get(cid, 0) + 1
 
-    @property
-    def enabled(self) -> bool:
-        return bool(self.status_bits & ST_ENABLED)
+    def _on_tpdo(self, pdo_map) -> None:
+        self._on_tpdo_data(bytes(pdo_map.data))
 
-    def heartbeat_age_s(self, now: float | None = None) -> float:
-        now = time.monotonic() if now is None else now
-        return now - self.last_status_t
+    def _on_tpdo_data(self, data: bytes) -> None:
+        st = self._st
+        actual, sw, acc, rej = TPDO_FMT.unpack(data)
+        st.n_tpdo += 1
+        st.spool_actual = actual / FULL_SCALE
+        st.status_word = sw
+        st.enabled = bool(sw & SW_ENABLED)
+        st.fault = bool(sw & (SW_FAULT | SW_PROTOCOL | SW_HEARTBEAT_LOST))
+        st.watchdog_tripped = bool(sw & SW_WATCHDOG)
+        st.nulled = bool(sw & SW_NULL)
+        st.reset_required = bool(sw & SW_RESET_REQUIRED)
+        if self._rej_last is None:
+            self._rej_last = rej  # what the valve rejected before this host connected is not this run's
+        st.valve_rejected += (rej - self._rej_last) & 0xFF  # 0x2002 is a wrapping u8: keep the total
+        self._rej_last = rej
+        st.accepted_counter = acc
+        cmd = self._recent.get(acc)
+        if cmd is None:
+            if st.enabled:
+                st.counter_errors += 1
+            cmd = 0.0
+        now = time.monotonic()
+        st.spool_command_echoed = cmd
+        if st.enabled and abs(cmd - st.spool_actual) > self.cfg.follow_max:
+            if self._t_follow_bad is None:
+                self._t_follow_bad = now
+        else:
+            self._t_follow_bad = None
+
+    # -- health and shutdown -------------------------------------------------------------------
+    def health(self) -> list[str]:
+        """Problems that must trip the loop, each naming the valve (empty list = healthy).
+
+        Call after :meth:`read` (it uses that status)."""
+        return [msg for _, msg in self.problems()]
+
+    def problems(self) -> list[tuple[str, str]]:
+        """:meth:`health` with a trip name for each problem: ``can_foreign_frames``,
+        ``can_malformed_frames``, ``valve_rejected_frames``, ``valve_counter``, ``valve_fault``,
+        ``valve_watchdog``, ``valve_heartbeat``, ``valve_nmt_state``, ``valve_status_stale``,
+        ``valve_disabled``, ``valve_following``, ``non_finite_setpoint``."""
+        st, c, a = self._st, self.cfg, self.address
+        out = []
+        if st.foreign_frames:
+            ids = ", ".join(f"0x{i:03x}" for i in sorted(self.foreign_ids))
+            out.append(("can_foreign_frames", f"{st.foreign_frames} foreign CAN frames (COB-ID {ids}) on the bus "
+                        f"of {a}: another master or node is sending"))
+        if st.malformed_frames or st.bus_malformed:
+            out.append(("can_malformed_frames", f"{st.malformed_frames + st.bus_malformed} malformed CAN frames "
+                        f"on {a}"))
+        if st.valve_rejected:
+            out.append(("valve_rejected_frames", f"{a} rejected {st.valve_rejected} frames (foreign or malformed)"))
+        if st.counter_errors:
+            out.append(("valve_counter", f"{a} applied {st.counter_errors} set-points the host did not send"))
+        if st.fault or st.emcy:
+            out.append(("valve_fault", f"{a} reports a fault (status word 0x{st.status_word:04x}, EMCY "
+                        f"{', '.join(f'0x{e[0]:04x}' for e in st.emcy) or 'none'})"))
+        if st.watchdog_tripped:
+            out.append(("valve_watchdog", f"{a} nulled on its set-point watchdog"))
+        if st.heartbeat_age_s > c.heartbeat_timeout_s:
+            out.append(("valve_heartbeat", f"no heartbeat from {a} for {st.heartbeat_age_s * 1e3:.0f} ms"))
+        elif not st.operational:
+            out.append(("valve_nmt_state", f"{a} is {st.nmt_state}, not OPERATIONAL"))
+        if self._n_sync and st.tpdo_age_s > c.tpdo_timeout_s:
+            out.append(("valve_status_stale", f"no status PDO from {a} for {st.tpdo_age_s * 1e3:.0f} ms"))
+        if self._n_sync and st.n_tpdo and not st.enabled:
+            out.append(("valve_disabled", f"{a} is not enabled"))
+        if self._t_follow_bad is not None and time.monotonic() - self._t_follow_bad > c.follow_time_s:
+            out.append(("valve_following", f"{a} does not follow: spool {st.spool_actual:+.3f} vs command "
+                        f"{st.spool_command_echoed:+.3f} for over {c.follow_time_s * 1e3:.0f} ms"))
+        if self.nan_setpoints:
+            out.append(("non_finite_setpoint", f"{self.nan_setpoints} non-finite set-points for {a} "
+                        "(sent as null)"))
+        return out
+
+    def safe_stop(self, timeout_s: float = 0.1) -> bool:
+        """Null and disable; True once the valve confirms (TPDO disabled and nulled, or it left
+        OPERATIONAL, which nulls it). Then NMT pre-operational: no PDO moves it any more."""
+        if self.bus is None:
+            return False
+        ok = False
+        t_end = time.monotonic() + timeout_s
+        n0 = self._st.n_tpdo
+        try:
+            while time.monotonic() < t_end:
+                self.write(0.0, enable=False)
+                time.sleep(0.001)
+                st = self.read()
+                if st.n_tpdo > n0 and not st.enabled and st.nulled:
+                    ok = True
+                    break
+                if st.heartbeat_age_s < self.cfg.heartbeat_timeout_s and not st.operational:
+                    ok = True
+                    break
+            self.node.nmt.state = "PRE-OPERATIONAL"
+        except DeviceError:
+            return False
+        return ok
+
+    def close(self) -> None:
+        if self.bus is not None:
+            try:
+                self.bus.shutdown()
+            except Exception:  # noqa: BLE001
+                pass
+            self.bus = None
+
+
+__all__ = ["CanopenValve", "CanopenValveConfig", "ValveStatus", "open_bus", "EDS_PATH", "to_counts"]

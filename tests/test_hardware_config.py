@@ -16,7 +16,7 @@ def test_emulated_profile_validates(repo_root):
     p = load_profile(repo_root / "config/rigs/emulated.yaml")
     hw = hardware_of_profile(p)
     assert hw is p.hardware  # typed at load time, not validated later
-    assert hw.loadcells.transport == "tcp" and hw.valve.interface == "udp_multicast"
+    assert hw.loadcells.transport == "tcp" and hw.valve.interface == "rig_unix"
     assert hw.emulators.autostart
     assert hw.lvdt.um_per_count == p.sensors.lvdt.quantization_um == pytest.approx(0.076)
     # (that its plant is sim.yaml's: tests/test_sim_profile.py::test_emulated_is_an_overlay_of_sim)

@@ -12,7 +12,8 @@ from rig.hardware.interlocks import Interlocks
 
 CFG = InterlockConfig(friction_max_N=150, normal_min_N=50, normal_max_N=150, stale_s=0.005,
                       max_checksum_errors=5, max_modbus_errors=3, max_can_errors=2,
-                      max_consecutive_late=3, late_threshold_s=0.001, max_following_error_um=100)
+                      max_consecutive_late=3, late_threshold_s=0.001, following_error_um=1000,
+                      min_following_error_um=100, max_velocity_um_s=1000)
 OK = dict(x_ref=500.0, x=500.0, f=20.0, n1=100.0, n2=100.0, late_s=0.0)
 
 
@@ -77,7 +78,7 @@ def test_checksum_errors_per_second():
     assert _check(il, h) is None
     h["lvdt"].frames_bad = 6
     tr = _check(il, h)
-    assert tr.name == "serial_checksum_errors" and tr.values["bad_frames"] == 6
+    assert tr.name == "serial_checksum_errors" and tr.values["frames_bad"] == 6
 
 
 def test_device_fault_bits():
@@ -133,3 +134,62 @@ def test_device_errors_count_consecutive_failures_from_health():
     lost = DeviceError("LVDT conditioner", "serial:/dev/x", "port lost")
     tr = il.device_error(0.2, "lvdt", lost, h["lvdt"])
     assert tr.name == "device_lost" and tr.values["address"] == "serial:/dev/x"
+
+
+@pytest.mark.parametrize("kw,channel", [
+    ({"x": float("nan")}, "position_um"),
+    ({"f": float("inf")}, "friction_N"),
+    ({"n1": float("nan")}, "normal_1_N"),
+    ({"n2": -float("inf")}, "normal_2_N"),
+    ({"x_ref": float("nan")}, "position_ref_um"),
+])
+def test_non_finite_values_trip_naming_the_channel(kw, channel):
+    il, h = _fixture()
+    tr = _check(il, h, **kw)
+    assert tr is not None and tr.name == "non_finite" and tr.values["channel"] == channel
+    assert channel in tr.message
+    if channel in ("position_um", "friction_N"):
+        assert ("LVDT" if channel == "position_um" else "load-cell") in tr.message
+
+
+def test_limits_are_written_so_that_nan_trips():
+    """Every limit is `not (value within limit)`: a NaN that slipped past the finite check still trips."""
+    il, h = _fixture()
+    nan = float("nan")
+    assert il._windows(0.0, 0.0, h) is None
+    h["lvdt"].frames_lost = 10 ** 6
+    tr = il._windows(0.0, 0.5, h)
+    assert tr is not None and tr.name == "frame_loss" and "LVDT" in tr.message
+    il2, h2 = _fixture()
+    h2["lvdt"].age_s, h2["lvdt"].polls_since_new = nan, 100
+    assert _check(il2, h2).name == "stale_position"
+
+
+def test_non_finite_controller_output_trips():
+    il, _ = _fixture()
+    assert il.command(0.5, 0.01, 1.0, 2.0, 0.0, 0.0) is None
+    tr = il.command(0.5, float("nan"), 1.0, float("nan"), 0.0, 0.0)
+    assert tr.name == "non_finite" and tr.values["channel"] == "valve_cmd"
+    tr = il.command(0.5, 0.0, 1.0, float("inf"), 0.0, 0.0)
+    assert tr.values["channel"] == "pid_i"
+
+
+def test_following_error_scales_with_velocity_like_linuxcnc():
+    """limit = max(MIN_FERROR, FERROR |v| / v_max): 100 µm at rest, 1000 µm at 1000 µm/s (CFG)."""
+    il, h = _fixture()
+    assert il.following_limit_um(0.0) == 100.0
+    assert il.following_limit_um(-500.0) == pytest.approx(500.0)
+    assert _check(il, h, x_ref=599.0) is None            # 99 µm at rest: inside
+    tr = _check(il, h, x_ref=601.0)                      # 101 µm at rest: trips
+    assert tr.name == "following_error" and tr.values["limit_um"] == 100.0
+    il2, h2 = _fixture()
+    args = (1.25, 100.0, 901.0, 500.0, 20.0, 100.0, 100.0, h2, 0.0)
+    assert il2.check(*args, v_ref_um_s=500.0) is None     # 401 µm at 500 µm/s: inside 500 µm
+    assert il2.check(*args, v_ref_um_s=300.0).name == "following_error"
+
+
+def test_device_problems_trip_with_their_name():
+    il, h = _fixture()
+    h["valve"].problems = [("valve_watchdog", "canopen-x node 1 nulled on its set-point watchdog")]
+    tr = _check(il, h)
+    assert tr.name == "valve_watchdog" and "watchdog" in tr.message and tr.values["problems"] == ["valve_watchdog"]

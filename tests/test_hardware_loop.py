@@ -73,7 +73,9 @@ def _run(rig_env, x, w):
 
 def _clear(emu):
     for dev, fault in (("valve", "fault"), ("valve", "silent"), ("loadcells", "exception"), ("loadcells", "slow_s"),
-                       ("loadcells", "silent"), ("lvdt", "silent"), ("lvdt", "corrupt_every")):
+                       ("loadcells", "silent"), ("lvdt", "silent"), ("lvdt", "corrupt_every"),
+                       ("lvdt", "drop_every"), ("lvdt", "garbage_every"), ("loadcells", "nan_friction"),
+                       ("valve", "ignore_setpoints"), ("valve", "stuck")):
         emu.inject(dev, fault, None)
 
 
@@ -95,7 +97,7 @@ def test_clean_run_blocks_stats_and_tracking(rig_env):
     w = MemWriter()
     res = _run(rig_env, x, w)
     s = res.summary
-    assert res.status == "completed" and w.status == "completed" and s["status"] == "completed"
+    assert res.status == "completed" and w.status == "completed" and s["status"] == "completed", res.reason
     assert [h[0] for h in res.history] == [Phase.RUNNING, Phase.STOPPING, Phase.SAFE, Phase.DONE]
     assert set(s["devices"]) == {"lvdt", "loadcells", "valve"} and s["devices"]["lvdt"]["frames_ok"] > 1000
     assert set(BLOCK_KEYS) <= set(w.blocks[0])
@@ -133,13 +135,17 @@ def _run_with_fault(rig_env, x, inject, after_s=0.3, confirmed_safe=True):
     ("lvdt", "silent", True, "stale_position"),
     ("lvdt", "corrupt_every", 2, "serial_checksum_errors"),
     ("loadcells", "exception", True, "modbus_errors"),
-    ("loadcells", "slow_s", 0.01, "modbus_errors"),  # slower than the 2 ms timeout
+    ("loadcells", "slow_s", 0.01, "modbus_errors|frame_loss"),  # slower than the 2 ms timeout
+    ("loadcells", "slow_s", 0.0015, "frame_loss"),  # answers within the timeout, but every other tick
+    ("lvdt", "drop_every", 2, "frame_loss"),
+    ("lvdt", "garbage_every", 2, "stream_garbage"),
+    ("loadcells", "nan_friction", True, "non_finite"),
 ])
 def test_device_fault_trips_to_safe_state(rig_env, dev, fault, value, expect):
     x = np.full(3000, 500.0)
     res, trip, w, _ = _run_with_fault(rig_env, x, lambda emu: emu.inject(dev, fault, value),
                                       confirmed_safe=(dev, fault) != ("valve", "silent"))
-    assert res.summary["trip"]["name"] == expect == trip["name"]
+    assert res.summary["trip"]["name"] == trip["name"] and trip["name"] in expect.split("|")
     assert trip["t_s"] > 0.2 and trip["message"] in res.reason
 
 
@@ -152,6 +158,29 @@ def test_stroke_limit_trips_and_holds(rig_env):
     assert trip["values"]["position_um"] > 530.0 and trip["name"] == "stroke_limit"
     pos = w.col("position_um")
     assert pos.max() < 545.0  # stopped within a few hundred ms of travel
+
+
+def test_a_hung_log_writer_trips_logger_stalled(rig_env):
+    """The writer blocks (a dead disk): the loop stops taking the session's word for it after
+    logger_timeout_s (1 s) of unacknowledged blocks and goes to the safe state by itself."""
+    _clear(rig_env.emu)
+    w = MemWriter(0.3, lambda: time.sleep(1.6))
+    res = _run(rig_env, np.full(4000, 500.0), w)
+    assert res.status == "failed" and res.summary["trip"]["name"] == "logger_stalled", res.reason
+    _safe_state(rig_env.emu)
+
+
+def test_a_failed_log_writer_stops_the_loop_at_once(rig_env):
+    """The writer reports a failure (its thread hit a full disk): the session's monitor sets the fail
+    flag and the loop goes to the safe state without the operator-abort hold."""
+    _clear(rig_env.emu)
+    w = MemWriter()
+    w.failure = lambda: "OSError: [Errno 28] No space left on device" if w.ticks >= 500 else None
+    res = _run(rig_env, np.full(4000, 500.0), w)
+    assert res.status == "failed" and res.summary["trip"]["name"] == "logger_failed", res.reason
+    assert w.ticks < 1500  # stopped soon after, not at the end of the plan
+    assert not any(e["kind"] == "abort" for e in w.events)  # no hold
+    _safe_state(rig_env.emu)
 
 
 def test_port_vanishes_mid_run_trips_device_lost(rig_env):

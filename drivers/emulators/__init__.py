@@ -3,9 +3,9 @@
 * :mod:`.modbus_conditioner`: the load-cell conditioner, a pymodbus server on
   TCP (127.0.0.1) or RTU over a pty pair bridged in Python (:mod:`.pty`);
 * :mod:`.lvdt_streamer`: the LVDT conditioner streaming frames on a pty;
-* :mod:`.valve_controller`: the servovalve controller on a python-can bus
-  (``udp_multicast`` across processes, ``virtual`` inside one), with a watchdog
-  that nulls the output when setpoints stop;
+* :mod:`.valve_controller`: the servovalve controller, a CANopen LocalNode (CiA 301/408)
+  on the machine-local bus (:mod:`drivers.canopen_bus`), with a set-point watchdog
+  and a host-heartbeat consumer that null the output and latch until a reset;
 Each knows its device only and gets its values through a small interface
 (``send(position_um)``, ``update(forces)`` or a shared-memory sample,
 ``output(now)``); the emulated rig that composes them with the simulated plant

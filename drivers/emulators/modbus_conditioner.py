@@ -7,7 +7,9 @@ datablock's ``getValues`` is ignored by pymodbus 3.16). The emulator stores
 *raw* values: ``raw = (force_N - offset) / scale`` (tare is the host's business).
 
 Faults (``self.faults``): ``slow_s`` (answer after a delay), ``silent`` (never
-answer), ``exception`` (Modbus exception 4, device failure), ``freeze_counter``.
+answer), ``exception`` (Modbus exception 4, device failure), ``freeze_counter``,
+``nan_friction`` (the friction channel reads NaN), ``inf_normal_1`` (normal force 1
+reads +inf): what a broken conditioner's float32 registers can hold.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from drivers.config import LoadCellConfig
 from drivers.loadcells import CHANNELS, encode_value
 
 
-FAULT_KEYS = ("slow_s", "silent", "exception", "freeze_counter")
+FAULT_KEYS = ("slow_s", "silent", "exception", "freeze_counter", "nan_friction", "inf_normal_1")
 
 
 class SharedSample:
@@ -87,7 +89,13 @@ class ModbusConditionerEmulator:
         out: dict[int, int] = {}
         if self.shared is not None:
             self.forces, self.counter, self.status = self.shared.read()
-        for ch, f in zip(CHANNELS, self.forces):
+        forces = list(self.forces)
+        f = self.faults if self.shared is None else self.shared.fault_dict()
+        if f.get("nan_friction"):
+            forces[0] = float("nan")
+        if f.get("inf_normal_1"):
+            forces[1] = float("inf")
+        for ch, f in zip(CHANNELS, forces):
             cal = getattr(c, ch)
             raw = (f - cal.offset) / cal.scale
             for k, w in enumerate(encode_value(raw, c.encoding, c.word_order)):

@@ -5,10 +5,16 @@
 (``forces_N``), the servovalve (``command``, ``enable``) and the list of all
 three in read order, each a :class:`drivers.device.Device`.
 
-:class:`ValveDevice` adapts the servovalve controller's driver
-(:class:`drivers.valve.ValveController`) to the Device protocol: ``write``
-sends the setpoint every tick and turns changes of ``enable`` into the
-controller's enable/disable commands.
+:class:`ValveDevice` adapts the CANopen servovalve controller's host driver
+(:class:`drivers.valve.CanopenValve`) to the Device protocol: ``read`` drains
+its frames (TPDO status, heartbeat, EMCY); ``write`` sends this tick's
+set-point (RPDO) and the SYNC; ``health`` carries the driver's
+``problems()`` (foreign or malformed frames, fault/EMCY, watchdog, heartbeat,
+not operational, not enabled, a spool that does not follow its command), each
+of which trips the loop. ``start()`` (NMT start, fault reset, enable, verified
+by the valve's status) is the explicit operator action the loop calls once,
+before the first tick, never after a trip; ``safe_stop()`` nulls and disables
+and says whether the valve confirmed it.
 """
 
 from __future__ import annotations
@@ -21,76 +27,68 @@ from drivers.errors import DeviceError
 from drivers.loadcells import LoadCellReader
 from drivers.lvdt import LvdtReader
 from drivers.valve import DEVICE as VALVE_DEVICE
-from drivers.valve import ValveController
+from drivers.valve import CanopenValve
 
 
 class ValveDevice:
-    """The servovalve controller as a :class:`drivers.device.Device` (``name`` "valve").
+    """The CANopen servovalve controller as a :class:`drivers.device.Device` (``name`` "valve").
 
-    Set ``command`` (valve command in [-1, 1]) and ``enable`` before
-    ``write(now)``. While ``enable`` is true and the controller does not
-    report itself enabled, the enable command is repeated every
-    ``enable_retry_ticks`` writes; when ``enable`` turns false the setpoint
-    goes out nulled with the enable flag cleared, followed by one disable
-    command.
+    Set ``command`` (spool fraction in [-1, 1]) and ``enable`` before ``write(now)``;
+    with ``enable`` false the set-point goes out nulled with the enable bit cleared.
     """
 
     name = "valve"
 
-    def __init__(self, driver: ValveController, enable_retry_ticks: int = 20):
+    def __init__(self, driver: CanopenValve):
         self.driver = driver
         self.address = driver.address
         self.command = 0.0
         self.enable = False
-        self._sent_enable = False
-        self._retry = max(1, enable_retry_ticks)
-        self._since_enable = 0
-        self._since_disable = 0
+        self.status = driver._st
         self._health = DeviceHealth(VALVE_DEVICE, self.address)
 
     # -- values --------------------------------------------------------------------
     @property
     def enabled(self) -> bool:
-        """The controller reports itself enabled (last status frame)."""
-        return self.driver.enabled
+        """The controller reports itself enabled (last status PDO)."""
+        return self.status.enabled
 
     def final_state(self) -> dict:
-        d = self.driver
-        return {"status_bits": d.status_bits, "enabled": d.enabled, "output": d.output}
+        st = self.status
+        return {"status_bits": st.status_word, "enabled": st.enabled, "output": st.spool_actual,
+                "nmt": st.nmt_state, "nulled": st.nulled}
 
     # -- the Device protocol -----------------------------------------------------------
     def connect(self) -> None:
         self.driver.connect()
 
+    def start(self) -> None:
+        """NMT start, fault reset, enable; returns once the valve's status shows it enabled."""
+        self.driver.start(self.driver.cfg.start_timeout_s)
+
     def read(self, now: float | None = None) -> None:
-        self.driver.poll(now)
+        self.status = self.driver.read()
 
     def write(self, now: float | None = None) -> None:
-        d = self.driver
         if self.enable:
-            if not self._sent_enable or (not d.enabled and self._since_enable >= self._retry):
-                d.enable()
-                self._sent_enable = True
-                self._since_enable = 0
-            self._since_enable += 1
-            d.write(self.command)
+            self.driver.write(self.command)
         else:
-            d.write(0.0, enable=False)
-            # disable once on the transition, then again while the controller still says enabled
-            if self._sent_enable or (d.enabled and self._since_disable >= self._retry):
-                self._sent_enable = False
-                self._since_disable = 0
-                d.disable()
-            self._since_disable += 1
+            self.driver.write(0.0, enable=False)
 
     def health(self, now: float | None = None) -> DeviceHealth:
-        d, h = self.driver, self._health
-        h.frames_ok, h.frames_bad = d.n_status, d.bus_error_frames
-        h.errors, h.consecutive_errors = d.send_errors, d.consecutive_send_errors
-        h.age_s = d.heartbeat_age_s(now)
-        h.polls_since_new = d.polls_since_status
-        h.status, h.fault, h.fault_code = d.status_bits, d.fault, d.fault_code
+        d, st, h = self.driver, self.status, self._health
+        h.frames_ok = st.n_tpdo or (1 if st.heartbeat_age_s < float("inf") else 0)  # heartbeats before start
+        h.frames_bad = st.malformed_frames + st.bus_malformed + st.foreign_frames
+        h.errors = d.send_errors
+        h.age_s = st.heartbeat_age_s
+        h.status, h.fault_code = st.status_word, st.emcy[0][0] if st.emcy else 0
+        h.fault = st.fault
+        h.problems = d.problems()
         return h
+
+    def safe_stop(self) -> bool:
+        """Null and disable; True once the valve confirms it (then NMT pre-operational)."""
+        return self.driver.safe_stop()
 
     def close(self) -> None:
         self.driver.close()
@@ -109,8 +107,8 @@ class RigDevices:
 
 
 def build_devices(hw: HardwareConfig) -> RigDevices:
-    return RigDevices(position=LvdtReader(hw.lvdt), forces=LoadCellReader(hw.loadcells),
-                      valve=ValveDevice(ValveController(hw.valve)))
+    return RigDevices(position=LvdtReader(hw.lvdt), forces=LoadCellReader(hw.loadcells, pipelined=True),
+                      valve=ValveDevice(CanopenValve(hw.valve)))
 
 
 def wait_for_data(devices: list[Device], timeout_s: float, clock) -> None:

@@ -8,11 +8,15 @@ the server runs in its own process), the valve controller ``output(now)``.
 This module composes them with the plant (:class:`rig.sim.SimRig`).
 
 :class:`EmulatedRig` steps the plant (``rig.sim.SimRig.plant_step(valve_cmd)``)
-once per setpoint frame received from the controller, so that the emulated
-devices run in lock step with the real-time loop (tick k's setpoint moves the
-plant; tick k+1 reads the result, as in ``SimRig.run_blocks``). When setpoints
-stop, the valve emulator's watchdog nulls the output and the plant free-runs at
-the loop rate with a null command, so the sensors keep streaming.
+once per SYNC from the host (the CANopen valve emulator's ``on_sync(spool)``),
+so that the emulated devices run in lock step with the real-time loop (tick k's
+set-point moves the plant; tick k+1 reads the result, as in
+``SimRig.run_blocks``). When SYNCs stop, the plant free-runs at the loop rate
+with the valve's spool as it is (held, then nulled by the valve's set-point
+watchdog), so the sensors keep streaming.
+
+Each emulated rig gets a CAN channel of its own (:func:`private_channel`), so
+two runs on one machine never share a bus.
 
 :func:`start_emulator_process` runs it in its own process (the GIL) and
 returns an :class:`EmulatorHandle` (``inject(device, fault, value)``,
@@ -35,6 +39,7 @@ from drivers.emulators.modbus_conditioner import (
 from drivers.linux import set_pdeathsig, set_process_name
 from drivers.emulators.pty import PtyBridge
 from drivers.emulators.valve_controller import ValveControllerEmulator
+from drivers.valve import SW_WATCHDOG
 from rig.sim import SimRig
 
 SENSOR_KEYS = ("position_um", "friction_N", "normal_1_N", "normal_2_N")
@@ -115,8 +120,7 @@ class EmulatedRig:
             self.shared = None
             self.modbus = ModbusConditionerEmulator(hw.loadcells, rtu_server_port=rtu_server_port)
         self.lvdt = LvdtStreamer(hw.lvdt)
-        self.valve = ValveControllerEmulator(hw.valve, watchdog_s=em.watchdog_s,
-                                             status_period_s=em.status_period_s)
+        self.valve = ValveControllerEmulator(hw.valve, on_sync=self._on_sync)
         self.last = {k: 0.0 for k in SENSOR_KEYS}
         self.steps = 0
         self.free_steps = 0
@@ -125,6 +129,8 @@ class EmulatedRig:
         self.gaps_over_5ms = 0
         self._last_step_t = None
         self.running = False
+        self._was_enabled = False
+        self.t_disabled = None  # when the valve last went from enabled to disabled (time.monotonic)
 
     def start(self) -> None:
         if self.hw.loadcells.transport == "rtu":
@@ -194,6 +200,14 @@ class EmulatedRig:
             pass
         return -1
 
+    def _on_sync(self, spool: float) -> None:
+        self.step(spool)
+        self.lock_steps += 1
+        en = self.valve.enabled
+        if self._was_enabled and not en:
+            self.t_disabled = time.monotonic()  # CLOCK_MONOTONIC: comparable across processes
+        self._was_enabled = en
+
     def inject(self, device: str, fault: str, value=True) -> None:
         """Set (value) or clear (None/False) a fault on 'loadcells', 'lvdt' or 'valve'."""
         if device == "lvdt" and fault == "vanish":
@@ -203,7 +217,10 @@ class EmulatedRig:
         if device == "loadcells" and self.shared is not None:
             self.shared.set_fault(fault, value)
             return
-        target = {"loadcells": self.modbus, "lvdt": self.lvdt, "valve": self.valve}[device]
+        if device == "valve":
+            self.valve.inject(fault, None if value is False else value)
+            return
+        target = {"loadcells": self.modbus, "lvdt": self.lvdt}[device]
         if value is None or value is False:
             target.faults.pop(fault, None)
         else:
@@ -212,10 +229,10 @@ class EmulatedRig:
     def run(self, should_stop=lambda: False, on_idle=None, max_s: float | None = None) -> None:
         """Serve until ``should_stop()``.
 
-        The plant steps once per setpoint frame (lock step with the controller);
-        when the next setpoint is more than half a period late, the plant steps on
-        its own clock with the held command (zero-order hold, as a real plant keeps
-        moving), and after ``watchdog_s`` without setpoints with the valve nulled.
+        The plant steps once per SYNC (lock step with the host, in ``_on_sync``);
+        when the next SYNC is more than half a period late, the plant steps on its
+        own clock with the valve's spool as it is (zero-order hold, as a real plant
+        keeps moving; nulled once the valve's watchdog or heartbeat consumer trips).
         """
         self.running = True
         valve = self.valve
@@ -232,20 +249,17 @@ class EmulatedRig:
                 if should_stop() or (max_s is not None and now - t_start > max_s):
                     break
             timeout = max(0.0, min(next_free, next_idle) - now)
-            msg = valve.recv(timeout)
+            n0 = valve.n_sync
+            valve.poll(timeout)
             now = time.monotonic()
-            kind = valve.handle(msg, now)
-            if kind == "setpoint":
-                self.step(valve.output(now))
-                self.lock_steps += 1
+            if valve.n_sync != n0:
                 next_free = now + 1.5 * dt
             elif now >= next_free:
-                self.step(valve.output(now))
+                self.step(valve.spool)
                 self.free_steps += 1
                 next_free += dt
                 if next_free < now:
                     next_free = now + dt  # skip, don't bunch
-            valve.maybe_status(now)
         self.running = False
 
 
@@ -304,8 +318,9 @@ def _emulator_main(hw_dict, profile, lubricant, normal_force_N, seed, conn, plan
                 conn.send(("stats", {"steps": rig.steps, "lock_steps": rig.lock_steps,
                                      "free_steps": rig.free_steps, "last": rig.last,
                                      "valve_enabled": rig.valve.enabled,
-                                     "valve_output": rig.valve.output(time.monotonic()),
-                                     "valve_watchdog": rig.valve.watchdog_tripped(time.monotonic()),
+                                     "valve_output": rig.valve.spool,
+                                     "valve_watchdog": bool(rig.valve.latched & SW_WATCHDOG),
+                                     "valve": rig.valve.stats(), "t_valve_disabled": rig.t_disabled,
                                      "n_setpoints": rig.valve.n_setpoints,
                                      "modbus_requests": rig.modbus_requests(),
                                      "lvdt_sent": rig.lvdt.sent, "max_gap_s": rig.max_gap_s,
@@ -338,9 +353,12 @@ class EmulatorError(RuntimeError):
 
 
 class EmulatorHandle:
-    def __init__(self, proc, conn):
+    """The emulated rig's process; ``hw``: the hardware section it serves (its private CAN channel)."""
+
+    def __init__(self, proc, conn, hw: HardwareConfig | None = None):
         self.proc = proc
         self.conn = conn
+        self.hw = hw
 
     def _call(self, *req, timeout: float = 2.0):
         self.conn.send(req)
@@ -379,11 +397,29 @@ class EmulatorHandle:
         self.stop()
 
 
+def private_channel(hw: HardwareConfig) -> HardwareConfig:
+    """``hw`` with a CAN channel of its own (``<channel>-<pid>-<n>``) on the machine-local bus, so that
+    two emulated rigs (two runs, two tests) never share a bus; other interfaces are left alone."""
+    if hw.valve.interface != "rig_unix":
+        return hw
+    global _CHANNELS
+    _CHANNELS += 1
+    name = f"{hw.valve.channel[:40]}-{os.getpid()}-{_CHANNELS}-{int(time.time() * 1e3) % 100000}"
+    return hw.model_copy(update={"valve": hw.valve.model_copy(update={"channel": name})})
+
+
+_CHANNELS = 0
+
+
 def start_emulator_process(hw: HardwareConfig | dict, profile=None, lubricant: str | None = None,
                            normal_force_N: float | None = None, seed: int | None = None,
-                           plant: str = "sim", timeout_s: float = 60.0) -> EmulatorHandle:
-    """Start the emulated rig in its own process; returns when its devices answer."""
+                           plant: str = "sim", timeout_s: float = 60.0, private: bool = True) -> EmulatorHandle:
+    """Start the emulated rig in its own process on a private CAN channel (``handle.hw``: the hardware
+    section to drive it with; ``private=False``: the channel of ``hw``, for a ``rig run`` in another
+    process given the same profile); returns when its devices answer."""
     hw = parse_hardware(hw) if not isinstance(hw, HardwareConfig) else hw
+    if private:
+        hw = private_channel(hw)
     ctx = mp.get_context("spawn")
     parent, child = ctx.Pipe()
     em = hw.emulators
@@ -404,7 +440,7 @@ def start_emulator_process(hw: HardwareConfig | dict, profile=None, lubricant: s
     if kind != "ready":
         proc.join(2)
         raise EmulatorError(f"emulators failed to start: {payload}")
-    handle = EmulatorHandle(proc, parent)
+    handle = EmulatorHandle(proc, parent, hw)
     import atexit
 
     atexit.register(handle.stop, 2.0)
@@ -416,18 +452,16 @@ __all__ = ["EmulatedRig", "IntegratorPlant", "start_emulator_process", "Emulator
 
 
 def emulated_hardware(run_dir: str | os.PathLike, transport: str = "tcp",
-                      modbus_port: int | None = None, can_port: int | None = None,
-                      **overrides) -> HardwareConfig:
-    """A hardware section pointing at emulators private to ``run_dir`` (free ports)."""
+                      modbus_port: int | None = None, **overrides) -> HardwareConfig:
+    """A hardware section pointing at emulators private to ``run_dir`` (free ports, own CAN channel)."""
     run_dir = str(run_dir)
-    can_port = can_port or (40000 + (os.getpid() * 7 + int(time.time() * 1000)) % 20000)
     d = {
         "loadcells": {"transport": transport, "host": "127.0.0.1",
                       "port": modbus_port or free_tcp_port(),
                       "serial_port": f"{run_dir}/loadcells-rtu" if transport == "rtu" else None,
                       "timeout_s": 0.01},
         "lvdt": {"port": f"{run_dir}/lvdt", "baudrate": 921600},
-        "valve": {"interface": "udp_multicast", "channel": "239.74.163.2", "port": can_port},
+        "valve": {"interface": "rig_unix", "channel": f"emu-{os.getpid()}-{Path(run_dir).name}"[:64]},
         "emulators": {"autostart": True, "run_dir": run_dir},
     }
     for k, v in overrides.items():

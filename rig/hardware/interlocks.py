@@ -13,14 +13,19 @@ their loop name: ``lvdt`` (position), ``loadcells`` (forces), ``valve``.
 
 Limits (``hardware.interlocks`` of the profile): stroke limits (default: the
 profile's stroke; the paper's LVDT and actuator allow 5 mm), friction force
-limit, normal force band per rider, stale sensor data, device fault bits,
-missing valve heartbeat, CAN error frames, consecutive Modbus and CAN send
-errors, serial checksum errors in one second, a run of late cycles,
-following error.
+limit, normal force band per rider, stale sensor data, device fault bits and
+the devices' own problems (the CANopen valve: foreign or malformed frames,
+EMCY, watchdog, heartbeat, a spool that does not follow), CAN errors,
+consecutive Modbus and CAN send errors, bad checksums / lost frames / garbage
+per second, a run of late cycles, following error scaled with the reference
+velocity (LinuxCNC's FERROR / MIN_FERROR), non-finite values (any sensor, the
+reference, the controller's output: a ``non_finite`` trip naming the channel).
+Every limit is written ``not (value within limit)``, so NaN trips.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, field
 from typing import Mapping
 
@@ -32,9 +37,18 @@ from drivers.errors import DeviceError
 STALE_TRIP = {"lvdt": "stale_position", "loadcells": "stale_forces", "valve": "valve_heartbeat"}
 FAULT_TRIP = {"lvdt": "lvdt_fault", "loadcells": "loadcell_fault", "valve": "valve_fault"}
 ERRORS_TRIP = {"loadcells": "modbus_errors", "valve": "can_bus_errors"}
-# trips after which nothing from the device can be trusted: stop at once (no hold)
+# trips after which nothing from the device (or the loop's timing) can be trusted: stop at once (no hold)
 DEVICE_TRIPS = frozenset({"device_lost", "modbus_errors", "can_bus_errors", "stale_forces", "stale_position",
-                          "valve_heartbeat"})
+                          "valve_heartbeat", "non_finite", "frame_loss", "serial_checksum_errors",
+                          "stream_garbage", "loop_stall", "skipped_cycles", "logger_failed", "logger_stalled", "logger_died",
+                          "valve_enable", "missed_deadlines"})
+# what the per-second counters of a device's health are called in a trip
+WINDOW_COUNTERS = (("frames_bad", "max_checksum_errors", "serial_checksum_errors", "frames with a bad checksum"),
+                   ("frames_lost", "max_lost_frames", "frame_loss", "lost frames or missed answers"),
+                   ("garbage_bytes", "max_garbage_bytes", "stream_garbage", "garbage bytes"))
+SENSOR_CHANNELS = ("position_um", "friction_N", "normal_1_N", "normal_2_N")
+SENSOR_DEVICE = {"position_um": "lvdt", "friction_N": "loadcells", "normal_1_N": "loadcells",
+                 "normal_2_N": "loadcells"}
 
 
 @dataclass
@@ -53,25 +67,56 @@ class Trip:
         return f"INTERLOCK {self.name} at t={self.t_s:.3f} s: {self.message} ({vals})"
 
 
+def non_finite(t_s: float, names: tuple, values: tuple, source: str = "") -> Trip | None:
+    """A ``non_finite`` trip naming the first of ``names`` whose value is NaN or infinite, else None."""
+    for nm, v in zip(names, values):
+        if not math.isfinite(v):
+            return Trip("non_finite", f"{nm} is {v!r}{(' (' + source + ')') if source else ''}", t_s,
+                        {"channel": nm, "value": str(v)})
+    return None
+
+
 class Interlocks:
     def __init__(self, cfg: InterlockConfig, stroke_min_um: float, stroke_max_um: float,
                  heartbeat_timeout_s: float, period_s: float = 1e-3):
         self.cfg = cfg
+        self.period_s = period_s
         # stale = older than its limit AND no new data over that many loop ticks, so that a
         # stall of the whole machine (the loop itself late) is not taken for a dead device
         self.stale_ticks = max(2, int(round(cfg.stale_s / period_s)))
         self.stale_s = {"lvdt": cfg.stale_s, "loadcells": cfg.stale_s, "valve": heartbeat_timeout_s}
         self.x_min = cfg.stroke_min_um if cfg.stroke_min_um is not None else stroke_min_um
         self.x_max = cfg.stroke_max_um if cfg.stroke_max_um is not None else stroke_max_um
+        self.ferror_per_um_s = cfg.following_error_um / cfg.max_velocity_um_s
         self.late_run = 0
-        self._bad_window_start_t = None
-        self._bad_at_window_start = 0
+        self._win_t: float | None = None
+        self._win0: dict = {}
+        self.device_names: dict = {}
+
+    def following_limit_um(self, v_ref_um_s: float) -> float:
+        """LinuxCNC's following-error limit: max(MIN_FERROR, FERROR * |v| / v_max) (µm)."""
+        lim = self.ferror_per_um_s * abs(v_ref_um_s)
+        m = self.cfg.min_following_error_um
+        return lim if lim > m else m
 
     def check(self, t_s: float, now: float, x_ref: float, x: float, f: float, n1: float, n2: float,
-              health: Mapping[str, DeviceHealth], late_s: float) -> Trip | None:
+              health: Mapping[str, DeviceHealth], late_s: float, v_ref_um_s: float = 0.0) -> Trip | None:
+        """The per-tick checks, cheapest and most fundamental first. Every limit is written as
+        ``not (value within limit)`` so that NaN trips."""
         c = self.cfg
+        # non-finite process values (NaN passes every `>` comparison): name the channel and its device
+        s = x + f + n1 + n2 + x_ref + v_ref_um_s
+        if s - s != 0.0:
+            vals = (x, f, n1, n2)
+            for nm, v in zip(SENSOR_CHANNELS, vals):
+                if not math.isfinite(v):
+                    h = health.get(SENSOR_DEVICE[nm])
+                    src = f"from the {h.device} at {h.address}" if h is not None else ""
+                    return non_finite(t_s, (nm,), (v,), src)
+            return non_finite(t_s, ("position_ref_um", "reference velocity_um_s"), (x_ref, v_ref_um_s),
+                              "the reference")
         # deadlines
-        if late_s > c.late_threshold_s:
+        if not (late_s <= c.late_threshold_s):
             self.late_run += 1
             if self.late_run >= c.max_consecutive_late:
                 return Trip("missed_deadlines",
@@ -80,10 +125,17 @@ class Interlocks:
                             {"late_s": late_s, "run": self.late_run})
         else:
             self.late_run = 0
+        # what the devices' own checks found (e.g. the servovalve: foreign frames, watchdog, following)
+        for name, h in health.items():
+            if h.problems:
+                code, msg = h.problems[0]
+                return Trip(code, msg + (f" (and {len(h.problems) - 1} more)" if len(h.problems) > 1 else ""),
+                            t_s, {"device": h.device, "address": h.address,
+                                  "problems": [p[0] for p in h.problems]})
         # stale data, faults
         for name, h in health.items():
             limit = self.stale_s.get(name, c.stale_s)
-            if h.age_s > limit and h.polls_since_new >= self.stale_ticks:
+            if not (h.age_s <= limit) and h.polls_since_new >= self.stale_ticks:
                 return Trip(STALE_TRIP.get(name, f"stale_{name}"),
                             f"no new data from the {h.device} at {h.address} for {h.age_s * 1e3:.1f} ms",
                             t_s, {"age_s": h.age_s, "limit_s": limit, "polls": h.polls_since_new})
@@ -92,28 +144,20 @@ class Interlocks:
                 return Trip(FAULT_TRIP.get(name, f"{name}_fault"),
                             f"the {h.device} at {h.address} reports a fault (code 0x{h.fault_code:04x})", t_s,
                             {"status": h.status, "fault_code": h.fault_code})
-        # serial checksum errors per second (the LVDT stream)
-        lv = health.get("lvdt")
-        if lv is not None:
-            bad = lv.frames_bad
-            if self._bad_window_start_t is None or now - self._bad_window_start_t >= 1.0:
-                self._bad_window_start_t = now
-                self._bad_at_window_start = bad
-            if bad - self._bad_at_window_start > c.max_checksum_errors:
-                return Trip("serial_checksum_errors",
-                            f"{bad - self._bad_at_window_start} frames with a bad checksum within 1 s "
-                            f"from the {lv.device} at {lv.address}", t_s,
-                            {"bad_frames": bad, "limit": c.max_checksum_errors})
+        # link quality per second: bad checksums, lost frames / missed answers, garbage on a stream
+        tr = self._windows(t_s, now, health)
+        if tr is not None:
+            return tr
         va = health.get("valve")
         if va is not None and va.frames_bad:
-            return Trip("can_bus_errors", f"{va.frames_bad} CAN error frames on {va.address}",
+            return Trip("can_bus_errors", f"{va.frames_bad} bad or foreign CAN frames on {va.address}",
                         t_s, {"error_frames": va.frames_bad})
         # process limits
-        if x < self.x_min or x > self.x_max:
+        if not (self.x_min <= x <= self.x_max):
             return Trip("stroke_limit", f"position {x:.1f} µm outside the stroke "
                         f"[{self.x_min:g}, {self.x_max:g}] µm", t_s,
                         {"position_um": x, "min_um": self.x_min, "max_um": self.x_max})
-        if abs(f) > c.friction_max_N:
+        if not (abs(f) <= c.friction_max_N):
             return Trip("friction_limit", f"|friction| {abs(f):.1f} N above {c.friction_max_N:g} N",
                         t_s, {"friction_N": f, "limit_N": c.friction_max_N})
         for name, n in (("normal_1", n1), ("normal_2", n2)):
@@ -121,10 +165,39 @@ class Interlocks:
                 return Trip("normal_force_band", f"{name} {n:.1f} N outside "
                             f"[{c.normal_min_N:g}, {c.normal_max_N:g}] N", t_s,
                             {f"{name}_N": n, "min_N": c.normal_min_N, "max_N": c.normal_max_N})
-        if c.max_following_error_um is not None and abs(x_ref - x) > c.max_following_error_um:
-            return Trip("following_error", f"|x_ref - x| = {abs(x_ref - x):.1f} µm above "
-                        f"{c.max_following_error_um:g} µm", t_s,
-                        {"position_ref_um": x_ref, "position_um": x})
+        lim = self.following_limit_um(v_ref_um_s)
+        if not (abs(x_ref - x) <= lim):
+            return Trip("following_error", f"|x_ref - x| = {abs(x_ref - x):.1f} µm above {lim:.1f} µm "
+                        f"(at {v_ref_um_s:.1f} µm/s)", t_s,
+                        {"position_ref_um": x_ref, "position_um": x, "limit_um": lim, "v_ref_um_s": v_ref_um_s})
+        return None
+
+    def _windows(self, t_s: float, now: float, health: Mapping[str, DeviceHealth]) -> Trip | None:
+        c = self.cfg
+        if self._win_t is None or not (now - self._win_t < 1.0):
+            self._win_t = now
+            self._win0 = {name: tuple(getattr(h, a) for a, *_ in WINDOW_COUNTERS) for name, h in health.items()}
+            return None
+        for name, h in health.items():
+            base = self._win0.get(name)
+            if base is None:
+                continue
+            for (attr, limit_name, trip, what), b0 in zip(WINDOW_COUNTERS, base):
+                if name == "valve" and attr != "frames_lost":
+                    continue  # the valve's bad frames trip at once (its problems)
+                d = getattr(h, attr) - b0
+                limit = getattr(c, limit_name)
+                if not (d <= limit):
+                    return Trip(trip, f"{d} {what} within 1 s from the {h.device} at {h.address}", t_s,
+                                {attr: d, "limit": limit, "device": name})
+        return None
+
+    def command(self, t_s: float, cmd: float, p: float, i: float, d: float, dz: float) -> Trip | None:
+        """The controller's output and terms must be finite (a NaN set-point would be sent as null)."""
+        s = cmd + p + i + d + dz
+        if s - s != 0.0:
+            return non_finite(t_s, ("valve_cmd", "pid_p", "pid_i", "pid_d", "dither"), (cmd, p, i, d, dz),
+                              "the controller's output")
         return None
 
     def device_error(self, t_s: float, name: str, exc: DeviceError, health: DeviceHealth) -> Trip | None:

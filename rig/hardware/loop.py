@@ -18,9 +18,18 @@ time; the parent (:class:`rig.session.hardware.HardwareBackend`) logs them.
 The loop's own stop states (:class:`Mode`): ``RUN`` -> ``HOLD`` (operator
 abort: the reference frozen where it was, for ``stop_hold_s``) -> ``SAFE``
 (valve nulled and disabled; the sensors are still logged for ``stop_hold_s``
-after a process-limit trip, one tick after a device trip) -> end. The end of
-the plan goes from ``RUN`` to ``SAFE`` for the last tick. Parent death
-(PR_SET_PDEATHSIG -> SIGTERM) is an abort.
+after a process-limit trip, one tick after a device trip) -> end, where the
+valve's ``safe_stop()`` confirms it. The end of the plan goes from ``RUN`` to
+``SAFE`` for the last tick.
+
+Trial time is the reference's: the reference index advances by one per
+executed tick, so across a stall (skipped deadlines) the reference resumes
+where it was instead of jumping; each stall is a ``stall`` event, a long one a
+``loop_stall`` trip. The session talks to the loop through shared values:
+``abort_flag`` (operator abort: hold then safe; session failure, e.g. its log:
+safe at once), ``logger_ack`` (blocks logged: ``logger_stalled`` when they stop)
+and ``logger_alive`` (the logger's heartbeat: ``logger_died`` when it stops;
+PR_SET_PDEATHSIG -> SIGTERM with the parent gone is the same trip).
 """
 
 from __future__ import annotations
@@ -74,8 +83,16 @@ class _Block:
         return blk, tim
 
 
-def loop_main(hw_dict, profile, x_ref_um, out_q, abort_flag, options=None):
-    """Entry point of the loop process. ``abort_flag``: a shared ``multiprocessing.Value('i')``."""
+# values of the shared ``abort_flag``: what the session asks for
+ABORT_NONE, ABORT_OPERATOR, ABORT_FAIL = 0, 1, 2
+
+
+def loop_main(hw_dict, profile, x_ref_um, out_q, abort_flag, options=None, logger_ack=None, logger_alive=None):
+    """Entry point of the loop process. ``abort_flag``: a shared ``multiprocessing.Value('i')``
+    (1: operator abort, hold then safe; 2: the session failed, e.g. its log: safe at once);
+    ``logger_ack``: a shared ``Value('q')``, the number of blocks the session has logged;
+    ``logger_alive``: a shared ``Value('d')``, the ``time.monotonic()`` of the logger's last heartbeat
+    (0: not started)."""
     options = options or {}
     set_process_name("rig-rt-loop")
     set_pdeathsig(signal.SIGTERM)
@@ -87,10 +104,23 @@ def loop_main(hw_dict, profile, x_ref_um, out_q, abort_flag, options=None):
     signal.signal(signal.SIGTERM, _term)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's: it sets abort_flag
     try:
-        _run(hw_dict, profile, np.asarray(x_ref_um, dtype=float), out_q, abort_flag, stop_req, options)
+        _run(hw_dict, profile, np.asarray(x_ref_um, dtype=float), out_q, abort_flag, stop_req, options,
+             logger_ack, logger_alive)
     except BaseException as exc:  # noqa: BLE001 - report, never die silently
         out_q.put(("done", {"status": "error", "message": f"{type(exc).__name__}: {exc}",
                             "traceback": traceback.format_exc()}))
+
+
+def _process_exiting(pid: int) -> bool:
+    """Is process ``pid`` gone or dying (PF_EXITING in /proc/PID/stat, zombie)? A killed process is
+    marked exiting at once, while the kernel still tears down its memory (~80 ms for the logger)
+    before its children get their PR_SET_PDEATHSIG; a merely slow logger is not exiting."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            rest = f.read().rsplit(b")", 1)[1].split()
+    except (OSError, IndexError):
+        return True
+    return rest[0] in (b"Z", b"X") or bool(int(rest[6]) & 0x4)  # state, flags & PF_EXITING
 
 
 def _device_counters(devices) -> dict:
@@ -104,8 +134,9 @@ def _device_counters(devices) -> dict:
     return out
 
 
-def _run(hw_dict, profile, x_ref, out_q, abort_flag, stop_req, options):
+def _run(hw_dict, profile, x_ref, out_q, abort_flag, stop_req, options, logger_ack=None, logger_alive=None):
     import logging
+    import os
     import sys
 
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)  # errors are reported as DeviceError
@@ -122,6 +153,7 @@ def _run(hw_dict, profile, x_ref, out_q, abort_flag, stop_req, options):
     il = Interlocks(ilc, float(profile.stroke.min_um), float(profile.stroke.max_um),
                     hw.valve.heartbeat_timeout_s, period)
     mono = time.monotonic
+    parent = os.getppid()
     failed: list[DeviceError] = []
     for dev in devices:  # every device that does not answer is named, not just the first
         try:
@@ -143,8 +175,10 @@ def _run(hw_dict, profile, x_ref, out_q, abort_flag, stop_req, options):
     rt_info = setup_realtime(rt.sched_fifo, rt.priority, rt.cpu)
     out_q.put(("info", {"realtime": rt_info, "period_s": period,
                         "devices": {d.name: d.address for d in devices}}))
-    controller_step(cpar, cst, float(x_ref[0]), float(x_ref[0]))  # compiled before the first tick
+    # everything compiled and imported before the first tick
+    controller_step(cpar, cst, float(x_ref[0]), float(x_ref[0]))
     cst[:] = new_controller_state()
+    il.command(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 
     n_ticks = len(x_ref)
     hold_ticks = max(1, int(round(ilc.stop_hold_s / period)))
@@ -157,19 +191,12 @@ def _run(hw_dict, profile, x_ref, out_q, abort_flag, stop_req, options):
     hold_end_k = 0
     stop_k = n_ticks
 
-    # enable the valve (its controller answers with the enabled bit), nulled
-    valve.command, valve.enable = 0.0, True
-    t_en = mono()
+    # the explicit start (NMT start, fault reset, enable; verified by the valve's status PDO); only here,
+    # never after a trip
     try:
-        while not valve.enabled and mono() - t_en < 0.2:
-            valve.write(mono())
-            time.sleep(0.001)
-            valve.read(mono())
-    except DeviceError:
-        pass
-    if not valve.enabled:
-        trip = Trip("valve_enable", f"servovalve controller at {valve.address} did not enable", 0.0,
-                    {"status_bits": valve.final_state()["status_bits"]})
+        valve.start()
+    except DeviceError as exc:
+        trip = Trip("valve_enable", f"{exc}", 0.0, {"status_bits": valve.final_state()["status_bits"]})
     out_q.put(("event", 0.0, "loop_start", {"sched": rt_info["sched"], "note": rt_info["note"]}))
     for d in devices:  # drain what arrived while enabling; staleness counts from here
         try:
@@ -182,19 +209,34 @@ def _run(hw_dict, profile, x_ref, out_q, abort_flag, stop_req, options):
     gc.freeze()
     gc.disable()
     pacer.start()
-    prev_wake = float("nan")
     perf = time.perf_counter
     if trip is not None:
         status, mode, stop_k = "tripped", Mode.SAFE, 0
         out_q.put(("event", 0.0, "interlock", trip.as_dict()))
     x = pos.position_um
     cmd = p = i_ = d_ = dz = 0.0
+    # timing health: a gap between two ticks over stall_event_s is an event, over stall_trip_s a trip;
+    # skipped cycles above max_skipped_fraction of the last second trip. The reference index `kr`
+    # advances by one per executed tick, so after a stall the reference resumes where it was
+    # (no jump): trial time t_s = kr * period is the reference's time.
+    stall_ev, stall_trip = ilc.stall_event_s, ilc.stall_trip_s
+    win_skip0, win_t = 0, None
+    max_skip_per_s = ilc.max_skipped_fraction / period
+    last_wake = float("nan")
+    skipped_seen = prev_skipped = 0
+    # the logger: blocks sent and when; the session acknowledges each block it has logged
+    sent_t: list[float] = []
+    log_timeout = ilc.logger_timeout_s
+    log_hb = ilc.logger_heartbeat_s
+    kr = 0
+    xr_prev = float(x_ref[0])
+    inv_dt = 1.0 / period
     while True:
         k, dl, wake = pacer.wait()
-        if k >= stop_k:
+        if kr >= stop_k:
             break
         c0 = perf()
-        t_s = k * period
+        t_s = kr * period
         # -- read ------------------------------------------------------------------
         dev_trip = None
         for dev in devices:
@@ -208,25 +250,65 @@ def _run(hw_dict, profile, x_ref, out_q, abort_flag, stop_req, options):
         for dev in devices:
             dev.health(wake)
         # -- update: reference, stop states, interlocks, controller -------------------
-        xr = hold_ref if mode is Mode.HOLD else float(x_ref[k]) if k < n_ticks else float(x_ref[-1])
+        if mode is Mode.HOLD:
+            xr = hold_ref
+        else:
+            xr = float(x_ref[kr]) if kr < n_ticks else float(x_ref[-1])
+        v_ref = (xr - xr_prev) * inv_dt if kr else 0.0
+        xr_prev = xr
+        gap = wake - last_wake
+        last_wake = wake
         if mode is not Mode.SAFE:
-            tr = dev_trip or il.check(t_s, wake, xr, x, f, n1, n2, health, wake - dl)
+            tr = dev_trip
+            if gap > stall_ev:  # a stall (NaN on the first tick: no)
+                n_skip = pacer.skipped - skipped_seen
+                out_q.put(("event", t_s, "stall", {"gap_s": gap, "skipped": n_skip, "reference_held": True}))
+                if tr is None and not (gap <= stall_trip):
+                    tr = Trip("loop_stall", f"no tick for {gap * 1e3:.0f} ms (limit {stall_trip * 1e3:g} ms)",
+                              t_s, {"gap_s": gap, "skipped": n_skip})
+            skipped_seen = pacer.skipped
+            if tr is None:
+                tr = il.check(t_s, wake, xr, x, f, n1, n2, health, wake - dl, v_ref)
+            if tr is None and sent_t and logger_ack is not None:
+                ack = logger_ack.value
+                if ack < len(sent_t) and not (wake - sent_t[ack] <= log_timeout):
+                    tr = Trip("logger_stalled", f"the logger has not taken block {ack + 1} for "
+                              f"{(wake - sent_t[ack]) * 1e3:.0f} ms", t_s,
+                              {"blocks_sent": len(sent_t), "blocks_logged": ack, "timeout_s": log_timeout})
+            if tr is None and logger_alive is not None:
+                hb = logger_alive.value
+                if hb > 0.0 and not (wake - hb <= log_hb) and _process_exiting(parent):
+                    tr = Trip("logger_died", f"no heartbeat from the logger for {(wake - hb) * 1e3:.0f} ms "
+                              f"(limit {log_hb * 1e3:g} ms)", t_s, {"age_s": wake - hb, "limit_s": log_hb})
+            if tr is None:
+                if abort_flag.value == ABORT_FAIL:
+                    tr = Trip("logger_failed", "the session failed (its log): stop at once", t_s,
+                              {"abort_flag": ABORT_FAIL})
+                elif stop_req["why"] and os.getppid() != parent:
+                    tr = Trip("logger_died", "the logger (the parent process) died", t_s,
+                              {"signal": stop_req["why"]})
             if tr is not None:
                 trip, status, mode = tr, "tripped", Mode.SAFE
-                stop_k = k + (1 if tr.name in DEVICE_TRIPS else hold_ticks)
+                stop_k = kr + (1 if tr.name in DEVICE_TRIPS else hold_ticks)
                 out_q.put(("event", t_s, "interlock", tr.as_dict()))
             elif mode is Mode.RUN and (abort_flag.value or stop_req["why"]):
                 status, mode, hold_ref = "aborted", Mode.HOLD, xr
-                hold_end_k = k + hold_ticks
+                hold_end_k = kr + hold_ticks
                 stop_k = hold_end_k + 1
                 out_q.put(("event", t_s, "abort", {"reason": "operator abort" if abort_flag.value
                                                    else stop_req["why"], "hold_um": xr}))
-            elif mode is Mode.HOLD and k >= hold_end_k:
+            elif mode is Mode.HOLD and kr >= hold_end_k:
                 mode = Mode.SAFE
         if mode is Mode.SAFE or not use_ctl:
             cmd = p = i_ = d_ = dz = 0.0
         else:
             cmd, p, i_, d_, dz = controller_step(cpar, cst, xr, x)
+            s_ = cmd + p + i_ + d_ + dz
+            if s_ - s_ != 0.0:  # a non-finite controller output: never sent (the driver would null it)
+                tr = il.command(t_s, cmd, p, i_, d_, dz)
+                trip, status, mode, stop_k = tr, "tripped", Mode.SAFE, kr + 1
+                out_q.put(("event", t_s, "interlock", tr.as_dict()))
+                cmd = p = i_ = d_ = dz = 0.0
         # -- write -------------------------------------------------------------------
         valve.command = cmd
         valve.enable = mode is not Mode.SAFE
@@ -237,7 +319,7 @@ def _run(hw_dict, profile, x_ref, out_q, abort_flag, stop_req, options):
                 if mode is not Mode.SAFE:
                     tr = il.device_error(t_s, dev.name, exc, dev.health(wake))
                     if tr is not None:
-                        trip, status, mode, stop_k = tr, "tripped", Mode.SAFE, k + 1
+                        trip, status, mode, stop_k = tr, "tripped", Mode.SAFE, kr + 1
                         out_q.put(("event", t_s, "interlock", tr.as_dict()))
         # -- record ------------------------------------------------------------------
         j = blk.i
@@ -254,42 +336,61 @@ def _run(hw_dict, profile, x_ref, out_q, abort_flag, stop_req, options):
         r[9, j] = d_
         r[10, j] = dz
         blk.late[j] = wake - dl
-        blk.period[j] = wake - prev_wake
+        blk.period[j] = gap if prev_skipped == 0 else float("nan")
         blk.read[j] = c1 - c0
-        prev_wake = wake
         blk.i = j + 1
         blk.exec[j] = perf() - c0
         if blk.i >= blk.n:
             b, tim = blk.take()
             tim["devices"] = _device_counters(devices)
             out_q.put(("block", b, tim))
-        skipped = pacer.advance()
-        if skipped:
-            blk.skipped += skipped
-            prev_wake = float("nan")
-        if k == n_ticks - 1 and mode is Mode.RUN:
-            mode, stop_k = Mode.SAFE, k + 1  # end of the plan
+            sent_t.append(mono())
+        kr += 1
+        now = mono()
+        prev_skipped = pacer.advance(now)
+        if prev_skipped:
+            blk.skipped += prev_skipped
+        # skipped cycles within the last second
+        if win_t is None or not (now - win_t < 1.0):
+            win_t, win_skip0 = now, pacer.skipped
+        elif mode is not Mode.SAFE and not (pacer.skipped - win_skip0 <= max_skip_per_s):
+            ds = pacer.skipped - win_skip0
+            trip, status, mode, stop_k = (Trip("skipped_cycles", f"{ds} cycles skipped within "
+                                               f"{now - win_t:.2f} s (limit {max_skip_per_s:.0f} per second)",
+                                               t_s, {"skipped": ds, "limit": max_skip_per_s}),
+                                          "tripped", Mode.SAFE, kr + 1)
+            out_q.put(("event", t_s, "interlock", trip.as_dict()))
+        if kr == n_ticks and mode is Mode.RUN:
+            mode, stop_k = Mode.SAFE, kr  # end of the plan
     # -- safe state ----------------------------------------------------------------------
     valve.command, valve.enable = 0.0, False
     try:
         valve.write(mono())
     except DeviceError:
         pass
+    if trip is not None and trip.name == "logger_died" and os.getppid() != parent:
+        # nobody reads the queue any more: never wait for it at exit (only then: cancelling can leave a
+        # half-written message in the pipe, which would block a reader that is still there)
+        out_q.cancel_join_thread()
+    confirmed = False
+    try:
+        confirmed = valve.safe_stop()
+    except DeviceError:
+        pass
     if blk.i:
         b, tim = blk.take()
         tim["devices"] = _device_counters(devices)
         out_q.put(("block", b, tim))
-    summary = {"status": status, "ticks": int(pacer.k), "skipped": int(pacer.skipped),
+    summary = {"status": status, "ticks": int(kr), "skipped": int(pacer.skipped),
                "devices": {d.name: d.health(mono()).as_dict() for d in devices}, "realtime": rt_info}
     if trip is not None:
         summary["trip"] = trip.as_dict()
         summary["message"] = str(trip)
-    time.sleep(0.005)
     try:
         valve.read(mono())
     except DeviceError:
         pass
-    summary["valve_final"] = valve.final_state()
+    summary["valve_final"] = {**valve.final_state(), "confirmed": confirmed}
     for dev in devices:
         dev.close()
     out_q.put(("done", summary))

@@ -316,6 +316,106 @@ class _Guarded:
             self._errors.append(f"{type(exc).__name__}: {exc}")
 
 
+def writer_failure(writer) -> str | None:
+    """Has the log writer failed (a write raised, its thread or process died)? A sentence, or None.
+
+    Asks ``writer.failure()`` (the writer's own answer, when it has one); otherwise looks at a
+    threaded :class:`rig.log.TrialLogWriter`'s writer thread (its stored exception, whether it
+    still runs)."""
+    f = getattr(writer, "failure", None)
+    if callable(f):
+        try:
+            return f()
+        except Exception as exc:  # noqa: BLE001
+            return f"{type(exc).__name__}: {exc}"
+    sink = getattr(writer, "_sink", None)
+    exc = getattr(sink, "_exc", None)
+    if exc is not None:
+        return f"the log writer failed: {type(exc).__name__}: {exc}"
+    th = getattr(sink, "_thread", None)
+    if th is not None and not th.is_alive() and not getattr(writer, "closed", False):
+        return "the log writer thread died"
+    return None
+
+
+def warm_up_writer(writer) -> None:
+    """Load and compile what the writer's first block needs (numba and its cache) before the loop
+    starts, so the first second of a run reaches the disk with the rest: ``writer.warm_up()`` when
+    the writer has one, else :func:`rig.log._block_stats` on empty arrays."""
+    warm = getattr(writer, "warm_up", None)
+    if callable(warm):
+        warm()
+        return
+    try:
+        from rig.log import _block_stats
+    except ImportError:
+        return
+    e = np.zeros(0)
+    _block_stats(e, e, e, e, e, e, np.zeros(8))
+
+
+class _WriterMonitor:
+    """A thread that beats the backend's logger heartbeat (``backend.heartbeat()``, at
+    ``backend.heartbeat_priority`` SCHED_FIFO when permitted) and watches the log writer while the
+    trial runs: when it fails (disk full, a write
+    error, its thread dead) the backend is told at once (``fail_stop``: the hardware loop nulls and
+    disables the valve at its next tick), without waiting for the next block. When a write hangs
+    for ``hang_exit_s`` (a dead disk), the backend is stopped the same way and, once it has had
+    ``drain_s`` to reach its safe state, the process exits with status 1 and a message: never hang."""
+
+    def __init__(self, session: "TrialSession", poll_s: float = 0.005, hang_exit_s: float = 10.0,
+                 drain_s: float = 3.0):
+        self.s = session
+        self.poll_s, self.hang_exit_s, self.drain_s = poll_s, hang_exit_s, drain_s
+        self._stop = threading.Event()
+        self._th = threading.Thread(target=self._run, name="rig-writer-monitor", daemon=True)
+
+    def start(self) -> None:
+        self._th.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._th.is_alive():
+            self._th.join(1.0)
+
+    def _fail(self, reason: str) -> None:
+        s = self.s
+        if s.writer_failure is None:
+            s.writer_failure = reason
+            fail = getattr(s.backend, "fail_stop", None)
+            if fail is not None:
+                fail(reason)
+
+    def _run(self) -> None:
+        s = self.s
+        beat = getattr(s.backend, "heartbeat", None)
+        prio = getattr(s.backend, "heartbeat_priority", None)
+        if beat is not None and prio:
+            try:  # the heartbeat must not wait behind the machine's other work (this thread only)
+                import os
+
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(prio))
+            except (OSError, AttributeError):
+                pass
+        while not self._stop.wait(self.poll_s):
+            if beat is not None:
+                beat()
+            why = writer_failure(s.writer)
+            if why:
+                self._fail(why)
+            t = s._in_write
+            if t is not None and time.monotonic() - t > self.hang_exit_s:
+                self._fail(f"the log writer hung for {self.hang_exit_s:g} s")
+                self._stop.wait(self.drain_s)
+                import os
+                import sys
+
+                sys.stderr.write(f"error: the log writer hung for over {self.hang_exit_s:g} s (disk?); the "
+                                 "hardware was told to stop at once (valve nulled and disabled); exiting\n")
+                sys.stderr.flush()
+                os._exit(1)
+
+
 class TrialSession:
     """Run ``plan`` on ``backend``, logging to ``writer`` (see the module docstring).
 
@@ -339,6 +439,9 @@ class TrialSession:
         self.stop = StopMachine()
         self.figures = BlockFigures()
         self._signals: list[str] = []
+        self._in_write: float | None = None  # monotonic start of the write_block in progress
+        self._logged = None
+        self.writer_failure: str | None = None
 
     # -- stop requests ---------------------------------------------------------
     def request_stop(self, cause: Cause, reason: str) -> None:
@@ -377,9 +480,13 @@ class TrialSession:
         ending: Ending | None = None
         handled = 0  # signals turned into stop requests
         old = self._install_signals()
+        warm_up_writer(w)  # numba & co. compiled/loaded now: the first second of the run is durable
+        self._logged = getattr(backend, "block_logged", None)
+        monitor = _WriterMonitor(self, poll_s=0.005)
         try:
             try:
                 backend.start(plan)
+                monitor.start()
                 while True:
                     try:
                         while handled < len(self._signals):
@@ -390,7 +497,11 @@ class TrialSession:
                         if msg is None:
                             break
                         if type(msg) is Block:
+                            self._in_write = time.monotonic()
                             w.write_block(msg.data)
+                            self._in_write = None
+                            if self._logged is not None:
+                                self._logged()
                             self.figures.add(msg.data)
                             t = self.figures.last_t_s
                             if t >= next_stats - half_tick:
@@ -415,6 +526,7 @@ class TrialSession:
             except Exception as exc:  # noqa: BLE001 - a failure while running (e.g. the log): stop the backend
                 ending = self._fail_stop(f"{type(exc).__name__}: {exc}")
         finally:
+            monitor.stop()
             for sig, h in old.items():
                 signal.signal(sig, h)
             try:
@@ -429,7 +541,8 @@ class TrialSession:
         reach its safe state (its messages are dropped: the log may be what failed), say how it ended."""
         self.stop.request(Cause.FAILURE, reason)
         try:
-            self.backend.request_stop(reason)
+            fail = getattr(self.backend, "fail_stop", None)
+            (fail or self.backend.request_stop)(reason)
             t_end = time.monotonic() + drain_s
             while time.monotonic() < t_end and self.backend.receive() is not None:
                 pass
@@ -492,4 +605,4 @@ def run_trial(plan, backend: Backend, writer, **kw) -> TrialResult:
 
 
 __all__ = ["Backend", "BackendError", "Block", "BlockFigures", "Cause", "Ending", "Event", "Phase",
-           "StopMachine", "TrialResult", "TrialSession", "run_trial"]
+           "StopMachine", "TrialResult", "TrialSession", "run_trial", "warm_up_writer", "writer_failure"]

@@ -21,12 +21,13 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import queue as queue_mod
+import time
 
 import numpy as np
 
 from drivers.config import HardwareConfig
 from rig.hardware.emulated import EmulatorError, start_emulator_process
-from rig.hardware.loop import loop_main
+from rig.hardware.loop import ABORT_FAIL, ABORT_OPERATOR, loop_main
 from rig.hardware.timing import TimingStats, format_stats
 from rig.session.core import BackendError, Block, Ending, Event
 from rig.sim import initial_velocity_um_s
@@ -48,7 +49,12 @@ class HardwareBackend:
         self.hw = hw
         self.profile = profile
         self.emulator = emulator
+        if emulator is not None and getattr(emulator, "hw", None) is not None:
+            self.hw = emulator.hw  # the emulated rig's private CAN channel
         self._own_emulator = None
+        self.logger_ack = None
+        self.logger_alive = None
+        self._blocks_logged = 0
         self.lubricant, self.normal_force_N, self.seed = lubricant, normal_force_N, seed
         self.controller = controller
         self.proc = None
@@ -63,6 +69,12 @@ class HardwareBackend:
         self._realtime: dict | None = None
         self._t_last = 0.0
         self._stop_reason: str | None = None
+
+    @property
+    def heartbeat_priority(self) -> int | None:
+        """SCHED_FIFO priority of the session's heartbeat thread (below the loop's), None: not real-time."""
+        rt = self.hw.realtime
+        return max(1, rt.priority - 20) if rt.sched_fifo else None
 
     def describe(self) -> dict:
         return {"loadcells": self.hw.loadcells.address_text, "lvdt": self.hw.lvdt.address_text,
@@ -81,15 +93,19 @@ class HardwareBackend:
                     seed=self.seed)
             except EmulatorError as exc:
                 raise BackendError(str(exc)) from None
+            self.hw = self.emulator.hw
         if self.emulator is not None:
             self.emulator.reset_plant(float(x_ref[0]), initial_velocity_um_s(
                 x_ref, self.rate_hz, self.profile.sim.initial_creep_um_s))
         ctx = mp.get_context("spawn")
         self.q = ctx.Queue()
         self.abort = ctx.Value("i", 0, lock=False)
+        self.logger_ack = ctx.Value("q", 0, lock=False)
+        self.logger_alive = ctx.Value("d", 0.0, lock=False)
         self.proc = ctx.Process(target=loop_main, name="rig-rt-loop", daemon=True,
                                 args=(self.hw.model_dump(), self.profile, x_ref, self.q, self.abort,
-                                      {"period_s": 1.0 / self.rate_hz, "controller": self.controller}))
+                                      {"period_s": 1.0 / self.rate_hz, "controller": self.controller},
+                                      self.logger_ack, self.logger_alive))
         self.proc.start()
 
     # -- run -------------------------------------------------------------------
@@ -132,10 +148,29 @@ class HardwareBackend:
             return None
         raise RuntimeError(f"unknown message from the loop process: {kind!r}")
 
-    def request_stop(self, reason: str, insist: bool = False) -> None:
+    def block_logged(self) -> None:
+        """The session has logged one more block (the loop trips if the logger stops taking them)."""
+        self._blocks_logged += 1
+        if self.logger_ack is not None:
+            self.logger_ack.value = self._blocks_logged
+
+    def heartbeat(self) -> None:
+        """The logger is alive (the session's monitor thread, every few ms): the loop trips when the
+        heartbeat is older than ``interlocks.logger_heartbeat_s`` (a killed logger stops at once)."""
+        if self.logger_alive is not None:
+            self.logger_alive.value = time.monotonic()
+
+    def fail_stop(self, reason: str) -> None:
+        """The session failed (its log): the loop nulls and disables the valve at its next tick (no hold).
+        Safe to call from any thread."""
         self._stop_reason = reason
         if self.abort is not None:
-            self.abort.value = 1  # controlled stop: the loop holds, nulls, disables
+            self.abort.value = ABORT_FAIL
+
+    def request_stop(self, reason: str, insist: bool = False) -> None:
+        self._stop_reason = reason
+        if self.abort is not None and self.abort.value != ABORT_FAIL:
+            self.abort.value = ABORT_OPERATOR  # controlled stop: the loop holds, nulls, disables
         if insist and self.proc is not None and self.proc.is_alive():
             self.proc.terminate()  # insisted: the loop stops now (the valve watchdog nulls the valve)
 
@@ -157,11 +192,13 @@ class HardwareBackend:
         vf = s.get("valve_final") or {}
         # safe: the loop reached its safe state and the valve confirms it is disabled (a dead loop or a
         # silent valve cannot confirm anything: the valve controller's watchdog is what nulls it then)
-        safe = status in ("completed", "aborted", "tripped") and not vf.get("enabled", False)
+        safe = status in ("completed", "aborted", "tripped") and bool(vf) and not vf.get("enabled", True) \
+            and vf.get("confirmed", False)
         if "devices_failed" in s:
             safe = True  # the devices did not answer before the start: nothing was ever enabled
-        s["safe_state"] = (f"valve status 0x{vf.get('status_bits', 0):02x}, enabled {vf.get('enabled')}, "
-                           f"output {vf.get('output')}") if vf else ""
+        s["safe_state"] = (f"valve status word 0x{vf.get('status_bits', 0):04x}, enabled {vf.get('enabled')}, "
+                           f"spool {vf.get('output')}, NMT {vf.get('nmt')}, confirmed {vf.get('confirmed')}"
+                           ) if vf else ""
         msg = s.get("message") or ("" if status == "completed" else str(status))
         return Ending(outcome, msg, safe=safe, summary=s, final_stats=dict(final) if final.get("n") else None,
                       report=format_stats(final, "loop timing (whole trial)") if final.get("n") else "")

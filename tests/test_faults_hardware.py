@@ -1,0 +1,268 @@
+"""Fault injection through the real hardware path: `rig run RECIPE --hardware PROFILE` in a subprocess
+against the emulated rig (one emulator process for the module, its own CAN channel), one test per fault.
+
+Each test asserts the trip or the event (in the finished, readable MCAP), the safe valve state seen from
+the valve emulator (disabled, spool 0) and, where a log can exist, that it reads back. Outcomes only,
+no latencies (the machine is shared): the latencies are measured in docs/hardware.md.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import resource
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from hw_helpers import REPO, find_child, private_profile
+
+from drivers.config import hardware_of_profile
+from drivers.emulators.valve_controller import send_foreign, send_malformed
+from rig.config.profile import load_profile
+from rig.config.recipe import compile_recipe, load_recipe
+from rig.hardware.emulated import start_emulator_process
+from rig.log import read_trial
+
+pytestmark = pytest.mark.slow
+
+# about 5 s: a hold, a 30 µm run-in stub each way at 20 µm/s (motion for the following checks), a hold
+RECIPE = """\
+name: faults
+description: short trial for the fault-injection tests
+lubricant: boundary
+normal_force_N: 100
+seed: 3
+trials: 1
+accel_um_s2: 100
+log: {raw_rate_hz: 1000, decimated_rate_hz: 25}
+segments:
+  - {kind: hold, label: settle, duration_s: 0.5}
+  - {kind: run_in, label: stub, distance_um: 30, speed_um_s: 20}
+  - {kind: hold, label: rest, duration_s: 1.5}
+"""
+
+
+@pytest.fixture(scope="module")
+def env(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("faults")
+    prof = private_profile(tmp, autostart=False)
+    profile = load_profile(prof)
+    recipe = tmp / "faults.yaml"
+    recipe.write_text(RECIPE)
+    plan = compile_recipe(load_recipe(recipe), profile)
+    emu = start_emulator_process(hardware_of_profile(profile), profile, lubricant="boundary", seed=5,
+                                 private=False)
+    yield SimpleNamespace(tmp=tmp, prof=prof, recipe=recipe, emu=emu, x0=float(plan.x_ref_um[0]),
+                          channel=emu.hw.valve.channel, node=emu.hw.valve.node_id)
+    emu.stop()
+
+
+FAULTS = (("valve", "fault"), ("valve", "silent"), ("valve", "ignore_setpoints"), ("valve", "stuck"),
+          ("loadcells", "slow_s"), ("loadcells", "nan_friction"), ("loadcells", "inf_normal_1"),
+          ("lvdt", "drop_every"), ("lvdt", "garbage_every"), ("lvdt", "corrupt_every"))
+
+
+def _start(env, out: Path, preexec_fn=None) -> subprocess.Popen:
+    for dev, fault in FAULTS:
+        env.emu.inject(dev, fault, None)
+    env.emu.reset_plant(env.x0)
+    return subprocess.Popen([sys.executable, "-m", "rig.cli", "run", str(env.recipe), "--hardware", str(env.prof),
+                             "--out", str(out), "-q"], cwd=REPO, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True, preexec_fn=preexec_fn)
+
+
+def _wait_running(env, p, ticks: int = 700, timeout_s: float = 60.0) -> int:
+    """Until the loop has sent ``ticks`` set-points of this run to the valve (it is following); returns
+    the valve's set-point count at the start (the run's tick k is about ``n_setpoints - n0``)."""
+    n0 = env.emu.stats()["n_setpoints"]
+    t_end = time.monotonic() + timeout_s
+    while time.monotonic() < t_end:
+        if p.poll() is not None:
+            raise AssertionError(f"rig exited early ({p.returncode}):\n{p.stdout.read()}")
+        if env.emu.stats()["n_setpoints"] - n0 >= ticks:
+            return n0
+        time.sleep(0.02)
+    raise AssertionError("the loop did not start")
+
+
+def _finish(p, timeout_s: float = 60.0) -> str:
+    try:
+        return p.communicate(timeout=timeout_s)[0]
+    except subprocess.TimeoutExpired:
+        p.kill()
+        raise AssertionError("rig run hung") from None
+
+
+def _safe_valve(env, timeout_s: float = 3.0) -> dict:
+    t_end = time.monotonic() + timeout_s
+    while True:
+        st = env.emu.stats()
+        if not st["valve_enabled"] and st["valve_output"] == 0.0:
+            return st
+        if time.monotonic() > t_end:
+            raise AssertionError(f"valve not safe (disabled, spool 0): {st}")
+        time.sleep(0.02)
+
+
+def _trip(out: Path, names: set[str]) -> tuple[dict, object]:
+    tr = read_trial(out, channel="raw")  # finished: readable without recovery
+    trips = [e for e in tr.events if e["kind"] == "interlock"]
+    assert trips, [e["kind"] for e in tr.events]
+    assert trips[0]["name"] in names, trips[0]
+    assert tr.valve_cmd[-1] == 0.0  # the last logged tick is nulled
+    assert any(e["kind"] == "trial_failed" for e in tr.events)
+    return trips[0], tr
+
+
+def _run_fault(env, name: str, inject, names: set[str]) -> tuple[dict, object, str]:
+    out = env.tmp / f"{name}.mcap"
+    p = _start(env, out)
+    n0 = _wait_running(env, p)
+    k_inject = env.emu.stats()["n_setpoints"] - n0
+    inject()
+    text = _finish(p)
+    assert p.returncode == 1, text
+    assert "INTERLOCK" in text, text
+    _safe_valve(env)
+    trip, tr = _trip(out, names)
+    # for docs/hardware.md (pytest -s): ticks from the injection to the trip (± the few set-points of start())
+    print(f"\nFAULT {name}: trip {trip['name']} {round(trip['t_s'] * 1000) - k_inject} ticks after the injection")
+    return trip, tr, text
+
+
+@pytest.mark.parametrize("device,fault,value,names", [
+    ("loadcells", "nan_friction", True, {"non_finite"}),
+    ("loadcells", "inf_normal_1", True, {"non_finite"}),
+    ("valve", "ignore_setpoints", True, {"valve_following", "following_error"}),
+    ("valve", "stuck", True, {"valve_following", "following_error"}),
+    ("loadcells", "slow_s", 0.0015, {"frame_loss"}),
+    ("lvdt", "drop_every", 2, {"frame_loss"}),
+    ("lvdt", "garbage_every", 2, {"stream_garbage"}),
+    ("lvdt", "corrupt_every", 2, {"serial_checksum_errors"}),
+])
+def test_device_fault(env, device, fault, value, names):
+    trip, tr, _ = _run_fault(env, f"{device}-{fault}", lambda: env.emu.inject(device, fault, value), names)
+    if trip["name"] == "non_finite":
+        assert trip["values"]["channel"] == ("friction_N" if fault == "nan_friction" else "normal_1_N")
+        assert "load-cell conditioner" in trip["message"]
+
+
+@pytest.mark.parametrize("kind", ["rpdo", "status", "malformed"])
+def test_foreign_and_malformed_can_frames(env, kind):
+    def inject():
+        if kind == "malformed":
+            send_malformed(env.channel, env.node)
+        else:
+            send_foreign(env.channel, kind, env.node)
+    trip, _, _ = _run_fault(env, f"can-{kind}", inject, {"can_foreign_frames", "can_malformed_frames",
+                                                          "valve_rejected_frames", "valve_fault",
+                                                          "valve_counter"})
+    assert "canopen-rig_unix:" in trip["message"]
+
+
+def test_sigstop_of_the_loop(env):
+    """A short stall is an event and the reference resumes where it was; a long one trips."""
+    out = env.tmp / "sigstop.mcap"
+    p = _start(env, out)
+    _wait_running(env, p)
+    loop = find_child(p.pid, "rig-rt-loop")
+    t0 = time.monotonic()
+    os.kill(loop, signal.SIGSTOP)
+    time.sleep(0.1)  # below stall_trip_s (0.25 s in the emulated profile): an event
+    os.kill(loop, signal.SIGCONT)
+    short_s = time.monotonic() - t0  # the test itself may be descheduled: what it really was
+    time.sleep(0.5)
+    with contextlib.suppress(ProcessLookupError):  # (gone if the short stall was a long one)
+        os.kill(loop, signal.SIGSTOP)
+        time.sleep(0.6)  # above it: a trip
+        os.kill(loop, signal.SIGCONT)
+    text = _finish(p)
+    assert p.returncode == 1, text
+    _safe_valve(env)
+    trip, tr = _trip(out, {"loop_stall", "valve_watchdog", "valve_heartbeat", "valve_fault"})
+    stalls = [e for e in tr.events if e["kind"] == "stall" and e["gap_s"] > 0.08]
+    assert stalls and stalls[-1]["gap_s"] >= 0.25, stalls
+    if short_s < 0.2:
+        assert len(stalls) >= 2 and stalls[0]["gap_s"] < 0.25 and stalls[0]["t_s"] < trip["t_s"], stalls
+    # the reference never jumps: time is held across the stalls (no gaps in t_s, steps <= v dt)
+    t, ref = tr.time_s, tr.position_ref_um
+    assert np.allclose(np.diff(t), 1e-3, atol=1e-9)
+    assert np.max(np.abs(np.diff(ref))) < 0.05  # 20 µm/s x 1 ms = 0.02 µm
+
+
+@contextlib.contextmanager
+def _small_disk(tmp: Path, size_kb: int):
+    """A tmpfs of ``size_kb`` (root may mount one); else None (the caller limits the file size)."""
+    mnt = tmp / f"disk{size_kb}"
+    mnt.mkdir()
+    ok = shutil.which("mount") and subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size_kb}k", "tmpfs",
+                                                   str(mnt)], capture_output=True).returncode == 0
+    try:
+        yield mnt if ok else None
+    finally:
+        if ok:
+            subprocess.run(["umount", "-l", str(mnt)], capture_output=True)
+
+
+def test_disk_full_ends_the_trial_safely(env):
+    with _small_disk(env.tmp, 160) as mnt:
+        if mnt is not None:
+            out, limit = mnt / "full.mcap", None
+        else:  # no mount allowed: the kernel refuses writes beyond RLIMIT_FSIZE (EFBIG) instead of ENOSPC
+            out, limit = env.tmp / "full.mcap", 160 * 1024
+        pre = (lambda: resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))) if limit else None
+        p = _start(env, out, preexec_fn=pre)
+        t0 = time.monotonic()
+        text = _finish(p, timeout_s=60)
+        assert p.returncode == 1, text
+        assert time.monotonic() - t0 < 45
+        assert "No space left on device" in text or "File too large" in text, text
+        st = _safe_valve(env)
+        assert st["valve"]["nmt"] in ("PRE-OPERATIONAL", "OPERATIONAL")
+        assert not st["valve_watchdog"]  # nulled by the loop (told by the session), not by the valve's watchdog
+        # what reached the disk before it filled reads back after `rig recover`
+        rec = env.tmp / "full-recovered.mcap"
+        r = subprocess.run([sys.executable, "-m", "rig.cli", "recover", str(out), "--out", str(rec)], cwd=REPO,
+                           capture_output=True, text=True, timeout=60)
+        assert r.returncode == 0, r.stdout + r.stderr
+        assert read_trial(rec, channel="raw").time_s[-1] > 0.5
+
+
+def test_kill9_of_the_logger(env):
+    """The loop's parent (the logger) dies: the loop nulls and disables the valve by itself."""
+    out = env.tmp / "kill-logger.mcap"
+    p = _start(env, out)
+    _wait_running(env, p, ticks=1500)
+    t_kill = time.monotonic()
+    os.kill(p.pid, signal.SIGKILL)
+    st = _safe_valve(env)
+    print(f"\nFAULT kill -9 logger: valve disabled {(st['t_valve_disabled'] - t_kill) * 1e3:.1f} ms after the kill")
+    p.wait(10)
+    assert not st["valve_watchdog"]  # nulled by the loop's safe stop, not by the valve's watchdog
+    rec = env.tmp / "kill-logger-recovered.mcap"
+    r = subprocess.run([sys.executable, "-m", "rig.cli", "recover", str(out), "--out", str(rec)], cwd=REPO,
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert read_trial(rec, channel="raw").time_s[-1] > 0.3
+
+
+def test_kill9_of_the_loop(env):
+    """The loop dies: the valve nulls on its own (set-point watchdog, host heartbeat); the log is finished."""
+    out = env.tmp / "kill-loop.mcap"
+    p = _start(env, out)
+    _wait_running(env, p)
+    os.kill(find_child(p.pid, "rig-rt-loop"), signal.SIGKILL)
+    text = _finish(p)
+    assert p.returncode == 1 and "loop process died" in text, text
+    st = _safe_valve(env)
+    assert st["valve_watchdog"] or st["valve"]["latched"]
+    tr = read_trial(out, channel="raw")
+    assert any(e["kind"] == "loop_died" for e in tr.events)
