@@ -36,12 +36,14 @@ def clean(n):
     for seed in range(n):
         rate = (25.0, 100.0, 1000.0)[seed % 3]
         proto = ("paper", "varied")[seed % 2]
-        trial, _ = make_record(SynthSpec(rate_hz=rate, duration_s=600.0, seed=1000 + seed, protocol=proto, noise_scale=NOISE,
+        # every fifth record is long (1 h at 100 Hz or 1 kHz: where small periodic "findings" showed)
+        dur = 3600.0 if seed % 5 == 4 and rate > 25.0 else 600.0
+        trial, _ = make_record(SynthSpec(rate_hz=rate, duration_s=dur, seed=1000 + seed, protocol=proto, noise_scale=NOISE,
                                          with_ref=bool(seed % 4 < 2)))
         rep = diagnose(trial).report()
         ff = [f["cause"] for f in rep["findings"]] + [u["follows"] for u in rep["unexplained"]]
         bad += bool(ff)
-        print(f"clean seed {1000 + seed} {rate:g} Hz {proto}: {ff or 'nothing'}", flush=True)
+        print(f"clean seed {1000 + seed} {rate:g} Hz {dur:g} s {proto}: {ff or 'nothing'}", flush=True)
     import os
     print(f"load average {os.getloadavg()[0]:.2f}, noise scale {NOISE:g}")
     print(f"false-finding rate: {bad}/{n} = {100.0 * bad / n:.1f} %")
