@@ -494,6 +494,34 @@ def fit_whole_record(trial: TrialData, steps: list[Step] | None = None, *, stiff
 # ---------------------------------------------------------------------------
 # The whole identification
 # ---------------------------------------------------------------------------
+MIN_SAMPLES = 20
+MAX_ABS_FORCE_N = 1e6
+
+
+def check_analysable(trial: TrialData, what: str = "analyse") -> None:
+    """One clear ValueError (naming the file) for a record no friction analysis can use: too few
+    samples, a force beyond any load cell, time that is not in seconds, a position that never
+    moves. Shared by identify and diagnose."""
+    src = trial.source or "trial"
+    n = len(trial)
+    if n < MIN_SAMPLES:
+        raise ValueError(f"{src}: too few samples ({n}) to {what} (at least {MIN_SAMPLES})")
+    F = np.asarray(trial.friction_N, dtype=float)
+    big = np.flatnonzero(~(np.abs(F) < MAX_ABS_FORCE_N))
+    if big.size:
+        raise ValueError(f"{src}: friction_N = {F[big[0]]:.3g} N in data row {big[0] + 1}: beyond any load cell "
+                         f"(|F| < {MAX_ABS_FORCE_N:g} N); not a friction force")
+    t = np.asarray(trial.time_s, dtype=float)
+    dt = float(np.median(np.diff(t)))
+    if dt > 60.0:
+        unit = "nanoseconds" if dt > 1e6 else ("milliseconds" if dt > 1e1 else "another unit")
+        raise ValueError(f"{src}: time_s has a median spacing of {dt:.3g} s (a {1 / dt:.3g} Hz record?): "
+                         f"time looks like {unit}; time_s must be in seconds (measured-data.md)")
+    x = np.asarray(trial.position_um, dtype=float)
+    if not float(np.ptp(x)) > 0.5:
+        raise ValueError(f"{src}: position_um does not move (range {float(np.ptp(x)):.3g} um): no sliding to {what}")
+
+
 @dataclass
 class Identification:
     report: dict
@@ -511,6 +539,7 @@ def identify_trials(trials: list[TrialData], *, use_events: bool = True, velocit
     groups: list[list[StepResult]] = []
     wholes: list[dict] = []
     for ti, tr in enumerate(trials):
+        check_analysable(tr, "identify")
         t = np.asarray(tr.time_s, dtype=float)
         x = np.asarray(tr.position_um, dtype=float)
         mu = np.asarray(tr.mu, dtype=float)

@@ -662,11 +662,17 @@ def _plausible(cause: str, p: dict, grid: Grid) -> bool:
 
 def diagnose(trial: TrialData, baseline: str = "rate_state", progress=None, n_blocks: int = 20) -> Diagnosis:
     """Run the whole diagnosis on a trial; see the module docstring."""
+    from rig.analysis.identify import check_analysable
+
     t0 = _time.perf_counter()
+    check_analysable(trial, "diagnose")
     prior = identify_prior(trial)
     load_point = is_load_point(trial)
     grid = prepare(trial, n_blocks=n_blocks, restart_guard_um=3.0 * prior["L_um"] if prior else 0.0)
     t_prep = _time.perf_counter() - t0
+    if int(grid.sliding.sum()) < 10:
+        raise ValueError(f"{trial.source or 'trial'}: hardly any forward sliding (v > {0.1:g} um/s away from stops): "
+                         "nothing to diagnose")
     base = fit_baseline(grid, baseline, prior)
     cur = base
     findings: list[dict] = []
