@@ -269,9 +269,10 @@ def k_cr_table2(A, sA, B, sB, L, sL, N_N) -> tuple[float, float]:
     return k, abs(k) * math.sqrt(rel2)
 
 
-def reject_outliers(steps: list[StepResult], k: float = 4.0) -> None:
+def reject_outliers(steps: list[StepResult], k: float = 4.0, rel: float = 0.5) -> None:
     """Robust mean over steps: with 4 or more accepted steps, one whose A, B or L lies more than
-    ``k`` robust sigmas (1.4826 MAD) from the median of the others is rejected, with its reason."""
+    ``k`` robust sigmas (1.4826 MAD) AND more than ``rel`` (50 %) from the median of the steps is
+    rejected, with its reason (steps that agree to a few % have a tiny MAD: 8 % is no outlier)."""
     good = [s for s in steps if s.ok]
     if len(good) < 4:
         return
@@ -282,7 +283,7 @@ def reject_outliers(steps: list[StepResult], k: float = 4.0) -> None:
         if mad <= 0:
             continue
         for s, v in zip(good, vals):
-            if s.ok and abs(v - med) > k * mad:
+            if s.ok and abs(v - med) > k * mad and abs(v - med) > rel * abs(med):
                 s.ok = False
                 s.reason = f"outlier: {nm} = {v:.3g} is {abs(v - med) / mad:.1f} robust sigma from the median {med:.3g}"
 

@@ -101,16 +101,12 @@ class Diagnosis:
             "schema": "rig.diagnosis/1",
             "data": self.data,
             "baseline": {"model": b.baseline, "params": _public(self.baseline_all or b.params, b.baseline, b.extensions),
-                         "holdout_rms_N": _r(b.holdout_rms_N),
-                         "params_fit_blocks": _public(b.params, b.baseline, b.extensions)},
+                         "holdout_rms_N": _r(b.holdout_rms_N)},
             "findings": self.findings,
             "unexplained": self.unexplained,
             "model": {"baseline": self.final.baseline, "extensions": list(self.final.extensions),
                       "params": _public(self.final_all or self.final.params, self.final.baseline,
-                                        self.final.extensions),
-                      "params_fit_blocks": _public(self.final.params, self.final.baseline, self.final.extensions),
-                      "params_note": "params: refitted on all sliding data once the model was chosen; "
-                                     "params_fit_blocks: the fit the hold-out figures refer to"},
+                                        self.final.extensions)},
             "holdout_rms_N": _r(self.final.holdout_rms_N),
         }
 
@@ -512,7 +508,7 @@ def is_load_point(trial: TrialData) -> bool:
     return str(trial.metadata.get("position_source", "on_sample")).strip() == "load_point"
 
 
-def identify_prior(trial: TrialData) -> dict:
+def identify_prior(trial: TrialData, steps: list | None = None) -> dict:
     """identify's whole-record fit (rig.analysis.identify.fit_whole_record) as a starting point:
     ``{"A_mu", "B_mu", "L_um"[, "stiffness_kN_per_m"]}``, or {} when the record has no step it
     can use. With ``position_source: load_point`` the fit includes the stiffness."""
@@ -520,7 +516,7 @@ def identify_prior(trial: TrialData) -> dict:
     from rig.kinematics import detect_steps
 
     try:
-        steps = detect_steps(trial)
+        steps = detect_steps(trial) if steps is None else steps
         if not steps:
             return {}
         w = fit_whole_record(trial, steps, stiffness=is_load_point(trial), max_points=6000)
@@ -566,7 +562,8 @@ def try_candidate(grid: Grid, cur: FitResult, cause: str, info: dict, prior: dic
         # the rigid model has)
         q = dict(cur.params, A_mu=prior["A_mu"], B_mu=prior["B_mu"], L_um=prior["L_um"])
         if cause == "finite_stiffness":
-            must = [dict(q, stiffness_kN_per_m=prior.get("stiffness_kN_per_m", 600.0))]
+            k0 = prior.get("stiffness_kN_per_m", 600.0)
+            must = [dict(q, stiffness_kN_per_m=k0), dict(cur.params, stiffness_kN_per_m=k0)]
         else:
             must = [dict(q, B2_mu=0.5 * abs(prior["B_mu"]) + 5e-4, L2_um=5.0 * prior["L_um"])]
     res = multistart(grid, cur.baseline, exts, starts, keep=min(keep, len(starts)), max_nfev=120, must=must)
@@ -608,13 +605,14 @@ def _drift_leftover(grid: Grid, before: np.ndarray, after: np.ndarray) -> float:
     RMS of the drift's own block means: small for a linear drift, large when the drift only
     approximates a jump or a curved trend."""
     w = grid.w
-    nb = int(grid.block.max()) + 1
-    den = np.bincount(grid.block, weights=w, minlength=nb)
+    blk = grid.time_block if grid.time_block is not None else grid.block
+    nb = int(blk.max()) + 1
+    den = np.bincount(blk, weights=w, minlength=nb)
     ok = den > 0
     if ok.sum() < 4:
         return 0.0
-    m_res = np.bincount(grid.block, weights=w * (grid.F_mean - after), minlength=nb)[ok] / den[ok]
-    m_drift = np.bincount(grid.block, weights=w * (after - before), minlength=nb)[ok] / den[ok]
+    m_res = np.bincount(blk, weights=w * (grid.F_mean - after), minlength=nb)[ok] / den[ok]
+    m_drift = np.bincount(blk, weights=w * (after - before), minlength=nb)[ok] / den[ok]
     a = float(np.std(m_res))
     b = float(np.std(m_drift))
     return a / b if b > 0 else math.inf
@@ -666,9 +664,16 @@ def diagnose(trial: TrialData, baseline: str = "rate_state", progress=None, n_bl
 
     t0 = _time.perf_counter()
     check_analysable(trial, "diagnose")
-    prior = identify_prior(trial)
+    from rig.kinematics import detect_steps
+
+    try:
+        steps = detect_steps(trial)
+    except (ValueError, IndexError, ZeroDivisionError):
+        steps = []
+    prior = identify_prior(trial, steps)
     load_point = is_load_point(trial)
-    grid = prepare(trial, n_blocks=n_blocks, restart_guard_um=3.0 * prior["L_um"] if prior else 0.0)
+    grid = prepare(trial, n_blocks=n_blocks, restart_guard_um=3.0 * prior["L_um"] if prior else 0.0,
+                   step_times_s=np.array([s.t_s for s in steps]) if steps else np.zeros(0))
     t_prep = _time.perf_counter() - t0
     if int(grid.sliding.sum()) < 10:
         raise ValueError(f"{trial.source or 'trial'}: hardly any forward sliding (v > {0.1:g} um/s away from stops): "
@@ -732,9 +737,12 @@ def refit_all(grid: Grid, res: FitResult) -> dict:
         r = fit(grid, res.baseline, res.extensions, res.params, max_nfev=200, mask=grid.sliding)
     except (ValueError, ZeroDivisionError, FloatingPointError):
         return dict(res.params)
-    if not np.all(np.isfinite(list(r.params.values()))):
-        return dict(res.params)
     p = dict(r.params)
+    from .fit import at_bound
+
+    if (not np.all(np.isfinite(list(p.values()))) or at_bound(p)
+            or any(abs(p.get(k, 0.0)) > 0.05 for k in ("A_mu", "B_mu", "B2_mu"))):
+        return dict(res.params)  # ran away on the joined data: keep the validated split fit
     if "second_state_variable" in res.extensions and "aging_law" not in res.extensions:
         swap_slower_second(p)
     return p
