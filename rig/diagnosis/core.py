@@ -664,13 +664,15 @@ def diagnose(trial: TrialData, baseline: str = "rate_state", progress=None, n_bl
 
     t0 = _time.perf_counter()
     check_analysable(trial, "diagnose")
+    from rig.analysis.identify import decimated
     from rig.kinematics import detect_steps
 
     try:
-        steps = detect_steps(trial)
+        small = decimated(trial)
+        steps = detect_steps(small)
     except (ValueError, IndexError, ZeroDivisionError):
-        steps = []
-    prior = identify_prior(trial, steps)
+        small, steps = trial, []
+    prior = identify_prior(small, steps)
     load_point = is_load_point(trial)
     grid = prepare(trial, n_blocks=n_blocks, restart_guard_um=3.0 * prior["L_um"] if prior else 0.0,
                    step_times_s=np.array([s.t_s for s in steps]) if steps else np.zeros(0))
