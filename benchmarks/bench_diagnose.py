@@ -21,14 +21,18 @@ EFFECTS = ["second_state_variable", "aging_law", "sensor_lag", "finite_stiffness
 
 
 def speed():
-    for rate, budget in ((25.0, 20.0), (1000.0, 60.0)):
-        trial, _ = make_record(SynthSpec(rate_hz=rate, duration_s=3600.0, seed=1, protocol="varied"))
+    import os
+
+    # (rate, duration, jitter, budget): 1 h at 25 Hz and 1 kHz; 75,000 irregular samples (2.8 h at ~7.5 Hz)
+    for rate, dur, jit, budget in ((25.0, 3600.0, 0.0, 20.0), (1000.0, 3600.0, 0.0, 30.0), (7.5, 10000.0, 0.6, 20.0)):
+        trial, _ = make_record(SynthSpec(rate_hz=rate, duration_s=dur, seed=1, protocol="varied", jitter=jit))
         diagnose(trial.select(np.arange(len(trial)) < 2000))  # JIT warm-up
         t0 = time.perf_counter()
         d = diagnose(trial)
         dt = time.perf_counter() - t0
-        print(f"speed: 1 h at {rate:g} Hz ({len(trial)} samples, {d.timings['n_bins']} fit bins): {dt:.1f} s "
-              f"(budget {budget:g} s) findings={[f['cause'] for f in d.findings]}")
+        print(f"speed: {dur / 3600:.2g} h at {rate:g} Hz{' (irregular)' if jit else ''} ({len(trial)} samples, "
+              f"{d.timings['n_bins']} fit bins): {dt:.1f} s (budget {budget:g} s) "
+              f"findings={[f['cause'] for f in d.findings]}; load average {os.getloadavg()[0]:.2f}", flush=True)
 
 
 def clean(n):
@@ -36,12 +40,14 @@ def clean(n):
     for seed in range(n):
         rate = (25.0, 100.0, 1000.0)[seed % 3]
         proto = ("paper", "varied")[seed % 2]
-        trial, _ = make_record(SynthSpec(rate_hz=rate, duration_s=600.0, seed=1000 + seed, protocol=proto, noise_scale=NOISE,
+        # every fifth record is long (1 h at 100 Hz or 1 kHz: where small periodic "findings" showed)
+        dur = 3600.0 if seed % 5 == 4 and rate > 25.0 else 600.0
+        trial, _ = make_record(SynthSpec(rate_hz=rate, duration_s=dur, seed=1000 + seed, protocol=proto, noise_scale=NOISE,
                                          with_ref=bool(seed % 4 < 2)))
         rep = diagnose(trial).report()
         ff = [f["cause"] for f in rep["findings"]] + [u["follows"] for u in rep["unexplained"]]
         bad += bool(ff)
-        print(f"clean seed {1000 + seed} {rate:g} Hz {proto}: {ff or 'nothing'}", flush=True)
+        print(f"clean seed {1000 + seed} {rate:g} Hz {dur:g} s {proto}: {ff or 'nothing'}", flush=True)
     import os
     print(f"load average {os.getloadavg()[0]:.2f}, noise scale {NOISE:g}")
     print(f"false-finding rate: {bad}/{n} = {100.0 * bad / n:.1f} %")

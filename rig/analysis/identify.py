@@ -215,9 +215,35 @@ def fit_step(t: np.ndarray, x: np.ndarray, mu: np.ndarray, step: Step, *, window
     A = (mu_max - mu1) / lnr
     B = A - (mu2 - mu1) / lnr
     res = StepResult(step, mu1, mu2, mu_max, mu_peak, A, B, best["L_um"], best["r2"], best["window_um"], fits)
-    if not (best["a"] * sgn > 0):
-        res.ok, res.reason = False, "no decay of the expected sign after the step"
+    fit_span = float(np.max(delta[best["fit_lo"] - post_lo:best["j1"] - post_lo])) if best["j1"] > best["fit_lo"] else 0.0
+    res.ok, res.reason = physical_check(A, B, best["L_um"], best["r2"], best["a"] * sgn, fit_span)
     return res
+
+
+# physical bounds of a per-step result (docs/identification.md): rate-and-state coefficients of
+# lubricated metals and rocks are O(1e-4 - 2e-2) (Table 2; rock friction), so |A|, |B| >= 0.05 is
+# an extrapolation, not a measurement; L must lie inside the slip the decay was fitted over (an
+# L beyond it is a drift, one below 0.3 µm is the rise itself); an r2 below R2_MIN means the
+# exponential explains too little of the transient to trust A (which extrapolates it to delta 0)
+AB_MAX = 0.05
+R2_MIN = 0.2
+L_MIN_UM = 0.3
+
+
+def physical_check(A: float, B: float, L: float, r2: float, signed_amp: float, fit_span_um: float) -> tuple[bool, str]:
+    """(ok, reason) of one step's A, B, L against the physical bounds above."""
+    if not all(math.isfinite(v) for v in (A, B, L, r2)):
+        return False, "fit did not converge (non-finite A, B, L or r2)"
+    if not signed_amp > 0:
+        return False, "no decay of the expected sign after the step"
+    if abs(A) >= AB_MAX or abs(B) >= AB_MAX:
+        return False, f"|A| or |B| >= {AB_MAX} (A = {A:.3g}, B = {B:.3g}): an extrapolated peak, not a measurement"
+    if not (L_MIN_UM * 1.01 < L < fit_span_um):
+        return False, (f"L = {L:.3g} um outside the fitted window ({L_MIN_UM:g} to {fit_span_um:.3g} um of slip): "
+                       "the decay is not resolved")
+    if r2 < R2_MIN:
+        return False, f"r2 = {r2:.2f} < {R2_MIN}: the exponential explains too little of the transient"
+    return True, ""
 
 
 # ---------------------------------------------------------------------------
@@ -243,9 +269,31 @@ def k_cr_table2(A, sA, B, sB, L, sL, N_N) -> tuple[float, float]:
     return k, abs(k) * math.sqrt(rel2)
 
 
+def reject_outliers(steps: list[StepResult], k: float = 4.0, rel: float = 0.5) -> None:
+    """Robust mean over steps: with 4 or more accepted steps, one whose A, B or L lies more than
+    ``k`` robust sigmas (1.4826 MAD) AND more than ``rel`` (50 %) from the median of the steps is
+    rejected, with its reason (steps that agree to a few % have a tiny MAD: 8 % is no outlier)."""
+    good = [s for s in steps if s.ok]
+    if len(good) < 4:
+        return
+    for nm in ("A_mu", "B_mu", "L_um"):
+        vals = np.array([getattr(s, nm) for s in good])
+        med = float(np.median(vals))
+        mad = 1.4826 * float(np.median(np.abs(vals - med)))
+        if mad <= 0:
+            continue
+        for s, v in zip(good, vals):
+            if s.ok and abs(v - med) > k * mad and abs(v - med) > rel * abs(med):
+                s.ok = False
+                s.reason = f"outlier: {nm} = {v:.3g} is {abs(v - med) / mad:.1f} robust sigma from the median {med:.3g}"
+
+
 def summarize(groups: list[list[StepResult]], N_N: float) -> tuple[dict, dict, str, list[dict]]:
-    """Mean and SEM over steps (one group) or over trials (each group's mean first)."""
+    """Mean and SEM over steps (one group) or over trials (each group's mean first), after the
+    physical bounds (:func:`physical_check`) and the outlier rule (:func:`reject_outliers`)."""
     names = ("A_mu", "B_mu", "L_um")
+    for g in groups:
+        reject_outliers(g)
     good = [[s for s in g if s.ok] for g in groups]
     per_trial = []
     for g in good:
@@ -447,6 +495,60 @@ def fit_whole_record(trial: TrialData, steps: list[Step] | None = None, *, stiff
 # ---------------------------------------------------------------------------
 # The whole identification
 # ---------------------------------------------------------------------------
+MIN_SAMPLES = 20
+MAX_ABS_FORCE_N = 1e6
+
+
+def check_analysable(trial: TrialData, what: str = "analyse") -> None:
+    """One clear ValueError (naming the file) for a record no friction analysis can use: too few
+    samples, a force beyond any load cell, time that is not in seconds, a position that never
+    moves. Shared by identify and diagnose."""
+    src = trial.source or "trial"
+    n = len(trial)
+    if n < MIN_SAMPLES:
+        raise ValueError(f"{src}: too few samples ({n}) to {what} (at least {MIN_SAMPLES})")
+    F = np.asarray(trial.friction_N, dtype=float)
+    big = np.flatnonzero(~(np.abs(F) < MAX_ABS_FORCE_N))
+    if big.size:
+        raise ValueError(f"{src}: friction_N = {F[big[0]]:.3g} N in data row {big[0] + 1}: beyond any load cell "
+                         f"(|F| < {MAX_ABS_FORCE_N:g} N); not a friction force")
+    t = np.asarray(trial.time_s, dtype=float)
+    dt = float(np.median(np.diff(t)))
+    if dt > 60.0:
+        unit = "nanoseconds" if dt > 1e6 else ("milliseconds" if dt > 1e1 else "another unit")
+        raise ValueError(f"{src}: time_s has a median spacing of {dt:.3g} s (a {1 / dt:.3g} Hz record?): "
+                         f"time looks like {unit}; time_s must be in seconds (measured-data.md)")
+    x = np.asarray(trial.position_um, dtype=float)
+    if not float(np.ptp(x)) > 0.5:
+        raise ValueError(f"{src}: position_um does not move (range {float(np.ptp(x)):.3g} um): no sliding to {what}")
+
+
+MAX_STEP_SAMPLES = 1_000_000
+STEP_TARGET_SAMPLES = 100_000
+
+
+def decimated(trial: TrialData, max_samples: int = MAX_STEP_SAMPLES, target: int = STEP_TARGET_SAMPLES) -> TrialData:
+    """A record of more than ``max_samples`` as block means of k samples (about ``target`` left;
+    1 h at 1 kHz: k = 37, 27 Hz); shorter records unchanged. Step detection and the per-step
+    fits cost per sample: a one-hour 1 kHz sawtooth (720 steps) took over 5 minutes; block means
+    keep the friction information (noise averaged) at a rate still far above the transients'
+    (L / v >= 0.1 s)."""
+    n = len(trial)
+    if n <= max_samples:
+        return trial
+    k = int(math.ceil(n / target))
+    m = (n // k) * k
+
+    def bm(a):
+        return None if a is None else np.asarray(a, dtype=float)[:m].reshape(-1, k).mean(axis=1)
+
+    return TrialData(time_s=bm(trial.time_s), position_um=bm(trial.position_um), friction_N=bm(trial.friction_N),
+                     normal_1_N=bm(trial.normal_1_N), normal_2_N=bm(trial.normal_2_N),
+                     position_ref_um=bm(trial.position_ref_um), valve_cmd=None, extra={},
+                     metadata=dict(trial.metadata), events=list(trial.events), source=trial.source,
+                     warnings=list(trial.warnings) + [f"{n} samples: identified on block means of {k}"])
+
+
 @dataclass
 class Identification:
     report: dict
@@ -463,7 +565,9 @@ def identify_trials(trials: list[TrialData], *, use_events: bool = True, velocit
     """Identify every trial; mean and SEM over steps (one trial) or trials (several)."""
     groups: list[list[StepResult]] = []
     wholes: list[dict] = []
+    trials = [decimated(tr) for tr in trials]
     for ti, tr in enumerate(trials):
+        check_analysable(tr, "identify")
         t = np.asarray(tr.time_s, dtype=float)
         x = np.asarray(tr.position_um, dtype=float)
         mu = np.asarray(tr.mu, dtype=float)
@@ -503,6 +607,16 @@ def identify_trials(trials: list[TrialData], *, use_events: bool = True, velocit
         "k_cr_note": "eq. (13), k_cr = (B_mu - A_mu) N / L with N the nominal per-rider normal force (Table 2 "
                      "convention); the moving test piece sees twice this (total friction 2 N mu): see rig stability",
     }
+    report["rejected_steps"] = [{"trial": r.trial, "t_s": _r(r.step.t_s), "reason": r.reason}
+                                for g in groups for r in g if not r.ok]
+    lp = [bool(_looks_like_load_point(tr)) for tr in trials]
+    notes = []
+    if any(lp):
+        notes.append(RIGID_NOTE)
+    if whole_record and any(lp) and stiffness is None:
+        notes.append("position_source: load_point, so the whole-record fit includes the machine stiffness "
+                     "(--no-stiffness to fit without)")
+    report["notes"] = notes
     if len(trials) > 1:
         report["per_trial"] = [{k: _r(v) if not isinstance(v, int) else v for k, v in row.items()}
                                for row in per_trial]
@@ -513,9 +627,18 @@ def identify_trials(trials: list[TrialData], *, use_events: bool = True, velocit
 
 
 def _looks_like_load_point(trial: TrialData) -> bool:
-    """A record whose metadata says its position is the load point needs the stiffness model."""
+    """``position_source: load_point`` (measured-data.md) or, in older files, metadata that says so:
+    the machine's compliance lies between the measured position and the interface, so the
+    whole-record fit needs the stiffness."""
+    if str(trial.metadata.get("position_source", "")).strip() == "load_point":
+        return True
     text = " ".join(str(v) for v in trial.metadata.values()).lower()
     return "load-point" in text or "load point" in text or "lp_disp" in text
+
+
+RIGID_NOTE = ("the per-step method (eqs. 10-12) assumes a rigid machine: with the position measured at the load "
+              "point the machine's compliance rounds the peak and spreads the decay, so its A and L are biased "
+              "(A by about +50 % on load-point records); the whole-record fit with stiffness is the estimate to use")
 
 
 def write_json(report: dict, path: str | Path) -> None:

@@ -161,6 +161,10 @@ def identify_cmd(
             continue
         parts = ", ".join(f"{k} = {_fmt(v, 4)} ± {_fmt(w['err_corr'].get(k), 2)}" for k, v in w["params"].items())
         con.print(f"whole-record fit ({w['model']}, velocity {w['velocity']}): {parts}; rms {_fmt(w['rms_N'], 3)} N")
+    for r in rep.get("rejected_steps", []):
+        con.print(f"rejected step at t = {_fmt(r['t_s'], 6)} s: {r['reason']}", highlight=False)
+    for note in rep.get("notes", []):
+        con.print(f"[yellow]note:[/yellow] {note}", highlight=False)
     if json_out:
         write_json(rep, json_out)
     if plot:

@@ -44,7 +44,12 @@ from rig.model.forward import as_model
 from rig.model.spec import EXT_PARAMS, model_params
 from .prep import Grid, prepare
 
-MIN_GAIN_PCT = 0.15
+# a finding must matter in practice, not only pass a significance test (docs/diagnosis.md):
+# a hold-out RMS gain of at least MIN_GAIN_PCT, and (per cause, _plausible) an effect above the
+# noise floor with physically plausible parameters
+MIN_GAIN_PCT = 1.0
+EFFECT_MIN_NOISE = 0.5      # second state: its steady-state effect 2 N |B2| ln(v_hi/v_lo) >= this x noise
+STIFF_MIN_SLIP_FRAC = 0.05  # finite stiffness: the slip the spring takes up in a transient >= this x L
 MIN_Z = 2.5
 MIN_ZW = 5.0
 MIN_DBIC = -10.0
@@ -79,12 +84,15 @@ class Diagnosis:
     history: list[FitResult] = field(default_factory=list)
     tried: list[list[Candidate]] = field(default_factory=list)
     timings: dict = field(default_factory=dict)
+    # the chosen baseline's and final model's parameters refitted on all sliding data (reported)
+    baseline_all: dict | None = None
+    final_all: dict | None = None
 
     @property
     def model(self):
         names = model_params(self.final.baseline, self.final.extensions)
-        return as_model(self.final.baseline, self.final.extensions,
-                                 {k: v for k, v in self.final.params.items() if k in names})
+        p = self.final_all or self.final.params
+        return as_model(self.final.baseline, self.final.extensions, {k: v for k, v in p.items() if k in names})
 
     def report(self) -> dict:
         """The JSON report of diagnosis.md (schema rig.diagnosis/1)."""
@@ -92,12 +100,13 @@ class Diagnosis:
         return {
             "schema": "rig.diagnosis/1",
             "data": self.data,
-            "baseline": {"model": b.baseline, "params": _public(b.params, b.baseline, b.extensions),
+            "baseline": {"model": b.baseline, "params": _public(self.baseline_all or b.params, b.baseline, b.extensions),
                          "holdout_rms_N": _r(b.holdout_rms_N)},
             "findings": self.findings,
             "unexplained": self.unexplained,
             "model": {"baseline": self.final.baseline, "extensions": list(self.final.extensions),
-                      "params": _public(self.final.params, self.final.baseline, self.final.extensions)},
+                      "params": _public(self.final_all or self.final.params, self.final.baseline,
+                                        self.final.extensions)},
             "holdout_rms_N": _r(self.final.holdout_rms_N),
         }
 
@@ -493,36 +502,75 @@ def _evidence(cause: str, res: FitResult, grid: Grid, info: dict, others: dict[s
 # ---------------------------------------------------------------------------
 # the loop
 # ---------------------------------------------------------------------------
-def fit_baseline(grid: Grid, baseline: str) -> FitResult:
+def is_load_point(trial: TrialData) -> bool:
+    """``position_source: load_point`` (measured-data.md): the machine's compliance lies between
+    the measured position and the interface."""
+    return str(trial.metadata.get("position_source", "on_sample")).strip() == "load_point"
+
+
+def identify_prior(trial: TrialData, steps: list | None = None) -> dict:
+    """identify's whole-record fit (rig.analysis.identify.fit_whole_record) as a starting point:
+    ``{"A_mu", "B_mu", "L_um"[, "stiffness_kN_per_m"]}``, or {} when the record has no step it
+    can use. With ``position_source: load_point`` the fit includes the stiffness."""
+    from rig.analysis.identify import fit_whole_record
+    from rig.kinematics import detect_steps
+
+    try:
+        steps = detect_steps(trial) if steps is None else steps
+        if not steps:
+            return {}
+        w = fit_whole_record(trial, steps, stiffness=is_load_point(trial), max_points=6000)
+    except (ValueError, ZeroDivisionError, FloatingPointError, IndexError, np.linalg.LinAlgError):
+        return {}
+    if not w.get("params"):
+        return {}
+    p = w["params"]
+    out = {k: float(p[k]) for k in ("A_mu", "B_mu", "L_um", "stiffness_kN_per_m") if p.get(k) is not None}
+    if not (0.0 <= out.get("A_mu", -1) < 0.05 and abs(out.get("B_mu", 1)) < 0.05 and 0.1 < out.get("L_um", 0) < 1e4):
+        return {}
+    return out
+
+
+def fit_baseline(grid: Grid, baseline: str, prior: dict | None = None) -> FitResult:
     p_ss = _steady_init(grid)
     if baseline == "steady_state":
         return fit(grid, "steady_state", [], p_ss)
     if baseline != "rate_state":
         raise ValueError(f"unknown baseline {baseline!r} (rate_state or steady_state)")
     starts = _rate_starts(p_ss)
+    # identify's whole-record fit (fitted whatever its cost at the start: a ranking by cost at the
+    # starting point is what let the fit settle in a cancelling A ~ B ~ 0.05 minimum before)
+    must = [{"mu0": p_ss["mu0"], "A_mu": prior["A_mu"], "B_mu": prior["B_mu"], "L_um": prior["L_um"]}] if prior else []
     if not grid.sliding[: max(3, grid.t.size // 200)].any():
         # the record starts at rest (a hold before sliding): the state it starts in is unknown,
         # a nuisance parameter (the velocity whose steady state it is), fitted with everything else
         j = int(np.argmax(grid.sliding))
         v1 = float(max(grid.v[j], 0.01))
         starts = [dict(s, v_init_um_s=v1 * f) for s in starts for f in (1.0, 0.01)]
-    return multistart(grid, "rate_state", [], starts, keep=3)
+        must = [dict(s, v_init_um_s=v1 * f) for s in must for f in (1.0, 0.01)]
+    return multistart(grid, "rate_state", [], starts, keep=3, must=must)
 
 
-def try_candidate(grid: Grid, cur: FitResult, cause: str, info: dict) -> Candidate:
+def try_candidate(grid: Grid, cur: FitResult, cause: str, info: dict, prior: dict | None = None) -> Candidate:
     exts = list(cur.extensions) + [cause]
     starts = _candidate_starts(cause, cur, grid, info)
     # two states: many local minima (but the stiffness solver is costly)
     keep = 4 if cause == "second_state_variable" and "finite_stiffness" not in exts else 2
-    res = multistart(grid, cur.baseline, exts, starts, keep=min(keep, len(starts)), max_nfev=120)
-    if cause == "second_state_variable" and "aging_law" not in exts:
-        # the two slip-law states are interchangeable: the first is the one nearer the current model's
-        # L, so that the reported B2, L2 describe the state that was added
-        p = res.params
-        L0 = cur.params.get("L_um", p["L_um"])
-        if abs(math.log(p["L2_um"] / L0)) < abs(math.log(p["L_um"] / L0)):
-            p["L_um"], p["L2_um"] = p["L2_um"], p["L_um"]
-            p["B_mu"], p["B2_mu"] = p["B2_mu"], p["B_mu"]
+    must = []
+    if prior and cause in ("finite_stiffness", "second_state_variable") and cur.baseline == "rate_state":
+        # also from identify's whole-record fit (the current model may sit in a minimum that only
+        # the rigid model has)
+        q = dict(cur.params, A_mu=prior["A_mu"], B_mu=prior["B_mu"], L_um=prior["L_um"])
+        if cause == "finite_stiffness":
+            k0 = prior.get("stiffness_kN_per_m", 600.0)
+            must = [dict(q, stiffness_kN_per_m=k0), dict(cur.params, stiffness_kN_per_m=k0)]
+        else:
+            must = [dict(q, B2_mu=0.5 * abs(prior["B_mu"]) + 5e-4, L2_um=5.0 * prior["L_um"])]
+    res = multistart(grid, cur.baseline, exts, starts, keep=min(keep, len(starts)), max_nfev=120, must=must)
+    if "second_state_variable" in exts and "aging_law" not in exts:
+        # the two slip-law states are interchangeable: by the spec's convention the second is the
+        # slower one, L2_um > L_um (swapped before reporting)
+        swap_slower_second(res.params)
     gain = 100.0 * (cur.holdout_rms_N - res.holdout_rms_N) / cur.holdout_rms_N
     dbic = res.bic - cur.bic
     z = paired_z(grid, cur.pred, res.pred)
@@ -544,18 +592,27 @@ def try_candidate(grid: Grid, cur: FitResult, cause: str, info: dict) -> Candida
     return c
 
 
+def swap_slower_second(p: dict) -> dict:
+    """Put the slower slip-law state second (diagnosis.md: ``L2_um > L_um``), in place."""
+    if "L2_um" in p and "L_um" in p and p["L2_um"] < p["L_um"]:
+        p["L_um"], p["L2_um"] = p["L2_um"], p["L_um"]
+        p["B_mu"], p["B2_mu"] = p["B2_mu"], p["B_mu"]
+    return p
+
+
 def _drift_leftover(grid: Grid, before: np.ndarray, after: np.ndarray) -> float:
     """RMS over the 20 blocks of the residual's block means after a drift extension, relative to the
     RMS of the drift's own block means: small for a linear drift, large when the drift only
     approximates a jump or a curved trend."""
     w = grid.w
-    nb = int(grid.block.max()) + 1
-    den = np.bincount(grid.block, weights=w, minlength=nb)
+    blk = grid.time_block if grid.time_block is not None else grid.block
+    nb = int(blk.max()) + 1
+    den = np.bincount(blk, weights=w, minlength=nb)
     ok = den > 0
     if ok.sum() < 4:
         return 0.0
-    m_res = np.bincount(grid.block, weights=w * (grid.F_mean - after), minlength=nb)[ok] / den[ok]
-    m_drift = np.bincount(grid.block, weights=w * (after - before), minlength=nb)[ok] / den[ok]
+    m_res = np.bincount(blk, weights=w * (grid.F_mean - after), minlength=nb)[ok] / den[ok]
+    m_drift = np.bincount(blk, weights=w * (after - before), minlength=nb)[ok] / den[ok]
     a = float(np.std(m_res))
     b = float(np.std(m_drift))
     return a / b if b > 0 else math.inf
@@ -576,6 +633,16 @@ def _plausible(cause: str, p: dict, grid: Grid) -> bool:
         return False
     if cause == "time_delay" and (p["delay_s"] > 0.2 * T or p["delay_s"] < grid.time_resolution_s):
         return False
+    if cause in ("second_state_variable", "finite_stiffness"):
+        vlo, vhi = _speeds(grid)
+        lnr = math.log(max(vhi, 1e-9) / max(vlo, 1e-9)) if vlo > 0 else 0.0
+        F_scale = 2.0 * grid.N_nom * lnr  # N of friction per unit of mu coefficient across the speeds
+        if cause == "second_state_variable" and F_scale * abs(p["B2_mu"]) < EFFECT_MIN_NOISE * grid.noise_N:
+            return False  # significant perhaps, but below the noise floor: not a finding
+        if cause == "finite_stiffness":
+            dF = F_scale * (abs(p.get("A_mu", 0.0)) + abs(p.get("B_mu", p.get("c_mu", 0.0))))
+            if dF / (p["stiffness_kN_per_m"] * 1e-3) < STIFF_MIN_SLIP_FRAC * p.get("L_um", 20.0):
+                return False  # the spring takes up a negligible slip: as rigid as the data can tell
     if cause == "second_state_variable":
         # a state longer than half the record's slip cannot be told from a drift
         if p["L2_um"] > 0.5 * float(slip_of(grid)[-1]):
@@ -593,10 +660,27 @@ def _plausible(cause: str, p: dict, grid: Grid) -> bool:
 
 def diagnose(trial: TrialData, baseline: str = "rate_state", progress=None, n_blocks: int = 20) -> Diagnosis:
     """Run the whole diagnosis on a trial; see the module docstring."""
+    from rig.analysis.identify import check_analysable
+
     t0 = _time.perf_counter()
-    grid = prepare(trial, n_blocks=n_blocks)
+    check_analysable(trial, "diagnose")
+    from rig.analysis.identify import decimated
+    from rig.kinematics import detect_steps
+
+    try:
+        small = decimated(trial)
+        steps = detect_steps(small)
+    except (ValueError, IndexError, ZeroDivisionError):
+        small, steps = trial, []
+    prior = identify_prior(small, steps)
+    load_point = is_load_point(trial)
+    grid = prepare(trial, n_blocks=n_blocks, restart_guard_um=3.0 * prior["L_um"] if prior else 0.0,
+                   step_times_s=np.array([s.t_s for s in steps]) if steps else np.zeros(0))
     t_prep = _time.perf_counter() - t0
-    base = fit_baseline(grid, baseline)
+    if int(grid.sliding.sum()) < 10:
+        raise ValueError(f"{trial.source or 'trial'}: hardly any forward sliding (v > {0.1:g} um/s away from stops): "
+                         "nothing to diagnose")
+    base = fit_baseline(grid, baseline, prior)
     cur = base
     findings: list[dict] = []
     history = [base]
@@ -607,12 +691,17 @@ def diagnose(trial: TrialData, baseline: str = "rate_state", progress=None, n_bl
         for c in cands:
             if progress:
                 progress(f"trying {c}")
-            results.append(try_candidate(grid, cur, c, info))
+            results.append(try_candidate(grid, cur, c, info, prior))
         tried.append(results)
         acc = [c for c in results if c.accepted]
         if not acc:
             break
         best = max(acc, key=lambda c: c.gain_pct)
+        stiff = [c for c in acc if c.cause == "finite_stiffness"]
+        if load_point and stiff:
+            # prior knowledge (measured-data.md, position_source: load_point): the machine's
+            # compliance lies between the measured position and the interface; tested first
+            best = stiff[0]
         nfv = [c for c in acc if c.cause == "normal_force_variation"]
         if nfv and nfv[0].gain_pct > 0.5 * best.gain_pct:
             best = nfv[0]
@@ -633,9 +722,32 @@ def diagnose(trial: TrialData, baseline: str = "rate_state", progress=None, n_bl
     unexplained = find_unexplained(grid, cur)
     d = Diagnosis(data=str(trial.source), baseline=base, findings=findings, unexplained=unexplained, final=cur,
                   grid=grid, history=history, tried=tried)
+    # the reported parameters: the chosen models refitted on every sliding bin (fit and hold-out
+    # blocks). The split decides WHICH model (hold-out gains); with half of a few steps in the fit
+    # blocks, the direct effect A of a three-step record moves by +-50 % with the split alone
+    d.baseline_all = refit_all(grid, base)
+    d.final_all = d.baseline_all if cur is base else refit_all(grid, cur)
     d.timings = {"prepare_s": t_prep, "fit_s": t_loop, "total_s": _time.perf_counter() - t0,
                  "n_samples": int(len(trial)), "n_bins": int(grid.t.size)}
     return d
+
+
+def refit_all(grid: Grid, res: FitResult) -> dict:
+    """Parameters of ``res``'s model fitted on all sliding bins, from ``res``'s own (the fit can only
+    improve on its start; a fit that fails keeps them)."""
+    try:
+        r = fit(grid, res.baseline, res.extensions, res.params, max_nfev=200, mask=grid.sliding)
+    except (ValueError, ZeroDivisionError, FloatingPointError):
+        return dict(res.params)
+    p = dict(r.params)
+    from .fit import at_bound
+
+    if (not np.all(np.isfinite(list(p.values()))) or at_bound(p)
+            or any(abs(p.get(k, 0.0)) > 0.05 for k in ("A_mu", "B_mu", "B2_mu"))):
+        return dict(res.params)  # ran away on the joined data: keep the validated split fit
+    if "second_state_variable" in res.extensions and "aging_law" not in res.extensions:
+        swap_slower_second(p)
+    return p
 
 
 def _finding_params(cause: str) -> tuple:

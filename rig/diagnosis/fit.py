@@ -161,8 +161,9 @@ def cost_at(grid: Grid, baseline: str, extensions: list[str], params: dict[str, 
 
 
 def multistart(grid: Grid, baseline: str, extensions: list[str], starts: list[dict[str, float]],
-               keep: int = 2, max_nfev: int = 400) -> FitResult:
-    """Rank starting points by cost, fit the best ``keep`` of them, return the best fit."""
+               keep: int = 2, max_nfev: int = 400, must: list[dict[str, float]] | None = None) -> FitResult:
+    """Rank starting points by cost, fit the best ``keep`` of them and every start of ``must``
+    (e.g. identify's whole-record fit, the current model), return the best fit."""
     costs = []
     for s in starts:
         try:
@@ -170,10 +171,10 @@ def multistart(grid: Grid, baseline: str, extensions: list[str], starts: list[di
         except (ValueError, ZeroDivisionError):
             c = math.inf
         costs.append(c if math.isfinite(c) else math.inf)
-    order = np.argsort(costs)[:keep]
+    order = [starts[i] for i in np.argsort(costs)[:keep]] + list(must or [])
     best = None
-    for i in order:
-        r = fit(grid, baseline, extensions, starts[i], max_nfev=max_nfev)
+    for st in order:
+        r = fit(grid, baseline, extensions, st, max_nfev=max_nfev)
         r.extra["at_bound"] = at_bound(r.params)
         if best is None or (r.extra["at_bound"], r.sse_fit) < (best.extra["at_bound"], best.sse_fit):
             best = r

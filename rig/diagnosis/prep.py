@@ -42,6 +42,8 @@ from rig.kinematics import edge_preserving_line
 KIN_DT_MIN_S = 0.01
 V_SLIDE_MIN_UM_S = 0.1
 STOP_GUARD_S = 3.0
+RISE_GUARD_S = 0.0
+RISE_DLNV = 0.1  # (0: off)
 
 
 @njit(cache=True)
@@ -105,6 +107,9 @@ class Grid:
     # variance of a bin's mean over that of white noise: (1 + rho) / (1 - rho), rho the lag-1
     # autocorrelation of the raw force noise (the analog filter's memory at 1 kHz; ~1 at <= 100 Hz)
     noise_corr: float = 1.0
+    # the 20 equal time blocks (the linear-drift check), and how fit / hold-out were split
+    time_block: np.ndarray | None = None
+    holdout_design: str = "time blocks"
 
     @property
     def n_raw(self) -> int:
@@ -201,8 +206,102 @@ def _noise_correlation(t: np.ndarray, F: np.ndarray) -> float:
     return min(max(c, 1.0), float(m))
 
 
+def _drop_reloading(slide_ok: np.ndarray, t: np.ndarray, x: np.ndarray, F: np.ndarray, count: np.ndarray,
+                    noise_N: float, frac: float = 0.98, settle_s: float = STOP_GUARD_S,
+                    settle_um: float = 0.0) -> np.ndarray:
+    """Leave out the re-loading after every rest or return, until the interface breaks away.
+
+    After a stop (or a return at the opposite sign) the friction is statically indeterminate
+    until the loading system has stretched to the sliding friction: the LVDT moves by
+    ``Delta F / k`` while the interface sticks (on the simulated rig about 3 µm and 5 s for a
+    return at -18 N followed by sliding at +20 N through the 10 N/µm fixture). A model whose
+    kinematics are the LVDT's (rigid) cannot describe that, and the few bins of it would
+    dominate every fit (tens of N of residual against a 0.1 N noise). Each forward-sliding run
+    that follows a non-sliding stretch is therefore fitted only from where its friction first
+    reaches ``frac`` of the way from its value at the restart to the run's median (the
+    breakaway) plus ``settle_s`` (the servo's ringing after the breakaway is not friction) and
+    ``settle_um`` of slip (the state after a rest is unknown: the slip law does not age at rest,
+    a real contact does; diagnose passes 3 L of identify's whole-record fit); a run
+    whose friction does not rise by more than 5 noise sigma keeps all its bins.
+    """
+    ok = slide_ok.copy()
+    n = ok.size
+    i = 0
+    while i < n:
+        if not ok[i]:
+            i += 1
+            continue
+        j = i
+        while j < n and ok[j]:
+            j += 1
+        if i > 0:
+            seg = F[i:j]
+            w = count[i:j]
+            order = np.argsort(seg)
+            cw = np.cumsum(w[order])
+            med = float(seg[order][np.searchsorted(cw, 0.5 * cw[-1])])
+            f0 = float(seg[0])
+            rise = med - f0
+            if abs(rise) > 5.0 * max(noise_N, 1e-9):
+                thr = f0 + frac * rise
+                reached = np.flatnonzero((seg - thr) * np.sign(rise) >= 0)
+                k = int(reached[0]) if reached.size else j - i
+                if k < j - i:
+                    kt = int(np.searchsorted(t[i:j], t[i + k] + settle_s))
+                    kx = int(np.argmax(np.append(x[i + k:j] - x[i + k] >= settle_um, True))) + k
+                    k = max(kt, kx)
+                ok[i:i + k] = False
+        i = j
+    return ok
+
+
+MIN_STEPS_ALIGNED = 4
+# off: tried (issue 10), step-aligned blocks named finite_stiffness (k 93 kN/m) for a jump in
+# friction inside one step's segment (tests/test_diagnosis_synth.py), a false finding the equal
+# time blocks do not make; on until the candidates' thresholds are recalibrated for it
+ALIGN_TO_STEPS = False
+SUBWINDOWS = 0  # 200 tried: see _holdout_blocks
+SUBWINDOW_MIN_S = 0.5
+
+
+def _holdout_blocks(tk: np.ndarray, vs: np.ndarray, time_blk: np.ndarray, T: float, n_blocks: int,
+                    step_times: np.ndarray | None = None):
+    """Fit / hold-out blocks that respect a velocity step (docs/diagnosis.md, "Hold-out design").
+
+    Each velocity transient is fitted or held out whole: with at least MIN_STEPS_ALIGNED changes
+    between two forward sliding speeds, a block runs from one such change to the next
+    (alternately fit and hold-out: leave-every-other-step-out). With fewer (one- or two-step
+    records) equal time blocks would put the peak in one block and the decay in the other;
+    instead SUBWINDOWS short windows (at least SUBWINDOW_MIN_S) alternate, so that fit and
+    hold-out both sample every part of the one transient (cross-validation over sub-windows).
+    Returns (block per kinematic cell, a description)."""
+    from rig.kinematics import velocity_changes
+
+    # the steps identify finds (rig.kinematics.detect_steps, passed by diagnose) when given: the
+    # ln-v detector below also fires on the stick-slip and bursty sampling of real records
+    tc = velocity_changes(tk, vs) if step_times is None else np.asarray(step_times, dtype=float)
+    fwd = []
+    for t_c in tc:
+        v_b = float(np.interp(t_c - 1.5, tk, vs))
+        v_a = float(np.interp(t_c + 1.5, tk, vs))
+        if v_b > V_SLIDE_MIN_UM_S and v_a > V_SLIDE_MIN_UM_S:
+            fwd.append(t_c)
+    if ALIGN_TO_STEPS and len(fwd) >= MIN_STEPS_ALIGNED:
+        # the boundary just before the change (the window of velocity_changes is +-1 s)
+        bnd = np.asarray(fwd) - 1.0
+        return np.searchsorted(bnd, tk).astype(np.int64), f"blocks aligned to {len(fwd)} velocity steps"
+    if SUBWINDOWS <= 0:
+        # sub-window cross-validation is off (SUBWINDOWS = 0): tried on the shared real records it lost
+        # Leeman's finite_stiffness (docs/diagnosis.md); equal time blocks for now
+        return time_blk, f"{n_blocks} time blocks ({len(fwd)} velocity step(s): too few to hold out whole)"
+    n_sub = int(max(2 * n_blocks, min(SUBWINDOWS, T / SUBWINDOW_MIN_S)))
+    blk = np.minimum((tk - tk[0]) / (T / n_sub), n_sub - 1).astype(np.int64)
+    return blk, f"{n_sub} alternating sub-windows ({len(fwd)} velocity step(s): too few to hold out whole)"
+
+
 def prepare(trial: TrialData, n_blocks: int = 20, slip_window_um: float = 3.0,
-            bin_dt_max_s: float = 1.0, bin_slip_um: float = 1.0) -> Grid:
+            bin_dt_max_s: float = 1.0, bin_slip_um: float = 1.0, restart_guard_um: float = 0.0,
+            step_times_s: np.ndarray | None = None) -> Grid:
     """Kinematic grid + adaptive fit bins + hold-out blocks from a trial (see module doc)."""
     t_raw = np.asarray(trial.time_s, dtype=float)
     if t_raw.size < 20:
@@ -281,7 +380,9 @@ def prepare(trial: TrialData, n_blocks: int = 20, slip_window_um: float = 3.0,
 
     # 4. blocks and bins
     T = float(tk[-1] - tk[0]) if tk.size > 1 else 1.0
-    blk_k = np.minimum((tk - tk[0]) / (T / n_blocks), n_blocks - 1).astype(np.int64)
+    time_blk_k = np.minimum((tk - tk[0]) / (T / n_blocks), n_blocks - 1).astype(np.int64)
+    blk_k, holdout_design = _holdout_blocks(tk, vs, time_blk_k, T, n_blocks,
+                                            None if step_times_s is None else np.asarray(step_times_s) - t0)
     dtk = float(np.median(np.diff(tk)))
     starts = _make_bins(tk, vs, blk_k, bin_dt_max_s, bin_slip_um, 0.08, 1.1, max(dtk, 0.02))
     seg = np.repeat(np.arange(starts.size - 1), np.diff(starts))
@@ -300,16 +401,29 @@ def prepare(trial: TrialData, n_blocks: int = 20, slip_window_um: float = 3.0,
     vb = bmean_w(vs)
     Nb = bmean_w(Nk)
     blk = blk_k[starts[:-1]]
+    time_blk = time_blk_k[starts[:-1]]
     # forward sliding, away from stops, starts from rest and returns
     kg = max(1, int(round(STOP_GUARD_S / max(dtk, 1e-6))))
     vmin_k = minimum_filter1d(vs, size=2 * kg + 1, mode="nearest")
     slide_ok = np.minimum.reduceat(vmin_k, starts[:-1]) > V_SLIDE_MIN_UM_S
     if slide_ok.sum() < 0.1 * slide_ok.size:  # a record with hardly any steady sliding: keep what slides
         slide_ok = vb > V_SLIDE_MIN_UM_S
+    slide_ok = _drop_reloading(slide_ok, tb, xb, Fm, bc, noise_N, settle_um=restart_guard_um)
+    # the velocity changes themselves: within RISE_GUARD_S (or the kinematics' own resolution) of
+    # a change of ln v the measured velocity is not the interface's to the precision the direct
+    # effect needs (the peak is a few samples at 25 Hz, their timing set by the estimator, not by
+    # friction); as in the paper's identification the transient is fitted from the end of the rise
+    h = RISE_GUARD_S
+    lv = np.log(np.maximum(np.abs(vs), 1e-2))
+    dlv = np.abs(np.interp(tk + h, tk, lv) - np.interp(tk - h, tk, lv))
+    rise_k = dlv > RISE_DLNV
+    rise_b = np.maximum.reduceat(rise_k, starts[:-1]) if rise_k.any() else np.zeros(nb, bool)
+    if h > 0 and (slide_ok & ~rise_b).sum() > 0.5 * slide_ok.sum():
+        slide_ok = slide_ok & ~rise_b
     normals_vary = False
     if trial.has_normals:
         nstd = float(np.std(Nk))
         normals_vary = nstd > 0.0
     return Grid(t=tb, x=xb, v=vb, F_mean=Fm, N_tot=Nb, count=bc, ss_within=ssw, block=blk, N_nom=N_nom,
                 t0=t0, has_normals=trial.has_normals, normals_vary=normals_vary, noise_N=noise_N, noise_corr=noise_corr,
-                slide_ok=slide_ok, time_resolution_s=time_res, kin={"t": tk, "x": xs, "v": vs, "F": Fs / cnt, "N": Nk, "count": cnt, "x_meas": xk})
+                slide_ok=slide_ok, time_resolution_s=time_res, time_block=time_blk, holdout_design=holdout_design, kin={"t": tk, "x": xs, "v": vs, "F": Fs / cnt, "N": Nk, "count": cnt, "x_meas": xk})
