@@ -18,8 +18,9 @@ import time
 
 import numpy as np
 
-from rig.analysis.simrun import run_sim_trial, step_recipe
+from rig.analysis.reproduce import step_recipe
 from rig.config.profile import default_profile_path, load_profile
+from rig.session.sim import simulate
 
 # (label, kp N/µm, ki N/(µm s), FF1 N s/µm)
 VARIANTS = (("profile gains, no FF1", 0.5, 5.0, 0.0),
@@ -32,10 +33,10 @@ SEEDS = (1, 2, 3, 4)
 
 
 def step_traces(lub: str, prof, seed: int):
-    st = run_sim_trial(step_recipe(lub), prof.friction_model(lub), profile=prof, seed=seed, keep_raw=True)
-    v = np.convolve(st.raw["true_velocity_um_s"], np.ones(50) / 50, mode="same")
+    log, _ = simulate(step_recipe(lub), prof, prof.friction_model(lub), seed=seed)
+    v = np.convolve(log.column("true_velocity_um_s"), np.ones(50) / 50, mode="same")
     out = []
-    for e in st.trial.events:
+    for e in log.events:
         if e["kind"] == "velocity_step":
             i0 = int(round(e["t_s"] * prof.loop.rate_hz))
             out.append((e["v1_um_s"], e["v2_um_s"], v[i0:i0 + 5000]))
