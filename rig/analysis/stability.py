@@ -341,9 +341,9 @@ def sliding_run(profile_path: str | None, lubricant: str, kp_N_per_um: float, ki
     ``stuck_fraction`` (0.1 s blocks of true slip velocity below 0.1 V0) and ``spread``
     (sd of the block means / V0); ``stick_slip`` by the criterion of the module constants.
     ``valve_stiction=False`` (default): the spool's stiction band is off, as in the linear
-    loop analysis this scan checks (with the profile's band of 1e-3 the play widens the
-    stick-slip region near k_cr: boundary PID still 0.42 V0 at 1.25 k_cr, steady from 2 k_cr;
-    docs/paper.md row 6). A top-level function of plain values (one trial for a parallel engine)."""
+    loop analysis this scan checks (with the profile's band of 5e-4 and its full-scale
+    dither, boundary PID: spread 0.85 / 0.28 / 0.18 V0 at 0.8 / 1.25 / 2 k_cr, against the
+    linear valve's criterion 0.3; a band of 1e-3 gives 0.42 at 1.25 k_cr; docs/paper.md row 6). A top-level function of plain values (one trial for a parallel engine)."""
     from rig.sim import plant as pl
     from rig.control import C_BIAS, K_SUM
     from rig.config.profile import default_profile_path, load_profile
