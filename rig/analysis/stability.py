@@ -330,7 +330,7 @@ SCAN_FACTORS = (0.80, 0.85, 0.90, 0.93, 0.96, 0.98, 1.00, 1.02, 1.04, 1.07, 1.10
 
 def sliding_run(profile_path: str | None, lubricant: str, kp_N_per_um: float, ki_N_per_um_s: float,
                 kd_N_s_per_um: float, duration_s: float, V0_um_s: float = 1.0, seed: int = 0,
-                bump_L: float = 0.05, sensor_noise: bool = True) -> dict:
+                bump_L: float = 0.05, sensor_noise: bool = True, valve_stiction: bool = False) -> dict:
     """One simulated run of the full rig (rig.sim.SimRig) sliding at V0 with the given PID
     gains, started in steady sliding (chain loaded with the steady friction, spool and
     actuator at their steady values; PD: the controller's bias carries the steady force,
@@ -340,7 +340,10 @@ def sliding_run(profile_path: str | None, lubricant: str, kp_N_per_um: float, ki
     and quantisation off, so the spread measures the rig's own oscillation only). Judged on the second half of the run:
     ``stuck_fraction`` (0.1 s blocks of true slip velocity below 0.1 V0) and ``spread``
     (sd of the block means / V0); ``stick_slip`` by the criterion of the module constants.
-    A top-level function of plain values (one trial for a parallel engine)."""
+    ``valve_stiction=False`` (default): the spool's stiction band is off, as in the linear
+    loop analysis this scan checks (with the profile's band of 5e-4 and its full-scale
+    dither, boundary PID: spread 0.85 / 0.28 / 0.18 V0 at 0.8 / 1.25 / 2 k_cr, against the
+    linear valve's criterion 0.3; a band of 1e-3 gives 0.42 at 1.25 k_cr; docs/paper.md row 6). A top-level function of plain values (one trial for a parallel engine)."""
     from rig.sim import plant as pl
     from rig.control import C_BIAS, K_SUM
     from rig.config.profile import default_profile_path, load_profile
@@ -364,7 +367,8 @@ def sliding_run(profile_path: str | None, lubricant: str, kp_N_per_um: float, ki
             "friction_load_cell": sensors.friction_load_cell.model_copy(update={"noise_sigma_N": 0.0}),
             "normal_load_cells": sensors.normal_load_cells.model_copy(update={"noise_sigma_N": 0.0})})
     normal = prof.normal.model_copy(update={"face_taper_um_per_mm": [0.0, 0.0]})
-    prof = prof.model_copy(update={"controller": ctrl, "sensors": sensors, "normal": normal})
+    valve = prof.servovalve if valve_stiction else prof.servovalve.model_copy(update={"stiction_band_cmd": 0.0})
+    prof = prof.model_copy(update={"controller": ctrl, "sensors": sensors, "normal": normal, "servovalve": valve})
     model = prof.friction_model(lubricant)
     rig = SimRig(prof, model, seed=seed)
     x0 = prof.stroke.home_um

@@ -31,6 +31,7 @@ import numpy as np
 from mcap.writer import CompressionType, Writer
 
 from rig import __version__
+from rig.log.decimate import BlockMean, decimation_factor
 from rig.log.schemas import (EVENTS_TOPIC, JSON_TOPICS, LOG25_TOPIC, MCAP_PROFILE, RAW_TOPIC, RAW_V2_ENCODING,
                              RAW_V2_LAYOUT, SAMPLE_FIELDS, SCHEMAS, STATS_TOPIC, EXACT, ColumnsV2Encoder,
                              device_columns, dumps, jsonable, meta_str)
@@ -229,7 +230,8 @@ class TrialLogWriter:
         self.raw_rate_hz = float(raw_rate_hz or loop_rate_hz)
         self.decimated_rate_hz = float(decimated_rate_hz)
         self._raw_every = max(1, int(round(self.loop_rate_hz / self.raw_rate_hz)))
-        self._dec_every = max(1, int(round(self.loop_rate_hz / self.decimated_rate_hz)))
+        self._dec_every = decimation_factor(self.loop_rate_hz, self.decimated_rate_hz)
+        self._dec = BlockMean(self._dec_every)
         self.start_time_ns = int(time.time_ns() if start_time_ns is None else start_time_ns)
         lvdt_step = None
         try:
@@ -372,39 +374,12 @@ class TrialLogWriter:
                 self._add(RAW_TOPIC, t0, lambda: self._enc.encode(copy, t0))
             else:
                 self._add(RAW_TOPIC, t0, self._enc.encode(raw, t0))
-        # decimated per-sample channel: ticks whose global index is a multiple of the decimation
-        first = (-start) % self._dec_every
-        if first < n:
-            idx = slice(first, n, self._dec_every)
-            names = [nm for nm in SAMPLE_FIELDS[:-1] if nm in arrays]
-            cols = {nm: self._on_grid(nm, arrays[nm][idx]) for nm in names}
-            if "normal_1_N" in cols and "normal_2_N" in cols:
-                nn = cols["normal_1_N"] + cols["normal_2_N"]
-                with np.errstate(divide="ignore", invalid="ignore"):
-                    cols["mu"] = np.where(nn != 0.0, cols["friction_N"] / nn, np.nan)
-                names.append("mu")
-            m = np.array([cols[nm] for nm in names])
-            rows = m.T.tolist()
-            specs = [self._dec_format(nm) for nm in names]
-            if np.isfinite(m).all():
-                fmt = "{" + ",".join(f'"{nm}":{sp}' for nm, sp in zip(names, specs)) + "}"
-                payloads = [(fmt % tuple(row)).encode() for row in rows]
-            else:
-                payloads = [("{" + ",".join(f'"{nm}":' + (sp % v if math.isfinite(v) else "null")
-                                            for nm, sp, v in zip(names, specs, row)) + "}").encode()
-                            for row in rows]
-            k = len(payloads)
-            ts = m[0]
-            rel = np.clip(np.rint(np.nan_to_num(ts) * 1e9), -9e18, 9e18).astype(np.int64).tolist()
-            t0n = self.start_time_ns  # integer arithmetic: float64 cannot hold epoch ns exactly
-            ns = [min(max(t0n + v, 0), _U64_MAX) for v in rel]
-            seq0 = self._seq[LOG25_TOPIC]
-            cid = self._chan[LOG25_TOPIC]
-            self._batch.extend(zip([cid] * k, ns, payloads, range(seq0, seq0 + k)))
-            self._seq[LOG25_TOPIC] = seq0 + k
-            self.counts[LOG25_TOPIC] += k
-            if self._listeners:
-                self._notify("samples", cols)
+        # decimated per-sample channel: block means of the device values over each interval of
+        # _dec_every ticks counted from the trial's first (rig.log.decimate: the anti-aliased 25 Hz log)
+        names = [nm for nm in SAMPLE_FIELDS[:-1] if nm in arrays]
+        dec = self._dec.push({nm: self._on_grid(nm, arrays[nm]) for nm in names})
+        if dec is not None:
+            self._emit_log25(dec)
         self.ticks += n
         self.last_t_s = float(t[-1])
         self._running_stats(arrays)
@@ -413,6 +388,37 @@ class TrialLogWriter:
         self._send()
         if time.monotonic() - self._last_flush >= self.flush_interval_s:
             self.flush()
+
+    def _emit_log25(self, cols: dict[str, np.ndarray]) -> None:
+        """Write decimated samples (block means, see rig.log.decimate) as /log25 messages."""
+        names = list(cols)
+        if "normal_1_N" in cols and "normal_2_N" in cols:
+            nn = cols["normal_1_N"] + cols["normal_2_N"]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                cols["mu"] = np.where(nn != 0.0, cols["friction_N"] / nn, np.nan)
+            names.append("mu")
+        m = np.array([cols[nm] for nm in names])
+        rows = m.T.tolist()
+        specs = [self._dec_format(nm) for nm in names]
+        if np.isfinite(m).all():
+            fmt = "{" + ",".join(f'"{nm}":{sp}' for nm, sp in zip(names, specs)) + "}"
+            payloads = [(fmt % tuple(row)).encode() for row in rows]
+        else:
+            payloads = [("{" + ",".join(f'"{nm}":' + (sp % v if math.isfinite(v) else "null")
+                                        for nm, sp, v in zip(names, specs, row)) + "}").encode()
+                        for row in rows]
+        k = len(payloads)
+        ts = m[0]
+        rel = np.clip(np.rint(np.nan_to_num(ts) * 1e9), -9e18, 9e18).astype(np.int64).tolist()
+        t0n = self.start_time_ns  # integer arithmetic: float64 cannot hold epoch ns exactly
+        ns = [min(max(t0n + v, 0), _U64_MAX) for v in rel]
+        seq0 = self._seq[LOG25_TOPIC]
+        cid = self._chan[LOG25_TOPIC]
+        self._batch.extend(zip([cid] * k, ns, payloads, range(seq0, seq0 + k)))
+        self._seq[LOG25_TOPIC] = seq0 + k
+        self.counts[LOG25_TOPIC] += k
+        if self._listeners:
+            self._notify("samples", cols)
 
     def _on_grid(self, name: str, x: np.ndarray) -> np.ndarray:
         """The value /raw stores for a device column (its integer count times the scale)."""
@@ -434,7 +440,8 @@ class TrialLogWriter:
                 f = "%.9g"  # e.g. the valve's k/32767
                 for d in range(10):
                     if abs(round(col.scale, d) - col.scale) < 1e-12 * max(col.scale, 1e-300):
-                        f = f"%.{d}f"
+                        # a block mean of counts resolves 1/_dec_every of a count: 2 more digits
+                        f = f"%.{d + (2 if self._dec_every > 1 else 0)}f"
                         break
             self._dec_fmt[name] = f
         return f
@@ -538,6 +545,10 @@ class TrialLogWriter:
                "events": self.counts[EVENTS_TOPIC],
                "ended_utc": _dt.datetime.now(_dt.timezone.utc).isoformat()}
         end.update(summary)
+        last = self._dec.flush()
+        if last is not None:  # the last, partial interval (mean of its ticks)
+            self._emit_log25(last)
+            end["samples_decimated"] = self.counts[LOG25_TOPIC]
         self.event(self.last_t_s, "log_end", status=status)
         self.add_metadata("trial_end", end)
         self.closed = True

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from rig.data import TrialData
+from rig.log.decimate import block_mean, decimation_factor
 
 
 class MemoryLog:
@@ -66,11 +67,13 @@ class MemoryLog:
 
     def trial_data(self, rate_hz: float | None = 25.0, extra: tuple[str, ...] = ("true_velocity_um_s", "true_mu"),
                    source: str = "") -> TrialData:
-        """The samples as :class:`TrialData`: every ``loop_rate / rate_hz``-th tick counted from
-        the first (the log's 25 Hz channel), all of them with ``rate_hz=None``."""
+        """The samples as :class:`TrialData`: the log's 25 Hz channel (block means over each
+        ``loop_rate / rate_hz`` ticks from the first, time-stamped at their centre,
+        :func:`rig.log.decimate.block_mean`, the same function as the MCAP writer's ``/log25``),
+        every tick with ``rate_hz=None``."""
         cols = self.columns()
-        every = 1 if rate_hz is None else max(1, int(round(self.rate_hz / rate_hz)))
-        sel = {k: v[::every] for k, v in cols.items()}
+        every = 1 if rate_hz is None else decimation_factor(self.rate_hz, rate_hz)
+        sel = cols if every == 1 else block_mean(cols, every)
         kinds = {"trial_start", "stop_state", "log_start", "log_end"}
         return TrialData(
             time_s=sel["t_s"], position_um=sel["position_um"], friction_N=sel["friction_N"],
