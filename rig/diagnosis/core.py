@@ -55,6 +55,9 @@ MIN_ZW = 5.0
 MIN_DBIC = -10.0
 STRONG_GAIN_PCT = 5.0  # a hold-out gain this large needs no chunk test (single-step records)
 UNEXPLAINED_MIN_GAIN_PCT = 1.0
+# practical effect of an oscillation in time: its rms (amplitude / sqrt 2) at least this fraction of the
+# hold-out residual rms; a smaller one is significant but negligible (a few mN on a 0.04 N residual)
+UNEXPLAINED_MIN_EFFECT = 0.1
 MAX_FINDINGS = 5
 
 TRANSIENT_RATE = ("second_state_variable", "aging_law", "sensor_lag", "finite_stiffness")
@@ -849,6 +852,8 @@ def find_unexplained(grid: Grid, cur: FitResult) -> list[dict]:
     else:
         freq_info = {}
     ok = {k: v for k, v in scores.items() if v[0] >= UNEXPLAINED_MIN_GAIN_PCT and v[1] >= MIN_Z}
+    if "frequency" in ok and freq_info["amplitude_N"] / math.sqrt(2.0) < UNEXPLAINED_MIN_EFFECT * cur.holdout_rms_N:
+        del ok["frequency"]
     if not ok:
         return []
     best = max(ok, key=lambda k: ok[k][0])
