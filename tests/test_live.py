@@ -151,14 +151,19 @@ def test_live_run_streams_what_the_log_holds(repo_root, tmp_path):
     samples = got["messages"][LOG25_TOPIC]
     assert len(samples) >= 25, f"only {len(samples)} samples received"
     t = np.array([m["t_s"] for _, m in samples])
-    assert np.allclose(np.diff(t), 0.04, atol=1e-9), "samples missing or out of order"
+    # 25 Hz block means stamped at their interval's centre; the last, partial interval (written when
+    # the log closes) at its own centre, less than 0.04 s after the one before
+    assert np.allclose(np.diff(t[:-1]), 0.04, atol=1e-9), "samples missing or out of order"
+    assert 0 < t[-1] - t[-2] <= 0.04 + 1e-9
     assert t[-1] > 20.0  # up to the end of the 22.6 s trial
     for log_time, m in samples:
         assert log_time in logged[LOG25_TOPIC], f"live sample at t={m['t_s']} s has no logged twin"
         ref = logged[LOG25_TOPIC][log_time][0]
         assert set(m) == set(ref)
         for k, v in m.items():
-            assert v == pytest.approx(ref[k], rel=1e-5, abs=1e-9), (k, v, ref[k])
+            # the log prints the 25 Hz means with two decimals beyond each device's count step
+            # (rig.log.writer); the live view sends them unrounded
+            assert v == pytest.approx(ref[k], rel=1e-5, abs=1e-5), (k, v, ref[k])
 
     # events: the end of the trial at least, each one the log holds at the same log_time
     events = got["messages"][EVENTS_TOPIC]

@@ -71,7 +71,7 @@ def _load(paths: list[Path]):
         except DataFormatError as exc:
             _fail(str(exc))
         if len(trials[-1]) < MIN_SAMPLES:
-            _fail(f"{p}: {len(trials[-1])} sample(s): too few to analyse (at least {MIN_SAMPLES})")
+            _fail(f"{p}: {len(trials[-1])} sample(s): too few samples to analyse (at least {MIN_SAMPLES})")
     return trials
 
 
