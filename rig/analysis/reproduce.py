@@ -155,13 +155,12 @@ def run_trial_task(task: dict) -> dict:
     return run_trial(task.pop("lubricant"), task.pop("params"), **task)
 
 
-def run_lubricant(lubricant: str, n_trials: int, *, seed: int = 0, profile=None, whole_record: bool = False,
-                  progress=None, engine: str = "sim", map_fn=None) -> dict:
-    """Simulate and identify ``n_trials`` trials of one lubricant. ``map_fn(fn, tasks)``
-    (e.g. :func:`rig.catalog.batch.mapper`) runs the trials elsewhere; default serial here."""
+def plan_lubricant(lubricant: str, n_trials: int, *, seed: int = 0, profile=None, whole_record: bool = False,
+                   engine: str = "sim") -> tuple[list[dict], list[bool], float]:
+    """The ``n_trials`` trial tasks of one lubricant (plain values: :func:`run_trial_task`), the
+    draws' ``k_cr_over_half_kp`` flags and the mu0 used."""
     rng = np.random.default_rng([seed, list(TABLE2).index(lubricant)])
     mu0 = 0.12
-    prof = None
     kp_max = None
     if engine == "sim":
         from rig.config.profile import default_profile_path, load_profile
@@ -180,15 +179,24 @@ def run_lubricant(lubricant: str, n_trials: int, *, seed: int = 0, profile=None,
                       "recipe_seed": seed,
                       "noise_seed": (seed * 100003 + 1000 * list(TABLE2).index(lubricant) + k if engine == "sim"
                                      else seed * 100003 + k), "whole_record": whole_record})
-    # one task per trial, by value (rig.catalog.batch runs them on Dask; serial by default)
-    if map_fn is None:
-        trials_out = []
-        for t in tasks:
-            trials_out.append(run_trial_task(t))
-            if progress:
-                progress()
-    else:
-        trials_out = list(map_fn(run_trial_task, tasks))
+    return tasks, flags, mu0
+
+
+def _map_trials(tasks: list[dict], progress=None, map_fn=None) -> list[dict]:
+    """Run trial tasks: serially here, or through ``map_fn(fn, tasks)`` (rig.catalog.batch)."""
+    if map_fn is not None:
+        return list(map_fn(run_trial_task, tasks))
+    out = []
+    for t in tasks:
+        out.append(run_trial_task(t))
+        if progress:
+            progress()
+    return out
+
+
+def summarize_lubricant(lubricant: str, n_trials: int, engine: str, mu0: float, trials_out: list[dict],
+                        flags: list[bool], whole_record: bool) -> dict:
+    """Means, standard errors, the paper's values and the identification's bias of one lubricant."""
     for row, flagged in zip(trials_out, flags):
         row["k_cr_over_half_kp"] = flagged
     N = 100.0
@@ -252,9 +260,18 @@ def reproduce(n_trials: int = 8, *, seed: int = 0, lubricants=None, profile=None
     out = {"schema": SCHEMA, "n_trials": n_trials, "seed": seed,
            "per_trial_sd": "Table-2 sem x sqrt(8); lognormal matched in mean and sd, no rejection",
            "lubricants": {}}
+    # every lubricant's trials in one map, so a parallel engine never waits for one lubricant's
+    # last trial before starting the next one's
+    plans = {lub: plan_lubricant(lub, n_trials, seed=seed, profile=profile, whole_record=whole_record,
+                                 engine=engine) for lub in lubricants}
+    tasks = [t for lub in lubricants for t in plans[lub][0]]
+    rows = _map_trials(tasks, progress, map_fn)
+    k = 0
     for lub in lubricants:
-        out["lubricants"][lub] = run_lubricant(lub, n_trials, seed=seed, profile=profile, whole_record=whole_record,
-                                               progress=progress, engine=engine, map_fn=map_fn)
+        lt, flags, mu0 = plans[lub]
+        out["lubricants"][lub] = summarize_lubricant(lub, n_trials, engine, mu0, rows[k:k + len(lt)], flags,
+                                                     whole_record)
+        k += len(lt)
     return out
 
 
