@@ -43,6 +43,7 @@ class HardwareBackend:
     """
 
     name = "hardware"
+    log_flush_interval_s = 0.5  # real time: a crashed logger loses at most about half a second
 
     def __init__(self, hw: HardwareConfig, profile, *, emulator=None, lubricant: str | None = None,
                  normal_force_N: float | None = None, seed: int | None = None, controller: bool = True):

@@ -38,11 +38,10 @@ def run_to_log(path: Path, plan, recipe, profile, backend: Backend, metadata: di
 
     ``on_open(writer)``: called once the log is open, before the trial starts (``rig run --live``
     attaches its :class:`rig.log.live.LiveView` there)."""
-    # a real-time trial is flushed and fsync'd every 0.5 s of wall time, so a crash of the
-    # logger loses at most about half a second even when it lags the loop under load; a
-    # simulated trial, 1000x faster than real time, every second (larger chunks)
-    realtime = getattr(backend, "name", "") == "hardware"
-    writer = open_log(path, plan, recipe, profile, metadata, flush_interval_s=0.5 if realtime else 1.0)
+    # the backend says how often its log is flushed and fsync'd (HardwareBackend: 0.5 s of wall time,
+    # so a crashed logger loses at most about half a second; a simulated trial: every second)
+    writer = open_log(path, plan, recipe, profile, metadata,
+                      flush_interval_s=getattr(backend, "log_flush_interval_s", 1.0))
     if on_open is not None:
         on_open(writer)
     fields = {"recipe": recipe.name, "lubricant": recipe.lubricant}
