@@ -623,7 +623,33 @@ def identify_trials(trials: list[TrialData], *, use_events: bool = True, velocit
     if whole_record:
         wr = [{k: v for k, v in w.items() if not k.startswith("_")} for w in wholes]
         report["whole_record"] = wr[0] if len(wr) == 1 else wr
+    report["warnings"] = result_warnings(report)
     return Identification(report, groups, trials, wholes)
+
+
+def step_where(step_json: dict, n_trials: int) -> str:
+    """The ``where`` of a step's warnings."""
+    return f"step at t = {step_json['t_s']:g} s" + (f" (trial {step_json['trial']})" if n_trials > 1 else "")
+
+
+def result_warnings(report: dict) -> list[dict]:
+    """Parameters that hit a fit bound or are not physical (:mod:`rig.model.checks`): the accepted
+    steps', the mean's and each whole-record fit's."""
+    from rig.model.checks import check_params
+
+    out = []
+    for s in report["steps"]:
+        if "rejected" not in s:
+            out += check_params({k: s[k] for k in ("A_mu", "B_mu", "L_um")}, where=step_where(s, report["n_trials"]))
+    out += check_params({k: report["mean"].get(k) for k in ("A_mu", "B_mu", "L_um", "k_cr_kN_per_m")},
+                        report["sem"], where=f"mean over {report['sem_over']}")
+    wr = report.get("whole_record")
+    wrs = [wr] if isinstance(wr, dict) else (wr or [])
+    for i, w in enumerate(wrs):
+        if "params" in w:
+            where = "whole-record fit" + (f" (trial {i})" if len(wrs) > 1 else "")
+            out += check_params({**w["params"], "k_cr_kN_per_m": w.get("k_cr_kN_per_m")}, w.get("err_corr"), where)
+    return out
 
 
 def _looks_like_load_point(trial: TrialData) -> bool:

@@ -141,28 +141,53 @@ def identify_cmd(
     rep = idn.report
     if not rep["steps"]:
         _fail(f"{', '.join(map(str, data))}: no velocity steps found (ratio >= {min_ratio:g})")
+    from rig.analysis.identify import step_where
+    from rig.model.checks import MARK, flagged
+
+    warns = rep.get("warnings", [])
     table = Table(title="velocity steps (eqs. 10-12)")
     for c in ("trial", "t (s)", "v1 (µm/s)", "v2 (µm/s)", "A_mu", "B_mu", "L (µm)", "r2", "window (µm)", "t_r (s)"):
         table.add_column(c, justify="right")
+    table.add_column("accepted", justify="left", overflow="fold")
     for s in rep["steps"]:
-        table.add_row(str(s["trial"]), _fmt(s["t_s"], 6), _fmt(s["v1_um_s"]), _fmt(s["v2_um_s"]), _fmt(s["A_mu"], 3),
-                      _fmt(s["B_mu"], 3), _fmt(s["L_um"], 3), _fmt(s["r2"], 2), str(s["window_um"]),
-                      _fmt(s.get("t_r_s"), 3) + (" [red]rejected[/red]" if "rejected" in s else ""))
+        fl = flagged(warns, step_where(s, rep["n_trials"]))
+
+        def cell(k, nd, s=s, fl=fl):
+            return _fmt(s[k], nd) + (f" [yellow]{MARK}[/yellow]" if k in fl else "")
+
+        table.add_row(str(s["trial"]), _fmt(s["t_s"], 6), _fmt(s["v1_um_s"]), _fmt(s["v2_um_s"]), cell("A_mu", 3),
+                      cell("B_mu", 3), cell("L_um", 3), _fmt(s["r2"], 2), _fmt(s["window_um"]), _fmt(s.get("t_r_s"), 3),
+                      f"[red]no: {s['rejected']}[/red]" if "rejected" in s else "yes")
     con.print(table)
     m, e = rep["mean"], rep["sem"]
-    con.print(f"mean ± s.e. over {rep['sem_over']} (n={rep['n_steps'] if rep['sem_over'] == 'steps' else rep['n_trials']}): "
-                  f"A_mu = {_fmt(m['A_mu'], 3)} ± {_fmt(e['A_mu'], 2)}, B_mu = {_fmt(m['B_mu'], 3)} ± {_fmt(e['B_mu'], 2)}, "
-                  f"L = {_fmt(m['L_um'], 3)} ± {_fmt(e['L_um'], 2)} µm, k_cr (eq. 13) = {_fmt(m['k_cr_kN_per_m'], 3)} ± "
-                  f"{_fmt(e['k_cr_kN_per_m'], 2)} kN/m, t_r (eq. 14) = {_fmt(m['t_r_s'], 3)} s")
+    fl = flagged(warns, f"mean over {rep['sem_over']}")
+
+    def mk(k):
+        return f" [yellow]{MARK}[/yellow]" if k in fl else ""
+
+    n_rej = len(rep.get("rejected_steps", []))
+    con.print(f"mean ± s.e. over {rep['sem_over']} (n={rep['n_steps'] if rep['sem_over'] == 'steps' else rep['n_trials']}"
+              + (f"; {n_rej} step(s) rejected" if n_rej else "") + "): "
+              f"A_mu = {_fmt(m['A_mu'], 3)} ± {_fmt(e['A_mu'], 2)}{mk('A_mu')}, B_mu = {_fmt(m['B_mu'], 3)} ± "
+              f"{_fmt(e['B_mu'], 2)}{mk('B_mu')}, L = {_fmt(m['L_um'], 3)} ± {_fmt(e['L_um'], 2)} µm{mk('L_um')}, "
+              f"k_cr (eq. 13) = {_fmt(m['k_cr_kN_per_m'], 3)} ± {_fmt(e['k_cr_kN_per_m'], 2)} kN/m{mk('k_cr_kN_per_m')}, "
+              f"t_r (eq. 14) = {_fmt(m['t_r_s'], 3)} s")
     wr = rep.get("whole_record")
-    for w in ([wr] if isinstance(wr, dict) else (wr or [])):
+    wrs = [wr] if isinstance(wr, dict) else (wr or [])
+    for i, w in enumerate(wrs):
         if not w.get("ok", True) and "params" not in w:
             con.print(f"whole-record fit failed: {w.get('reason')}")
             continue
-        parts = ", ".join(f"{k} = {_fmt(v, 4)} ± {_fmt(w['err_corr'].get(k), 2)}" for k, v in w["params"].items())
-        con.print(f"whole-record fit ({w['model']}, velocity {w['velocity']}): {parts}; rms {_fmt(w['rms_N'], 3)} N")
+        fl = flagged(warns, "whole-record fit" + (f" (trial {i})" if len(wrs) > 1 else ""))
+        parts = ", ".join(f"{k} = {_fmt(v, 4)} ± {_fmt(w['err_corr'].get(k), 2)}"
+                          + (f" [yellow]{MARK}[/yellow]" if k in fl else "") for k, v in w["params"].items())
+        con.print(f"whole-record fit ({w['model']}, velocity {w['velocity']}): {parts}; k_cr (eq. 13) = "
+                  f"{_fmt(w.get('k_cr_kN_per_m'), 3)} kN/m{' [yellow]' + MARK + '[/yellow]' if 'k_cr_kN_per_m' in fl else ''}"
+                  f"; rms {_fmt(w['rms_N'], 3)} N")
     for r in rep.get("rejected_steps", []):
-        con.print(f"rejected step at t = {_fmt(r['t_s'], 6)} s: {r['reason']}", highlight=False)
+        con.print(f"rejected step at t = {_fmt(r['t_s'], 6)} s: {r['reason']}", markup=False, highlight=False)
+    for w in warns:
+        con.print(f"[yellow]warning {MARK}:[/yellow] {w['where']}: {w['message']}", highlight=False)
     for note in rep.get("notes", []):
         con.print(f"[yellow]note:[/yellow] {note}", highlight=False)
     if json_out:

@@ -90,6 +90,30 @@ PARAMS: dict[str, ParamDecl] = {
 }
 
 
+class Plausible(NamedTuple):
+    """The range a measured parameter takes on a real interface (beyond the fit bounds of
+    :data:`PARAMS`, which only keep the solver inside the model's domain), and why."""
+    lo: float
+    hi: float
+    why: str
+
+
+#: physically plausible ranges (rig.model.checks warns outside them): rate-and-state
+#: coefficients of lubricated metals and of rocks are O(1e-4 - 2e-2) (Table 2: A 1.1e-3 -
+#: 4.4e-3, B 4.0e-3 - 5.3e-3; rock friction a, b ~ 0.002 - 0.02), L of 1 - 100 µm
+#: (Table 2: 7.3 - 19.2 µm; gouge up to a few hundred µm)
+PLAUSIBLE: dict[str, Plausible] = {
+    "A_mu": Plausible(1e-4, 0.05, "the direct effect (eq. 5) is positive and O(1e-4 - 2e-2) on real interfaces; "
+                                  "below 1e-4 it is not resolved, above 0.05 it is an extrapolation"),
+    "B_mu": Plausible(0.0, 0.05, "B < 0 means friction grows with slip after a velocity increase, which one state "
+                                 "variable (eq. 6) does not do: a second, slower transient or a drift is being fitted"),
+    "L_um": Plausible(0.1, 5000.0, "L is a slip distance of 1 - 100 µm (Table 2: 7 - 19 µm); millimetres is a "
+                                   "drift, not a memory length"),
+    "tau_s": Plausible(0.0, 10.0, "a force-sensor lag of more than 10 s is no sensor's"),
+    "delay_s": Plausible(0.0, 10.0, "a delay of more than 10 s is no sensor's"),
+}
+
+
 def model_params(baseline: str, extensions: list[str]) -> list[str]:
     """Every parameter name of a model (order: baseline, then extensions)."""
     names: list[str] = []
