@@ -1,14 +1,37 @@
-"""PNG figures of the analyses (matplotlib, Agg backend), like the paper's Figs. 6-11."""
+"""PNG figures of the analyses (matplotlib, Agg backend), like the paper's Figs. 6-11.
+
+One style for every figure of the project (:data:`STYLE`, applied by :func:`_plt`): sized to
+print, :data:`PAGE_WIDTH_IN` wide (a journal page's text width) at :data:`DPI`, 8 pt text,
+plain tick labels. Each figure has a ``build_*`` function that returns the matplotlib figure
+(what the tests inspect) and a ``plot_*`` one that writes the PNG atomically.
+
+Parameters that hit a fit bound or are not physical (:mod:`rig.model.checks`) carry the
+:data:`rig.model.checks.MARK` in the titles and are listed in a footnote panel.
+"""
 
 from __future__ import annotations
 
 import io
 import math
+import textwrap
 from pathlib import Path
 
 import numpy as np
 
 from rig.data import atomic_write_bytes
+
+#: a figure spans a printed page's text width (inches) and is saved at DPI
+PAGE_WIDTH_IN = 7.0
+DPI = 200
+WARN_COLOR = "#b00000"
+
+STYLE = {
+    "font.size": 8, "axes.titlesize": 8, "axes.labelsize": 8, "xtick.labelsize": 7, "ytick.labelsize": 7,
+    "legend.fontsize": 7, "figure.titlesize": 9, "lines.linewidth": 1.0, "lines.markersize": 3,
+    "axes.spines.top": False, "axes.spines.right": False, "axes.grid": False,
+    "axes.formatter.useoffset": False, "axes.formatter.limits": (-3, 4), "axes.formatter.use_mathtext": True,
+    "legend.frameon": False, "savefig.dpi": DPI, "figure.dpi": 100,
+}
 
 
 def _plt():
@@ -17,73 +40,337 @@ def _plt():
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    plt.rcParams.update(STYLE)
     return plt
 
 
 def save(fig, path: str | Path) -> None:
     """Save atomically (the PNG is complete or absent)."""
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110)
+    fig.savefig(buf, format="png", dpi=DPI)
     _plt().close(fig)
     atomic_write_bytes(path, buf.getvalue())
 
 
-def plot_identification(idn, path: str | Path, max_steps: int = 9) -> None:
-    """Top: the record (friction, velocity, whole-record model). Below: friction after each
-    step against slip, the fitted exponential (eq. 12) for each window, the windows shaded
-    (Figs. 9-11)."""
+def g3(v, nd: int = 3) -> str:
+    """A number for a figure: ``nd`` significant figures, '-' when missing."""
+    if v is None or not math.isfinite(float(v)):
+        return "-"
+    return f"{float(v):.{nd}g}"
+
+
+_SUP = str.maketrans("-0123456789", "⁻⁰¹²³⁴⁵⁶⁷⁸⁹")
+
+
+def pm(m, e, nd: int = 3) -> str:
+    """``m ± e`` (the error to 2 figures; a common power of ten for small or large values,
+    '(1.19 ± 0.05)×10⁻³'), or ``m`` alone when there is no error."""
+    if m is None or not math.isfinite(float(m)):
+        return "-"
+    m = float(m)
+    has_e = e is not None and math.isfinite(float(e))
+    p = math.floor(math.log10(abs(m))) if m != 0 else 0
+    if -2 <= p < 4:
+        return f"{g3(m, nd)} ± {g3(e, 2)}" if has_e else g3(m, nd)
+    f = 10.0 ** p
+    exp = f"×10{str(p).translate(_SUP)}"
+    return f"({g3(m / f, nd)} ± {g3(float(e) / f, 2)}){exp}" if has_e else f"{g3(m / f, nd)}{exp}"
+
+
+def footnote_axes(fig, spec, lines: list[str], width_chars: int = 120, color: str = WARN_COLOR):
+    """An axes without frame that holds footnote lines (wrapped): its own grid cell, so
+    the layout reserves the room and nothing is cut off."""
+    ax = fig.add_subplot(spec)
+    ax.axis("off")
+    wrapped = []
+    for ln in lines:
+        wrapped += textwrap.wrap(ln, width_chars, subsequent_indent="    ") or [""]
+    ax.text(0.0, 1.0, "\n".join(wrapped), transform=ax.transAxes, va="top", ha="left", fontsize=6.5,
+            color=color, wrap=False)
+    return ax
+
+
+def footnote_height_in(lines: list[str], width_chars: int = 120) -> float:
+    n = sum(max(1, len(textwrap.wrap(ln, width_chars))) for ln in lines)
+    return 0.15 + 0.11 * n
+
+
+def symlog_velocity(ax, v: np.ndarray) -> None:
+    """A symmetric-log velocity axis with plain labels: 0 and the decades ±10^k the data
+    reach, the linear range one decade below the typical speed (no crowded labels near 0)."""
+    from matplotlib.ticker import FixedLocator, FuncFormatter, NullLocator
+
+    a = np.abs(v[np.isfinite(v)])
+    a = a[a > 0]
+    if a.size == 0:
+        return
+    typ = float(np.median(a))
+    lin = 10.0 ** math.floor(math.log10(max(typ, 1e-6)))
+    hi = 10.0 ** math.ceil(math.log10(max(float(a.max()), lin)))
+    ax.set_yscale("symlog", linthresh=lin, linscale=1.0)
+    decades = [lin * 10 ** k for k in range(int(round(math.log10(hi / lin))) + 1)]
+    ticks = [0.0] + [d for d in decades if d <= 1.5 * float(np.nanmax(v)) or d == lin]
+    if float(np.nanmin(v)) < -lin:
+        ticks += [-d for d in decades if d <= 1.5 * -float(np.nanmin(v))]
+    ticks = sorted(ticks)
+    while len(ticks) > 7:  # a short panel: every other decade, 0 kept
+        ticks = sorted({0.0} | set(ticks[::2]))
+    ax.yaxis.set_major_locator(FixedLocator(ticks))
+    ax.yaxis.set_minor_locator(NullLocator())
+    ax.yaxis.set_major_formatter(FuncFormatter(lambda y, _: f"{y:g}"))
+
+
+# ---------------------------------------------------------------------------
+# identify
+# ---------------------------------------------------------------------------
+def _title_params(mean: dict, sem: dict | None, flags: set[str]) -> str:
+    sem = sem or {}
+    parts = []
+    for k, label, unit in (("A_mu", "A", ""), ("B_mu", "B", ""), ("L_um", "L", " µm")):
+        parts.append(f"{label} = {pm(mean.get(k), sem.get(k))}{unit}" + (" (!)" if k in flags else ""))
+    return ", ".join(parts)
+
+
+def build_identification(idn, max_steps: int = 9):
+    """The identification figure: the record (friction, whole-record model; velocity below),
+    then friction after each step against slip with the eq. (12) fit of each window and the
+    windows shaded (Figs. 9-11), a legend for all of them and the warnings."""
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
     from rig.kinematics import estimate_velocity
+    from rig.model.checks import MARK, flagged
+    from rig.analysis.identify import step_where
 
     plt = _plt()
+    rep = idn.report
+    warns = rep.get("warnings", [])
     results = [r for g in idn.results for r in g][:max_steps]
-    ncol = 3
-    nrow = 1 + max(1, math.ceil(len(results) / ncol))
-    fig = plt.figure(figsize=(13, 3.2 * nrow))
-    gs = fig.add_gridspec(nrow, ncol)
+    n_more = sum(len(g) for g in idn.results) - len(results)
+    ncol = max(1, min(3, len(results)))
+    nrow_steps = math.ceil(len(results) / ncol) if results else 0
+    notes = [f"{MARK} {w['where']}: {w['message']}" for w in warns]
+    rejected = [f"rejected step at t = {g3(r['t_s'], 6)} s: {r['reason']}" for r in rep.get("rejected_steps", [])]
+    if n_more:
+        notes.append(f"{n_more} more step(s) not drawn (the first {len(results)} are)")
+    foot = rejected + notes
+    heights = [2.0, 1.0] + ([2.1] * nrow_steps) + ([0.45] if results else []) + \
+        ([footnote_height_in(foot)] if foot else [])
+    fig = plt.figure(figsize=(PAGE_WIDTH_IN, sum(heights) + 0.6), layout="constrained")
+    gs = fig.add_gridspec(len(heights), ncol, height_ratios=heights)
+    # the record
     ax = fig.add_subplot(gs[0, :])
+    axv = fig.add_subplot(gs[1, :], sharex=ax)
     tr = idn.trials[0]
     step = max(1, tr.time_s.size // 50000)
     t = tr.time_s[::step]
-    mu = tr.mu[::step]
-    ax.plot(t, mu, ".", ms=1.5, color="0.5", label="measured mu")
+    ax.plot(t, tr.mu[::step], ".", ms=1.0, color="0.55", label="measured μ", rasterized=True)
     if idn.whole and idn.whole[0].get("_curve") is not None:
         tc, mc, _, _ = idn.whole[0]["_curve"]
-        ax.plot(tc, mc, "-", color="C3", lw=1.0, label=f"whole-record fit ({idn.whole[0]['model']})")
-    for r in idn.results[0]:
-        ax.axvline(r.step.t_s, color="C0", lw=0.6, ls=":")
-    ax.set_xlabel("time (s)")
-    ax.set_ylabel("mu = F / (N1 + N2)")
-    ax2 = ax.twinx()
-    v = estimate_velocity(t, tr.position_um[::step], idn.report.get("velocity_method", "local_poly"))
-    ax2.plot(t, v, "-", color="C2", lw=0.7, alpha=0.7)
-    ax2.set_ylabel(f"velocity (µm/s, {idn.report.get('velocity_method')})", color="C2")
-    ax2.set_yscale("symlog", linthresh=0.5)
-    ax.legend(loc="upper left", fontsize=8)
-    ax.set_title(f"{Path(str(idn.report.get('data'))).name if isinstance(idn.report.get('data'), str) else 'trials'}: "
-                 f"A_mu={idn.report['mean']['A_mu']}, B_mu={idn.report['mean']['B_mu']}, "
-                 f"L={idn.report['mean']['L_um']} µm (mean over {idn.report['sem_over']})", fontsize=9)
+        ax.plot(tc, mc, "-", color="C3", lw=0.9, label=f"whole-record fit ({idn.whole[0]['model']})")
+    for k, r in enumerate(idn.results[0]):
+        for a in (ax, axv):
+            a.axvline(r.step.t_s, color="C0", lw=0.6, ls=":", label="velocity step" if (k == 0 and a is ax) else None)
+    ax.set_ylabel("μ = F / (N1 + N2)")
+    ax.tick_params(labelbottom=False)
+    record_handles = ax.get_legend_handles_labels()[0]
+    if not results:
+        ax.legend(loc="best", markerscale=4)
+    v = estimate_velocity(t, tr.position_um[::step], rep.get("velocity_method", "local_poly"))
+    axv.plot(t, v, "-", color="C2", lw=0.6)
+    symlog_velocity(axv, v)
+    axv.set_ylabel("v (µm/s)")
+    axv.set_xlabel("time (s)")
+    data = rep.get("data")
+    name = Path(data).name if isinstance(data, str) else f"{len(idn.trials)} trials"
+    m = rep["mean"]
+    if rep["n_steps"]:
+        head = (f"{name}: {_title_params(m, rep['sem'], flagged(warns, 'mean over ' + rep['sem_over']))} "
+                f"(mean over {rep['n_steps'] if rep['sem_over'] == 'steps' else rep['n_trials']} {rep['sem_over']})")
+    else:
+        head = f"{name}: no accepted step ({len(rep.get('rejected_steps', []))} rejected)"
+    wr = rep.get("whole_record")
+    if isinstance(wr, dict) and "params" in wr:
+        head += "\nwhole-record fit: " + _title_params(wr["params"], wr.get("err_corr"),
+                                                        flagged(warns, "whole-record fit"))
+    ax.set_title(head)
+    # the steps
     for k, r in enumerate(results):
-        a = fig.add_subplot(gs[1 + k // ncol, k % ncol])
+        a = fig.add_subplot(gs[2 + k // ncol, k % ncol])
         tr = idn.trials[r.trial]
         lo, hi = r.step.post
         pre = max(r.step.pre[0], r.step.i - 200)
         x = tr.position_um
-        m = tr.mu
+        mm = tr.mu
         j_end = max([f["j1"] for f in r.fits], default=hi)
         sl = slice(pre, min(hi, j_end + 50))
-        a.plot(x[sl] - r.step.x_um, m[sl], ".", ms=2, color="0.45")
+        a.plot(x[sl] - r.step.x_um, mm[sl], ".", ms=1.2, color="0.5", rasterized=True)
         a.axhline(r.mu1, color="C0", lw=0.8, ls="--")
         for f in r.fits:
             best = f["window_um"] == r.window_um
             d0 = x[f["j0"]] - r.step.x_um
             d1 = x[min(f["j1"], x.size) - 1] - r.step.x_um
-            a.axvspan(d0, d1, color="C1" if best else "0.85", alpha=0.25 if best else 0.3)
+            a.axvspan(d0, d1, color="C1" if best else "0.8", alpha=0.3 if best else 0.35, lw=0)
             dd = np.linspace(0, max(d1, 1.0), 300)
             a.plot(dd, f["mu2"] + f["a"] * np.exp(-dd / f["L_um"]), "-" if best else ":",
-                   color="C3" if best else "C4", lw=1.2 if best else 0.8)
-        a.set_title(f"{r.step.v1_um_s:.3g}->{r.step.v2_um_s:.3g} µm/s: A={r.A_mu:.2e} B={r.B_mu:.2e} "
-                    f"L={r.L_um:.1f} µm r2={r.r2:.2f}" + ("" if r.ok else " (rejected)"), fontsize=7.5)
-        a.set_xlabel("slip after step (µm)", fontsize=8)
-        a.tick_params(labelsize=7)
-    fig.tight_layout()
-    save(fig, path)
+                   color="C3" if best else "C4", lw=1.1 if best else 0.8)
+        fl = flagged(warns, step_where(r.to_json(), rep["n_trials"]))
+        line2 = ", ".join(f"{lab} = {g3(val, 2 if lab in ('A', 'B') else 3)}{u}" + (" (!)" if key in fl else "")
+                          for lab, key, val, u in (("A", "A_mu", r.A_mu, ""), ("B", "B_mu", r.B_mu, ""),
+                                                   ("L", "L_um", r.L_um, " µm")))
+        a.set_title(f"{g3(r.step.v1_um_s)} → {g3(r.step.v2_um_s)} µm/s" +
+                    (f" (trial {r.trial})" if len(idn.trials) > 1 else "") + f", r² = {g3(r.r2, 2)}\n" + line2 +
+                    ("" if r.ok else "\nrejected (see below)"), color="k" if r.ok else WARN_COLOR, fontsize=7)
+        a.set_xlabel("slip after the step (µm)")
+        if k % ncol == 0:
+            a.set_ylabel("μ")
+    if results:
+        lax = fig.add_subplot(gs[2 + nrow_steps, :])
+        lax.axis("off")
+        handles = record_handles[1:] + [Line2D([], [], ls="", marker=".", color="0.5", label="measured μ"),
+                   Line2D([], [], ls="--", color="C0", label="μ1: mean before the step"),
+                   Line2D([], [], ls="-", color="C3", label="eq. (12) fit, window kept (best r²)"),
+                   Line2D([], [], ls=":", color="C4", label="eq. (12) fit, other windows"),
+                   Patch(color="C1", alpha=0.3, label="μ2 window kept"),
+                   Patch(color="0.8", alpha=0.35, label="other μ2 windows (50, 100, 250 µm)")]
+        lax.legend(handles=handles, loc="center", ncols=3)
+    if foot:
+        footnote_axes(fig, gs[len(heights) - 1, :], foot)
+    return fig
+
+
+def plot_identification(idn, path: str | Path, max_steps: int = 9) -> None:
+    save(build_identification(idn, max_steps), path)
+
+
+# ---------------------------------------------------------------------------
+# reproduce
+# ---------------------------------------------------------------------------
+REPRODUCE_PANELS = (("A_mu", "A (direct effect, eq. 5)", 1e3, "A × 10³"),
+                    ("B_mu", "B (state effect, eq. 6)", 1e3, "B × 10³"),
+                    ("L_um", "L (slip distance, eq. 6)", 1.0, "L (µm)"),
+                    ("k_cr_kN_per_m", "k_cr (eq. 13, per rider)", 1.0, "k_cr (kN/m)"))
+
+
+def build_reproduce(rep: dict, warnings: list[dict] | None = None):
+    """Bars: paper vs truth vs recovered (vs whole-record) for A, B, L, k_cr per lubricant."""
+    from rig.model.checks import MARK
+
+    plt = _plt()
+    warnings = warnings or []
+    foot = [f"{MARK} {w['where']}: {w['message']}" for w in warnings]
+    lubs = list(rep["lubricants"])
+    heights = [2.3, 2.3] + ([footnote_height_in(foot)] if foot else [])
+    fig = plt.figure(figsize=(PAGE_WIDTH_IN, sum(heights) + 0.7), layout="constrained")
+    gs = fig.add_gridspec(len(heights), 2, height_ratios=heights)
+    x = np.arange(len(lubs))
+    series = [("paper", "Table 2 (paper)", "0.55"), ("truth", "simulated trials' truth", "C2"),
+              ("recovered", "recovered (eqs. 10-12)", "C0"), ("whole_record", "whole-record fit", "C3")]
+    present = [s for s in series if s[0] == "paper" or all(s[0] in rep["lubricants"][lb] for lb in lubs)]
+    w = 0.8 / len(present)
+    for p, (k, title, scale, ylabel) in enumerate(REPRODUCE_PANELS):
+        ax = fig.add_subplot(gs[p // 2, p % 2])
+        for j, (key, label, c) in enumerate(present):
+            m, e = [], []
+            for lub in lubs:
+                r = rep["lubricants"][lub]
+                src = r["paper"][k] if key == "paper" else {"mean": r[key]["mean"].get(k), "sem": r[key]["sem"].get(k)}
+                m.append((src["mean"] if src["mean"] is not None else np.nan) * scale)
+                e.append((src["sem"] if src["sem"] is not None else 0.0) * scale)
+            ax.bar(x + w * (j - (len(present) - 1) / 2), m, w, yerr=e, color=c, label=label, capsize=2,
+                   error_kw={"lw": 0.7})
+        ax.set_xticks(x, lubs)
+        ax.set_ylabel(ylabel)
+        bad = [w_ for w_ in warnings if w_["param"] == k]
+        ax.set_title(title + (f" {MARK}" if bad else ""), color=WARN_COLOR if bad else "k")
+        ax.axhline(0, color="k", lw=0.5)
+    handles, labels = fig.axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="outside lower center", ncols=len(present))
+    fig.suptitle(f"Table 2 reproduced: {rep['n_trials']} simulated trials per lubricant (mean ± s.e. of the mean)")
+    if foot:
+        footnote_axes(fig, gs[2, :], foot)
+    return fig
+
+
+def plot_reproduce(rep: dict, path: str | Path, warnings: list[dict] | None = None) -> None:
+    save(build_reproduce(rep, warnings), path)
+
+
+# ---------------------------------------------------------------------------
+# stability
+# ---------------------------------------------------------------------------
+def _controller(s: dict) -> str:
+    ctl = f"PID (ki = {s['ki_N_per_um_s']:g} N/(µm s))" if s["ki_N_per_um_s"] > 0 else "PD"
+    return ctl + (", sensor noise off" if not s.get("sensor_noise", True) else "")
+
+
+def build_stability_map(scans: list[dict], title: str = ""):
+    """Stability map: each scanned kp (x, kN/m) per lubricant (column) and controller (row: PD,
+    PID, PID with the sensor noise off): stick-slip (x) or steady sliding (o) by the scan's
+    criterion, with the paper's eq. (8) for the fixture (2 N, kd, m), the discrete-time analysis
+    of the rig's loop and the simulated boundary; one legend for all panels."""
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+
+    from rig.analysis.stability import ONSET_SPREAD, SPREAD_MAX
+
+    plt = _plt()
+    lubs = list(dict.fromkeys(s["lubricant"] for s in scans))
+
+    def row_key(s):
+        return (s["ki_N_per_um_s"] > 0, not s.get("sensor_noise", True))
+
+    rows = sorted({row_key(s) for s in scans})
+    ncol = max(1, len(lubs))
+    panel_w = PAGE_WIDTH_IN / ncol
+    fig, axs = plt.subplots(len(rows), ncol, figsize=(PAGE_WIDTH_IN, 0.6 + 2.3 * len(rows) + 0.4),
+                            squeeze=False, layout="constrained")
+    legend = {}
+    for s in scans:
+        ax = axs[rows.index(row_key(s)), lubs.index(s["lubricant"])]
+        kp = np.array([r["kp_N_per_um"] for r in s["runs"]]) * 1e3
+        sp = np.array([r["spread"] for r in s["runs"]])
+        bad = np.array([r["stick_slip"] for r in s["runs"]], bool)
+        pos = sp[sp > 0]
+        lo = max(float(pos.min()) / 2 if pos.size else 1e-3, 1e-4)
+        sp = np.maximum(sp, lo)  # a spread of exactly 0 (noise-free steady sliding) drawn on the axis floor
+        ax.scatter(kp[bad], sp[bad], marker="x", color="C3", s=14, lw=0.9, label="stick-slip (simulated)")
+        ax.scatter(kp[~bad], sp[~bad], marker="o", facecolors="none", color="C2", s=14, lw=0.9,
+                   label="steady sliding (simulated)")
+        ax.axhline(SPREAD_MAX, color="0.6", lw=0.6, label=f"criterion: spread = {SPREAD_MAX:g} V0")
+        if s.get("k_cr_eq8_N_per_um"):
+            ax.axvline(s["k_cr_eq8_N_per_um"] * 1e3, color="k", ls="--",
+                       label="paper's eq. (8), 2N" + (" (no I term)" if s["ki_N_per_um_s"] > 0 else ""))
+        if s.get("k_cr_loop_N_per_um"):
+            ax.axvline(s["k_cr_loop_N_per_um"] * 1e3, color="C0", ls="-", label="rig loop analysis (1 kHz)")
+        if s.get("k_sim_N_per_um"):
+            ax.axvline(s["k_sim_N_per_um"] * 1e3, color="C1", ls=":", label="simulated boundary")
+        lines = [f"{s['lubricant']}, {_controller(s)}"]
+        if s.get("rel_diff") is not None:
+            lines.append(f"simulated / analysis − 1 = {s['rel_diff'] * 100:+.1f} %")
+        if s.get("onset_rel_diff") is not None:
+            lines.append(f"onset (spread > {ONSET_SPREAD:g} V0): {s['onset_rel_diff'] * 100:+.1f} %")
+            ax.axvline(s["k_onset_N_per_um"] * 1e3, color="C4", ls="-.", label="onset of oscillation")
+        ax.set_yscale("log")
+        ax.set_ylim(lo, max(float(sp.max()) * 2, SPREAD_MAX * 2))
+        ax.yaxis.set_major_locator(LogLocator(base=10, numticks=6))
+        ax.yaxis.set_major_formatter(FuncFormatter(lambda y, _: f"{y:g}"))
+        ax.yaxis.set_minor_formatter(NullFormatter())
+        ax.set_title("\n".join(textwrap.fill(t, int(panel_w * 14)) for t in lines))
+        ax.set_xlabel("kp (kN/m)")
+        ax.set_ylabel("velocity spread / V0")
+        for h, lab in zip(*ax.get_legend_handles_labels()):
+            legend.setdefault(lab, h)
+    used = {(rows.index(row_key(s)), lubs.index(s["lubricant"])) for s in scans}
+    for i in range(len(rows)):
+        for j in range(ncol):
+            if (i, j) not in used:
+                axs[i, j].axis("off")
+    if legend:
+        fig.legend(list(legend.values()), list(legend.keys()), loc="outside lower center", ncols=3)
+    if title:
+        fig.suptitle(title)
+    return fig
+
+
+def plot_stability_map(scans: list[dict], path: str | Path, title: str = "") -> None:
+    save(build_stability_map(scans, title), path)

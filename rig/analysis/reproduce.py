@@ -277,35 +277,3 @@ def reproduce(n_trials: int = 8, *, seed: int = 0, lubricants=None, profile=None
 
 def write_json(rep: dict, path) -> None:
     atomic_write_text(path, json.dumps(rep, indent=2, allow_nan=False) + "\n")
-
-
-def plot_reproduce(rep: dict, path) -> None:
-    """Bars: paper vs recovered vs truth (mean ± sem) for A, B, L, k_cr per lubricant."""
-    from rig.analysis.plots import _plt, save
-
-    plt = _plt()
-    keys = ("A_mu", "B_mu", "L_um", "k_cr_kN_per_m")
-    fig, axs = plt.subplots(1, 4, figsize=(15, 3.8))
-    lubs = list(rep["lubricants"])
-    x = np.arange(len(lubs))
-    for ax, k in zip(axs, keys):
-        for j, (label, c) in enumerate((("paper", "0.5"), ("truth", "C2"), ("recovered", "C0"),
-                                         ("whole_record", "C3"))):
-            m, e = [], []
-            for lub in lubs:
-                r = rep["lubricants"][lub]
-                if label == "paper":
-                    m.append(r["paper"][k]["mean"])
-                    e.append(r["paper"][k]["sem"])
-                elif label in r:
-                    m.append(r[label]["mean"][k] or 0.0)
-                    e.append(r[label]["sem"][k] or 0.0)
-            if len(m) == len(lubs):
-                ax.bar(x + 0.2 * (j - 1.5), m, 0.2, yerr=e, color=c, label=label, capsize=2)
-        ax.set_xticks(x)
-        ax.set_xticklabels(lubs)
-        ax.set_title(k)
-    axs[0].legend(fontsize=7)
-    fig.suptitle(f"Table 2 reproduction: {rep['n_trials']} simulated trials per lubricant (mean ± s.e.)")
-    fig.tight_layout()
-    save(fig, path)

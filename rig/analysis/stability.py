@@ -488,55 +488,7 @@ def scan_boundary(lubricant: str, *, profile=None, ki_N_per_um_s: float | None =
 # Report and map
 # ---------------------------------------------------------------------------
 def plot_map(scans: list[dict], path, title: str = "") -> None:
-    """Stability map: each scanned kp (x, kN/m) per lubricant (panel) and controller (row:
-    PD, PID, PID with the sensor noise off): stick-slip (red x) or steady sliding (green o) by the scan's criterion,
-    with the paper's eq. (8) for the fixture (2 N, kd, m; PD only), the discrete-time
-    analysis of the rig's loop, and the simulated boundary."""
-    from rig.analysis.plots import _plt, save
+    """The stability map PNG (:func:`rig.analysis.plots.plot_stability_map`)."""
+    from rig.analysis.plots import plot_stability_map
 
-    plt = _plt()
-    lubs = list(dict.fromkeys(s["lubricant"] for s in scans))
-    def row_key(s):
-        return (s["ki_N_per_um_s"] > 0, not s.get("sensor_noise", True))
-
-    rows = sorted({row_key(s) for s in scans})
-    fig, axs = plt.subplots(len(rows), len(lubs), figsize=(4.4 * len(lubs), 3.0 * len(rows)), squeeze=False)
-    for s in scans:
-        ax = axs[rows.index(row_key(s)), lubs.index(s["lubricant"])]
-        kp = np.array([r["kp_N_per_um"] for r in s["runs"]]) * 1e3
-        sp = np.array([r["spread"] for r in s["runs"]])
-        bad = np.array([r["stick_slip"] for r in s["runs"]])
-        ax.scatter(kp[bad], sp[bad], marker="x", color="C3", label="stick-slip (sim)")
-        ax.scatter(kp[~bad], sp[~bad], marker="o", facecolors="none", color="C2", label="steady (sim)")
-        ax.axhline(SPREAD_MAX, color="0.6", lw=0.6)
-        if s.get("k_cr_eq8_N_per_um"):
-            ax.axvline(s["k_cr_eq8_N_per_um"] * 1e3, color="k", ls="--",
-                       label="paper eq. (8), 2N" + (" (PD; no I term)" if s["ki_N_per_um_s"] > 0 else ""))
-        if s.get("k_cr_loop_N_per_um"):
-            ax.axvline(s["k_cr_loop_N_per_um"] * 1e3, color="C0", ls="-", label="rig loop analysis (1 kHz)")
-        if s.get("k_sim_N_per_um"):
-            ax.axvline(s["k_sim_N_per_um"] * 1e3, color="C1", ls=":", label="simulated boundary")
-        ax.set_yscale("log")
-        ax.set_xlabel("kp (kN/m)")
-        ax.set_ylabel("velocity spread / V0")
-        ctl = f"PID ki={s['ki_N_per_um_s']:g}" if s["ki_N_per_um_s"] > 0 else "PD"
-        if not s.get("sensor_noise", True):
-            ctl += ", noise-free"
-        rd = s.get("rel_diff")
-        od = s.get("onset_rel_diff")
-        ttl = f"{s['lubricant']}, {ctl}" + (f": sim/analysis - 1 = {rd * 100:+.1f} %" if rd is not None else "")
-        if od is not None:
-            ttl += f"\nonset of oscillation (spread > {ONSET_SPREAD:g} V0): {od * 100:+.1f} %"
-            ax.axvline(s["k_onset_N_per_um"] * 1e3, color="C4", ls="-.", label="onset (noise-free)")
-            ax.set_yscale("symlog", linthresh=1e-3)
-        ax.set_title(ttl, fontsize=8)
-        ax.legend(fontsize=6)
-    used = {(rows.index(row_key(s)), lubs.index(s["lubricant"])) for s in scans}
-    for i in range(len(rows)):
-        for j in range(len(lubs)):
-            if (i, j) not in used:
-                axs[i, j].axis("off")
-    if title:
-        fig.suptitle(title, fontsize=9)
-    fig.tight_layout()
-    save(fig, path)
+    plot_stability_map(scans, path, title)

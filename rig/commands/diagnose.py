@@ -74,6 +74,7 @@ def register(app: typer.Typer) -> None:
             fail(msg if str(data) in msg else f"{data}: {msg}", EXIT_BAD_INPUT)
         rep = d.report()
         rep["data"] = str(data)
+        rep["warnings"] = diagnosis_warnings(rep)
         text = summary(dict(rep, _noise_N=d.grid.noise_N))
         if json_to_stdout(json_out):
             err_console.print(text, markup=False)
@@ -84,7 +85,7 @@ def register(app: typer.Typer) -> None:
         if plot is not None:
             from rig.diagnosis.plot import plot_diagnosis
 
-            plot_diagnosis(d, plot)
+            plot_diagnosis(d, plot, warnings=rep["warnings"])
         if model_out is not None:
             try:
                 d.model.to_yaml(model_out)
@@ -92,11 +93,26 @@ def register(app: typer.Typer) -> None:
                 fail(f"cannot write {model_out}: {exc.strerror or exc}", EXIT_FAILED)
 
 
+def diagnosis_warnings(rep: dict) -> list[dict]:
+    """Parameters of the baseline and of the final model that hit a fit bound or are not physical
+    (:mod:`rig.model.checks`)."""
+    from rig.model.checks import check_params
+
+    out = check_params(rep["baseline"]["params"], where=f"baseline {rep['baseline']['model']}")
+    m = rep["model"]
+    if m["extensions"]:
+        out += check_params(m["params"], where="model " + " + ".join([m["baseline"], *m["extensions"]]))
+    return out
+
+
 def summary(rep: dict) -> str:
     """A short human summary of a report."""
+    from rig.model.checks import MARK, flagged
+
     b = rep["baseline"]
+    fl = flagged(rep.get("warnings", []), f"baseline {b['model']}")
     lines = [f"{rep['data']}: baseline {b['model']} "
-             + ", ".join(f"{k}={v:.4g}" for k, v in b["params"].items())
+             + ", ".join(f"{k}={v:.4g}" + (f" {MARK}" if k in fl else "") for k, v in b["params"].items())
              + f"; hold-out RMS {b['holdout_rms_N']:.4g} N"]
     if not rep["findings"]:
         noise = rep.get("_noise_N")
@@ -115,4 +131,6 @@ def summary(rep: dict) -> str:
     m = rep["model"]
     lines.append(f"  model: {m['baseline']}" + (" + " + " + ".join(m["extensions"]) if m["extensions"] else "")
                  + f"; hold-out RMS {rep['holdout_rms_N']:.4g} N")
+    for w in rep.get("warnings", []):
+        lines.append(f"  warning (!): {w['where']}: {w['message']}")
     return "\n".join(lines)
