@@ -300,8 +300,8 @@ def plot_reproduce(rep: dict, path: str | Path, warnings: list[dict] | None = No
 # stability
 # ---------------------------------------------------------------------------
 def _controller(s: dict) -> str:
-    ctl = f"PID (ki = {s['ki_N_per_um_s']:g} N/(µm s))" if s["ki_N_per_um_s"] > 0 else "PD"
-    return ctl + (", sensor noise off" if not s.get("sensor_noise", True) else "")
+    ctl = f"PID, ki = {s['ki_N_per_um_s']:g} N/(µm s)" if s["ki_N_per_um_s"] > 0 else "PD"
+    return ctl + ("\nsensor noise off" if not s.get("sensor_noise", True) else "")
 
 
 def build_stability_map(scans: list[dict], title: str = ""):
@@ -321,7 +321,6 @@ def build_stability_map(scans: list[dict], title: str = ""):
 
     rows = sorted({row_key(s) for s in scans})
     ncol = max(1, len(lubs))
-    panel_w = PAGE_WIDTH_IN / ncol
     fig, axs = plt.subplots(len(rows), ncol, figsize=(PAGE_WIDTH_IN, 0.6 + 2.3 * len(rows) + 0.4),
                             squeeze=False, layout="constrained")
     legend = {}
@@ -338,24 +337,28 @@ def build_stability_map(scans: list[dict], title: str = ""):
                    label="steady sliding (simulated)")
         ax.axhline(SPREAD_MAX, color="0.6", lw=0.6, label=f"criterion: spread = {SPREAD_MAX:g} V0")
         if s.get("k_cr_eq8_N_per_um"):
-            ax.axvline(s["k_cr_eq8_N_per_um"] * 1e3, color="k", ls="--",
-                       label="paper's eq. (8), 2N" + (" (no I term)" if s["ki_N_per_um_s"] > 0 else ""))
+            ax.axvline(s["k_cr_eq8_N_per_um"] * 1e3, color="k", ls="--", label="paper's eq. (8), 2N (PD: no I term)")
         if s.get("k_cr_loop_N_per_um"):
             ax.axvline(s["k_cr_loop_N_per_um"] * 1e3, color="C0", ls="-", label="rig loop analysis (1 kHz)")
         if s.get("k_sim_N_per_um"):
             ax.axvline(s["k_sim_N_per_um"] * 1e3, color="C1", ls=":", label="simulated boundary")
         lines = [f"{s['lubricant']}, {_controller(s)}"]
         if s.get("rel_diff") is not None:
-            lines.append(f"simulated / analysis − 1 = {s['rel_diff'] * 100:+.1f} %")
+            lines.append(f"simulated/analysis − 1 = {s['rel_diff'] * 100:+.1f}%")
         if s.get("onset_rel_diff") is not None:
-            lines.append(f"onset (spread > {ONSET_SPREAD:g} V0): {s['onset_rel_diff'] * 100:+.1f} %")
+            lines.append(f"onset (spread > {ONSET_SPREAD:g} V0): {s['onset_rel_diff'] * 100:+.1f}%")
             ax.axvline(s["k_onset_N_per_um"] * 1e3, color="C4", ls="-.", label="onset of oscillation")
+        y0, y1 = min(lo, SPREAD_MAX / 2), max(float(sp.max()) * 2, SPREAD_MAX * 2)
         ax.set_yscale("log")
-        ax.set_ylim(lo, max(float(sp.max()) * 2, SPREAD_MAX * 2))
+        ax.set_ylim(y0, y1)
         ax.yaxis.set_major_locator(LogLocator(base=10, numticks=6))
         ax.yaxis.set_major_formatter(FuncFormatter(lambda y, _: f"{y:g}"))
-        ax.yaxis.set_minor_formatter(NullFormatter())
-        ax.set_title("\n".join(textwrap.fill(t, int(panel_w * 14)) for t in lines))
+        if y1 / y0 < 30:  # less than ~1.5 decades: label 2 and 5 between the decades too
+            ax.yaxis.set_minor_locator(LogLocator(base=10, subs=(2.0, 5.0)))
+            ax.yaxis.set_minor_formatter(FuncFormatter(lambda y, _: f"{y:g}"))
+        else:
+            ax.yaxis.set_minor_formatter(NullFormatter())
+        ax.set_title("\n".join(lines), fontsize=7 if ncol > 1 else 8)
         ax.set_xlabel("kp (kN/m)")
         ax.set_ylabel("velocity spread / V0")
         for h, lab in zip(*ax.get_legend_handles_labels()):
