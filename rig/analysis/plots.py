@@ -77,22 +77,30 @@ def pm(m, e, nd: int = 3) -> str:
     return f"({g3(m / f, nd)} ± {g3(float(e) / f, 2)}){exp}" if has_e else f"{g3(m / f, nd)}{exp}"
 
 
-def footnote_axes(fig, spec, lines: list[str], width_chars: int = 120, color: str = WARN_COLOR):
-    """An axes without frame that holds footnote lines (wrapped): its own grid cell, so
-    the layout reserves the room and nothing is cut off."""
+FOOT_PT = 6.5
+
+
+def _wrap(lines, width_chars: int) -> list[tuple[str, str | None]]:
+    out = []
+    for ln in lines:
+        text, color = ln if isinstance(ln, tuple) else (ln, None)
+        out += [(w, color) for w in (textwrap.wrap(text, width_chars, subsequent_indent="    ") or [""])]
+    return out
+
+
+def footnote_axes(fig, spec, lines: list, width_chars: int = 120, color: str = WARN_COLOR):
+    """An axes without frame that holds footnote lines (wrapped; an item may be ``(text, color)``):
+    its own grid cell, so the layout reserves the room and nothing is cut off."""
     ax = fig.add_subplot(spec)
     ax.axis("off")
-    wrapped = []
-    for ln in lines:
-        wrapped += textwrap.wrap(ln, width_chars, subsequent_indent="    ") or [""]
-    ax.text(0.0, 1.0, "\n".join(wrapped), transform=ax.transAxes, va="top", ha="left", fontsize=6.5,
-            color=color, wrap=False)
+    for k, (text, c) in enumerate(_wrap(lines, width_chars)):
+        ax.annotate(text, xy=(0.0, 1.0), xycoords="axes fraction", xytext=(0.0, -1.3 * FOOT_PT * k),
+                    textcoords="offset points", va="top", ha="left", fontsize=FOOT_PT, color=c or color)
     return ax
 
 
-def footnote_height_in(lines: list[str], width_chars: int = 120) -> float:
-    n = sum(max(1, len(textwrap.wrap(ln, width_chars))) for ln in lines)
-    return 0.15 + 0.11 * n
+def footnote_height_in(lines: list, width_chars: int = 120) -> float:
+    return 0.1 + 1.3 * FOOT_PT / 72.0 * len(_wrap(lines, width_chars))
 
 
 def symlog_velocity(ax, v: np.ndarray) -> None:
@@ -103,6 +111,9 @@ def symlog_velocity(ax, v: np.ndarray) -> None:
     a = np.abs(v[np.isfinite(v)])
     a = a[a > 0]
     if a.size == 0:
+        return
+    p1, p99 = (float(np.percentile(v[np.isfinite(v)], q)) for q in (1, 99))
+    if p1 > 0 and p99 / p1 < 30:  # one direction within about a decade: a plain linear axis
         return
     typ = float(np.median(a))
     lin = 10.0 ** math.floor(math.log10(max(typ, 1e-6)))

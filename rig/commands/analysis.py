@@ -445,7 +445,8 @@ def reproduce_cmd(
     """Simulated trials in the paper's protocol, identified: our Table 2 beside the paper's."""
     from rich.progress import BarColumn, Progress, TimeElapsedColumn, TimeRemainingColumn
 
-    from rig.analysis.reproduce import plot_reproduce, reproduce
+    from rig.analysis.plots import plot_reproduce
+    from rig.analysis.reproduce import reproduce
     from rig.model.paper import TABLE2
 
     con = _con(json_out)

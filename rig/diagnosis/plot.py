@@ -22,83 +22,104 @@ def _binned(q, r, w, nb=120):
     return c[ok], num[ok] / den[ok]
 
 
-def plot_diagnosis(d: Diagnosis, path: str | Path) -> Path:
-    """Write the PNG (Agg): 4 panels; each finding's evidence is marked and captioned."""
-    import matplotlib
+def build_diagnosis(d: Diagnosis, warnings: list[dict] | None = None):
+    """The figure: data with the baseline and the extended model (velocity below), then the
+    residuals against time, slip and position, each titled, each finding's evidence marked,
+    and a footnote panel (findings, unexplained structure, parameter warnings) that the
+    layout makes room for."""
+    from rig.analysis.plots import PAGE_WIDTH_IN, WARN_COLOR, _plt, footnote_axes, footnote_height_in, symlog_velocity
+    from rig.model.checks import MARK
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from rig.data import atomic_write_bytes
-
+    plt = _plt()
     g = d.grid
     base, fin = d.baseline, d.final
     rb = g.F_mean - base.pred
     rf = g.F_mean - fin.pred
     s = slip_of(g)
-    fig, ax = plt.subplots(4, 1, figsize=(11, 13))
-    a = ax[0]
-    a.plot(g.t, g.F_mean, ".", ms=1.5, color="0.5", label="data (binned)")
-    a.plot(g.t, base.pred, "-", lw=0.9, color="tab:blue", label=f"baseline {base.baseline} "
-           f"(hold-out RMS {base.holdout_rms_N:.3g} N)")
+    notes = []
+    for i, f in enumerate(d.findings, 1):
+        notes.append(f"[{i}] {f['cause']} (hold-out gain {f['gain_pct']:.1f} %): {f['evidence']}")
+    for u in d.unexplained:
+        notes.append(f"[?] unexplained, follows {u['follows']}: {u['evidence']}")
+    if not notes:
+        notes.append("no finding: no catalogue extension passes the hold-out test")
+    warn_lines = [f"{MARK} {w['where']}: {w['message']}" for w in (warnings or [])]
+    heights = [2.2, 0.8, 1.5, 1.5, 1.5, footnote_height_in(notes + warn_lines)]
+    fig = plt.figure(figsize=(PAGE_WIDTH_IN, sum(heights) + 0.8), layout="constrained")
+    gs = fig.add_gridspec(len(heights), 1, height_ratios=heights)
+    a = fig.add_subplot(gs[0])
+    hm = g.holdout_mask()
+    for k, b in enumerate(np.unique(g.block[hm])):
+        tb = g.t[g.block == b]
+        a.axvspan(tb.min(), tb.max(), color="0.92", zorder=-1, lw=0, label="hold-out blocks" if k == 0 else None)
+    a.plot(g.t, g.F_mean, ".", ms=1.2, color="0.5", label="data (binned)", rasterized=True)
+    a.plot(g.t, base.pred, "-", lw=0.9, color="tab:blue",
+           label=f"baseline {base.baseline} (hold-out RMS {base.holdout_rms_N:.3g} N)")
     if fin is not base:
         a.plot(g.t, fin.pred, "-", lw=0.9, color="tab:red",
                label=f"extended: {' + '.join(fin.extensions)} (hold-out RMS {fin.holdout_rms_N:.3g} N)")
-    hm = g.holdout_mask()
-    # shade hold-out blocks
-    blocks = np.unique(g.block[hm])
-    for b in blocks:
-        tb = g.t[g.block == b]
-        a.axvspan(tb.min(), tb.max(), color="0.9", zorder=-1, lw=0)
     a.set_ylabel("friction (N)")
-    a.set_title(f"rig diagnose: {Path(d.data).name}   (grey bands: hold-out blocks)")
-    a.legend(fontsize=7, loc="best")
-    a2 = a.twinx()
-    a2.plot(g.t, g.v, "-", lw=0.5, color="tab:green", alpha=0.5)
-    a2.set_ylabel("velocity (µm/s)", color="tab:green")
-    for axi, q, lab in ((ax[1], g.t, "time (s)"), (ax[2], s, "slip (µm)"), (ax[3], g.x, "position (µm)")):
+    a.set_title(f"rig diagnose: {Path(d.data).name}")
+    a.tick_params(labelbottom=False)
+    av = fig.add_subplot(gs[1], sharex=a)
+    av.plot(g.t, g.v, "-", lw=0.6, color="tab:green")
+    symlog_velocity(av, np.asarray(g.v, float))
+    av.set_ylabel("v (µm/s)")
+    av.set_xlabel("time (s)")
+    lim = max(4 * g.noise_N, float(np.percentile(np.abs(rb), 99.5)))
+    res_axes = []
+    for k, (q, lab, title) in enumerate(((g.t, "time (s)", "residual against time (drifts, transients)"),
+                                         (s, "slip (µm)", "residual against slip (memory, wear)"),
+                                         (g.x, "position (µm)", "residual against position (the surface)"))):
+        axi = fig.add_subplot(gs[2 + k])
         qb, rbb = _binned(q, rb, g.count)
         qf, rff = _binned(q, rf, g.count)
-        axi.plot(q, rb, ".", ms=1, color="tab:blue", alpha=0.25)
-        axi.plot(qb, rbb, "-", lw=1.2, color="tab:blue", label="residual, baseline (binned mean)")
-        axi.plot(qf, rff, "-", lw=1.2, color="tab:red", label="residual, extended model (binned mean)")
+        axi.plot(q, rb, ".", ms=0.8, color="tab:blue", alpha=0.25, rasterized=True)
+        axi.plot(qb, rbb, "-", lw=1.0, color="tab:blue", label="baseline (binned mean)")
+        if fin is not base:
+            axi.plot(qf, rff, "-", lw=1.0, color="tab:red", label="extended model (binned mean)")
         axi.axhline(0, color="k", lw=0.5)
         axi.set_xlabel(lab)
         axi.set_ylabel("residual (N)")
-        lim = max(4 * g.noise_N, float(np.percentile(np.abs(rb), 99.5)))
         axi.set_ylim(-lim, lim)
+        axi.set_title(title)
+        res_axes.append(axi)
+    # one legend, above the panels (it covers no data)
+    from matplotlib.lines import Line2D
+
+    h, lab = a.get_legend_handles_labels()
+    h += [Line2D([], [], color="tab:blue", lw=1.0), Line2D([], [], color="tab:red", lw=1.0)][: 2 if fin is not base else 1]
+    lab += ["residual of the baseline (binned mean)", "residual of the extended model (binned mean)"][
+        : 2 if fin is not base else 1]
+    fig.legend(h, lab, loc="outside upper center", ncols=2, markerscale=4)
     # evidence marks
-    notes = []
-    for i, f in enumerate(d.findings, 1):
+    for f in d.findings:
         c = f["cause"]
         p = f["params"]
         if c == "position_periodic":
             lam = p["wavelength_um"]
             x0 = float(g.x.min())
             for k in range(int((g.x.max() - x0) / lam) + 1):
-                ax[3].axvline(x0 + k * lam, color="tab:purple", lw=0.4, alpha=0.5)
-        elif c in ("force_offset_drift",):
-            ax[1].plot(g.t, p["rate_N_per_s"] * (g.t - g.t.mean()), "--", color="tab:purple", lw=1)
+                res_axes[2].axvline(x0 + k * lam, color="tab:purple", lw=0.4, alpha=0.5)
+        elif c == "force_offset_drift":
+            res_axes[0].plot(g.t, p["rate_N_per_s"] * (g.t - g.t.mean()), "--", color="tab:purple", lw=1)
         elif c == "slip_wear_drift":
-            ax[2].plot(s, p["rate_mu_per_mm"] * 2 * g.N_nom * (s - s.mean()) * 1e-3, "--", color="tab:purple", lw=1)
+            res_axes[1].plot(s, p["rate_mu_per_mm"] * 2 * g.N_nom * (s - s.mean()) * 1e-3, "--", color="tab:purple",
+                             lw=1)
         else:
             # transients: mark the velocity changes (where they start) on the time axis
             for te in velocity_changes(g.kin["t"], g.kin["v"]):
-                ax[1].axvline(te, color="tab:purple", lw=0.5, alpha=0.5)
-        notes.append(f"[{i}] {c}: {f['evidence'][:150]}  gain {f['gain_pct']:.1f}%")
-    for u in d.unexplained:
-        notes.append(f"[?] unexplained, follows {u['follows']}: {u['evidence'][:150]}")
-    if not notes:
-        notes.append("no finding: the baseline explains the data to within the noise")
-    fig.text(0.01, 0.005, "\n".join(notes), fontsize=6.5, va="bottom", family="monospace")
-    fig.tight_layout(rect=(0, 0.02 + 0.012 * len(notes), 1, 1))
-    import io
+                res_axes[0].axvline(te, color="tab:purple", lw=0.5, alpha=0.5)
+    footnote_axes(fig, gs[len(heights) - 1], [(n, "k") for n in notes] + [(w, WARN_COLOR) for w in warn_lines])
+    return fig
 
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110)
-    plt.close(fig)
-    atomic_write_bytes(path, buf.getvalue())
+
+def plot_diagnosis(d: Diagnosis, path: str | Path, warnings: list[dict] | None = None) -> Path:
+    """Write the PNG (atomically)."""
+    from rig.analysis.plots import save
+
+    save(build_diagnosis(d, warnings), path)
     return Path(path)
 
 
-__all__ = ["plot_diagnosis", "math"]
+__all__ = ["build_diagnosis", "plot_diagnosis"]
