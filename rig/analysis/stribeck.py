@@ -1,9 +1,12 @@
 """Steady-state friction against velocity (the Stribeck curve), Dupont & Dunlap section 4.1.
 
-From a stepped-velocity pass (Fig. 5): the friction of each level is the mean of
+From a stepped-velocity pass (Fig. 5), on the paper's 25 Hz (block means of a denser
+record, :func:`at_level_rate`): the friction of each level is the mean of
 ``mu`` over the last 50 µm of displacement at that velocity; levels come from the
 log's ``level`` events when present (their ``window_*`` times), else from the
-velocity steps detected in the data (:func:`rig.kinematics.detect_steps`). Levels reached
+velocity steps detected in the data (:func:`rig.kinematics.detect_steps`); a level is a
+stretch of one velocity, so consecutive planned levels of the same velocity are one
+(:func:`_merge_equal`), as the data show them. Levels reached
 by an increase of velocity form the *up* branch, the others the *down* branch
 (kept apart, as in Fig. 6: friction after increases exceeded friction after
 decreases). Eq. (7), ``mu_ss = mu0 + (A - B) ln(v/V0)``, is fitted by least
@@ -28,14 +31,65 @@ from rig.model.friction import V0_UM_S
 SCHEMA = "rig.stribeck/1"
 
 
+#: levels are found and averaged on the paper's 25 Hz (block means of denser records, as the
+#: log's /log25 channel is): a 1 kHz and a 25 Hz copy of one trial give the same levels
+LEVEL_RATE_HZ = 25.0
+MIN_WINDOW_SAMPLES = 3
+
+
+def at_level_rate(trial: TrialData) -> TrialData:
+    """``trial`` as block means at :data:`LEVEL_RATE_HZ` when it is denser (else unchanged).
+    Step detection on the 1 kHz record missed the short fast levels (200 µm/s lasts 1.25 s)
+    that the 25 Hz block means of the same trial show."""
+    t = np.asarray(trial.time_s, float)
+    if t.size < 4:
+        return trial
+    k = int(round(1.0 / (LEVEL_RATE_HZ * float(np.median(np.diff(t))))))
+    if k < 2:
+        return trial
+    m = (t.size // k) * k
+
+    def bm(a):
+        return None if a is None else np.asarray(a, float)[:m].reshape(-1, k).mean(axis=1)
+
+    return TrialData(time_s=bm(trial.time_s), position_um=bm(trial.position_um), friction_N=bm(trial.friction_N),
+                     normal_1_N=bm(trial.normal_1_N), normal_2_N=bm(trial.normal_2_N),
+                     position_ref_um=bm(trial.position_ref_um), valve_cmd=None, extra={},
+                     metadata=dict(trial.metadata), events=list(trial.events or []), source=trial.source,
+                     warnings=list(trial.warnings))
+
+
+def _merge_equal(evs: list[dict], rel: float = 0.01) -> tuple[list[dict], list[dict]]:
+    """Consecutive level events at the same velocity are one level (no velocity change between
+    them: the pass's top velocity is planned twice, up then down, and slides on as one
+    stretch); the merged level keeps the first's direction and the last's window."""
+    out: list[dict] = []
+    merged = []
+    for e in evs:
+        if out and abs(float(e["v_um_s"]) - float(out[-1]["v_um_s"])) <= rel * abs(float(out[-1]["v_um_s"])):
+            keep = dict(e, direction=out[-1].get("direction"))
+            merged.append({"v_um_s": float(e["v_um_s"]), "t_s": float(e.get("t_s", math.nan)),
+                           "reason": f"same velocity as the level before ({float(out[-1]['v_um_s']):g} µm/s): no "
+                                     "velocity change between them, one level (its last window kept)"})
+            out[-1] = keep
+        else:
+            out.append(e)
+    return out, merged
+
+
 def levels_from_trial(trial: TrialData, *, use_events: bool = True, window_um: float = 50.0,
-                      min_ratio: float = 1.25) -> tuple[list[dict], str]:
+                      min_ratio: float = 1.25) -> tuple[list[dict], str, list[dict]]:
+    """(levels, source, rejected): each level's steady friction; ``rejected`` says for every
+    planned or detected level that is not in ``levels`` why (merged, too few samples)."""
+    trial = at_level_rate(trial)
     t = np.asarray(trial.time_s, float)
     x = np.asarray(trial.position_um, float)
     mu = np.asarray(trial.mu, float)
     out = []
+    rejected: list[dict] = []
     evs = [e for e in (trial.events or []) if e.get("kind") == "level" and "v_um_s" in e] if use_events else []
     if evs:
+        evs, rejected = _merge_equal(evs)
         for e in evs:
             if "window_t_start_s" in e and "window_t_end_s" in e:
                 t0, t1 = float(e["window_t_start_s"]), float(e["window_t_end_s"])
@@ -43,7 +97,10 @@ def levels_from_trial(trial: TrialData, *, use_events: bool = True, window_um: f
                 t1 = float(e.get("t_end_s", e["t_s"]))
                 t0 = t1 - window_um / float(e["v_um_s"])
             sel = (t >= t0) & (t <= t1)
-            if sel.sum() < 3:
+            if sel.sum() < MIN_WINDOW_SAMPLES:
+                rejected.append({"v_um_s": float(e["v_um_s"]), "t_s": t0,
+                                 "reason": f"{int(sel.sum())} sample(s) in its window ({t0:.4g} - {t1:.4g} s; at least "
+                                           f"{MIN_WINDOW_SAMPLES})"})
                 continue
             out.append(_level(t, x, mu, sel, float(e["v_um_s"]), e.get("direction")))
         source = "events"
@@ -51,7 +108,7 @@ def levels_from_trial(trial: TrialData, *, use_events: bool = True, window_um: f
         steps = detect_steps(trial, use_events=False, min_ratio=min_ratio)
         source = "data"
         if not steps:
-            return [], source
+            return [], source, rejected
         # level k ends at step k (velocity v1); the last level ends at the last step's segment end
         ends = [(s.pre[0], s.i, s.v1_um_s, s.x_um) for s in steps]
         last = steps[-1]
@@ -60,7 +117,10 @@ def levels_from_trial(trial: TrialData, *, use_events: bool = True, window_um: f
             sel = np.zeros(t.size, bool)
             sel[lo:hi] = True
             sel &= (x >= x_end - window_um) & (x <= x_end)
-            if sel.sum() < 3:
+            if sel.sum() < MIN_WINDOW_SAMPLES:
+                rejected.append({"v_um_s": float(v), "t_s": float(t[min(lo, t.size - 1)]),
+                                 "reason": f"{int(sel.sum())} sample(s) in its last {window_um:g} µm (at least "
+                                           f"{MIN_WINDOW_SAMPLES})"})
                 continue
             out.append(_level(t, x, mu, sel, v, None))
     # branches: a level reached by an increase of velocity is 'up'
@@ -69,7 +129,7 @@ def levels_from_trial(trial: TrialData, *, use_events: bool = True, window_um: f
         if lv["direction"] not in ("up", "down"):
             lv["direction"] = "up" if prev is None or lv["v_um_s"] > prev else "down"
         prev = lv["v_um_s"]
-    return out, source
+    return out, source, rejected
 
 
 def _level(t, x, mu, sel, v_nom, direction):
@@ -109,13 +169,15 @@ def stribeck(trials: list[TrialData], *, use_events: bool = True, window_um: flo
              names: list[str] | None = None) -> dict:
     """Levels of every trial, the branch-averaged curves, and the eq. (7) fits."""
     all_levels = []
+    all_rejected = []
     sources = set()
     for k, tr in enumerate(trials):
-        lv, src = levels_from_trial(tr, use_events=use_events, window_um=window_um)
+        lv, src, rej = levels_from_trial(tr, use_events=use_events, window_um=window_um)
         sources.add(src)
-        for x in lv:
+        for x in lv + rej:
             x["trial"] = k
         all_levels += lv
+        all_rejected += rej
     # levels measured in different trials (or detected from the data) differ slightly in
     # velocity: cluster within 5 % and label each cluster by its median
     vs_all = sorted(lv["v_um_s"] for lv in all_levels)
@@ -145,7 +207,9 @@ def stribeck(trials: list[TrialData], *, use_events: bool = True, window_um: flo
         "data": names if names and len(names) > 1 else (names[0] if names else trials[0].source),
         "window_um": window_um,
         "level_source": sorted(sources),
+        "n_levels": len(all_levels),
         "levels": [{k: (_r(v) if isinstance(v, float) else v) for k, v in lv.items()} for lv in all_levels],
+        "rejected_levels": [{k: (_r(v) if isinstance(v, float) else v) for k, v in r.items()} for r in all_rejected],
         "branches": branches,
         "fit": fit_eq7(all_levels),
         "fit_up": fit_eq7([lv for lv in all_levels if lv["direction"] == "up"]),

@@ -240,6 +240,13 @@ def stribeck_cmd(
         for b in rep["branches"][d]:
             table.add_row(d, _fmt(b["v_um_s"]), _fmt(b["mu"], 5), _fmt(b["mu_sd"], 2), str(b["n_trials"]))
     con.print(table)
+    src = " and ".join({"events": "the log's level events", "data": "velocity steps detected in the data"}[x]
+                       for x in rep["level_source"])
+    con.print(f"{rep['n_levels']} level(s) found (from {src}, at 25 Hz)"
+              + (f"; {len(rep['rejected_levels'])} not counted:" if rep["rejected_levels"] else ""), highlight=False)
+    for r in rep["rejected_levels"]:
+        con.print(f"  level at {_fmt(r['v_um_s'])} µm/s (t = {_fmt(r['t_s'], 6)} s): {r['reason']}", highlight=False,
+                  markup=False)
     for key, label in (("fit", "all levels"), ("fit_up", "up branch"), ("fit_down", "down branch")):
         f = rep[key]
         con.print(f"eq. (7), {label}: A - B = {_fmt(f['A_minus_B'], 4)} ± {_fmt(f['A_minus_B_err'], 2)}, "
@@ -524,8 +531,17 @@ def reproduce_cmd(
         con.print(f"{lub}: recovered - truth within the paper's s.e.: "
                       + ("all" if not bad else f"[red]not for {', '.join(bad)}[/red]")
                       + f" ({rep['lubricants'][lub]['engine']})")
+    from rig.model.checks import check_params
+
+    warns = []
+    for lub in lubs:
+        warns += check_params(rep["lubricants"][lub]["recovered"]["mean"], rep["lubricants"][lub]["recovered"]["sem"],
+                              where=f"{lub}: recovered mean")
+    rep["warnings"] = warns
+    for w in warns:
+        con.print(f"[yellow]warning (!):[/yellow] {w['where']}: {w['message']}", highlight=False)
     if json_out:
         write_json(rep, json_out)
     if plot:
-        plot_reproduce(rep, plot)
+        plot_reproduce(rep, plot, warns)
         con.print(f"wrote {plot}", markup=False)
