@@ -54,7 +54,11 @@ def test_levels_from_log_events_full_sim(repo_root):
                       load_profile(default_profile_path()), PARAFFIN, seed=5)
     rep = stribeck([log.trial_data(25.0)])
     assert rep["level_source"] == ["events"]
-    assert len(rep["levels"]) == 14  # 7 velocities, up and down
+    # 7 velocities, up and down; the top one is planned twice in a row (up, then down) and
+    # slides on as one stretch: one level, the other listed with its reason
+    assert rep["n_levels"] == len(rep["levels"]) == 13
+    assert [r["v_um_s"] for r in rep["rejected_levels"]] == [200.0]
+    assert "same velocity" in rep["rejected_levels"][0]["reason"]
     assert {lv["direction"] for lv in rep["levels"]} == {"up", "down"}
     # windows are the last 50 µm of each level
     for lv in rep["levels"]:
