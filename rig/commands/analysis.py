@@ -13,7 +13,7 @@ from rich.console import Console
 from rich.table import Table
 
 from rig.commands.common import (EXIT_BAD_INPUT, JSON_HELP, Lubricant, check_output_path, err_console, fail,
-                                 json_to_stdout, write_json)
+                                 json_to_stdout, progress_bar, write_json)
 
 console = Console(width=None if Console().is_terminal else 140, highlight=False)
 
@@ -400,7 +400,8 @@ def stability_cmd(
         from rig.catalog.batch import mapper
 
         stack = ExitStack()
-        map_fn = stack.enter_context(mapper(jobs, scheduler))
+        bar = stack.enter_context(progress_bar(json_out, "kp scan", unit="simulated runs"))
+        map_fn = stack.enter_context(mapper(jobs, scheduler, progress=bar.advance))
         for nm in sets:
             if params or nm not in prof.lubricants:
                 con.print(f"{nm}: not a lubricant of the profile; simulation skipped")
@@ -411,7 +412,8 @@ def stability_cmd(
                 if not k_lin:
                     con.print(f"{nm} ({'PID' if k_i else 'PD'}): no finite k_cr in the analysis; scan skipped")
                     continue
-                with err_console.status(f"{nm} ({'PID' if k_i else 'PD'}): scanning kp..."):
+                bar.update(description=f"{nm} ({'PID' if k_i else 'PD'}): kp scan")
+                if True:
                     r = S.scan_boundary(nm, profile=ppath, ki_N_per_um_s=k_i, V0_um_s=v0,
                                         factors=(0.8, 0.9, 0.95, 1.05, 1.1, 1.25), map_fn=map_fn)
                 r["k_cr_eq8_N_per_um"] = analyses[nm]["k_cr_eq8_N_per_um"]
@@ -450,8 +452,6 @@ def reproduce_cmd(
                                                                       "cluster, tcp://HOST:PORT."),
 ):
     """Simulated trials in the paper's protocol, identified: our Table 2 beside the paper's."""
-    from rich.progress import BarColumn, Progress, TimeElapsedColumn, TimeRemainingColumn
-
     from rig.analysis.plots import plot_reproduce
     from rig.analysis.reproduce import reproduce
     from rig.model.paper import TABLE2
@@ -474,11 +474,9 @@ def reproduce_cmd(
 
     if jobs is not None and jobs < 1:
         _fail(f"--jobs must be at least 1 (got {jobs})")
-    with Progress("[progress.description]{task.description}", BarColumn(), "{task.completed}/{task.total} trials",
-                  TimeElapsedColumn(), TimeRemainingColumn(), console=con) as prog:
-        task = prog.add_task("simulating and identifying", total=trials * len(lubs))
+    with progress_bar(json_out, "simulating and identifying", total=trials * len(lubs), unit="trials") as bar:
         try:
-            with mapper(jobs, scheduler, progress=lambda: prog.advance(task)) as map_fn:
+            with mapper(jobs, scheduler, progress=bar.advance) as map_fn:
                 rep = reproduce(trials, seed=seed, lubricants=lubs, profile=profile, whole_record=whole,
                                 engine=engine, map_fn=map_fn)
         except BatchError as exc:

@@ -22,6 +22,8 @@ line (``RIG_DEBUG=1`` shows the traceback).
 
 from __future__ import annotations
 
+from contextlib import contextmanager
+
 import json
 import os
 import sys
@@ -143,6 +145,55 @@ def _json_default(obj: Any) -> Any:
 def json_to_stdout(dest: Path | str | None) -> bool:
     """True when ``--json -`` asks for JSON on stdout (then the tables are not printed there)."""
     return dest is not None and str(dest) == "-"
+
+
+class _NoBar:
+    """What :func:`progress_bar` yields when nothing is shown."""
+
+    def advance(self, n: float = 1.0) -> None:
+        pass
+
+    def update(self, description: str | None = None, total: float | None = None) -> None:
+        pass
+
+
+class _Bar(_NoBar):
+    def __init__(self, prog, task):
+        self._p, self._t = prog, task
+
+    def advance(self, n: float = 1.0) -> None:
+        self._p.advance(self._t, n)
+
+    def update(self, description: str | None = None, total: float | None = None) -> None:
+        kw = {k: v for k, v in (("description", description), ("total", total)) if v is not None}
+        self._p.update(self._t, **kw)
+
+
+def show_progress(json_out=None, out_console: Console | None = None) -> bool:
+    """Progress is for a person at a terminal: not with ``--json -`` nor when standard output is
+    not a terminal (a pipe, a file, a CI log)."""
+    return (out_console or console).is_terminal and not json_to_stdout(json_out)
+
+
+@contextmanager
+def progress_bar(json_out, description: str, total: float | None = None, unit: str = "",
+                 out_console: Console | None = None, bar_console: Console | None = None):
+    """A rich progress bar on standard error for a long analysis (full-rig stability scans,
+    reproduce, diagnose): ``bar.advance()`` per finished piece, ``bar.update(description=...)``;
+    ``total=None`` when the number of pieces is not known ahead (a pulsing bar and a count).
+    Silent (a no-op bar) when :func:`show_progress` says so. The bar is removed when done."""
+    if not show_progress(json_out, out_console):
+        yield _NoBar()
+        return
+    from rich.progress import (BarColumn, MofNCompleteColumn, Progress, SpinnerColumn, TextColumn,
+                               TimeElapsedColumn, TimeRemainingColumn)
+
+    cols = [SpinnerColumn(), TextColumn("[progress.description]{task.description}"), BarColumn(),
+            MofNCompleteColumn(), TextColumn(unit), TimeElapsedColumn()]
+    if total is not None:
+        cols.append(TimeRemainingColumn())
+    with Progress(*cols, console=bar_console or err_console, transient=True) as prog:
+        yield _Bar(prog, prog.add_task(description, total=total))
 
 
 def check_output_path(path: Path, option: str, suffixes: tuple[str, ...] = ()) -> None:

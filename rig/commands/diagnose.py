@@ -14,7 +14,7 @@ from typing import Optional
 import typer
 
 from rig.commands.common import (EXIT_BAD_INPUT, EXIT_FAILED, JSON_HELP, check_output_path, err_console, fail,
-                                 json_to_stdout, write_json)
+                                 json_to_stdout, progress_bar, write_json)
 
 
 class Baseline(str, Enum):
@@ -67,8 +67,12 @@ def register(app: typer.Typer) -> None:
         from rig.diagnosis import diagnose
 
         try:
-            with err_console.status("diagnosing...") as status:
-                d = diagnose(trial, baseline=baseline, progress=lambda m: status.update(f"diagnosing: {m}"))
+            with progress_bar(json_out, "diagnosing", unit="candidate fits") as bar:
+                def step(msg: str) -> None:
+                    bar.update(description=f"diagnosing: {msg}")
+                    bar.advance()
+
+                d = diagnose(trial, baseline=baseline, progress=step)
         except ValueError as exc:
             msg = str(exc)
             fail(msg if str(data) in msg else f"{data}: {msg}", EXIT_BAD_INPUT)
