@@ -120,7 +120,9 @@ def test_diagnosis_figure(real_data_dir):
 
 def test_stability_map_figure(repo_root):
     scans = json.loads((repo_root / "docs" / "stability-map.json").read_text())
-    fig = plots.build_stability_map(scans, title="kp scan")
+    from rig.analysis.stability import ONSET_SPREAD, SPREAD_MAX
+
+    fig = plots.build_stability_map(scans, title="kp scan", spread_max=SPREAD_MAX, onset_spread=ONSET_SPREAD)
     text = check_figure(fig, n_data_axes_min=len(scans))
     assert "fig1" not in text and "SimRig" not in text and "rig_loop" not in text
     assert "simulated/analysis" in text

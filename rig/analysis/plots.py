@@ -315,14 +315,15 @@ def _controller(s: dict) -> str:
     return ctl + ("\nsensor noise off" if not s.get("sensor_noise", True) else "")
 
 
-def build_stability_map(scans: list[dict], title: str = ""):
+def build_stability_map(scans: list[dict], title: str = "", *, spread_max: float, onset_spread: float):
     """Stability map: each scanned kp (x, kN/m) per lubricant (column) and controller (row: PD,
     PID, PID with the sensor noise off): stick-slip (x) or steady sliding (o) by the scan's
     criterion, with the paper's eq. (8) for the fixture (2 N, kd, m), the discrete-time analysis
-    of the rig's loop and the simulated boundary; one legend for all panels."""
+    of the rig's loop and the simulated boundary; one legend for all panels. ``spread_max`` and
+    ``onset_spread`` are the scan's criterion (:mod:`rig.analysis.stability`, which calls this)."""
     from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
-    from rig.analysis.stability import ONSET_SPREAD, SPREAD_MAX
+    SPREAD_MAX, ONSET_SPREAD = spread_max, onset_spread
 
     plt = _plt()
     lubs = list(dict.fromkeys(s["lubricant"] for s in scans))
@@ -386,5 +387,6 @@ def build_stability_map(scans: list[dict], title: str = ""):
     return fig
 
 
-def plot_stability_map(scans: list[dict], path: str | Path, title: str = "") -> None:
-    save(build_stability_map(scans, title), path)
+def plot_stability_map(scans: list[dict], path: str | Path, title: str = "", *, spread_max: float,
+                       onset_spread: float) -> None:
+    save(build_stability_map(scans, title, spread_max=spread_max, onset_spread=onset_spread), path)

@@ -491,4 +491,4 @@ def plot_map(scans: list[dict], path, title: str = "") -> None:
     """The stability map PNG (:func:`rig.analysis.plots.plot_stability_map`)."""
     from rig.analysis.plots import plot_stability_map
 
-    plot_stability_map(scans, path, title)
+    plot_stability_map(scans, path, title, spread_max=SPREAD_MAX, onset_spread=ONSET_SPREAD)
