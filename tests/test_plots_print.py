@@ -157,3 +157,15 @@ def test_plot_writes_png_at_print_size(tmp_path, real_data_dir):
     w, _ = Image.open(p).size
     assert w == pytest.approx(plots.PAGE_WIDTH_IN * plots.DPI, abs=2)
     assert math.isfinite(w)
+
+
+def test_stribeck_figure():
+    from rig.analysis.stribeck import build_stribeck, stribeck
+
+    paraffin = FrictionModel(params={"mu0": 0.12, "A_mu": 2e-4, "B_mu": 0.0111, "L_um": 22.4})
+    rec = synth.generate(paraffin, synth.stribeck_protocol((1.0, 2.0, 5.0, 10.0, 50.0, 100.0)), seed=3, jitter=0.3)
+    rep = stribeck([rec.trial], use_events=False)
+    fig = build_stribeck(rep)
+    text = check_figure(fig, n_data_axes_min=2)
+    assert "up branch (6 levels)" in text and "eq. (7): A − B" in text
+    assert "1 trials" not in text

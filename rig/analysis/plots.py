@@ -70,7 +70,7 @@ def pm(m, e, nd: int = 3) -> str:
     m = float(m)
     has_e = e is not None and math.isfinite(float(e))
     p = math.floor(math.log10(abs(m))) if m != 0 else 0
-    if -2 <= p < 4:
+    if -1 <= p < 4:
         return f"{g3(m, nd)} ± {g3(e, 2)}" if has_e else g3(m, nd)
     f = 10.0 ** p
     exp = f"×10{str(p).translate(_SUP)}"

@@ -223,31 +223,44 @@ def write_json(rep: dict, path) -> None:
     atomic_write_text(path, json.dumps(rep, indent=2, allow_nan=False) + "\n")
 
 
-def plot_stribeck(rep: dict, path: str | Path) -> None:
+def build_stribeck(rep: dict):
     """Fig. 6 (linear axes, branches apart) and Fig. 7 (semi-log with the eq. 7 fit)."""
-    from rig.analysis.plots import _plt, save
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+
+    from rig.analysis.plots import PAGE_WIDTH_IN, _plt, pm
 
     plt = _plt()
-    fig, axs = plt.subplots(1, 2, figsize=(12, 4.5))
+    fig, axs = plt.subplots(1, 2, figsize=(PAGE_WIDTH_IN, 3.0), layout="constrained")
     for d, c, mk in (("up", "C3", "^"), ("down", "C0", "v")):
         lv = [x for x in rep["levels"] if x["direction"] == d]
         br = rep["branches"][d]
+        n = max([b["n_trials"] for b in br], default=0)
         for ax in axs:
-            ax.plot([x["v_um_s"] for x in lv], [x["mu"] for x in lv], mk, color=c, alpha=0.35, ms=4)
-            ax.plot([b["v_um_s"] for b in br], [b["mu"] for b in br], "-" + mk, color=c,
-                    label=f"{d} branch (mean of {max([b['n_trials'] for b in br], default=0)} trials)")
+            if n > 1:
+                ax.plot([x["v_um_s"] for x in lv], [x["mu"] for x in lv], mk, color=c, alpha=0.35, ms=3)
+            ax.plot([b["v_um_s"] for b in br], [b["mu"] for b in br], "-" + mk, color=c, ms=4,
+                    label=f"{d} branch ({len(br)} levels" + (f", mean of {n} trials)" if n > 1 else ")"))
     f = rep["fit"]
     if f.get("A_minus_B") is not None:
         vv = np.logspace(np.log10(min(x["v_um_s"] for x in rep["levels"])),
                          np.log10(max(x["v_um_s"] for x in rep["levels"])), 100)
-        axs[1].plot(vv, f["mu0"] + f["A_minus_B"] * np.log(vv), "k--",
-                    label=f"eq. 7: A-B = {f['A_minus_B']:.3g} ± {f['A_minus_B_err'] or float('nan'):.2g}")
+        axs[1].plot(vv, f["mu0"] + f["A_minus_B"] * np.log(vv), "k--", lw=0.8,
+                    label=f"eq. (7): A − B = {pm(f['A_minus_B'], f['A_minus_B_err'])}")
     axs[0].set_title("steady-state friction (cf. Fig. 6)")
     axs[1].set_xscale("log")
+    axs[1].xaxis.set_major_locator(LogLocator(base=10))
+    axs[1].xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+    axs[1].xaxis.set_minor_formatter(NullFormatter())
     axs[1].set_title("semi-log axes (cf. Fig. 7)")
     for ax in axs:
         ax.set_xlabel("velocity (µm/s)")
-        ax.set_ylabel(f"mu (mean over the last {rep['window_um']:g} µm of each level)")
-        ax.legend(fontsize=8)
-    fig.tight_layout()
-    save(fig, path)
+    axs[0].set_ylabel(f"μ (mean over the last {rep['window_um']:g} µm of a level)")
+    h, lab = axs[1].get_legend_handles_labels()
+    fig.legend(h, lab, loc="outside lower center", ncols=3)
+    return fig
+
+
+def plot_stribeck(rep: dict, path: str | Path) -> None:
+    from rig.analysis.plots import save
+
+    save(build_stribeck(rep), path)
