@@ -75,6 +75,7 @@ def test_identify_figure_main_job_like():
     text = check_figure(fig, n_data_axes_min=2 + 3)
     assert "window kept" in text and "other μ2 windows" in text  # the shaded windows have a legend
     assert f"mean over {idn.report['n_steps']} steps" in text
+    assert "k_cr" not in fig.axes[0].get_title()  # shown only when flagged
     # fewer significant figures: no number in a title carries more than 4
     import re
 
@@ -88,6 +89,7 @@ def test_identify_figure_single_step_real_record_warns(real_data_dir):
     fig = plots.build_identification(idn)
     text = check_figure(fig, n_data_axes_min=3)  # record, velocity, one step: no empty panels
     assert "k_cr (eq. 13)" in text and "(!)" in text and "is no stiffness" in text
+    assert "k_cr = -2.63 kN/m (!)" in fig.axes[0].get_title() and "(mean over 1 step)" in fig.axes[0].get_title()
 
 
 def test_identify_figure_all_steps_rejected(real_data_dir):

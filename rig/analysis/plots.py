@@ -134,11 +134,18 @@ def symlog_velocity(ax, v: np.ndarray) -> None:
 # ---------------------------------------------------------------------------
 # identify
 # ---------------------------------------------------------------------------
+def _n(n: int, what: str) -> str:
+    """'1 step', '3 steps' ('what' is the plural)."""
+    return f"{n} {what[:-1] if n == 1 and what.endswith('s') else what}"
+
+
 def _title_params(mean: dict, sem: dict | None, flags: set[str]) -> str:
     sem = sem or {}
     parts = []
     for k, label, unit in (("A_mu", "A", ""), ("B_mu", "B", ""), ("L_um", "L", " µm")):
         parts.append(f"{label} = {pm(mean.get(k), sem.get(k))}{unit}" + (" (!)" if k in flags else ""))
+    if "k_cr_kN_per_m" in flags:
+        parts.append(f"k_cr = {g3(mean.get('k_cr_kN_per_m'))} kN/m (!)")
     return ", ".join(parts)
 
 
@@ -197,13 +204,13 @@ def build_identification(idn, max_steps: int = 9):
     m = rep["mean"]
     if rep["n_steps"]:
         head = (f"{name}: {_title_params(m, rep['sem'], flagged(warns, 'mean over ' + rep['sem_over']))} "
-                f"(mean over {rep['n_steps'] if rep['sem_over'] == 'steps' else rep['n_trials']} {rep['sem_over']})")
+                f"(mean over {_n(rep['n_steps'] if rep['sem_over'] == 'steps' else rep['n_trials'], rep['sem_over'])})")
     else:
         head = f"{name}: no accepted step ({len(rep.get('rejected_steps', []))} rejected)"
     wr = rep.get("whole_record")
     if isinstance(wr, dict) and "params" in wr:
-        head += "\nwhole-record fit: " + _title_params(wr["params"], wr.get("err_corr"),
-                                                        flagged(warns, "whole-record fit"))
+        head += "\nwhole-record fit: " + _title_params({**wr["params"], "k_cr_kN_per_m": wr.get("k_cr_kN_per_m")},
+                                                        wr.get("err_corr"), flagged(warns, "whole-record fit"))
     ax.set_title(head)
     # the steps
     for k, r in enumerate(results):
