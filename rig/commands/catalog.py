@@ -17,6 +17,8 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from rig.commands.common import show_progress
+
 console = Console(width=None if Console().is_terminal else 160)
 err_console = Console(stderr=True)
 
@@ -30,11 +32,13 @@ def _fail(msg: str, code: int = 2):
 
 
 def progress_bar(description: str, total: int, *, enabled: bool = True):
-    """A rich progress bar over files and a ``progress(done, total, result)`` callback for the engine."""
+    """A rich progress bar over files and a ``progress(done, total, result)`` callback for the engine;
+    shown on a terminal only (:func:`rig.commands.common.show_progress`); failures are printed either way."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn, TimeRemainingColumn
 
     prog = Progress("[progress.description]{task.description}", BarColumn(), MofNCompleteColumn(),
-                    TimeElapsedColumn(), TimeRemainingColumn(), console=err_console, disable=not enabled,
+                    TimeElapsedColumn(), TimeRemainingColumn(), console=err_console,
+                    disable=not (enabled and show_progress()),
                     transient=False)
     task = prog.add_task(description, total=total)
 
