@@ -103,7 +103,7 @@ def footnote_height_in(lines: list, width_chars: int = 120) -> float:
     return 0.1 + 1.3 * FOOT_PT / 72.0 * len(_wrap(lines, width_chars))
 
 
-def symlog_velocity(ax, v: np.ndarray) -> None:
+def symlog_velocity(ax, v: np.ndarray, max_ticks: int = 7) -> None:
     """A symmetric-log velocity axis with plain labels: 0 and the decades ±10^k the data
     reach, the linear range one decade below the typical speed (no crowded labels near 0)."""
     from matplotlib.ticker import FixedLocator, FuncFormatter, NullLocator
@@ -120,12 +120,13 @@ def symlog_velocity(ax, v: np.ndarray) -> None:
     hi = 10.0 ** math.ceil(math.log10(max(float(a.max()), lin)))
     ax.set_yscale("symlog", linthresh=lin, linscale=1.0)
     decades = [lin * 10 ** k for k in range(int(round(math.log10(hi / lin))) + 1)]
-    ticks = [0.0] + [d for d in decades if d <= 1.5 * float(np.nanmax(v)) or d == lin]
-    if float(np.nanmin(v)) < -lin:
-        ticks += [-d for d in decades if d <= 1.5 * -float(np.nanmin(v))]
-    ticks = sorted(ticks)
-    while len(ticks) > 7:  # a short panel: every other decade, 0 kept
-        ticks = sorted({0.0} | set(ticks[::2]))
+    pos = [d for d in decades if d <= 1.5 * float(np.nanmax(v)) or d == lin]
+    neg = [-d for d in decades if d <= 1.5 * -float(np.nanmin(v))] if float(np.nanmin(v)) < -lin else []
+    if 1 + len(pos) + len(neg) > max_ticks:  # a short panel: of the returns only their largest speed
+        neg = neg[-1:]
+    while 1 + len(pos) + len(neg) > max_ticks and len(pos) > 2:  # then every other decade, the top kept
+        pos = pos[::-1][::2][::-1]
+    ticks = sorted([0.0] + pos + neg)
     ax.yaxis.set_major_locator(FixedLocator(ticks))
     ax.yaxis.set_minor_locator(NullLocator())
     ax.yaxis.set_major_formatter(FuncFormatter(lambda y, _: f"{y:g}"))

@@ -44,7 +44,7 @@ def build_diagnosis(d: Diagnosis, warnings: list[dict] | None = None):
     if not notes:
         notes.append("no finding: no catalogue extension passes the hold-out test")
     warn_lines = [f"{MARK} {w['where']}: {w['message']}" for w in (warnings or [])]
-    heights = [2.2, 0.8, 1.5, 1.5, 1.5, footnote_height_in(notes + warn_lines)]
+    heights = [2.2, 0.9, 1.5, 1.5, 1.5, footnote_height_in(notes + warn_lines)]
     fig = plt.figure(figsize=(PAGE_WIDTH_IN, sum(heights) + 0.8), layout="constrained")
     gs = fig.add_gridspec(len(heights), 1, height_ratios=heights)
     a = fig.add_subplot(gs[0])
@@ -63,7 +63,7 @@ def build_diagnosis(d: Diagnosis, warnings: list[dict] | None = None):
     a.tick_params(labelbottom=False)
     av = fig.add_subplot(gs[1], sharex=a)
     av.plot(g.t, g.v, "-", lw=0.6, color="tab:green")
-    symlog_velocity(av, np.asarray(g.v, float))
+    symlog_velocity(av, np.asarray(g.v, float), max_ticks=5)
     av.set_ylabel("v (µm/s)")
     av.set_xlabel("time (s)")
     lim = max(4 * g.noise_N, float(np.percentile(np.abs(rb), 99.5)))
