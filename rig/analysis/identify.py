@@ -52,7 +52,7 @@ from rig.fitting import Param, ParamSet, least_squares_fit
 from rig.model.forward import predict_force
 from rig.model.friction import V0_UM_S
 from rig.model.paper import k_cr_eq13_N_per_um
-from rig.model.spec import PARAMS, FrictionModel
+from rig.model.spec import PARAMS, PLAUSIBLE, FrictionModel
 
 SCHEMA = "rig.identify/1"
 WINDOW_STARTS_UM = (50.0, 100.0, 250.0)
@@ -225,7 +225,7 @@ def fit_step(t: np.ndarray, x: np.ndarray, mu: np.ndarray, step: Step, *, window
 # an extrapolation, not a measurement; L must lie inside the slip the decay was fitted over (an
 # L beyond it is a drift, one below 0.3 µm is the rise itself); an r2 below R2_MIN means the
 # exponential explains too little of the transient to trust A (which extrapolates it to delta 0)
-AB_MAX = 0.05
+AB_MAX = PLAUSIBLE["A_mu"].hi  # 0.05, the physical range declared with the parameters (rig.model.spec)
 R2_MIN = 0.2
 L_MIN_UM = 0.3
 
