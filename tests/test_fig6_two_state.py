@@ -18,7 +18,9 @@ def _branches(path):
     rep = json.loads(path.read_text())
     up = {lv["v_um_s"]: lv["mu"] for lv in rep["levels"] if lv["direction"] == "up"}
     down = {lv["v_um_s"]: lv["mu"] for lv in rep["levels"] if lv["direction"] == "down"}
-    return np.array([up[v] - down[v] for v in sorted(up)]), sorted(up)
+    # the top velocity is one level (up, then on at the same speed: no velocity change), on the up branch
+    both = sorted(v for v in up if v in down)
+    return np.array([up[v] - down[v] for v in both]), both
 
 
 def test_two_state_pass_shows_the_loop_and_diagnose_names_it(tmp_path, repo_root):
