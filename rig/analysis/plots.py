@@ -365,6 +365,8 @@ def build_stability_map(scans: list[dict], title: str = "", *, spread_max: float
         lines = [f"{s['lubricant']}, {_controller(s)}"]
         if s.get("rel_diff") is not None:
             lines.append(f"simulated/analysis − 1 = {s['rel_diff'] * 100:+.1f}%")
+        if not s.get("k_cr_loop_N_per_um") and not s.get("k_sim_N_per_um") and not bad.any():
+            lines.append("steady at every kp scanned")
         if s.get("onset_rel_diff") is not None:
             lines.append(f"onset (spread > {ONSET_SPREAD:g} V0): {s['onset_rel_diff'] * 100:+.1f}%")
             ax.axvline(s["k_onset_N_per_um"] * 1e3, color="C4", ls="-.", label="onset of oscillation")
