@@ -41,6 +41,7 @@ from drivers.emulators.pty import PtyBridge
 from drivers.emulators.valve_controller import ValveControllerEmulator
 from drivers.valve import SW_WATCHDOG
 from rig.sim import SimRig
+from rig.sim.plant import Z_XSP
 
 SENSOR_KEYS = ("position_um", "friction_N", "normal_1_N", "normal_2_N")
 
@@ -200,13 +201,17 @@ class EmulatedRig:
             pass
         return -1
 
-    def _on_sync(self, spool: float) -> None:
+    def _on_sync(self, spool: float) -> float | None:
+        """One plant step per SYNC; returns the plant's spool position (what the valve's spool
+        LVDT reports in its status PDO), or None for a plant without a spool model."""
         self.step(spool)
         self.lock_steps += 1
         en = self.valve.enabled
         if self._was_enabled and not en:
             self.t_disabled = time.monotonic()  # CLOCK_MONOTONIC: comparable across processes
         self._was_enabled = en
+        st = getattr(self.plant, "st", None)
+        return float(st[Z_XSP]) if st is not None else None
 
     def inject(self, device: str, fault: str, value=True) -> None:
         """Set (value) or clear (None/False) a fault on 'loadcells', 'lvdt' or 'valve'."""

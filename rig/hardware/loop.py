@@ -131,6 +131,9 @@ def _device_counters(devices) -> dict:
         out[f"{d.name}_frames_bad"] = h.frames_bad
         out[f"{d.name}_frames_lost"] = h.frames_lost
         out[f"{d.name}_errors"] = h.errors
+        gain = getattr(d, "dither_gain_min", None)
+        if gain is not None:
+            out[f"{d.name}_dither_gain_min"] = gain  # the margin of the valve's dither check (trips < min)
     return out
 
 
