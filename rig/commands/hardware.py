@@ -150,7 +150,8 @@ def loop_bench(seconds: float = 60.0, profile_path: Path = DEFAULT_EMULATED, out
     """Run the loop holding position against the (emulated) devices; return the final statistics.
 
     The trial session runs on the hardware backend and logs to memory (events and statistics only).
-    Raises :class:`LoopBenchFailed` if the loop stopped early (a trip, a lost device).
+    Raises :class:`LoopBenchFailed` (its message for the operator) if the emulators did not start or
+    the loop stopped early (a trip, a lost device).
     """
     import numpy as np
 
@@ -167,9 +168,12 @@ def loop_bench(seconds: float = 60.0, profile_path: Path = DEFAULT_EMULATED, out
                            events=[])
     emu = None
     if hw.emulators.autostart:
-        from rig.hardware.emulated import start_emulator_process
+        from rig.hardware.emulated import EmulatorError, start_emulator_process
 
-        emu = start_emulator_process(hw, profile, lubricant="boundary")
+        try:
+            emu = start_emulator_process(hw, profile, lubricant="boundary")
+        except EmulatorError as exc:
+            raise LoopBenchFailed(f"the emulated devices of {profile_path} did not start: {exc}") from None
     load_before = os.getloadavg()
     t0 = time.time()
     try:
@@ -180,7 +184,7 @@ def loop_bench(seconds: float = 60.0, profile_path: Path = DEFAULT_EMULATED, out
         if emu is not None:
             emu.stop()
     if result.status != "completed":
-        raise LoopBenchFailed(result.reason)
+        raise LoopBenchFailed(f"the loop stopped: {result.reason}")
     summary = result.summary
     res = dict(summary["timing"])
     res["emulator"] = {k: emu_stats.get(k) for k in ("steps", "lock_steps", "free_steps", "max_gap_s",
@@ -211,7 +215,7 @@ def loop_bench_command(
     try:
         res = loop_bench(seconds, hardware)
     except LoopBenchFailed as exc:
-        _fail(f"the loop stopped: {exc}", 1)
+        _fail(str(exc), 1)
     if out_json is not None:
         write_json(res, out_json)
     out = err_console if json_to_stdout(out_json) else console

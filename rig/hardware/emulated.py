@@ -152,7 +152,7 @@ class EmulatedRig:
                 raise RuntimeError("Modbus emulator process did not start")
             kind, payload = self._mb_conn.recv()
             if kind != "ready":
-                raise RuntimeError(f"Modbus emulator failed: {payload}")
+                raise EmulatorError(str(payload))
         else:
             self.modbus.start()
         self.step(0.0)
@@ -300,7 +300,8 @@ def _emulator_main(hw_dict, profile, lubricant, normal_force_N, seed, conn, plan
                 pass
         rig.start()
     except BaseException as exc:  # noqa: BLE001
-        conn.send(("error", f"{type(exc).__name__}: {exc}"))
+        conn.send(("error", str(exc) if isinstance(exc, (EmulatorError, RuntimeError))
+                   else f"{type(exc).__name__}: {exc}"))
         return
     import gc
 
@@ -444,7 +445,7 @@ def start_emulator_process(hw: HardwareConfig | dict, profile=None, lubricant: s
     kind, payload = parent.recv()
     if kind != "ready":
         proc.join(2)
-        raise EmulatorError(f"emulators failed to start: {payload}")
+        raise EmulatorError(str(payload))
     handle = EmulatorHandle(proc, parent, hw)
     import atexit
 
