@@ -176,9 +176,9 @@ def loop_bench(seconds: float = 60.0, profile_path: Path = DEFAULT_EMULATED, out
             raise LoopBenchFailed(f"the emulated devices of {profile_path} did not start: {exc}") from None
     load_before = os.getloadavg()
     t0 = time.time()
+    log = MemoryLog(keep_blocks=False, rate_hz=rate)
     try:
-        result = run_trial(plan, HardwareBackend(hw, profile, emulator=emu), MemoryLog(keep_blocks=False,
-                                                                                      rate_hz=rate))
+        result = run_trial(plan, HardwareBackend(hw, profile, emulator=emu), log)
         emu_stats = emu.stats() if emu is not None else {}
     finally:
         if emu is not None:
@@ -192,7 +192,9 @@ def loop_bench(seconds: float = 60.0, profile_path: Path = DEFAULT_EMULATED, out
     res.update(seconds=seconds, loadavg_before=load_before, loadavg_after=os.getloadavg(),
                started_utc=time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime(t0)),
                realtime=summary.get("realtime"), cpus=os.cpu_count(), emulated=hw.emulators.autostart,
-               devices=summary.get("devices"))
+               devices=summary.get("devices"),
+               stalls=[(e["wake_monotonic_s"], e["gap_s"], e["skipped"]) for e in log.events
+                       if e["kind"] == "stall" and "wake_monotonic_s" in e])  # CLOCK_MONOTONIC: across processes
     if out_json:
         Path(out_json).write_text(json.dumps(res, indent=2, default=str))
     return res

@@ -265,7 +265,8 @@ def _run(hw_dict, profile, x_ref, out_q, abort_flag, stop_req, options, logger_a
             tr = dev_trip
             if gap > stall_ev:  # a stall (NaN on the first tick: no)
                 n_skip = pacer.skipped - skipped_seen
-                out_q.put(("event", t_s, "stall", {"gap_s": gap, "skipped": n_skip, "reference_held": True}))
+                out_q.put(("event", t_s, "stall", {"gap_s": gap, "skipped": n_skip, "reference_held": True,
+                                                   "wake_monotonic_s": wake}))
                 if tr is None and not (gap <= stall_trip):
                     tr = Trip("loop_stall", f"no tick for {gap * 1e3:.0f} ms (limit {stall_trip * 1e3:g} ms)",
                               t_s, {"gap_s": gap, "skipped": n_skip})
