@@ -228,6 +228,8 @@ class EmulatorConfig(StrictModel):
     normal_force_N: float | None = None
     sched_fifo: bool = True
     priority: int = Field(default=70, ge=1, le=99)
+    cpu: int | None = Field(default=None, ge=0, description="pin the emulator processes to this CPU "
+                                                           "(with realtime.cpu: keep them off the loop's)")
     run_dir: str = "/tmp/rig-emulated"
 
 

@@ -192,7 +192,7 @@ def loop_bench(seconds: float = 60.0, profile_path: Path = DEFAULT_EMULATED, out
     res.update(seconds=seconds, loadavg_before=load_before, loadavg_after=os.getloadavg(),
                started_utc=time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime(t0)),
                realtime=summary.get("realtime"), cpus=os.cpu_count(), emulated=hw.emulators.autostart,
-               devices=summary.get("devices"),
+               devices=summary.get("devices"), read_max_us_by_device=summary.get("read_max_us_by_device"),
                stalls=[(e["wake_monotonic_s"], e["gap_s"], e["skipped"]) for e in log.events
                        if e["kind"] == "stall" and "wake_monotonic_s" in e])  # CLOCK_MONOTONIC: across processes
     if out_json:

@@ -286,6 +286,11 @@ def _emulator_main(hw_dict, profile, lubricant, normal_force_N, seed, conn, plan
 
     signal.signal(signal.SIGTERM, _term)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if hw.emulators.cpu is not None:  # before the Modbus server process is started: it inherits it
+        try:
+            os.sched_setaffinity(0, {hw.emulators.cpu})
+        except (OSError, AttributeError):
+            pass
     try:
         if plant_kind == "integrator":
             plant = IntegratorPlant()
