@@ -180,10 +180,13 @@ class DitherCheck:
         self._ring: list = [None] * self.window
         self.failed = False
         self.min_gain_seen = math.inf   # the lowest gain judged this run (healthy margin, for the log)
+        self.n = 1
         self.clear()
 
     def clear(self) -> None:
         """Forget the window (disabled, a counter the host did not send): judge afresh."""
+        if self.n == 0:
+            return
         self._ring[:] = [None] * self.window
         self._i = self.n = 0
         self._ss = self._sx = self._sc = self._x = self._c = 0
