@@ -11,7 +11,8 @@ reader (SCHED_FIFO 80) polls the slave every millisecond, non-blocking, and time
   real-time reader sleeps inside a "non-blocking" read until that kworker gets a CPU;
 * ``inq``: ``ioctl(TIOCINQ)`` first and ``os.read`` only when bytes are there (drivers/lvdt.py now).
 
-Prints per mode the poll time p50 / p99.9 / max and the polls over 1 ms, with the load average.
+Prints per mode the poll time p50 / p99.9 / max, the polls over 1 ms and the longest time without
+new bytes (how stale the position got), with the load average.
 Needs SCHED_FIFO (root or CAP_SYS_NICE); runs without it, but then measures something else.
 """
 
@@ -61,7 +62,8 @@ def run(mode: str, seconds: float) -> dict:
     fcntl.fcntl(slave, fcntl.F_SETFL, fcntl.fcntl(slave, fcntl.F_GETFL) | os.O_NONBLOCK)
     inq = array.array("i", [0])
     dt = []
-    t0 = time.monotonic()
+    last_data = t0 = time.monotonic()
+    data_gap = 0.0
     k = 0
     while time.monotonic() - t0 < seconds:
         k += 1
@@ -69,16 +71,21 @@ def run(mode: str, seconds: float) -> dict:
         if r > 0:
             time.sleep(r)
         a = time.perf_counter()
+        got = b""
         if mode == "inq":
             fcntl.ioctl(slave, termios.FIONREAD, inq, True)
             if inq[0]:
-                os.read(slave, 65536)
+                got = os.read(slave, 65536)
         else:
             try:
-                os.read(slave, 65536)
+                got = os.read(slave, 65536)
             except BlockingIOError:
                 pass
         dt.append(time.perf_counter() - a)
+        if got:
+            now = time.monotonic()
+            data_gap = max(data_gap, now - last_data)
+            last_data = now
     w.join()
     if fifo:
         os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
@@ -87,7 +94,7 @@ def run(mode: str, seconds: float) -> dict:
     us = np.array(dt) * 1e6
     return {"mode": mode, "fifo": fifo, "polls": us.size, "p50_us": float(np.median(us)),
             "p999_us": float(np.percentile(us, 99.9)), "max_us": float(us.max()),
-            "over_1ms": int((us > 1000).sum()), "load": os.getloadavg()[0]}
+            "over_1ms": int((us > 1000).sum()), "load": os.getloadavg()[0], "data_gap_ms": data_gap * 1e3}
 
 
 def main(argv=None) -> int:
@@ -97,7 +104,8 @@ def main(argv=None) -> int:
     for mode in ("read", "inq"):
         r = run(mode, a.seconds)
         print(f"{r['mode']:>4}: {r['polls']} polls, p50 {r['p50_us']:.1f} µs, p99.9 {r['p999_us']:.1f} µs, "
-              f"max {r['max_us']:.0f} µs, {r['over_1ms']} over 1 ms (SCHED_FIFO {r['fifo']}; load average "
+              f"max {r['max_us']:.0f} µs, {r['over_1ms']} over 1 ms; longest time without new bytes "
+              f"{r['data_gap_ms']:.1f} ms (SCHED_FIFO {r['fifo']}; load average "
               f"{r['load']:.2f})", flush=True)
     return 0
 
