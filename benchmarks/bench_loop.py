@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -59,6 +60,93 @@ def bare_sleeper(seconds: float, fifo: bool = True) -> dict:
     p = np.percentile(late, [50, 99, 99.9])
     return {"late_p50_us": p[0], "late_p99_us": p[1], "late_p999_us": p[2], "late_max_us": late.max(),
             "late_over_1000us": int((late > 1000).sum()), "fifo": fifo}
+
+
+def _probe_main(cpu: int, seconds: float, gap_s: float, conn) -> None:
+    """A bare SCHED_FIFO 80 sleeper pinned to ``cpu`` (1 kHz deadlines); sends its stalls (wake
+    CLOCK_MONOTONIC, gap) longer than ``gap_s``: when the machine (the hypervisor, an interrupt
+    storm, another real-time task) takes that CPU away."""
+    import os
+    import time
+
+    try:
+        os.sched_setaffinity(0, {cpu})
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(80))
+        fifo = True
+    except OSError:
+        fifo = False
+    conn.send(("ready", fifo))
+    stalls = []
+    t0 = last = time.monotonic()
+    k = 0
+    while last - t0 < seconds:
+        k += 1
+        r = t0 + k * 1e-3 - time.monotonic()
+        if r > 0:
+            time.sleep(r)
+        now = time.monotonic()
+        if now - last > gap_s:
+            stalls.append((now, now - last))
+        last = now
+        k = max(k, int((now - t0) / 1e-3))
+    conn.send(("stalls", stalls))
+
+
+def _steal_ms() -> float:
+    """Time the hypervisor ran something else on this VM's vCPUs (/proc/stat steal, all CPUs), ms."""
+    with open("/proc/stat") as f:
+        v = f.readline().split()
+    return int(v[8]) * 1e3 / os.sysconf("SC_CLK_TCK")
+
+
+def probed_loop_bench(seconds: float, profile: Path, out_json: Path | None, gap_s: float = 0.0015):
+    """loop-bench with a bare FIFO sleeper pinned to each CPU alongside: which of the loop's stalls
+    (skipped cycles) the machine caused. Every gap over ``gap_s`` counts, in the loop (its
+    ``stall_event_s`` lowered to it, through an overlay of ``profile``, which also loosens the stall
+    and skipped-cycle trips so that a long stall is measured, not tripped on) and in the probes.
+    Returns (loop-bench figures, probe report)."""
+    import multiprocessing as mp
+    import tempfile
+
+    import yaml
+
+    from rig.commands.hardware import loop_bench
+
+    tmp = tempfile.mkdtemp(prefix="bench-loop-")
+    overlay = Path(tmp) / "probed.yaml"
+    overlay.write_text(yaml.safe_dump({"extends": str(Path(profile).resolve()),
+                                       "hardware": {"interlocks": {"stall_event_s": gap_s, "stall_trip_s": 2.0,
+                                                                   "max_skipped_fraction": 0.9}}}))
+    profile = overlay
+
+    ctx = mp.get_context("spawn")
+    probes = []
+    for cpu in sorted(os.sched_getaffinity(0)):
+        a, b = ctx.Pipe()
+        pr = ctx.Process(target=_probe_main, args=(cpu, seconds + 8.0, gap_s, b), daemon=True)
+        pr.start()
+        probes.append((cpu, pr, a))
+    fifo = all(c.recv()[1] for _, _, c in probes)
+    steal0 = _steal_ms()
+    res = loop_bench(seconds, profile, out_json)
+    steal = _steal_ms() - steal0
+    p_stalls = {}
+    for cpu, pr, c in probes:
+        p_stalls[cpu] = c.recv()[1] if c.poll(seconds + 30) else []
+        pr.join(5)
+    machine = 0
+    skipped_machine = 0
+    for wake, gap, skipped in res.get("stalls", []):
+        # the probe's stall overlaps the loop's: [wake - gap, wake] vs [w - g, w]
+        if any(w - g < wake and w > wake - gap for st in p_stalls.values() for w, g in st):
+            machine += 1
+            skipped_machine += skipped
+    rep = {"probe_fifo": fifo, "steal_ms": steal, "loop_stalls": len(res.get("stalls", [])),
+           "loop_stalls_with_a_probe_stall": machine, "skipped_in_those": skipped_machine,
+           "probe_stalls": {cpu: len(st) for cpu, st in p_stalls.items()},
+           "probe_longest_ms": {cpu: round(max((g for _, g in st), default=0.0) * 1e3, 1)
+                                for cpu, st in p_stalls.items()}}
+    return res, rep
 
 
 def _drain_client(url: str, stop) -> dict:
@@ -195,6 +283,9 @@ def main(argv=None) -> int:
     ap.add_argument("--live", action="store_true",
                     help="Compare the loop logging to an MCAP without and with a live view and a subscribed client.")
     ap.add_argument("--repeats", type=int, default=2, help="--live: runs of each kind (alternating).")
+    ap.add_argument("--probe", action="store_true",
+                    help="Run a bare FIFO sleeper pinned to each CPU alongside the loop: which of the loop's "
+                         "stalls (skipped cycles) the machine caused; and the hypervisor's steal time.")
     a = ap.parse_args(argv)
     if a.live:
         return main_live(a)
@@ -202,7 +293,17 @@ def main(argv=None) -> int:
         b = bare_sleeper(a.seconds)
         print("bare 1 kHz sleeper (machine baseline): " + ", ".join(
             f"{k} {v:.1f}" if isinstance(v, float) else f"{k} {v}" for k, v in b.items()))
-    res = loop_bench(a.seconds, a.profile, a.json)
+    from rig.commands.hardware import LoopBenchFailed
+
+    rep = None
+    try:
+        if a.probe:
+            res, rep = probed_loop_bench(a.seconds, a.profile, a.json)
+        else:
+            res = loop_bench(a.seconds, a.profile, a.json)
+    except LoopBenchFailed as exc:
+        print(f"error: {exc} (load average {os.getloadavg()[0]:.2f})", file=sys.stderr)
+        return 1
     print(format_stats(res, f"loop-bench {a.seconds:g} s"))
     print(f"  scheduling {res['realtime']['sched']}; load average before "
           f"{res['loadavg_before'][0]:.2f}, after {res['loadavg_after'][0]:.2f} on {res['cpus']} CPUs")
@@ -214,6 +315,12 @@ def main(argv=None) -> int:
                                           "late_max_us", "late_over_100us", "late_over_500us",
                                           "late_over_1000us", "exec_p50_us", "exec_p99_us", "skipped",
                                           "n")}, indent=1))
+    print(f"  longest read per device (µs): {res.get('read_max_us_by_device')}")
+    if rep is not None:
+        print(f"  probes (bare FIFO 80 sleepers pinned per CPU, FIFO {rep['probe_fifo']}): gaps over 1.5 ms "
+              f"{rep['probe_stalls']}, longest {rep['probe_longest_ms']} ms; the loop's {rep['loop_stalls']} "
+              f"stalls: {rep['loop_stalls_with_a_probe_stall']} while a probe was stalled too "
+              f"({rep['skipped_in_those']} of {res['skipped']} skipped cycles); steal {rep['steal_ms']:.0f} ms")
     return 0
 
 

@@ -122,10 +122,18 @@ class CanopenValveConfig(StrictModel):
     ``interface``: ``rig_unix`` (the machine-local bus of :mod:`drivers.canopen_bus`,
     the emulated rig), ``socketcan`` (the real rig), ``virtual`` (one process). The
     heartbeat, set-point watchdog and follow figures are written to the valve by SDO
-    at connect; ``follow_max`` / ``follow_time_s``: the valve's reported spool must
-    stay within ``follow_max`` (fraction of full scale) of the commanded one, or the
-    host trips after ``follow_time_s`` (defaults catch a valve ignoring its
-    set-points within 100 ms).
+    at connect. Following is checked twice on the valve's reported spool position:
+
+    * level: it must stay within ``follow_max`` (fraction of full scale) of the
+      commanded one, or the host trips after ``follow_time_s`` (a spool stuck away
+      from its command; as loose as the valve's lag and hysteresis need);
+    * dither: over the last ``dither_window_ticks`` status PDOs, the spool's 500 Hz
+      (Nyquist) content must be at least ``dither_min_gain`` of the command's, judged
+      whenever the command's is at least ``dither_min_command`` (fraction of full scale).
+      The controller's dither is a test signal a live spool must follow: a valve that
+      ignores its set-points, or a stuck spool, loses it within about one window, at any
+      command level. ``dither_min_gain`` 0.1 accepts a first-order spool down to 32 Hz
+      bandwidth (time constant 5 ms: gain tau -> (1-e^(-T/tau))/(1+e^(-T/tau)) at 1 kHz).
     """
 
     interface: Literal["rig_unix", "virtual", "socketcan"] = "rig_unix"
@@ -139,6 +147,12 @@ class CanopenValveConfig(StrictModel):
     tpdo_timeout_s: float = Field(default=0.05, gt=0, description="host: no TPDO this long is unhealthy")
     follow_max: float = Field(default=0.1, gt=0, description="|spool command - actual|, full scale")
     follow_time_s: float = Field(default=0.05, gt=0, description="... for longer than this is unhealthy")
+    dither_window_ticks: int = Field(default=32, ge=8, le=1000,
+                                     description="status PDOs over which the spool's dither is compared")
+    dither_min_gain: float = Field(default=0.1, gt=0, lt=1,
+                                   description="spool's 500 Hz amplitude / the command's: less trips")
+    dither_min_command: float = Field(default=2.0e-4, gt=0, le=0.1,
+                                      description="command's 500 Hz amplitude (full scale) needed to judge")
     connect_timeout_s: float = Field(default=2.0, gt=0)
     start_timeout_s: float = Field(default=1.0, gt=0, description="NMT start + reset + enable, verified")
 
@@ -214,6 +228,8 @@ class EmulatorConfig(StrictModel):
     normal_force_N: float | None = None
     sched_fifo: bool = True
     priority: int = Field(default=70, ge=1, le=99)
+    cpu: int | None = Field(default=None, ge=0, description="pin the emulator processes to this CPU "
+                                                           "(with realtime.cpu: keep them off the loop's)")
     run_dir: str = "/tmp/rig-emulated"
 
 

@@ -54,7 +54,8 @@ drained with ``recv(0)`` and dispatched to canopen on the caller's thread.
 For the loop integrator: per tick ``st = v.read()``; ``probs = v.health()``; trip on
 any entry of ``probs`` (it covers foreign/malformed frames, EMCY/fault, watchdog,
 lost heartbeat, not OPERATIONAL/not enabled, stale TPDO, a spool that does not
-follow its command for ``follow_time_s``, non-finite set-points); else
+follow its command for ``follow_time_s``, a spool without the command's 500 Hz dither
+(:class:`DitherCheck`), non-finite set-points); else
 ``v.write(cmd)``. On a trip: ``v.safe_stop()`` (returns whether the valve confirmed)
 and never ``start()`` again by itself: ``start()`` is the explicit reset (operator
 action). ``st.spool_actual`` vs ``st.spool_command_echoed`` is the valve's own
@@ -157,6 +158,74 @@ class ValveStatus:
         return self.nmt_state == "OPERATIONAL"
 
 
+class DitherCheck:
+    """Does the spool follow the controller's 500 Hz dither? (The physical check that the valve
+    follows its set-points at all, whatever their level.)
+
+    Per status PDO the pair (command of the tick it echoes, spool position reported), in set-point
+    counts, and the sign s = ±1 of that tick (counter parity: the 500 Hz dither at 1 kHz is
+    cos(pi n), one sign per tick). Over the last ``window`` pairs, the Nyquist amplitude of each,
+    with the window's mean removed (so a constant level, a drifting command or an unequal number
+    of signs adds nothing):  A_x = |sum s_i (x_i - mean x)| / n.  The check judges only when the
+    command's A_c >= ``min_command_counts`` and fails when A_spool < ``min_gain`` * A_c. A
+    lag of whole ticks only flips the sign (absolute values); a first-order spool of time constant
+    tau keeps (1 - e^(-T/tau)) / (1 + e^(-T/tau)) of it; white position noise of rms sigma adds
+    about sigma / sqrt(n). Integer sums, O(1) per PDO."""
+
+    __slots__ = ("window", "min_command", "min_gain", "_ring", "_i", "n", "_ss", "_sx", "_sc", "_x", "_c",
+                 "failed", "gain", "spool_amp", "command_amp", "min_gain_seen")
+
+    def __init__(self, window: int, min_command_counts: float, min_gain: float):
+        self.window, self.min_command, self.min_gain = int(window), float(min_command_counts), float(min_gain)
+        self._ring: list = [None] * self.window
+        self.failed = False
+        self.min_gain_seen = math.inf   # the lowest gain judged this run (healthy margin, for the log)
+        self.n = 1
+        self.clear()
+
+    def clear(self) -> None:
+        """Forget the window (disabled, a counter the host did not send): judge afresh."""
+        if self.n == 0:
+            return
+        self._ring[:] = [None] * self.window
+        self._i = self.n = 0
+        self._ss = self._sx = self._sc = self._x = self._c = 0
+        self.gain = math.nan
+        self.spool_amp = self.command_amp = 0.0
+
+    def add(self, counter: int, command_counts: int, spool_counts: int) -> None:
+        s = 1 if counter & 1 else -1
+        old = self._ring[self._i]
+        if old is not None:
+            os_, oc, ox = old
+            self._ss -= os_
+            self._sc -= os_ * oc
+            self._sx -= os_ * ox
+            self._c -= oc
+            self._x -= ox
+        else:
+            self.n += 1
+        self._ring[self._i] = (s, command_counts, spool_counts)
+        self._i = (self._i + 1) % self.window
+        self._ss += s
+        self._sc += s * command_counts
+        self._sx += s * spool_counts
+        self._c += command_counts
+        self._x += spool_counts
+        if self.n < self.window:
+            return
+        n = self.n
+        a_c = abs(self._sc - self._c * self._ss / n) / n
+        if a_c < self.min_command:
+            return
+        a_x = abs(self._sx - self._x * self._ss / n) / n
+        self.command_amp, self.spool_amp, self.gain = a_c, a_x, a_x / a_c
+        if self.gain < self.min_gain_seen:
+            self.min_gain_seen = self.gain
+        if self.gain < self.min_gain:
+            self.failed = True
+
+
 class CanopenValve:
     """Host side (NMT master, SYNC producer) of the CANopen servovalve controller."""
 
@@ -176,6 +245,8 @@ class CanopenValve:
         self._t_tpdo = -math.inf
         self._t_hb = -math.inf
         self._t_follow_bad = None
+        self.dither = DitherCheck(cfg.dither_window_ticks, cfg.dither_min_command * FULL_SCALE,
+                                   cfg.dither_min_gain)
         self._cw = 0
         self._rej_last: int | None = None  # the valve's 0x2002 at this host's first TPDO: the baseline
         self._sdo_open = False
@@ -401,6 +472,11 @@ class CanopenValve:
             if st.enabled:
                 st.counter_errors += 1
             cmd = 0.0
+            self.dither.clear()
+        elif st.enabled:
+            self.dither.add(acc, to_counts(cmd), actual)
+        else:
+            self.dither.clear()
         now = time.monotonic()
         st.spool_command_echoed = cmd
         if st.enabled and abs(cmd - st.spool_actual) > self.cfg.follow_max:
@@ -420,7 +496,7 @@ class CanopenValve:
         """:meth:`health` with a trip name for each problem: ``can_foreign_frames``,
         ``can_malformed_frames``, ``valve_rejected_frames``, ``valve_counter``, ``valve_fault``,
         ``valve_watchdog``, ``valve_heartbeat``, ``valve_nmt_state``, ``valve_status_stale``,
-        ``valve_disabled``, ``valve_following``, ``non_finite_setpoint``."""
+        ``valve_disabled``, ``valve_following``, ``valve_dither``, ``non_finite_setpoint``."""
         st, c, a = self._st, self.cfg, self.address
         out = []
         if st.foreign_frames:
@@ -450,6 +526,11 @@ class CanopenValve:
         if self._t_follow_bad is not None and time.monotonic() - self._t_follow_bad > c.follow_time_s:
             out.append(("valve_following", f"{a} does not follow: spool {st.spool_actual:+.3f} vs command "
                         f"{st.spool_command_echoed:+.3f} for over {c.follow_time_s * 1e3:.0f} ms"))
+        d = self.dither
+        if d.failed:
+            out.append(("valve_dither", f"{a} does not follow its set-points: the spool's 500 Hz dither is "
+                        f"{d.spool_amp:.2f} counts vs the command's {d.command_amp:.1f} (gain {d.gain:.3f} < "
+                        f"{c.dither_min_gain:g}) over the last {d.n} status PDOs"))
         if self.nan_setpoints:
             out.append(("non_finite_setpoint", f"{self.nan_setpoints} non-finite set-points for {a} "
                         "(sent as null)"))

@@ -339,6 +339,66 @@ def test_valve_not_following_is_unhealthy_within_100_ticks(fault):
         emu.close()
 
 
+def _dithered(k: int, level: float = 2e-5, dither: float = 1e-3) -> float:
+    """The trial's command: a tiny level (1e-5..1e-3 of full scale) plus the 500 Hz dither cos(pi k)."""
+    return level + dither * (1.0 if k % 2 == 0 else -1.0)
+
+
+@pytest.mark.parametrize("fault", ["ignore_setpoints", "stuck"])
+def test_valve_ignoring_small_setpoints_is_caught_by_its_dither_within_100_ticks(fault):
+    """At this rig's operating point the command is far below any level check (2e-5 of full scale,
+    under one count): only the missing 500 Hz dither in the reported spool shows the dead valve. Profile
+    defaults (dither window 32, min gain 0.1); a healthy first-order spool (tau 1 ms) with 2 counts rms
+    noise on its position runs first without a trip."""
+    cfg = _cfg()
+    emu = EmuThread(cfg, spool_tau_s=0.001)
+    v = CanopenValve(cfg)
+    try:
+        v.connect()
+        v.start()
+        emu.em.inject("spool_noise", 2.0)
+        for k in range(400):
+            v.read()
+            assert v.health() == [], (k, v.health())
+            v.write(_dithered(k))
+            time.sleep(0.001)
+        assert 0.1 < v.dither.min_gain_seen < 1.0 and v.dither.command_amp > 15   # it was judged
+        emu.em.inject(fault)
+        ticks = 0
+        while ticks < 1000:
+            v.read()
+            probs = v.problems()
+            if probs:
+                break
+            v.write(_dithered(400 + ticks))
+            ticks += 1
+            time.sleep(0.001)
+        assert [n for n, _ in probs] == ["valve_dither"], probs
+        assert 0 < ticks <= 100, ticks
+        assert "does not follow its set-points" in probs[0][1] and cfg.address_text in probs[0][1]
+    finally:
+        v.close()
+        emu.close()
+
+
+def test_dither_check_judges_only_a_dithered_command():
+    """No dither in the command (or one below dither_min_command): nothing to judge, no trip;
+    a lag of one tick (sign flipped) or a constant offset is still following."""
+    from drivers.valve import DitherCheck
+
+    d = DitherCheck(32, 3.3, 0.1)
+    for k in range(200):
+        d.add(k & 0xFF, 5, 5)                  # constant command, a spool that sits: not judged
+    assert not d.failed and d.gain != d.gain   # NaN: never judged
+    for k in range(200):
+        c = 16 if k % 2 else -16
+        d.add(k & 0xFF, c, -c // 3 + 40)       # one tick late (inverted), offset, attenuated to 1/3
+    assert not d.failed and d.gain == pytest.approx(1 / 3, abs=0.02)
+    for k in range(200, 240):
+        d.add(k & 0xFF, 16 if k % 2 else -16, 40)  # the spool stops
+    assert d.failed and d.gain < 0.1
+
+
 def test_nan_setpoint_is_sent_as_null_and_reported(inproc):
     cfg, em, v = inproc
     v.connect()

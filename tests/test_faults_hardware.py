@@ -141,8 +141,8 @@ def _run_fault(env, name: str, inject, names: set[str]) -> tuple[dict, object, s
 @pytest.mark.parametrize("device,fault,value,names", [
     ("loadcells", "nan_friction", True, {"non_finite"}),
     ("loadcells", "inf_normal_1", True, {"non_finite"}),
-    ("valve", "ignore_setpoints", True, {"valve_following", "following_error"}),
-    ("valve", "stuck", True, {"valve_following", "following_error"}),
+    ("valve", "ignore_setpoints", True, {"valve_dither"}),
+    ("valve", "stuck", True, {"valve_dither"}),
     ("loadcells", "slow_s", 0.0015, {"frame_loss"}),
     ("lvdt", "drop_every", 2, {"frame_loss"}),
     ("lvdt", "garbage_every", 2, {"stream_garbage"}),

@@ -50,6 +50,22 @@ def test_loop_bench_short(tmp_path):
     assert res["realtime"]["sched"] in ("SCHED_FIFO", "SCHED_OTHER")
 
 
+def test_loop_bench_when_the_emulators_cannot_start(tmp_path):
+    """The emulated conditioner's port is taken: one clear error naming it, exit 1, no traceback."""
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen(1)
+        port = s.getsockname()[1]
+        prof = private_profile(tmp_path, loadcells={"port": port})
+        r = _rig("loop-bench", "--seconds", 1, "--hardware", prof)
+    assert r.returncode == 1, r.stdout + r.stderr
+    assert "Traceback" not in r.stdout + r.stderr, r.stderr
+    assert f"did not start: the Modbus server at modbus-tcp://127.0.0.1:{port}" in r.stderr, r.stderr
+    assert r.stderr.strip().startswith("error:") and len(r.stderr.strip().splitlines()) <= 2, r.stderr
+
+
 def test_run_without_devices_names_the_device(tmp_path):
     prof = private_profile(tmp_path, autostart=False)
     r = _rig("run", REPO / "config/recipes/smoke.yaml", "--hardware", prof, "--out", tmp_path / "x.mcap", "-q")

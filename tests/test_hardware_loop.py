@@ -42,7 +42,13 @@ class MemWriter:
     def loop_stats(self, t_s, stats):
         self.stats.append((t_s, stats))
 
-    def close(self, status, **summary):
+    def warm_up(self):
+        pass
+
+    def failure(self):
+        return None
+
+    def close(self, status, timeout_s=None, **summary):
         self.status = status
 
     def col(self, key):
@@ -175,7 +181,7 @@ def test_a_failed_log_writer_stops_the_loop_at_once(rig_env):
     flag and the loop goes to the safe state without the operator-abort hold."""
     _clear(rig_env.emu)
     w = MemWriter()
-    w.failure = lambda: "OSError: [Errno 28] No space left on device" if w.ticks >= 500 else None
+    w.failure = lambda: OSError(28, "No space left on device") if w.ticks >= 500 else None
     res = _run(rig_env, np.full(4000, 500.0), w)
     assert res.status == "failed" and res.summary["trip"]["name"] == "logger_failed", res.reason
     assert w.ticks < 1500  # stopped soon after, not at the end of the plan

@@ -130,7 +130,8 @@ class ModbusConditionerEmulator:
         if not self._ready.wait(timeout_s):
             raise RuntimeError(f"Modbus emulator did not start ({self.cfg.address_text})")
         if self._error:
-            raise RuntimeError(f"Modbus emulator failed: {self._error}")
+            raise RuntimeError(f"the Modbus server at {self.cfg.address_text} could not start: {self._error} "
+                               "(is the port in use?)")
 
     def _run(self):
         from pymodbus.framer import FramerType

@@ -22,11 +22,16 @@ API (what the emulated rig calls)::
     em.start()                    # bus, LocalNode, boot-up, heartbeat
     while ...: em.poll(0.001)     # process frames, run the heartbeat/watchdog timers
     em.inject("fault")            # or "ignore_setpoints", "stuck", "silent"; value None clears
+    em.inject("spool_noise", 2.0) # not a fault: rms noise (set-point counts) on the reported spool
     em.spool, em.enabled, em.nmt_state, em.status_word, em.stats()
     em.stop()
 
 ``on_sync(spool)`` is called once per SYNC (lock step with the host's tick) with the
-spool position actual (fraction of full scale) after the set-point was applied.
+spool drive (fraction of full scale) after the set-point was applied. If it returns a
+number, that is the spool position the valve reports (0x6301: the plant's spool, with
+its lag and stiction band), else the drive is reported as it is. ``stuck`` and
+``ignore_setpoints`` freeze the drive: the plant's spool settles and the reported
+position loses the 500 Hz dither the host checks for (:mod:`drivers.valve`).
 
 Fault injection from a second node (for the ``--hardware`` fault tests):
 :func:`send_foreign` (``rpdo``, ``sync``, ``nmt``, ``status``, ``other_node``) and
@@ -44,6 +49,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import random
 import sys
 import threading
 import time
@@ -58,13 +64,17 @@ from drivers.valve import (
     SYNC_OVERFLOW, TPDO_FMT, CanopenValveConfig, open_bus,
 )
 
-FAULTS = ("fault", "ignore_setpoints", "stuck", "silent")
+FAULTS = ("fault", "ignore_setpoints", "stuck", "silent", "spool_noise")
+# spool_noise (value: rms in set-point counts) is not a fault: white noise on the reported spool position,
+# as a real valve's spool LVDT has (seeded), to show the host's following checks do not trip on it
 
 
 class ValveControllerEmulator:
-    def __init__(self, cfg: CanopenValveConfig, on_sync: Callable[[float], None] | None = None,
-                 spool_tau_s: float = 0.0, eds=EDS_PATH):
+    def __init__(self, cfg: CanopenValveConfig, on_sync: Callable[[float], float | None] | None = None,
+                 spool_tau_s: float = 0.0, eds=EDS_PATH, seed: int = 1):
         self.cfg = cfg
+        self._rng = random.Random(seed)
+        self.spool_measured = None  # what on_sync returned: the plant's spool position (None: the drive)
         self.on_sync = on_sync
         self.spool_tau_s = spool_tau_s
         self.eds = str(eds)
@@ -267,7 +277,7 @@ class ValveControllerEmulator:
                 self.setpoint = sp / FULL_SCALE if self.enabled else 0.0
         self._move(now)
         if self.on_sync is not None:
-            self.on_sync(self.spool)
+            self.spool_measured = self.on_sync(self.spool)
         self._send_tpdo()
 
     def _control(self, cw: int) -> None:
@@ -301,7 +311,12 @@ class ValveControllerEmulator:
     def _send_tpdo(self) -> None:
         if self.faults.get("silent"):
             return
-        data = TPDO_FMT.pack(int(round(max(-1.0, min(1.0, self.spool)) * FULL_SCALE)), self.status_word,
+        # 0x6301 is the spool position measured (the plant's spool when the plant models one: its lag and
+        # stiction band show), else the drive; the valve's own null/enable logic uses the drive (self.spool)
+        x = self.spool if self.spool_measured is None else self.spool_measured
+        noise = self.faults.get("spool_noise")
+        x_counts = x * FULL_SCALE + (self._rng.gauss(0.0, float(noise)) if noise else 0.0)
+        data = TPDO_FMT.pack(int(round(max(-FULL_SCALE, min(FULL_SCALE, x_counts)))), self.status_word,
                              self._last_counter or 0, self.rejected & 0xFF)
         self._tpdo.data = bytearray(data)
         try:

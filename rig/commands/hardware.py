@@ -150,7 +150,8 @@ def loop_bench(seconds: float = 60.0, profile_path: Path = DEFAULT_EMULATED, out
     """Run the loop holding position against the (emulated) devices; return the final statistics.
 
     The trial session runs on the hardware backend and logs to memory (events and statistics only).
-    Raises :class:`LoopBenchFailed` if the loop stopped early (a trip, a lost device).
+    Raises :class:`LoopBenchFailed` (its message for the operator) if the emulators did not start or
+    the loop stopped early (a trip, a lost device).
     """
     import numpy as np
 
@@ -167,20 +168,23 @@ def loop_bench(seconds: float = 60.0, profile_path: Path = DEFAULT_EMULATED, out
                            events=[])
     emu = None
     if hw.emulators.autostart:
-        from rig.hardware.emulated import start_emulator_process
+        from rig.hardware.emulated import EmulatorError, start_emulator_process
 
-        emu = start_emulator_process(hw, profile, lubricant="boundary")
+        try:
+            emu = start_emulator_process(hw, profile, lubricant="boundary")
+        except EmulatorError as exc:
+            raise LoopBenchFailed(f"the emulated devices of {profile_path} did not start: {exc}") from None
     load_before = os.getloadavg()
     t0 = time.time()
+    log = MemoryLog(keep_blocks=False, rate_hz=rate)
     try:
-        result = run_trial(plan, HardwareBackend(hw, profile, emulator=emu), MemoryLog(keep_blocks=False,
-                                                                                      rate_hz=rate))
+        result = run_trial(plan, HardwareBackend(hw, profile, emulator=emu), log)
         emu_stats = emu.stats() if emu is not None else {}
     finally:
         if emu is not None:
             emu.stop()
     if result.status != "completed":
-        raise LoopBenchFailed(result.reason)
+        raise LoopBenchFailed(f"the loop stopped: {result.reason}")
     summary = result.summary
     res = dict(summary["timing"])
     res["emulator"] = {k: emu_stats.get(k) for k in ("steps", "lock_steps", "free_steps", "max_gap_s",
@@ -188,7 +192,9 @@ def loop_bench(seconds: float = 60.0, profile_path: Path = DEFAULT_EMULATED, out
     res.update(seconds=seconds, loadavg_before=load_before, loadavg_after=os.getloadavg(),
                started_utc=time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime(t0)),
                realtime=summary.get("realtime"), cpus=os.cpu_count(), emulated=hw.emulators.autostart,
-               devices=summary.get("devices"))
+               devices=summary.get("devices"), read_max_us_by_device=summary.get("read_max_us_by_device"),
+               stalls=[(e["wake_monotonic_s"], e["gap_s"], e["skipped"]) for e in log.events
+                       if e["kind"] == "stall" and "wake_monotonic_s" in e])  # CLOCK_MONOTONIC: across processes
     if out_json:
         Path(out_json).write_text(json.dumps(res, indent=2, default=str))
     return res
@@ -211,7 +217,7 @@ def loop_bench_command(
     try:
         res = loop_bench(seconds, hardware)
     except LoopBenchFailed as exc:
-        _fail(f"the loop stopped: {exc}", 1)
+        _fail(str(exc), 1)
     if out_json is not None:
         write_json(res, out_json)
     out = err_console if json_to_stdout(out_json) else console

@@ -86,6 +86,12 @@ class ValveDevice:
         h.problems = d.problems()
         return h
 
+    @property
+    def dither_gain_min(self) -> float | None:
+        """The lowest spool/command 500 Hz gain the valve's dither check judged this run (None: never judged)."""
+        g = self.driver.dither.min_gain_seen
+        return round(g, 4) if g != float("inf") else None
+
     def safe_stop(self) -> bool:
         """Null and disable; True once the valve confirms it (then NMT pre-operational)."""
         return self.driver.safe_stop()

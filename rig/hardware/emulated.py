@@ -41,6 +41,7 @@ from drivers.emulators.pty import PtyBridge
 from drivers.emulators.valve_controller import ValveControllerEmulator
 from drivers.valve import SW_WATCHDOG
 from rig.sim import SimRig
+from rig.sim.plant import Z_XSP
 
 SENSOR_KEYS = ("position_um", "friction_N", "normal_1_N", "normal_2_N")
 
@@ -151,7 +152,7 @@ class EmulatedRig:
                 raise RuntimeError("Modbus emulator process did not start")
             kind, payload = self._mb_conn.recv()
             if kind != "ready":
-                raise RuntimeError(f"Modbus emulator failed: {payload}")
+                raise EmulatorError(str(payload))
         else:
             self.modbus.start()
         self.step(0.0)
@@ -200,13 +201,17 @@ class EmulatedRig:
             pass
         return -1
 
-    def _on_sync(self, spool: float) -> None:
+    def _on_sync(self, spool: float) -> float | None:
+        """One plant step per SYNC; returns the plant's spool position (what the valve's spool
+        LVDT reports in its status PDO), or None for a plant without a spool model."""
         self.step(spool)
         self.lock_steps += 1
         en = self.valve.enabled
         if self._was_enabled and not en:
             self.t_disabled = time.monotonic()  # CLOCK_MONOTONIC: comparable across processes
         self._was_enabled = en
+        st = getattr(self.plant, "st", None)
+        return float(st[Z_XSP]) if st is not None else None
 
     def inject(self, device: str, fault: str, value=True) -> None:
         """Set (value) or clear (None/False) a fault on 'loadcells', 'lvdt' or 'valve'."""
@@ -281,6 +286,11 @@ def _emulator_main(hw_dict, profile, lubricant, normal_force_N, seed, conn, plan
 
     signal.signal(signal.SIGTERM, _term)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if hw.emulators.cpu is not None:  # before the Modbus server process is started: it inherits it
+        try:
+            os.sched_setaffinity(0, {hw.emulators.cpu})
+        except (OSError, AttributeError):
+            pass
     try:
         if plant_kind == "integrator":
             plant = IntegratorPlant()
@@ -295,7 +305,8 @@ def _emulator_main(hw_dict, profile, lubricant, normal_force_N, seed, conn, plan
                 pass
         rig.start()
     except BaseException as exc:  # noqa: BLE001
-        conn.send(("error", f"{type(exc).__name__}: {exc}"))
+        conn.send(("error", str(exc) if isinstance(exc, (EmulatorError, RuntimeError))
+                   else f"{type(exc).__name__}: {exc}"))
         return
     import gc
 
@@ -439,7 +450,7 @@ def start_emulator_process(hw: HardwareConfig | dict, profile=None, lubricant: s
     kind, payload = parent.recv()
     if kind != "ready":
         proc.join(2)
-        raise EmulatorError(f"emulators failed to start: {payload}")
+        raise EmulatorError(str(payload))
     handle = EmulatorHandle(proc, parent, hw)
     import atexit
 

@@ -131,6 +131,9 @@ def _device_counters(devices) -> dict:
         out[f"{d.name}_frames_bad"] = h.frames_bad
         out[f"{d.name}_frames_lost"] = h.frames_lost
         out[f"{d.name}_errors"] = h.errors
+        gain = getattr(d, "dither_gain_min", None)
+        if gain is not None:
+            out[f"{d.name}_dither_gain_min"] = gain  # the margin of the valve's dither check (trips < min)
     return out
 
 
@@ -229,6 +232,7 @@ def _run(hw_dict, profile, x_ref, out_q, abort_flag, stop_req, options, logger_a
     log_timeout = ilc.logger_timeout_s
     log_hb = ilc.logger_heartbeat_s
     kr = 0
+    read_max = [0.0] * len(devices)  # the longest read of each device (s): where a slow tick went
     xr_prev = float(x_ref[0])
     inv_dt = 1.0 / period
     while True:
@@ -239,12 +243,17 @@ def _run(hw_dict, profile, x_ref, out_q, abort_flag, stop_req, options, logger_a
         t_s = kr * period
         # -- read ------------------------------------------------------------------
         dev_trip = None
-        for dev in devices:
+        ca = c0
+        for di, dev in enumerate(devices):
             try:
                 dev.read(wake)
             except DeviceError as exc:
                 dev_trip = dev_trip or il.device_error(t_s, dev.name, exc, dev.health(wake))
-        c1 = perf()
+            cb = perf()
+            if cb - ca > read_max[di]:
+                read_max[di] = cb - ca
+            ca = cb
+        c1 = ca
         x = pos.position_um
         f, n1, n2 = forces.forces_N
         for dev in devices:
@@ -262,7 +271,8 @@ def _run(hw_dict, profile, x_ref, out_q, abort_flag, stop_req, options, logger_a
             tr = dev_trip
             if gap > stall_ev:  # a stall (NaN on the first tick: no)
                 n_skip = pacer.skipped - skipped_seen
-                out_q.put(("event", t_s, "stall", {"gap_s": gap, "skipped": n_skip, "reference_held": True}))
+                out_q.put(("event", t_s, "stall", {"gap_s": gap, "skipped": n_skip, "reference_held": True,
+                                                   "wake_monotonic_s": wake}))
                 if tr is None and not (gap <= stall_trip):
                     tr = Trip("loop_stall", f"no tick for {gap * 1e3:.0f} ms (limit {stall_trip * 1e3:g} ms)",
                               t_s, {"gap_s": gap, "skipped": n_skip})
@@ -382,7 +392,8 @@ def _run(hw_dict, profile, x_ref, out_q, abort_flag, stop_req, options, logger_a
         tim["devices"] = _device_counters(devices)
         out_q.put(("block", b, tim))
     summary = {"status": status, "ticks": int(kr), "skipped": int(pacer.skipped),
-               "devices": {d.name: d.health(mono()).as_dict() for d in devices}, "realtime": rt_info}
+               "devices": {d.name: d.health(mono()).as_dict() for d in devices}, "realtime": rt_info,
+               "read_max_us_by_device": {d.name: round(m * 1e6, 1) for d, m in zip(devices, read_max)}}
     if trip is not None:
         summary["trip"] = trip.as_dict()
         summary["message"] = str(trip)

@@ -141,8 +141,17 @@ class _ThreadedSink:
         self._sink = sink
         self._q: queue.Queue = queue.Queue(maxsize=maxsize)
         self._exc: BaseException | None = None
+        self._stopping = False
         self._thread = threading.Thread(target=self._run, name="rig-log-writer", daemon=True)
         self._thread.start()
+
+    def failure(self) -> BaseException | None:
+        """The exception that stopped the thread (it drains the rest), or one saying it died; else None."""
+        if self._exc is not None:
+            return self._exc
+        if not self._stopping and not self._thread.is_alive():
+            return RuntimeError("the log writer thread died")
+        return None
 
     def _run(self) -> None:
         while True:
@@ -174,22 +183,36 @@ class _ThreadedSink:
     def flush(self) -> None:
         self._put(self._sink.flush)
 
-    def _stop(self, last) -> None:
-        self._q.put((last, ()))
-        self._q.put(self._STOP)
+    def _stop(self, last, timeout_s: float | None = None) -> None:
+        """Queue ``last`` and the stop, wait for the thread; TimeoutError after ``timeout_s`` (a hung
+        write: the daemon thread is left behind, the caller goes on)."""
+        self._stopping = True
+        t_end = None if timeout_s is None else time.monotonic() + timeout_s
+
+        def left() -> float | None:
+            return None if t_end is None else max(0.0, t_end - time.monotonic())
+
+        try:
+            self._q.put((last, ()), timeout=left())
+            self._q.put(self._STOP, timeout=left())
+        except queue.Full:
+            raise TimeoutError(f"the log writer did not take its last records within {timeout_s:g} s "
+                               "(a write hangs: the disk?)") from None
         while True:  # a second Ctrl-C must not leave the file unfinished
             try:
-                self._thread.join()
+                self._thread.join(left())
                 break
             except KeyboardInterrupt:
                 continue
+        if self._thread.is_alive():
+            raise TimeoutError(f"the log writer did not finish within {timeout_s:g} s (a write hangs: the disk?)")
         self._check()
 
-    def finish(self) -> None:
-        self._stop(self._sink.finish)
+    def finish(self, timeout_s: float | None = None) -> None:
+        self._stop(self._sink.finish, timeout_s)
 
-    def abort(self) -> None:
-        self._stop(self._sink.abort)
+    def abort(self, timeout_s: float | None = None) -> None:
+        self._stop(self._sink.abort, timeout_s)
 
 
 class TrialLogWriter:
@@ -280,11 +303,27 @@ class TrialLogWriter:
             sink.w.add_attachment(create_time=time.time_ns(), log_time=self.start_time_ns, name="recipe.yaml",
                                   media_type="application/yaml", data=recipe_yaml.encode("utf-8"))
         self._batch: list = []
+        self._failure: BaseException | None = None
         self._sink = _ThreadedSink(sink) if threaded else sink
         self._threaded = bool(threaded)
         # the first chunk carries the schemas and channels: get it on disk now
         self.event(0.0, "log_start")
         self.flush()
+
+    # -- health ------------------------------------------------------------------
+    def failure(self) -> BaseException | None:
+        """The exception that stopped this writer (a failed write: disk full, an I/O error; its
+        writer thread died), or None while it works. Safe to call from any thread."""
+        if self._failure is not None:
+            return self._failure
+        return self._sink.failure() if self._threaded else None
+
+    def warm_up(self) -> None:
+        """Load and compile now what writing a block needs (numba and its cache for the running
+        figures), so that the first block of a run is written as fast as the rest: call before a
+        real-time loop starts."""
+        acc = np.zeros_like(self._stats_acc)
+        _block_stats(_EMPTY, _EMPTY, _EMPTY, _EMPTY, _EMPTY, _EMPTY, acc)
 
     # -- listeners (live view hook) --------------------------------------------
     def add_listener(self, fn: Callable[[str, dict], None]) -> None:
@@ -317,7 +356,16 @@ class TrialLogWriter:
     def _send(self) -> None:
         if self._batch:
             batch, self._batch = self._batch, []
-            self._sink.messages(batch)
+            self._guard(self._sink.messages, batch)
+
+    def _guard(self, fn, *args) -> None:
+        """Call the sink; an exception is kept as :meth:`failure` (unthreaded: raised here too)."""
+        try:
+            fn(*args)
+        except BaseException as exc:
+            if self._failure is None and not isinstance(exc, KeyboardInterrupt):
+                self._failure = exc.__cause__ if isinstance(exc.__cause__, Exception) else exc
+            raise
 
     def _raw_channel(self, keys: tuple) -> None:
         """Register /raw on the first block: its schema lists the columns with scale, offset, unit."""
@@ -530,13 +578,16 @@ class TrialLogWriter:
     def flush(self) -> None:
         """Close the chunk in progress, write it and fsync: everything logged so far survives a crash."""
         self._send()
-        self._sink.flush()
+        self._guard(self._sink.flush)
         self._last_flush = time.monotonic()
 
     _last_flush = 0.0
 
-    def close(self, status: str = "completed", **summary: Any) -> None:
-        """Finish the file: ``trial_end`` metadata (status and summary), summary section, fsync."""
+    def close(self, status: str = "completed", *, timeout_s: float | None = None, **summary: Any) -> None:
+        """Finish the file: ``trial_end`` metadata (status and summary), summary section, fsync.
+
+        ``timeout_s``: never wait longer than this for the writer thread (a write that hangs on a
+        dead disk): TimeoutError, the file left unfinished (``rig recover``). None: wait."""
         if self.closed:
             return
         self.status = status
@@ -552,14 +603,20 @@ class TrialLogWriter:
         self.event(self.last_t_s, "log_end", status=status)
         self.add_metadata("trial_end", end)
         self.closed = True
-        self._sink.finish()
+        if self._threaded:
+            self._sink.finish(timeout_s)
+        else:
+            self._guard(self._sink.finish)
 
-    def abort(self) -> None:
+    def abort(self, timeout_s: float | None = None) -> None:
         """Stop without finishing: what was flushed stays, the open chunk is lost (a crash; for tests)."""
         if not self.closed:
             self._batch = []
             self.closed = True
-            self._sink.abort()
+            if self._threaded:
+                self._sink.abort(timeout_s)
+            else:
+                self._sink.abort()
 
     def __enter__(self) -> "TrialLogWriter":
         return self

@@ -20,8 +20,11 @@ backend (the simulated rig, :class:`rig.session.sim.SimBackend`; the hardware,
 * closes the log with the status: ``completed``, ``interrupted`` or ``failed``.
 
 The writer needs only ``schedule_events``, ``event``, ``write_block``,
-``loop_stats`` and ``close(status, **summary)`` (:class:`rig.log.TrialLogWriter`,
-or :class:`rig.session.memory.MemoryLog`).
+``loop_stats``, ``warm_up()`` (load what the first block needs, before the
+backend starts), ``failure()`` (the exception that stopped it, or None; asked
+every 5 ms by a monitor thread) and ``close(status, timeout_s=..., **summary)``
+(never longer than ``timeout_s``) (:class:`rig.log.TrialLogWriter`, or
+:class:`rig.session.memory.MemoryLog`).
 """
 
 from __future__ import annotations
@@ -317,41 +320,13 @@ class _Guarded:
 
 
 def writer_failure(writer) -> str | None:
-    """Has the log writer failed (a write raised, its thread or process died)? A sentence, or None.
-
-    Asks ``writer.failure()`` (the writer's own answer, when it has one); otherwise looks at a
-    threaded :class:`rig.log.TrialLogWriter`'s writer thread (its stored exception, whether it
-    still runs)."""
-    f = getattr(writer, "failure", None)
-    if callable(f):
-        try:
-            return f()
-        except Exception as exc:  # noqa: BLE001
-            return f"{type(exc).__name__}: {exc}"
-    sink = getattr(writer, "_sink", None)
-    exc = getattr(sink, "_exc", None)
-    if exc is not None:
-        return f"the log writer failed: {type(exc).__name__}: {exc}"
-    th = getattr(sink, "_thread", None)
-    if th is not None and not th.is_alive() and not getattr(writer, "closed", False):
-        return "the log writer thread died"
-    return None
-
-
-def warm_up_writer(writer) -> None:
-    """Load and compile what the writer's first block needs (numba and its cache) before the loop
-    starts, so the first second of a run reaches the disk with the rest: ``writer.warm_up()`` when
-    the writer has one, else :func:`rig.log._block_stats` on empty arrays."""
-    warm = getattr(writer, "warm_up", None)
-    if callable(warm):
-        warm()
-        return
+    """Has the log writer failed (a write raised, its thread died)? A sentence naming the exception,
+    or None. The writer's own answer: ``writer.failure()`` (:meth:`rig.log.TrialLogWriter.failure`)."""
     try:
-        from rig.log import _block_stats
-    except ImportError:
-        return
-    e = np.zeros(0)
-    _block_stats(e, e, e, e, e, e, np.zeros(8))
+        exc = writer.failure()
+    except Exception as err:  # noqa: BLE001
+        exc = err
+    return None if exc is None else f"the log writer failed: {type(exc).__name__}: {exc}"
 
 
 class _WriterMonitor:
@@ -442,6 +417,7 @@ class TrialSession:
         self._in_write: float | None = None  # monotonic start of the write_block in progress
         self._logged = None
         self.writer_failure: str | None = None
+        self.close_timeout_s = 10.0  # finishing the log never hangs longer (a dead disk): rig recover
 
     # -- stop requests ---------------------------------------------------------
     def request_stop(self, cause: Cause, reason: str) -> None:
@@ -480,7 +456,7 @@ class TrialSession:
         ending: Ending | None = None
         handled = 0  # signals turned into stop requests
         old = self._install_signals()
-        warm_up_writer(w)  # numba & co. compiled/loaded now: the first second of the run is durable
+        w.warm_up()  # numba & co. compiled/loaded now: the first second of the run is as durable as the rest
         self._logged = getattr(backend, "block_logged", None)
         monitor = _WriterMonitor(self, poll_s=0.005)
         try:
@@ -584,7 +560,7 @@ class TrialSession:
             w.event(t_last, "trial_failed", status=ending.outcome, message=sm.reason)
         close_error = "; ".join(log_errors) or None
         try:
-            self.writer.close(status, wall_s=wall_s, ticks_per_s=fig.ticks / wall_s if wall_s > 0 else 0.0,
+            self.writer.close(status, timeout_s=self.close_timeout_s, wall_s=wall_s, ticks_per_s=fig.ticks / wall_s if wall_s > 0 else 0.0,
                               realtime_factor=t_last / wall_s if wall_s > 0 else 0.0,
                               tracking_error_rms_um=fig.tracking_error_rms_um, mean_friction_N=fig.mean_friction_N,
                               mean_abs_friction_N=fig.mean_abs_friction_N, stop_reason=sm.reason,
@@ -605,4 +581,4 @@ def run_trial(plan, backend: Backend, writer, **kw) -> TrialResult:
 
 
 __all__ = ["Backend", "BackendError", "Block", "BlockFigures", "Cause", "Ending", "Event", "Phase",
-           "StopMachine", "TrialResult", "TrialSession", "run_trial", "warm_up_writer", "writer_failure"]
+           "StopMachine", "TrialResult", "TrialSession", "run_trial", "writer_failure"]

@@ -53,7 +53,14 @@ class MemoryLog:
     def loop_stats(self, t_s: float, stats: dict) -> None:
         self.stats.append((float(t_s), dict(stats)))
 
-    def close(self, status: str = "completed", **summary) -> None:
+    def warm_up(self) -> None:
+        """Nothing to load (the writer interface: :meth:`rig.log.TrialLogWriter.warm_up`)."""
+
+    def failure(self) -> BaseException | None:
+        """Memory does not fail (the writer interface: :meth:`rig.log.TrialLogWriter.failure`)."""
+        return None
+
+    def close(self, status: str = "completed", *, timeout_s: float | None = None, **summary) -> None:
         self.status = status
         self.summary = summary
 
