@@ -540,3 +540,51 @@ def plot_map(scans: list[dict], path, title: str = "") -> None:
         fig.suptitle(title, fontsize=9)
     fig.tight_layout()
     save(fig, path)
+
+
+# ---------------------------------------------------------------------------
+# Velocity steps: overshoot and rise time as the paper's Fig. 8 shows them
+# ---------------------------------------------------------------------------
+
+def step_response_metrics(t_s, v_um_s, t_step_s: float, v1_um_s: float, v2_um_s: float,
+                          after_s: float = 5.0, pre_s: tuple[float, float] = (6.0, 1.0)) -> dict:
+    """Overshoot, noise floor and rise time of one velocity step v1 -> v2 in a velocity trace.
+
+    ``v_um_s`` sampled at ``t_s`` (e.g. the paper's estimator on the 25 Hz LVDT log,
+    rig.kinematics.velocity_paper, or a mean of such traces over trials); the step's ramp
+    starts at ``t_step_s``. Relative to the step size v2 - v1:
+
+    * ``overshoot`` = (max v over [t_step, t_step + after_s] - v2) / (v2 - v1);
+    * ``floor`` = (max v over [t_step - pre_s[0], t_step - pre_s[1]] - v1) / (v2 - v1): the
+      same statistic on steady sliding at v1, i.e. what the trace's noise alone gives;
+    * ``rise_s``: 10 -> 90 % of the step (the paper: < 0.5 s); ``t90_s`` from the ramp's
+      start (it includes the planner's ramp, (v2 - v1)/accel)."""
+    t = np.asarray(t_s, dtype=float)
+    v = np.asarray(v_um_s, dtype=float)
+    dv = v2_um_s - v1_um_s
+    post = (t >= t_step_s) & (t <= t_step_s + after_s)
+    pre = (t >= t_step_s - pre_s[0]) & (t <= t_step_s - pre_s[1])
+    if not post.any() or not pre.any():
+        raise ValueError(f"step at t = {t_step_s:g} s: the trace does not cover {pre_s[0]:g} s before "
+                         f"and {after_s:g} s after it")
+    y, ty = v[post], t[post]
+    i10 = int(np.argmax(y > v1_um_s + 0.1 * dv))
+    i90 = int(np.argmax(y > v1_um_s + 0.9 * dv))
+    return {"v1_um_s": v1_um_s, "v2_um_s": v2_um_s, "overshoot": float((y.max() - v2_um_s) / dv),
+            "floor": float((v[pre].max() - v1_um_s) / dv), "rise_s": float(ty[i90] - ty[i10]),
+            "t90_s": float(ty[i90] - t_step_s)}
+
+
+def step_velocity_traces(log, rate_hz: float = 25.0) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[dict]]:
+    """(t_s, v_paper, v_true, steps) of a simulated trial's log (rig.session.MemoryLog):
+    the paper's velocity (10-point moving average + central difference) of the LVDT at the
+    ``rate_hz`` log rate, the true slip velocity through the same decimation and 10-point
+    (0.4 s) average, and the log's ``velocity_step`` events."""
+    from rig.kinematics import velocity_paper
+
+    td = log.trial_data(rate_hz)
+    v_paper = velocity_paper(td.time_s, td.position_um)
+    vt = np.asarray(td.extra["true_velocity_um_s"], dtype=float)
+    k = np.ones(10) / 10.0
+    v_true = np.convolve(vt, k, mode="same") / np.convolve(np.ones_like(vt), k, mode="same")
+    return td.time_s, v_paper, v_true, [e for e in log.events if e["kind"] == "velocity_step"]

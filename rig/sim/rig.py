@@ -37,8 +37,8 @@ from typing import Iterator
 
 import numpy as np
 
-from rig.control import controller_params_from_profile, new_controller_state
-from rig.model.friction import N_STATE, init_state
+from rig.control import C_FF1, controller_params_from_profile, new_controller_state
+from rig.model.friction import N_STATE, init_state, mu_series
 from rig.model.loading import lvdt_to_interface_compliance_um_per_N
 from rig.model.sensors import cutoff_tau_s, lowpass_coefficients, prefilter_noise_gain
 from rig.model.spec import FrictionModel
@@ -133,6 +133,27 @@ def build_plant_params(profile: RigProfile, model: FrictionModel, normal_force_N
     return q
 
 
+def friction_feedforward_N(x_ref_um, dt_s: float, model: FrictionModel, total_normal_N: float,
+                           v_init_um_s: float) -> np.ndarray:
+    """The friction force (N) that ``model`` predicts along the reference: the friction
+    feed-forward of the controller (rig.control, G_n), one value per tick.
+
+    F_ff,n = (N_1 + N_2) mu(v_ref,n, theta_n), v_ref the reference's backward difference
+    (the planner's piecewise-linear/ramped reference: exact), theta integrated along the
+    reference's slip from steady state at ``v_init_um_s`` (rig.model.friction.mu_series:
+    eqs. 5-6, and every friction-law extension of the model). What it predicts on a
+    velocity step 1 -> v2 is the paper's Fig. 9: the jump 2N A ln(v2/v1), the decay over L
+    to 2N (A - B) ln(v2/v1); the position loop then has no friction transient left to
+    follow (docs/paper.md row 8). While the reference is at rest the regularised law gives
+    0: the stuck interface takes whatever the chain holds."""
+    x = np.ascontiguousarray(x_ref_um, dtype=np.float64)
+    v = np.empty_like(x)
+    v[1:] = np.diff(x) / dt_s
+    v[0] = v[1] if x.size > 1 else 0.0
+    t = np.arange(x.size) * dt_s
+    return float(total_normal_N) * mu_series(model.to_array(), t, v, x, float(v_init_um_s))
+
+
 def initial_velocity_um_s(x_ref_um, rate_hz: float, creep_um_s: float) -> float:
     """Speed for the initial friction state of a run: the reference's mean speed over its
     first 0.1 s, or ``creep_um_s`` if that is slower (a run starting with a hold)."""
@@ -172,6 +193,8 @@ class SimRig:
         self.fp = friction_model.to_array()
         self.c = controller_params_from_profile(profile)
         self.cs = new_controller_state()
+        self.ff_model: FrictionModel | None = None   # friction feed-forward's model (None: friction_model)
+        self.ff_N = np.empty(0)                       # the last run's feed-forward track (N per tick)
         self.st = np.zeros(pl.N_ZSTATE)
         self.fs = np.zeros(N_STATE)
         self.ring = np.zeros(max(1, int(self.q[pl.Q_DELAY])))  # slip velocity of the last `delay` ticks
@@ -222,13 +245,19 @@ class SimRig:
 
     # ------------------------------------------------------------------ closed loop
     def run_blocks(self, x_ref_um, block_ticks: int = 100, reset: bool = True,
-                   chunk_ticks: int = 20000) -> Iterator[dict]:
+                   chunk_ticks: int = 20000, controller: dict | None = None) -> Iterator[dict]:
         """Run the closed loop over the reference (µm, one value per tick); yield block dicts.
 
         Each block is a dict of numpy arrays (keys BLOCK_KEYS) covering ``block_ticks`` ticks
         (the last may be shorter). With ``reset`` (default), the run starts at rest at
         ``x_ref[0]`` (see the module docstring). The reference is checked here, before any
-        block is produced (ValueError)."""
+        block is produced (ValueError).
+
+        ``controller``: the recipe's feed-forward switches for this run (a compiled plan's
+        ``controller``, rig.config.recipe.ControllerSwitches): ``ff1`` False sets the
+        profile's FF1 gain to 0; ``friction_ff`` True feeds :func:`friction_feedforward_N` of
+        :attr:`ff_model` (default: the simulated friction model, i.e. a perfect model) at the
+        nominal 2 N. None: the profile's FF1, no friction feed-forward."""
         xref = np.ascontiguousarray(x_ref_um, dtype=np.float64)
         if xref.ndim != 1 or xref.size == 0:
             raise ValueError("x_ref_um must be a non-empty 1-D array")
@@ -241,13 +270,26 @@ class SimRig:
         if lo < lv.min_um or hi > lv.max_um:
             raise ValueError(f"x_ref_um spans {lo:g}..{hi:g} µm, outside the LVDT range "
                              f"{lv.min_um:g}..{lv.max_um:g} µm of profile '{self.profile.name}'")
-        return self._blocks(xref, block_ticks, reset, chunk_ticks)
+        sw = dict(controller or {})
+        unknown = set(sw) - {"ff1", "friction_ff"}
+        if unknown:
+            raise ValueError(f"controller switches: unknown {sorted(unknown)} (known: ff1, friction_ff)")
+        self.c = controller_params_from_profile(self.profile)
+        if not sw.get("ff1", True):
+            self.c[C_FF1] = 0.0
+        v_init = initial_velocity_um_s(xref, self.rate_hz, self.profile.sim.initial_creep_um_s)
+        ff = np.empty(0)
+        if sw.get("friction_ff", False):
+            ff = friction_feedforward_N(xref, self.dt_s, self.ff_model or self.friction_model,
+                                        2.0 * self.normal_force_N, v_init)
+        self.ff_N = ff
+        return self._blocks(xref, ff, block_ticks, reset, chunk_ticks, v_init)
 
-    def _blocks(self, xref: np.ndarray, block_ticks: int, reset: bool, chunk_ticks: int) -> Iterator[dict]:
+    def _blocks(self, xref: np.ndarray, ff: np.ndarray, block_ticks: int, reset: bool, chunk_ticks: int,
+                v_init: float) -> Iterator[dict]:
         n = xref.size
         if reset:
-            self.reset(float(xref[0]),
-                       initial_velocity_um_s(xref, self.rate_hz, self.profile.sim.initial_creep_um_s))
+            self.reset(float(xref[0]), v_init)
         chunk = max(block_ticks, (max(chunk_ticks, block_ticks) // block_ticks) * block_ticks)
         i = 0
         while i < n:
@@ -256,7 +298,7 @@ class SimRig:
             k = 0
             while k < m:
                 page, j0, cnt = self._noise(m - k)
-                pl.run_closed_loop(self.q, self.fp, self.fs, self.st, self.ring, self.c, self.cs, xref, i + k,
+                pl.run_closed_loop(self.q, self.fp, self.fs, self.st, self.ring, self.c, self.cs, xref, ff, i + k,
                                    page, j0, out, k, cnt)
                 k += cnt
             for b in range(0, m, block_ticks):
