@@ -309,6 +309,101 @@ def k_cr_loop(lm: LoopModel, k_hi_N_per_um: float | None = None, rtol: float = 1
     return math.sqrt(lo * hi)
 
 
+def noise_spread(lm: LoopModel, kp_N_per_um: float, lvdt_sigma_um: float, lvdt_quantization_um: float = 0.0,
+                 block_s: float = 0.1) -> float:
+    """The spread (sd of the ``block_s`` block means of the slip velocity, / V0) that the
+    LVDT's noise drives in the linearised discrete loop at ``kp`` (stable side: finite; inf
+    at or below k_cr): what the scan's spread criterion measures on a stable rig.
+
+    The noise as rig.sim has it (rig.sim.plant.plant_sample): white noise held over each tick
+    enters the 100 Hz first-order filter, so the reading carries an AR(1) noise
+    eps_{n+1} = a eps_n + sigma sqrt(1 - a^2) w_n (a = exp(-dt/tau), stationary sd
+    ``lvdt_sigma_um``), then the ADC's quantisation (white, step^2/12). Both enter the PID
+    as a measurement error: e_n = -(c x_n + eps_n + q_n), through P, I and the D term's
+    backward difference. The state covariance P solves the discrete Lyapunov equation
+    P = M P M^T + Q of the loop augmented with eps; the block mean's variance is
+    (1/n^2) sum_{i,j} C(i - j), C(k) = h M^k P h^T, h the slip velocity
+    v_s = (F_s - theta)/(A/V0)."""
+    if lm.dt_s <= 0:
+        raise ValueError("noise_spread needs the discrete loop (dt_s > 0)")
+    M = closed_loop_matrix(lm, kp_N_per_um)
+    if np.abs(np.linalg.eigvals(M)).max() >= 1.0:
+        return math.inf
+    A, b, c = plant_matrices(lm)
+    n = A.shape[0]
+    m = M.shape[0]
+    dt = lm.dt_s
+    E = np.zeros((n + 1, n + 1))
+    E[:n, :n] = A * dt
+    E[:n, n] = b * dt
+    from scipy.linalg import expm
+    gam = expm(E)[:n, n]
+    # response of the loop's state to a unit measurement error at this tick
+    gw = np.zeros(m)
+    gw[:n] = -gam * (kp_N_per_um + lm.kd_N_s_per_um / dt)
+    gw[n] = -1.0
+    if m > n + 1:
+        gw[n + 1] = -dt
+    a = math.exp(-dt / lm.tau_lvdt_s) if lm.tau_lvdt_s > 0 else 0.0
+    Ma = np.zeros((m + 1, m + 1))
+    Ma[:m, :m] = M
+    Ma[:m, m] = gw
+    Ma[m, m] = a
+    Q = np.zeros((m + 1, m + 1))
+    Q[m, m] = lvdt_sigma_um ** 2 * (1.0 - a * a)
+    g = np.r_[gw, 0.0]
+    Q += (lvdt_quantization_um ** 2 / 12.0) * np.outer(g, g)
+    # P = sum_k Ma^k Q Ma^kT by doubling (Smith): well conditioned for the slow modes
+    # (|z| within 1e-6 of 1 near k_cr), where a direct Kronecker solve is not
+    P, Ak = Q.copy(), Ma.copy()
+    for _ in range(80):
+        dP = Ak @ P @ Ak.T
+        P = P + dP
+        if np.abs(dP).max() <= 1e-15 * np.abs(P).max():
+            break
+        Ak = Ak @ Ak
+    h = np.zeros(m + 1)
+    if lm.plant == "rig":
+        a_v = lm.A_N / lm.V0_um_s
+        h[4], h[5] = 1.0 / a_v, -1.0 / a_v
+    else:
+        h[1] = 1.0
+    nb = max(1, int(round(block_s / dt)))
+    Ph = P @ h
+    gk = h.copy()
+    acc = 0.0
+    for k in range(nb):
+        ck = float(gk @ Ph)
+        acc += (nb if k == 0 else 2.0 * (nb - k)) * ck
+        gk = gk @ Ma
+    return math.sqrt(max(acc, 0.0)) / nb / lm.V0_um_s
+
+
+def k_noise_criterion(lm: LoopModel, lvdt_sigma_um: float, lvdt_quantization_um: float = 0.0,
+                      spread_max: float | None = None, rtol: float = 1e-3) -> float | None:
+    """The kp (N/µm) above the loop's k_cr at which the noise-driven spread
+    (:func:`noise_spread`) falls to the scan's criterion ``spread_max`` (default SPREAD_MAX):
+    where the noisy scan calls the rig steady although it is linearly stable above k_cr
+    already. None without a finite k_cr."""
+    k_cr = k_cr_loop(lm)
+    if not k_cr:
+        return None
+    smax = SPREAD_MAX if spread_max is None else spread_max
+    lo = k_cr * (1.0 + 1e-4)
+    hi = 2.0 * k_cr
+    while noise_spread(lm, hi, lvdt_sigma_um, lvdt_quantization_um) > smax:
+        lo, hi = hi, 2.0 * hi
+        if hi > 1e3 * k_cr:
+            return None
+    while hi / lo > 1 + rtol:
+        mid = math.sqrt(lo * hi)
+        if noise_spread(lm, mid, lvdt_sigma_um, lvdt_quantization_um) > smax:
+            lo = mid
+        else:
+            hi = mid
+    return math.sqrt(lo * hi)
+
+
 def fixture_statement(A_mu: float, B_mu: float, L_um: float, N_N: float = 100.0) -> str:
     """The one statement on the moving test piece of the double-shear fixture."""
     k1 = (B_mu - A_mu) * N_N / L_um * 1e3

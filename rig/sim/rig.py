@@ -41,7 +41,7 @@ from rig.control import C_FF1, controller_params_from_profile, new_controller_st
 from rig.model.friction import N_STATE, init_state, mu_series
 from rig.model.loading import lvdt_to_interface_compliance_um_per_N
 from rig.model.sensors import cutoff_tau_s, lowpass_coefficients, prefilter_noise_gain
-from rig.model.spec import FrictionModel
+from rig.model.spec import FrictionModel, model_params
 from rig.sim import plant as pl
 from rig.config.profile import RigProfile, default_profile_path, load_profile
 
@@ -135,23 +135,49 @@ def build_plant_params(profile: RigProfile, model: FrictionModel, normal_force_N
 
 def friction_feedforward_N(x_ref_um, dt_s: float, model: FrictionModel, total_normal_N: float,
                            v_init_um_s: float) -> np.ndarray:
-    """The friction force (N) that ``model`` predicts along the reference: the friction
-    feed-forward of the controller (rig.control, G_n), one value per tick.
+    """The friction force (N) that ``model``'s rate-and-state terms predict along the
+    reference: the friction feed-forward of the controller (rig.control, G_n), one value
+    per tick.
 
-    F_ff,n = (N_1 + N_2) mu(v_ref,n, theta_n), v_ref the reference's backward difference
-    (the planner's piecewise-linear/ramped reference: exact), theta integrated along the
-    reference's slip from steady state at ``v_init_um_s`` (rig.model.friction.mu_series:
-    eqs. 5-6, and every friction-law extension of the model). What it predicts on a
-    velocity step 1 -> v2 is the paper's Fig. 9: the jump 2N A ln(v2/v1), the decay over L
-    to 2N (A - B) ln(v2/v1); the position loop then has no friction transient left to
-    follow (docs/paper.md row 8). While the reference is at rest the regularised law gives
-    0: the stuck interface takes whatever the chain holds."""
+    F_ff,n = (N_1 + N_2) (mu(v_ref,n, theta_n) - sign(v_ref,n) mu0), v_ref the reference's
+    backward difference (the planner's piecewise-linear/ramped reference: exact), theta
+    integrated along the reference's slip from steady state at ``v_init_um_s``
+    (rig.model.friction.mu_series: eqs. 5-6 and whatever extensions ``model`` has). The
+    constant level mu0 (2N mu0, about 20 N; Table 2 does not give it) is left to the
+    integral term, which carries it without feed-forward too: the chain loads at the start
+    and after each reversal as before. On a velocity step 1 -> v2 the feed-forward is the
+    paper's Fig. 9: the jump 2N A ln(v2/v1), the decay over L to 2N (A - B) ln(v2/v1), so
+    the position loop has no friction transient left to follow (docs/paper.md row 8).
+    While the reference is at rest the last sliding value is held (the stuck interface
+    keeps the load the chain had); 0 before the reference first moves."""
     x = np.ascontiguousarray(x_ref_um, dtype=np.float64)
     v = np.empty_like(x)
     v[1:] = np.diff(x) / dt_s
     v[0] = v[1] if x.size > 1 else 0.0
     t = np.arange(x.size) * dt_s
-    return float(total_normal_N) * mu_series(model.to_array(), t, v, x, float(v_init_um_s))
+    mu = mu_series(model.to_array(), t, v, x, float(v_init_um_s))
+    # the rate-and-state part only: the constant level mu0 (which Table 2 does not give) stays
+    # with the integral term, as without feed-forward
+    f = float(total_normal_N) * (mu - np.sign(v) * model.get("mu0"))
+    # at rest the last sliding value is held (0 before the first motion)
+    moving = v != 0.0
+    last = np.where(moving, np.arange(x.size), -1)
+    np.maximum.accumulate(last, out=last)
+    return np.where(last >= 0, f[np.maximum(last, 0)], 0.0)
+
+
+def feedforward_model(model: FrictionModel) -> FrictionModel:
+    """The law the friction feed-forward knows: the model's baseline with its parameters
+    (the paper's eqs. 5-6 for rate_state; ``frictional_memory`` kept, it makes a steady_state
+    baseline rate-and-state), without the other extensions (second state, aging, wear,
+    position-periodic, and the sensor/fixture ones). A real rig feeds forward what it has
+    identified, the single-state law; what `rig diagnose` finds beyond it stays in the
+    record (a feed-forward of the simulated truth would cancel it)."""
+    keep = [e for e in model.extensions if e == "frictional_memory"]
+    names = model_params(model.baseline, keep)
+    return FrictionModel(baseline=model.baseline, extensions=keep,
+                         params={k: v for k, v in model.params.items() if k in names},
+                         V0_um_s=model.V0_um_s, v_reg_um_s=model.v_reg_um_s)
 
 
 def initial_velocity_um_s(x_ref_um, rate_hz: float, creep_um_s: float) -> float:
@@ -193,7 +219,7 @@ class SimRig:
         self.fp = friction_model.to_array()
         self.c = controller_params_from_profile(profile)
         self.cs = new_controller_state()
-        self.ff_model: FrictionModel | None = None   # friction feed-forward's model (None: friction_model)
+        self.ff_model: FrictionModel | None = None   # friction feed-forward's model (None: feedforward_model)
         self.ff_N = np.empty(0)                       # the last run's feed-forward track (N per tick)
         self.st = np.zeros(pl.N_ZSTATE)
         self.fs = np.zeros(N_STATE)
@@ -256,8 +282,8 @@ class SimRig:
         ``controller``: the recipe's feed-forward switches for this run (a compiled plan's
         ``controller``, rig.config.recipe.ControllerSwitches): ``ff1`` False sets the
         profile's FF1 gain to 0; ``friction_ff`` True feeds :func:`friction_feedforward_N` of
-        :attr:`ff_model` (default: the simulated friction model, i.e. a perfect model) at the
-        nominal 2 N. None: the profile's FF1, no friction feed-forward."""
+        :attr:`ff_model` (default: :func:`feedforward_model` of the simulated friction model:
+        its single-state law, exact for the profile's lubricants) at the nominal 2 N. None: the profile's FF1, no friction feed-forward."""
         xref = np.ascontiguousarray(x_ref_um, dtype=np.float64)
         if xref.ndim != 1 or xref.size == 0:
             raise ValueError("x_ref_um must be a non-empty 1-D array")
@@ -280,7 +306,7 @@ class SimRig:
         v_init = initial_velocity_um_s(xref, self.rate_hz, self.profile.sim.initial_creep_um_s)
         ff = np.empty(0)
         if sw.get("friction_ff", False):
-            ff = friction_feedforward_N(xref, self.dt_s, self.ff_model or self.friction_model,
+            ff = friction_feedforward_N(xref, self.dt_s, self.ff_model or feedforward_model(self.friction_model),
                                         2.0 * self.normal_force_N, v_init)
         self.ff_N = ff
         return self._blocks(xref, ff, block_ticks, reset, chunk_ticks, v_init)
