@@ -48,7 +48,7 @@ def test_recipe_switches_parse_on_off_and_refuse_anything_else():
     r = parse_recipe(MOVE.format(controller="controller: {ff1: off, friction_ff: on}"))
     assert (r.controller.ff1, r.controller.friction_ff) == (False, True)
     d = parse_recipe(MOVE.format(controller=""))
-    assert (d.controller.ff1, d.controller.friction_ff) == (True, True)   # the defaults: both on
+    assert (d.controller.ff1, d.controller.friction_ff) == (True, False)  # the defaults: FF1 on, friction off
     with pytest.raises(RecipeError, match=r"controller\.ff1"):
         parse_recipe(MOVE.format(controller="controller: {ff1: maybe}"), "r.yaml")
     with pytest.raises(RecipeError, match=r"controller\.ff2"):

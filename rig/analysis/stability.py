@@ -384,17 +384,23 @@ def k_noise_criterion(lm: LoopModel, lvdt_sigma_um: float, lvdt_quantization_um:
     """The kp (N/µm) above the loop's k_cr at which the noise-driven spread
     (:func:`noise_spread`) falls to the scan's criterion ``spread_max`` (default SPREAD_MAX):
     where the noisy scan calls the rig steady although it is linearly stable above k_cr
-    already. None without a finite k_cr."""
+    already. None without a finite k_cr, or if the spread stays above ``spread_max`` up to
+    20 k_cr (the noise alone then drives the criterion's spread at every kp)."""
     k_cr = k_cr_loop(lm)
     if not k_cr:
         return None
     smax = SPREAD_MAX if spread_max is None else spread_max
-    lo = k_cr * (1.0 + 1e-4)
-    hi = 2.0 * k_cr
-    while noise_spread(lm, hi, lvdt_sigma_um, lvdt_quantization_um) > smax:
-        lo, hi = hi, 2.0 * hi
-        if hi > 1e3 * k_cr:
-            return None
+    # not monotonic in kp: the spread falls above k_cr, then rises again as a stiff P passes
+    # more of the noise on; the first crossing on a geometric grid, then bisection
+    grid = k_cr * np.geomspace(1.0 + 1e-4, 20.0, 60)
+    prev = grid[0]
+    for k in grid[1:]:
+        if noise_spread(lm, k, lvdt_sigma_um, lvdt_quantization_um) <= smax:
+            lo, hi = prev, k
+            break
+        prev = k
+    else:
+        return None
     while hi / lo > 1 + rtol:
         mid = math.sqrt(lo * hi)
         if noise_spread(lm, mid, lvdt_sigma_um, lvdt_quantization_um) > smax:
@@ -440,7 +446,7 @@ def sliding_run(profile_path: str | None, lubricant: str, kp_N_per_um: float, ki
     dither, boundary PID: spread 0.85 / 0.28 / 0.18 V0 at 0.8 / 1.25 / 2 k_cr, against the
     linear valve's criterion 0.3; a band of 1e-3 gives 0.42 at 1.25 k_cr; docs/paper.md row 6). A top-level function of plain values (one trial for a parallel engine)."""
     from rig.sim import plant as pl
-    from rig.control import C_BIAS, K_SUM
+    from rig.control import C_BIAS, C_FF1, K_SUM
     from rig.config.profile import default_profile_path, load_profile
     from rig.sim import SimRig
 
@@ -485,10 +491,12 @@ def sliding_run(profile_path: str | None, lubricant: str, kp_N_per_um: float, ki
     st[pl.Z_XA] = x0 + f_ss * q[pl.Q_CTP]
     st[pl.Z_FLF] = f_ss
     rig.ring[:] = V0_um_s
+    # the PID's share of the steady force: FF1 supplies ff1 V0 of it (rig.control)
+    s_pid = s_ss - rig.c[C_FF1] * V0_um_s
     if ki_N_per_um_s > 0:
-        rig.cs[K_SUM] = s_ss / ki_N_per_um_s
+        rig.cs[K_SUM] = s_pid / ki_N_per_um_s
     else:
-        rig.c[C_BIAS] = s_ss
+        rig.c[C_BIAS] = s_pid
     out = rig.run(xref, reset=False)
     v = out["true_velocity_um_s"]
     every = max(1, int(round(BLOCK_S * rate)))

@@ -206,10 +206,10 @@ class ControllerSwitches(StrictModel):
 
     ff1: bool = Field(True, description="Velocity feed-forward (LinuxCNC FF1) at the profile's "
                                         "controller.ff1_N_s_per_um; off: FF1 = 0 for this trial.")
-    friction_ff: bool = Field(True, description="Friction feed-forward: the friction force the friction "
-                                                 "model in use predicts along the reference (eqs. 5-6), "
-                                                 "added to the PID output (docs/paper.md row 8). Simulated "
-                                                 "rig only.")
+    friction_ff: bool = Field(False, description="Friction feed-forward: the friction force the friction "
+                                                  "model's rate-and-state terms predict along the reference "
+                                                  "(eqs. 5-6), added to the PID output (docs/paper.md row 8); "
+                                                  "on in every shipped recipe. Simulated rig only.")
 
 
 class Recipe(StrictModel):
