@@ -594,7 +594,8 @@ def plot_map(scans: list[dict], path, title: str = "") -> None:
     """Stability map: each scanned kp (x, kN/m) per lubricant (panel) and controller (row:
     PD, PID, PID with the sensor noise off): stick-slip (red x) or steady sliding (green o) by the scan's criterion,
     with the paper's eq. (8) for the fixture (2 N, kd, m; PD only), the discrete-time
-    analysis of the rig's loop, and the simulated boundary."""
+    analysis of the rig's loop, the simulated boundary, and (noisy scans) the spread that the
+    LVDT noise drives in the linear loop (:func:`noise_spread`, runs' ``spread_linear_noise``)."""
     from rig.analysis.plots import _plt, save
 
     plt = _plt()
@@ -612,6 +613,10 @@ def plot_map(scans: list[dict], path, title: str = "") -> None:
         ax.scatter(kp[bad], sp[bad], marker="x", color="C3", label="stick-slip (sim)")
         ax.scatter(kp[~bad], sp[~bad], marker="o", facecolors="none", color="C2", label="steady (sim)")
         ax.axhline(SPREAD_MAX, color="0.6", lw=0.6)
+        lin = np.array([r.get("spread_linear_noise", np.nan) for r in s["runs"]], dtype=float)
+        ok = np.isfinite(lin)
+        if ok.any():
+            ax.plot(kp[ok], lin[ok], color="C0", lw=0.8, alpha=0.7, label="loop analysis + LVDT noise")
         if s.get("k_cr_eq8_N_per_um"):
             ax.axvline(s["k_cr_eq8_N_per_um"] * 1e3, color="k", ls="--",
                        label="paper eq. (8), 2N" + (" (PD; no I term)" if s["ki_N_per_um_s"] > 0 else ""))
