@@ -39,7 +39,15 @@ LVDT filter); k_cr from the roots of the characteristic polynomial det(z I - M).
 full simulated rig (:class:`rig.sim.SimRig`) started in steady sliding, with a stated
 criterion: stick-slip if more than 1 % of 0.1 s blocks have mean slip velocity below
 0.1 V0, or the block means' sd exceeds 0.3 V0 (second half of the run). No growth rates.
-docs/paper.md has the figures.
+
+**The sensor noise** (:func:`noise_spread`, :func:`k_noise_criterion`): the LVDT's noise
+through the same linear discrete loop gives the spread of the 0.1 s block means that the
+criterion sees on a stable rig; with the PID it stays above 0.3 V0 well beyond k_cr (the
+lightly damped I-friction mode), so a noisy scan's crossing is a noise threshold, and the
+PID's stability boundary is judged noise-free. docs/paper.md has the figures.
+
+**Velocity steps** (:func:`step_response_metrics`, :func:`step_velocity_traces`): overshoot,
+noise floor and rise time as the paper's Fig. 8 shows a step (docs/paper.md row 8).
 """
 
 from __future__ import annotations
