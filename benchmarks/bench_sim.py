@@ -77,7 +77,7 @@ def main() -> None:
         rig = SimRig(None, "boundary", seed=0)
         rig.reset(float(xref[0]), 1.0)
         t0, c0 = time.perf_counter(), time.process_time()
-        pl.run_closed_loop(rig.q, rig.fp, rig.fs, rig.st, rig.ring, rig.c, rig.cs, xref, 0, noise, 0, out, 0, n)
+        pl.run_closed_loop(rig.q, rig.fp, rig.fs, rig.st, rig.ring, rig.c, rig.cs, xref, np.empty(0), 0, noise, 0, out, 0, n)
         best_k = min(best_k, time.perf_counter() - t0)
         best_kc = min(best_kc, time.process_time() - c0)
     print(f"numba kernel alone (noise pre-drawn):          {n / best_k:,.0f} ticks/s, "

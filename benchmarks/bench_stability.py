@@ -60,6 +60,14 @@ def main():
                 r = S.scan_boundary(name, ki_N_per_um_s=ki, factors=factors, k_ref_N_per_um=k_ref, bump_L=bump,
                                     sensor_noise=noise, duration_s=None if noise else 3000.0)
                 r["k_cr_eq8_N_per_um"] = k8
+                lv = prof.sensors.lvdt
+                if noise:
+                    # what the LVDT noise alone drives in the linear loop (stability.noise_spread)
+                    for x in r["runs"]:
+                        x["spread_linear_noise"] = S.noise_spread(lm, x["kp_N_per_um"], lv.noise_sigma_um,
+                                                                  lv.quantization_um)
+                    r["k_noise_criterion_N_per_um"] = S.k_noise_criterion(lm, lv.noise_sigma_um,
+                                                                          lv.quantization_um)
                 r["k_cr_table2_per_rider_kN_per_m"] = TABLE2[name]["k_cr_kN_per_m"][0]
                 scans.append(r)
                 dt = time.perf_counter() - t0
@@ -75,9 +83,15 @@ def main():
                 if r.get("k_onset_N_per_um"):
                     print(f"      onset of a sustained oscillation (spread > {S.ONSET_SPREAD:g} V0): "
                           f"{r['k_onset_N_per_um'] * 1e3:.2f} kN/m, {100 * r['onset_rel_diff']:+.1f} % vs the analysis")
+                if r.get("k_noise_criterion_N_per_um"):
+                    kn = r["k_noise_criterion_N_per_um"]
+                    print(f"      linear loop + LVDT noise: spread {S.SPREAD_MAX:g} V0 reached at {kn * 1e3:.2f} kN/m "
+                          f"({100 * (kn / k_lin - 1):+.1f} % vs k_cr)")
                 for x in r["runs"]:
+                    lin = x.get("spread_linear_noise")
                     print(f"      kp {x['kp_N_per_um'] * 1e3:8.2f} kN/m  stuck {x['stuck_fraction']:.3f}  spread "
-                          f"{x['spread']:.3f}  v_max {x['v_max_um_s']:.2f}  {'STICK-SLIP' if x['stick_slip'] else 'steady'}")
+                          f"{x['spread']:.3f}" + (f" (linear + noise {lin:.3f})" if lin is not None else "") +
+                          f"  v_max {x['v_max_um_s']:.2f}  {'STICK-SLIP' if x['stick_slip'] else 'steady'}")
     print(f"criterion: {scans[0]['criterion']}")
     print(f"total {time.perf_counter() - t_all:.0f} s, load average at end: {os.getloadavg()}")
     if not quick:

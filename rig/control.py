@@ -13,7 +13,13 @@ Units: error in µm, PID output (force demand) in N, gains ``kp_N_per_um``,
     I_n = ki dt sum_{k<n} e_k        (prior errors only; anti-windup below)
     D_n = kd (e_n - e_{n-1}) / dt    (backward difference; 0 at the first tick)
     F_n = ff1 v_ref,n                (velocity feed-forward, LinuxCNC's FF1; optional)
-    u_n = clamp(bias + P_n + I_n + D_n + F_n, ±output_max_N)
+    u_n = clamp(bias + P_n + I_n + D_n + F_n + G_n, ±output_max_N)
+
+with G_n an optional per-tick feed-forward force (N) supplied with the reference, like a
+driven LinuxCNC ``bias`` pin: the simulated rig feeds the friction force that the friction
+model in use predicts along the reference (friction feed-forward, rig.sim.rig.
+friction_feedforward_N; the model-based feed-forward of the paper's introduction); 0 when
+not given.
 
 with v_ref,n the planner's reference velocity: given explicitly
 (:func:`controller_step_v`, ``Controller.step(..., v_ref_um_s=...)``) or, as LinuxCNC
@@ -122,9 +128,10 @@ def new_controller_state() -> np.ndarray:
 
 
 @njit(cache=True)
-def pid_step(c, s, x_ref_um, x_meas_um, v_ref_um_s=math.nan):
-    """One PID tick (LinuxCNC order) with FF1. Returns (output_N, p_N, i_N, d_N); updates
-    ``s``. ``v_ref_um_s`` NaN: the backward difference of the reference."""
+def pid_step(c, s, x_ref_um, x_meas_um, v_ref_um_s=math.nan, ff_N=0.0):
+    """One PID tick (LinuxCNC order) with FF1 and a feed-forward force ``ff_N`` (N). Returns
+    (output_N, p_N, i_N, d_N); updates ``s``. ``v_ref_um_s`` NaN: the backward difference of
+    the reference."""
     dt = c[C_DT]
     first = s[K_FIRST] > 0.5
     if v_ref_um_s != v_ref_um_s:
@@ -154,7 +161,7 @@ def pid_step(c, s, x_ref_um, x_meas_um, v_ref_um_s=math.nan):
     p = c[C_KP] * e
     i = c[C_KI] * s[K_SUM]
     d = c[C_KD] * (e - s[K_PREV_E]) / dt
-    out = c[C_BIAS] + p + i + d + c[C_FF1] * v_ref_um_s
+    out = c[C_BIAS] + p + i + d + c[C_FF1] * v_ref_um_s + ff_N
     omax = c[C_OMAX]
     if out > omax:
         out = omax
@@ -195,10 +202,10 @@ def controller_step(c, s, x_ref_um, x_meas_um):
 
 
 @njit(cache=True)
-def controller_step_v(c, s, x_ref_um, x_meas_um, v_ref_um_s):
+def controller_step_v(c, s, x_ref_um, x_meas_um, v_ref_um_s, ff_N=0.0):
     """:func:`controller_step` with the planner's reference velocity given (µm/s; NaN:
-    backward difference of the reference)."""
-    out, p, i, d = pid_step(c, s, x_ref_um, x_meas_um, v_ref_um_s)
+    backward difference of the reference) and a feed-forward force ``ff_N`` (N)."""
+    out, p, i, d = pid_step(c, s, x_ref_um, x_meas_um, v_ref_um_s, ff_N)
     dz = dither_step(c, s, out)
     v = (out + dz) / c[C_FFS]
     if v > 1.0:

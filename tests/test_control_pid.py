@@ -144,7 +144,7 @@ def test_ff1_from_the_profile_reaches_the_controller():
     from rig.config.profile import default_profile_path, load_profile
 
     prof = load_profile(default_profile_path())
-    assert controller_params_from_profile(prof)[C_FF1] == 0.1  # sim.yaml: FF1 on
+    assert controller_params_from_profile(prof)[C_FF1] == 0.02  # sim.yaml: FF1 = k_h tau_L
     prof = prof.model_copy(update={"controller": prof.controller.model_copy(update={"ff1_N_s_per_um": 0.05})})
     assert controller_params_from_profile(prof)[C_FF1] == 0.05
     c = Controller.from_profile(prof)

@@ -78,6 +78,9 @@ class Plan:
     segments: list[dict]
     limits: RigLimits
     phases: np.ndarray = field(repr=False)  # columns: t0, T, x0, va, vb
+    # the recipe's controller switches for this trial ({"ff1": bool, "friction_ff": bool}; empty:
+    # the rig profile's settings); plain data, applied by the backend that runs the plan
+    controller: dict = field(default_factory=dict)
 
     @property
     def n_ticks(self) -> int:

@@ -356,6 +356,12 @@ def build_stability_map(scans: list[dict], title: str = "", *, spread_max: float
         ax.scatter(kp[~bad], sp[~bad], marker="o", facecolors="none", color="C2", s=14, lw=0.9,
                    label="steady sliding (simulated)")
         ax.axhline(SPREAD_MAX, color="0.6", lw=0.6, label=f"criterion: spread = {SPREAD_MAX:g} V0")
+        lin = np.array([r.get("spread_linear_noise", np.nan) for r in s["runs"]], dtype=float)
+        ok = np.isfinite(lin) & (lin > 0)
+        if ok.any():  # what the LVDT noise alone drives in the linear loop (stability.noise_spread)
+            order = np.argsort(kp[ok])
+            ax.plot(kp[ok][order], lin[ok][order], color="C0", lw=0.8, alpha=0.7,
+                    label="loop analysis + LVDT noise")
         if s.get("k_cr_eq8_N_per_um"):
             ax.axvline(s["k_cr_eq8_N_per_um"] * 1e3, color="k", ls="--", label="paper's eq. (8), 2N (PD: no I term)")
         if s.get("k_cr_loop_N_per_um"):
@@ -370,7 +376,8 @@ def build_stability_map(scans: list[dict], title: str = "", *, spread_max: float
         if s.get("onset_rel_diff") is not None:
             lines.append(f"onset (spread > {ONSET_SPREAD:g} V0): {s['onset_rel_diff'] * 100:+.1f}%")
             ax.axvline(s["k_onset_N_per_um"] * 1e3, color="C4", ls="-.", label="onset of oscillation")
-        y0, y1 = min(lo, SPREAD_MAX / 2), max(float(sp.max()) * 2, SPREAD_MAX * 2)
+        top = max(float(sp.max()), float(lin[ok].max()) if ok.any() else 0.0)
+        y0, y1 = min(lo, SPREAD_MAX / 2), max(top * 2, SPREAD_MAX * 2)
         ax.set_yscale("log")
         ax.set_ylim(y0, y1)
         ax.yaxis.set_major_locator(LogLocator(base=10, numticks=6))

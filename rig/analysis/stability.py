@@ -39,7 +39,15 @@ LVDT filter); k_cr from the roots of the characteristic polynomial det(z I - M).
 full simulated rig (:class:`rig.sim.SimRig`) started in steady sliding, with a stated
 criterion: stick-slip if more than 1 % of 0.1 s blocks have mean slip velocity below
 0.1 V0, or the block means' sd exceeds 0.3 V0 (second half of the run). No growth rates.
-docs/paper.md has the figures.
+
+**The sensor noise** (:func:`noise_spread`, :func:`k_noise_criterion`): the LVDT's noise
+through the same linear discrete loop gives the spread of the 0.1 s block means that the
+criterion sees on a stable rig; with the PID it stays above 0.3 V0 well beyond k_cr (the
+lightly damped I-friction mode), so a noisy scan's crossing is a noise threshold, and the
+PID's stability boundary is judged noise-free. docs/paper.md has the figures.
+
+**Velocity steps** (:func:`step_response_metrics`, :func:`step_velocity_traces`): overshoot,
+noise floor and rise time as the paper's Fig. 8 shows a step (docs/paper.md row 8).
 """
 
 from __future__ import annotations
@@ -309,6 +317,107 @@ def k_cr_loop(lm: LoopModel, k_hi_N_per_um: float | None = None, rtol: float = 1
     return math.sqrt(lo * hi)
 
 
+def noise_spread(lm: LoopModel, kp_N_per_um: float, lvdt_sigma_um: float, lvdt_quantization_um: float = 0.0,
+                 block_s: float = 0.1) -> float:
+    """The spread (sd of the ``block_s`` block means of the slip velocity, / V0) that the
+    LVDT's noise drives in the linearised discrete loop at ``kp`` (stable side: finite; inf
+    at or below k_cr): what the scan's spread criterion measures on a stable rig.
+
+    The noise as rig.sim has it (rig.sim.plant.plant_sample): white noise held over each tick
+    enters the 100 Hz first-order filter, so the reading carries an AR(1) noise
+    eps_{n+1} = a eps_n + sigma sqrt(1 - a^2) w_n (a = exp(-dt/tau), stationary sd
+    ``lvdt_sigma_um``), then the ADC's quantisation (white, step^2/12). Both enter the PID
+    as a measurement error: e_n = -(c x_n + eps_n + q_n), through P, I and the D term's
+    backward difference. The state covariance P solves the discrete Lyapunov equation
+    P = M P M^T + Q of the loop augmented with eps; the block mean's variance is
+    (1/n^2) sum_{i,j} C(i - j), C(k) = h M^k P h^T, h the slip velocity
+    v_s = (F_s - theta)/(A/V0)."""
+    if lm.dt_s <= 0:
+        raise ValueError("noise_spread needs the discrete loop (dt_s > 0)")
+    M = closed_loop_matrix(lm, kp_N_per_um)
+    if np.abs(np.linalg.eigvals(M)).max() >= 1.0:
+        return math.inf
+    A, b, c = plant_matrices(lm)
+    n = A.shape[0]
+    m = M.shape[0]
+    dt = lm.dt_s
+    E = np.zeros((n + 1, n + 1))
+    E[:n, :n] = A * dt
+    E[:n, n] = b * dt
+    from scipy.linalg import expm
+    gam = expm(E)[:n, n]
+    # response of the loop's state to a unit measurement error at this tick
+    gw = np.zeros(m)
+    gw[:n] = -gam * (kp_N_per_um + lm.kd_N_s_per_um / dt)
+    gw[n] = -1.0
+    if m > n + 1:
+        gw[n + 1] = -dt
+    a = math.exp(-dt / lm.tau_lvdt_s) if lm.tau_lvdt_s > 0 else 0.0
+    Ma = np.zeros((m + 1, m + 1))
+    Ma[:m, :m] = M
+    Ma[:m, m] = gw
+    Ma[m, m] = a
+    Q = np.zeros((m + 1, m + 1))
+    Q[m, m] = lvdt_sigma_um ** 2 * (1.0 - a * a)
+    g = np.r_[gw, 0.0]
+    Q += (lvdt_quantization_um ** 2 / 12.0) * np.outer(g, g)
+    # P = sum_k Ma^k Q Ma^kT by doubling (Smith): well conditioned for the slow modes
+    # (|z| within 1e-6 of 1 near k_cr), where a direct Kronecker solve is not
+    P, Ak = Q.copy(), Ma.copy()
+    for _ in range(80):
+        dP = Ak @ P @ Ak.T
+        P = P + dP
+        if np.abs(dP).max() <= 1e-15 * np.abs(P).max():
+            break
+        Ak = Ak @ Ak
+    h = np.zeros(m + 1)
+    if lm.plant == "rig":
+        a_v = lm.A_N / lm.V0_um_s
+        h[4], h[5] = 1.0 / a_v, -1.0 / a_v
+    else:
+        h[1] = 1.0
+    nb = max(1, int(round(block_s / dt)))
+    Ph = P @ h
+    gk = h.copy()
+    acc = 0.0
+    for k in range(nb):
+        ck = float(gk @ Ph)
+        acc += (nb if k == 0 else 2.0 * (nb - k)) * ck
+        gk = gk @ Ma
+    return math.sqrt(max(acc, 0.0)) / nb / lm.V0_um_s
+
+
+def k_noise_criterion(lm: LoopModel, lvdt_sigma_um: float, lvdt_quantization_um: float = 0.0,
+                      spread_max: float | None = None, rtol: float = 1e-3) -> float | None:
+    """The kp (N/µm) above the loop's k_cr at which the noise-driven spread
+    (:func:`noise_spread`) falls to the scan's criterion ``spread_max`` (default SPREAD_MAX):
+    where the noisy scan calls the rig steady although it is linearly stable above k_cr
+    already. None without a finite k_cr, or if the spread stays above ``spread_max`` up to
+    20 k_cr (the noise alone then drives the criterion's spread at every kp)."""
+    k_cr = k_cr_loop(lm)
+    if not k_cr:
+        return None
+    smax = SPREAD_MAX if spread_max is None else spread_max
+    # not monotonic in kp: the spread falls above k_cr, then rises again as a stiff P passes
+    # more of the noise on; the first crossing on a geometric grid, then bisection
+    grid = k_cr * np.geomspace(1.0 + 1e-4, 20.0, 60)
+    prev = grid[0]
+    for k in grid[1:]:
+        if noise_spread(lm, k, lvdt_sigma_um, lvdt_quantization_um) <= smax:
+            lo, hi = prev, k
+            break
+        prev = k
+    else:
+        return None
+    while hi / lo > 1 + rtol:
+        mid = math.sqrt(lo * hi)
+        if noise_spread(lm, mid, lvdt_sigma_um, lvdt_quantization_um) > smax:
+            lo = mid
+        else:
+            hi = mid
+    return math.sqrt(lo * hi)
+
+
 def fixture_statement(A_mu: float, B_mu: float, L_um: float, N_N: float = 100.0) -> str:
     """The one statement on the moving test piece of the double-shear fixture."""
     k1 = (B_mu - A_mu) * N_N / L_um * 1e3
@@ -345,7 +454,7 @@ def sliding_run(profile_path: str | None, lubricant: str, kp_N_per_um: float, ki
     dither, boundary PID: spread 0.85 / 0.28 / 0.18 V0 at 0.8 / 1.25 / 2 k_cr, against the
     linear valve's criterion 0.3; a band of 1e-3 gives 0.42 at 1.25 k_cr; docs/paper.md row 6). A top-level function of plain values (one trial for a parallel engine)."""
     from rig.sim import plant as pl
-    from rig.control import C_BIAS, K_SUM
+    from rig.control import C_BIAS, C_FF1, K_SUM
     from rig.config.profile import default_profile_path, load_profile
     from rig.sim import SimRig
 
@@ -390,10 +499,12 @@ def sliding_run(profile_path: str | None, lubricant: str, kp_N_per_um: float, ki
     st[pl.Z_XA] = x0 + f_ss * q[pl.Q_CTP]
     st[pl.Z_FLF] = f_ss
     rig.ring[:] = V0_um_s
+    # the PID's share of the steady force: FF1 supplies ff1 V0 of it (rig.control)
+    s_pid = s_ss - rig.c[C_FF1] * V0_um_s
     if ki_N_per_um_s > 0:
-        rig.cs[K_SUM] = s_ss / ki_N_per_um_s
+        rig.cs[K_SUM] = s_pid / ki_N_per_um_s
     else:
-        rig.c[C_BIAS] = s_ss
+        rig.c[C_BIAS] = s_pid
     out = rig.run(xref, reset=False)
     v = out["true_velocity_um_s"]
     every = max(1, int(round(BLOCK_S * rate)))
@@ -492,3 +603,51 @@ def plot_map(scans: list[dict], path, title: str = "") -> None:
     from rig.analysis.plots import plot_stability_map
 
     plot_stability_map(scans, path, title, spread_max=SPREAD_MAX, onset_spread=ONSET_SPREAD)
+
+
+# ---------------------------------------------------------------------------
+# Velocity steps: overshoot and rise time as the paper's Fig. 8 shows them
+# ---------------------------------------------------------------------------
+
+def step_response_metrics(t_s, v_um_s, t_step_s: float, v1_um_s: float, v2_um_s: float,
+                          after_s: float = 5.0, pre_s: tuple[float, float] = (6.0, 1.0)) -> dict:
+    """Overshoot, noise floor and rise time of one velocity step v1 -> v2 in a velocity trace.
+
+    ``v_um_s`` sampled at ``t_s`` (e.g. the paper's estimator on the 25 Hz LVDT log,
+    rig.kinematics.velocity_paper, or a mean of such traces over trials); the step's ramp
+    starts at ``t_step_s``. Relative to the step size v2 - v1:
+
+    * ``overshoot`` = (max v over [t_step, t_step + after_s] - v2) / (v2 - v1);
+    * ``floor`` = (max v over [t_step - pre_s[0], t_step - pre_s[1]] - v1) / (v2 - v1): the
+      same statistic on steady sliding at v1, i.e. what the trace's noise alone gives;
+    * ``rise_s``: 10 -> 90 % of the step (the paper: < 0.5 s); ``t90_s`` from the ramp's
+      start (it includes the planner's ramp, (v2 - v1)/accel)."""
+    t = np.asarray(t_s, dtype=float)
+    v = np.asarray(v_um_s, dtype=float)
+    dv = v2_um_s - v1_um_s
+    post = (t >= t_step_s) & (t <= t_step_s + after_s)
+    pre = (t >= t_step_s - pre_s[0]) & (t <= t_step_s - pre_s[1])
+    if not post.any() or not pre.any():
+        raise ValueError(f"step at t = {t_step_s:g} s: the trace does not cover {pre_s[0]:g} s before "
+                         f"and {after_s:g} s after it")
+    y, ty = v[post], t[post]
+    i10 = int(np.argmax(y > v1_um_s + 0.1 * dv))
+    i90 = int(np.argmax(y > v1_um_s + 0.9 * dv))
+    return {"v1_um_s": v1_um_s, "v2_um_s": v2_um_s, "overshoot": float((y.max() - v2_um_s) / dv),
+            "floor": float((v[pre].max() - v1_um_s) / dv), "rise_s": float(ty[i90] - ty[i10]),
+            "t90_s": float(ty[i90] - t_step_s)}
+
+
+def step_velocity_traces(log, rate_hz: float = 25.0) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[dict]]:
+    """(t_s, v_paper, v_true, steps) of a simulated trial's log (rig.session.MemoryLog):
+    the paper's velocity (10-point moving average + central difference) of the LVDT at the
+    ``rate_hz`` log rate, the true slip velocity through the same decimation and 10-point
+    (0.4 s) average, and the log's ``velocity_step`` events."""
+    from rig.kinematics import velocity_paper
+
+    td = log.trial_data(rate_hz)
+    v_paper = velocity_paper(td.time_s, td.position_um)
+    vt = np.asarray(td.extra["true_velocity_um_s"], dtype=float)
+    k = np.ones(10) / 10.0
+    v_true = np.convolve(vt, k, mode="same") / np.convolve(np.ones_like(vt), k, mode="same")
+    return td.time_s, v_paper, v_true, [e for e in log.events if e["kind"] == "velocity_step"]

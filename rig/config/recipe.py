@@ -200,6 +200,18 @@ class LogRates(StrictModel):
                                "the raw data.")
 
 
+class ControllerSwitches(StrictModel):
+    """The recipe's feed-forward switches (``controller:`` in the YAML; ``on``/``off`` or
+    true/false). The gains stay the rig profile's (``controller.ff1_N_s_per_um``)."""
+
+    ff1: bool = Field(True, description="Velocity feed-forward (LinuxCNC FF1) at the profile's "
+                                        "controller.ff1_N_s_per_um; off: FF1 = 0 for this trial.")
+    friction_ff: bool = Field(False, description="Friction feed-forward: the friction force the friction "
+                                                  "model's rate-and-state terms predict along the reference "
+                                                  "(eqs. 5-6), added to the PID output (docs/paper.md row 8); "
+                                                  "on in every shipped recipe. Simulated rig only.")
+
+
 class Recipe(StrictModel):
     """One trial's procedure (what ``rig run`` executes)."""
 
@@ -219,6 +231,8 @@ class Recipe(StrictModel):
         None, description="Where the reference starts (µm); default: the rig profile's initial position.")
     profile: str | None = Field(None, description="Rig profile YAML (relative to the current directory, "
                                                   "else to the recipe file).")
+    controller: ControllerSwitches = Field(default_factory=ControllerSwitches,
+                                           description="Feed-forward switches: ff1, friction_ff (on/off).")
 
     # filled by load_recipe, not part of the YAML
     _source_path: str | None = PrivateAttr(None)
@@ -332,11 +346,13 @@ def compile_recipe(recipe: Recipe, profile=None, friction_model=None, limits: tj
     """
     if limits is None:
         limits = profile.plan_limits(str(getattr(profile, "name", "profile"))) if profile is not None else None
-    return tj.compile_plan(plan_spec(recipe, profile, friction_model), limits)
+    plan = tj.compile_plan(plan_spec(recipe, profile, friction_model), limits)
+    plan.controller = recipe.controller.model_dump()
+    return plan
 
 
 __all__ = [
-    "Recipe", "RecipeError", "RunIn", "SteppedPass", "VelocitySteps", "VelocityStep", "Hold", "Move",
+    "Recipe", "RecipeError", "ControllerSwitches", "RunIn", "SteppedPass", "VelocitySteps", "VelocityStep", "Hold", "Move",
     "LogRates", "load_recipe", "parse_recipe", "compile_recipe", "plan_spec", "state_length", "LUBRICANTS",
     "DEFAULT_PASS_VELOCITIES_UM_S",
 ]

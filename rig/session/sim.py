@@ -64,7 +64,8 @@ class SimBackend:
         ticks = self.block_ticks
         if self.pace > 0:
             ticks = min(ticks, max(1, int(round(self.PACED_BLOCK_WALL_S * self.pace * rate))))
-        self._blocks = self.rig.run_blocks(plan.x_ref_um, block_ticks=ticks)
+        self._blocks = self.rig.run_blocks(plan.x_ref_um, block_ticks=ticks,
+                                           controller=getattr(plan, "controller", None) or None)
         self._wall0 = time.monotonic()
 
     def _wait_for(self, t_end_s: float) -> None:

@@ -47,7 +47,7 @@ from numba import njit
 from rig.model.friction import (P_A, P_MU0, P_STATE_ON, P_V0, P_VREG, S_THETA, S_THETA2, advance_state,
                                 mu_regularized, periodic_term, wear_term)
 from rig.model.sensors import lowpass_tick, quantize
-from rig.control import controller_step
+from rig.control import controller_step_v
 
 # ---------------------------------------------------------------------------
 # plant parameter vector
@@ -386,17 +386,19 @@ N_OUT = len(BLOCK_KEYS)
 
 
 @njit(cache=True)
-def run_closed_loop(q, fp, fs, st, ring, c, cs, xref, i0, noise, j0, out, k0, count):
+def run_closed_loop(q, fp, fs, st, ring, c, cs, xref, ffref, i0, noise, j0, out, k0, count):
     """``count`` closed-loop ticks: sample sensors, controller (rig.control), advance plant.
 
-    Reads ``xref[i0:]`` and ``noise[j0:]`` (n x 4 standard normals), writes ``out[:, k0:]``
+    Reads ``xref[i0:]``, the feed-forward force ``ffref[i0:]`` (N; an empty array: none) and
+    ``noise[j0:]`` (n x 4 standard normals), writes ``out[:, k0:]``
     (rows in the order of BLOCK_KEYS). Returns ``count``."""
     dt = q[Q_DT]
     for k in range(count):
         lv, fr, n1, n2 = plant_sample(q, st, noise[j0 + k, 0], noise[j0 + k, 1], noise[j0 + k, 2],
                                       noise[j0 + k, 3])
         xr = xref[i0 + k]
-        v, p, i, d, dz = controller_step(c, cs, xr, lv)
+        ffn = ffref[i0 + k] if ffref.shape[0] > 0 else 0.0
+        v, p, i, d, dz = controller_step_v(c, cs, xr, lv, math.nan, ffn)
         o = k0 + k
         out[0, o] = st[Z_TICK] * dt
         out[1, o] = xr

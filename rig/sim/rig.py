@@ -37,11 +37,11 @@ from typing import Iterator
 
 import numpy as np
 
-from rig.control import controller_params_from_profile, new_controller_state
-from rig.model.friction import N_STATE, init_state
+from rig.control import C_FF1, controller_params_from_profile, new_controller_state
+from rig.model.friction import N_STATE, init_state, mu_series
 from rig.model.loading import lvdt_to_interface_compliance_um_per_N
 from rig.model.sensors import cutoff_tau_s, lowpass_coefficients, prefilter_noise_gain
-from rig.model.spec import FrictionModel
+from rig.model.spec import FrictionModel, model_params
 from rig.sim import plant as pl
 from rig.config.profile import RigProfile, default_profile_path, load_profile
 
@@ -133,6 +133,53 @@ def build_plant_params(profile: RigProfile, model: FrictionModel, normal_force_N
     return q
 
 
+def friction_feedforward_N(x_ref_um, dt_s: float, model: FrictionModel, total_normal_N: float,
+                           v_init_um_s: float) -> np.ndarray:
+    """The friction force (N) that ``model``'s rate-and-state terms predict along the
+    reference: the friction feed-forward of the controller (rig.control, G_n), one value
+    per tick.
+
+    F_ff,n = (N_1 + N_2) (mu(v_ref,n, theta_n) - sign(v_ref,n) mu0), v_ref the reference's
+    backward difference (the planner's piecewise-linear/ramped reference: exact), theta
+    integrated along the reference's slip from steady state at ``v_init_um_s``
+    (rig.model.friction.mu_series: eqs. 5-6 and whatever extensions ``model`` has). The
+    constant level mu0 (2N mu0, about 20 N; Table 2 does not give it) is left to the
+    integral term, which carries it without feed-forward too: the chain loads at the start
+    and after each reversal as before. On a velocity step 1 -> v2 the feed-forward is the
+    paper's Fig. 9: the jump 2N A ln(v2/v1), the decay over L to 2N (A - B) ln(v2/v1), so
+    the position loop has no friction transient left to follow (docs/paper.md row 8).
+    While the reference is at rest the last sliding value is held (the stuck interface
+    keeps the load the chain had); 0 before the reference first moves."""
+    x = np.ascontiguousarray(x_ref_um, dtype=np.float64)
+    v = np.empty_like(x)
+    v[1:] = np.diff(x) / dt_s
+    v[0] = v[1] if x.size > 1 else 0.0
+    t = np.arange(x.size) * dt_s
+    mu = mu_series(model.to_array(), t, v, x, float(v_init_um_s))
+    # the rate-and-state part only: the constant level mu0 (which Table 2 does not give) stays
+    # with the integral term, as without feed-forward
+    f = float(total_normal_N) * (mu - np.sign(v) * model.get("mu0"))
+    # at rest the last sliding value is held (0 before the first motion)
+    moving = v != 0.0
+    last = np.where(moving, np.arange(x.size), -1)
+    np.maximum.accumulate(last, out=last)
+    return np.where(last >= 0, f[np.maximum(last, 0)], 0.0)
+
+
+def feedforward_model(model: FrictionModel) -> FrictionModel:
+    """The law the friction feed-forward knows: the model's baseline with its parameters
+    (the paper's eqs. 5-6 for rate_state; ``frictional_memory`` kept, it makes a steady_state
+    baseline rate-and-state), without the other extensions (second state, aging, wear,
+    position-periodic, and the sensor/fixture ones). A real rig feeds forward what it has
+    identified, the single-state law; what `rig diagnose` finds beyond it stays in the
+    record (a feed-forward of the simulated truth would cancel it)."""
+    keep = [e for e in model.extensions if e == "frictional_memory"]
+    names = model_params(model.baseline, keep)
+    return FrictionModel(baseline=model.baseline, extensions=keep,
+                         params={k: v for k, v in model.params.items() if k in names},
+                         V0_um_s=model.V0_um_s, v_reg_um_s=model.v_reg_um_s)
+
+
 def initial_velocity_um_s(x_ref_um, rate_hz: float, creep_um_s: float) -> float:
     """Speed for the initial friction state of a run: the reference's mean speed over its
     first 0.1 s, or ``creep_um_s`` if that is slower (a run starting with a hold)."""
@@ -172,6 +219,8 @@ class SimRig:
         self.fp = friction_model.to_array()
         self.c = controller_params_from_profile(profile)
         self.cs = new_controller_state()
+        self.ff_model: FrictionModel | None = None   # friction feed-forward's model (None: feedforward_model)
+        self.ff_N = np.empty(0)                       # the last run's feed-forward track (N per tick)
         self.st = np.zeros(pl.N_ZSTATE)
         self.fs = np.zeros(N_STATE)
         self.ring = np.zeros(max(1, int(self.q[pl.Q_DELAY])))  # slip velocity of the last `delay` ticks
@@ -222,13 +271,19 @@ class SimRig:
 
     # ------------------------------------------------------------------ closed loop
     def run_blocks(self, x_ref_um, block_ticks: int = 100, reset: bool = True,
-                   chunk_ticks: int = 20000) -> Iterator[dict]:
+                   chunk_ticks: int = 20000, controller: dict | None = None) -> Iterator[dict]:
         """Run the closed loop over the reference (µm, one value per tick); yield block dicts.
 
         Each block is a dict of numpy arrays (keys BLOCK_KEYS) covering ``block_ticks`` ticks
         (the last may be shorter). With ``reset`` (default), the run starts at rest at
         ``x_ref[0]`` (see the module docstring). The reference is checked here, before any
-        block is produced (ValueError)."""
+        block is produced (ValueError).
+
+        ``controller``: the recipe's feed-forward switches for this run (a compiled plan's
+        ``controller``, rig.config.recipe.ControllerSwitches): ``ff1`` False sets the
+        profile's FF1 gain to 0; ``friction_ff`` True feeds :func:`friction_feedforward_N` of
+        :attr:`ff_model` (default: :func:`feedforward_model` of the simulated friction model:
+        its single-state law, exact for the profile's lubricants) at the nominal 2 N. None: the profile's FF1, no friction feed-forward."""
         xref = np.ascontiguousarray(x_ref_um, dtype=np.float64)
         if xref.ndim != 1 or xref.size == 0:
             raise ValueError("x_ref_um must be a non-empty 1-D array")
@@ -241,13 +296,26 @@ class SimRig:
         if lo < lv.min_um or hi > lv.max_um:
             raise ValueError(f"x_ref_um spans {lo:g}..{hi:g} µm, outside the LVDT range "
                              f"{lv.min_um:g}..{lv.max_um:g} µm of profile '{self.profile.name}'")
-        return self._blocks(xref, block_ticks, reset, chunk_ticks)
+        sw = dict(controller or {})
+        unknown = set(sw) - {"ff1", "friction_ff"}
+        if unknown:
+            raise ValueError(f"controller switches: unknown {sorted(unknown)} (known: ff1, friction_ff)")
+        self.c = controller_params_from_profile(self.profile)
+        if not sw.get("ff1", True):
+            self.c[C_FF1] = 0.0
+        v_init = initial_velocity_um_s(xref, self.rate_hz, self.profile.sim.initial_creep_um_s)
+        ff = np.empty(0)
+        if sw.get("friction_ff", False):
+            ff = friction_feedforward_N(xref, self.dt_s, self.ff_model or feedforward_model(self.friction_model),
+                                        2.0 * self.normal_force_N, v_init)
+        self.ff_N = ff
+        return self._blocks(xref, ff, block_ticks, reset, chunk_ticks, v_init)
 
-    def _blocks(self, xref: np.ndarray, block_ticks: int, reset: bool, chunk_ticks: int) -> Iterator[dict]:
+    def _blocks(self, xref: np.ndarray, ff: np.ndarray, block_ticks: int, reset: bool, chunk_ticks: int,
+                v_init: float) -> Iterator[dict]:
         n = xref.size
         if reset:
-            self.reset(float(xref[0]),
-                       initial_velocity_um_s(xref, self.rate_hz, self.profile.sim.initial_creep_um_s))
+            self.reset(float(xref[0]), v_init)
         chunk = max(block_ticks, (max(chunk_ticks, block_ticks) // block_ticks) * block_ticks)
         i = 0
         while i < n:
@@ -256,7 +324,7 @@ class SimRig:
             k = 0
             while k < m:
                 page, j0, cnt = self._noise(m - k)
-                pl.run_closed_loop(self.q, self.fp, self.fs, self.st, self.ring, self.c, self.cs, xref, i + k,
+                pl.run_closed_loop(self.q, self.fp, self.fs, self.st, self.ring, self.c, self.cs, xref, ff, i + k,
                                    page, j0, out, k, cnt)
                 k += cnt
             for b in range(0, m, block_ticks):
