@@ -18,7 +18,7 @@ Variants (kp 0.5 N/µm, ki 5, kd 0.003 of config/rigs/sim.yaml in all):
 * "FF1 0.1": velocity feed-forward 0.1 N s/µm alone (the previous default);
 * "FF1 0.02": the natural FF1 alone, the actuator's leakage slope k_h tau_L = 0.02 N s/µm;
 * "FF1 0.02 + friction FF": plus the friction the model predicts along the reference
-  (rig.sim.rig.friction_feedforward_N; the default of recipes: controller.friction_ff);
+  (rig.model.feedforward.friction_feedforward_N; the default of recipes: controller.friction_ff);
 * "... model off": the same with the feed-forward's model wrong by A x1.3, B x0.8, L x1.3
   and mu0 + 0.005 (a poorly identified model; the simulated interface keeps the true one).
 

@@ -121,6 +121,23 @@ def controller_params_from_profile(profile) -> np.ndarray:
         getattr(c, "ff1_N_s_per_um", 0.0))
 
 
+CONTROLLER_SWITCHES = ("ff1", "friction_ff")
+
+
+def apply_switches(c: np.ndarray, switches: dict | None) -> np.ndarray:
+    """The recipe's feed-forward switches (``controller:`` of a recipe, a compiled plan's
+    ``controller``) applied to a controller parameter vector, in place: ``ff1`` False sets
+    FF1 to 0 for this run (the gain stays the profile's otherwise). ``friction_ff`` is a
+    per-tick force array (rig.model.feedforward), not a gain. None: the profile as it is."""
+    sw = dict(switches or {})
+    unknown = set(sw) - set(CONTROLLER_SWITCHES)
+    if unknown:
+        raise ValueError(f"controller switches: unknown {sorted(unknown)} (known: {', '.join(CONTROLLER_SWITCHES)})")
+    if not sw.get("ff1", True):
+        c[C_FF1] = 0.0
+    return c
+
+
 def new_controller_state() -> np.ndarray:
     s = np.zeros(N_CSTATE)
     s[K_FIRST] = 1.0

@@ -22,7 +22,7 @@ from rig.model.spec import FrictionModel
 from rig.session.memory import MemoryLog
 from rig.session.sim import simulate
 from rig.sim import SimRig
-from rig.sim.rig import friction_feedforward_N
+from rig.model.feedforward import friction_feedforward_N
 
 RECIPE = Path(__file__).resolve().parent.parent / "config" / "recipes" / "velocity-steps.yaml"
 MOVE = textwrap.dedent("""\

@@ -35,6 +35,7 @@ PR_SET_PDEATHSIG -> SIGTERM with the parent gone is the same trip).
 from __future__ import annotations
 
 import gc
+import math
 import signal
 import time
 import traceback
@@ -44,7 +45,7 @@ import numpy as np
 
 from drivers.config import parse_hardware
 from drivers.errors import DeviceError
-from rig.control import controller_params_from_profile, controller_step, new_controller_state
+from rig.control import apply_switches, controller_params_from_profile, controller_step_v, new_controller_state
 from rig.hardware.devices import build_devices, wait_for_data
 from rig.hardware.interlocks import DEVICE_TRIPS, Interlocks, Trip
 from rig.hardware.timing import Pacer, set_pdeathsig, set_process_name, setup_realtime
@@ -148,7 +149,11 @@ def _run(hw_dict, profile, x_ref, out_q, abort_flag, stop_req, options, logger_a
     rt, ilc = hw.realtime, hw.interlocks
     period = float(options.get("period_s") or profile.loop.dt_s)
     use_ctl = options.get("controller", True)
-    cpar = controller_params_from_profile(profile)
+    cpar = apply_switches(controller_params_from_profile(profile), options.get("switches"))
+    ff_N = np.ascontiguousarray(options.get("ff_N", np.empty(0)), dtype=np.float64)  # friction feed-forward per tick
+    if ff_N.size and ff_N.size != len(x_ref):
+        raise ValueError(f"friction feed-forward has {ff_N.size} ticks, the reference {len(x_ref)}")
+    n_ff = int(ff_N.size)
     cst = new_controller_state()
     rig = build_devices(hw)
     devices = rig.all
@@ -179,7 +184,7 @@ def _run(hw_dict, profile, x_ref, out_q, abort_flag, stop_req, options, logger_a
     out_q.put(("info", {"realtime": rt_info, "period_s": period,
                         "devices": {d.name: d.address for d in devices}}))
     # everything compiled and imported before the first tick
-    controller_step(cpar, cst, float(x_ref[0]), float(x_ref[0]))
+    controller_step_v(cpar, cst, float(x_ref[0]), float(x_ref[0]), math.nan, 0.0)
     cst[:] = new_controller_state()
     il.command(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 
@@ -312,7 +317,10 @@ def _run(hw_dict, profile, x_ref, out_q, abort_flag, stop_req, options, logger_a
         if mode is Mode.SAFE or not use_ctl:
             cmd = p = i_ = d_ = dz = 0.0
         else:
-            cmd, p, i_, d_, dz = controller_step(cpar, cst, xr, x)
+            ffk = 0.0
+            if n_ff:  # held with the reference (hold, stall): the force of the tick the reference is at
+                ffk = float(ff_N[kr if kr < n_ff else n_ff - 1])
+            cmd, p, i_, d_, dz = controller_step_v(cpar, cst, xr, x, math.nan, ffk)
             s_ = cmd + p + i_ + d_ + dz
             if s_ - s_ != 0.0:  # a non-finite controller output: never sent (the driver would null it)
                 tr = il.command(t_s, cmd, p, i_, d_, dz)

@@ -30,7 +30,7 @@ from rig.hardware.emulated import EmulatorError, start_emulator_process
 from rig.hardware.loop import ABORT_FAIL, ABORT_OPERATOR, loop_main
 from rig.hardware.timing import TimingStats, format_stats
 from rig.session.core import BackendError, Block, Ending, Event
-from rig.sim import initial_velocity_um_s
+from rig.model.feedforward import friction_feedforward_for_plan, initial_velocity_um_s
 
 
 class HardwareBackend:
@@ -98,6 +98,21 @@ class HardwareBackend:
         if self.emulator is not None:
             self.emulator.reset_plant(float(x_ref[0]), initial_velocity_um_s(
                 x_ref, self.rate_hz, self.profile.sim.initial_creep_um_s))
+        switches = dict(getattr(plan, "controller", None) or {})
+        ff_N = np.empty(0)
+        if switches.get("friction_ff", False):
+            # the rig knows the profile's identified single-state law of the recipe's lubricant
+            if not self.lubricant:
+                raise BackendError("the recipe asks for friction feed-forward (controller.friction_ff) but "
+                                   "names no lubricant whose model the profile has")
+            try:
+                model = self.profile.friction_model(self.lubricant)
+            except ValueError as exc:
+                raise BackendError(f"friction feed-forward: {exc}") from None
+            nf = float(self.normal_force_N or self.profile.normal.nominal_force_N)
+            ff_N = friction_feedforward_for_plan(switches, x_ref, 1.0 / self.rate_hz, model, 2.0 * nf,
+                                                 initial_velocity_um_s(x_ref, self.rate_hz,
+                                                                       self.profile.sim.initial_creep_um_s))
         ctx = mp.get_context("spawn")
         self.q = ctx.Queue()
         self.abort = ctx.Value("i", 0, lock=False)
@@ -105,7 +120,8 @@ class HardwareBackend:
         self.logger_alive = ctx.Value("d", 0.0, lock=False)
         self.proc = ctx.Process(target=loop_main, name="rig-rt-loop", daemon=True,
                                 args=(self.hw.model_dump(), self.profile, x_ref, self.q, self.abort,
-                                      {"period_s": 1.0 / self.rate_hz, "controller": self.controller},
+                                      {"period_s": 1.0 / self.rate_hz, "controller": self.controller,
+                                       "switches": switches, "ff_N": ff_N},
                                       self.logger_ack, self.logger_alive))
         self.proc.start()
 

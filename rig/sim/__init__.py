@@ -3,6 +3,7 @@
 plant.py: the numba plant and closed-loop kernels; rig.py: :class:`SimRig`.
 """
 
-from rig.sim.rig import BLOCK_KEYS, SimRig, build_plant_params, initial_velocity_um_s
+from rig.model.feedforward import initial_velocity_um_s
+from rig.sim.rig import BLOCK_KEYS, SimRig, build_plant_params
 
 __all__ = ["BLOCK_KEYS", "SimRig", "build_plant_params", "initial_velocity_um_s"]

@@ -37,11 +37,13 @@ from typing import Iterator
 
 import numpy as np
 
-from rig.control import C_FF1, controller_params_from_profile, new_controller_state
-from rig.model.friction import N_STATE, init_state, mu_series
+from rig.control import apply_switches, controller_params_from_profile, new_controller_state
+from rig.model.feedforward import (friction_feedforward_for_plan, friction_feedforward_N,  # noqa: F401
+                                   feedforward_model, initial_velocity_um_s)
+from rig.model.friction import N_STATE, init_state
 from rig.model.loading import lvdt_to_interface_compliance_um_per_N
 from rig.model.sensors import cutoff_tau_s, lowpass_coefficients, prefilter_noise_gain
-from rig.model.spec import FrictionModel, model_params
+from rig.model.spec import FrictionModel
 from rig.sim import plant as pl
 from rig.config.profile import RigProfile, default_profile_path, load_profile
 
@@ -131,62 +133,6 @@ def build_plant_params(profile: RigProfile, model: FrictionModel, normal_force_N
     q[pl.Q_DELAY] = max(1, int(round(model.get("delay_s", 0.0) / dt))) if delayed else 0
     q[pl.Q_MIH] = profile.sim.interface_mass_kg * 1e-6 / h
     return q
-
-
-def friction_feedforward_N(x_ref_um, dt_s: float, model: FrictionModel, total_normal_N: float,
-                           v_init_um_s: float) -> np.ndarray:
-    """The friction force (N) that ``model``'s rate-and-state terms predict along the
-    reference: the friction feed-forward of the controller (rig.control, G_n), one value
-    per tick.
-
-    F_ff,n = (N_1 + N_2) (mu(v_ref,n, theta_n) - sign(v_ref,n) mu0), v_ref the reference's
-    backward difference (the planner's piecewise-linear/ramped reference: exact), theta
-    integrated along the reference's slip from steady state at ``v_init_um_s``
-    (rig.model.friction.mu_series: eqs. 5-6 and whatever extensions ``model`` has). The
-    constant level mu0 (2N mu0, about 20 N; Table 2 does not give it) is left to the
-    integral term, which carries it without feed-forward too: the chain loads at the start
-    and after each reversal as before. On a velocity step 1 -> v2 the feed-forward is the
-    paper's Fig. 9: the jump 2N A ln(v2/v1), the decay over L to 2N (A - B) ln(v2/v1), so
-    the position loop has no friction transient left to follow (docs/paper.md row 8).
-    While the reference is at rest the last sliding value is held (the stuck interface
-    keeps the load the chain had); 0 before the reference first moves."""
-    x = np.ascontiguousarray(x_ref_um, dtype=np.float64)
-    v = np.empty_like(x)
-    v[1:] = np.diff(x) / dt_s
-    v[0] = v[1] if x.size > 1 else 0.0
-    t = np.arange(x.size) * dt_s
-    mu = mu_series(model.to_array(), t, v, x, float(v_init_um_s))
-    # the rate-and-state part only: the constant level mu0 (which Table 2 does not give) stays
-    # with the integral term, as without feed-forward
-    f = float(total_normal_N) * (mu - np.sign(v) * model.get("mu0"))
-    # at rest the last sliding value is held (0 before the first motion)
-    moving = v != 0.0
-    last = np.where(moving, np.arange(x.size), -1)
-    np.maximum.accumulate(last, out=last)
-    return np.where(last >= 0, f[np.maximum(last, 0)], 0.0)
-
-
-def feedforward_model(model: FrictionModel) -> FrictionModel:
-    """The law the friction feed-forward knows: the model's baseline with its parameters
-    (the paper's eqs. 5-6 for rate_state; ``frictional_memory`` kept, it makes a steady_state
-    baseline rate-and-state), without the other extensions (second state, aging, wear,
-    position-periodic, and the sensor/fixture ones). A real rig feeds forward what it has
-    identified, the single-state law; what `rig diagnose` finds beyond it stays in the
-    record (a feed-forward of the simulated truth would cancel it)."""
-    keep = [e for e in model.extensions if e == "frictional_memory"]
-    names = model_params(model.baseline, keep)
-    return FrictionModel(baseline=model.baseline, extensions=keep,
-                         params={k: v for k, v in model.params.items() if k in names},
-                         V0_um_s=model.V0_um_s, v_reg_um_s=model.v_reg_um_s)
-
-
-def initial_velocity_um_s(x_ref_um, rate_hz: float, creep_um_s: float) -> float:
-    """Speed for the initial friction state of a run: the reference's mean speed over its
-    first 0.1 s, or ``creep_um_s`` if that is slower (a run starting with a hold)."""
-    x = np.asarray(x_ref_um, dtype=float)
-    k = min(x.size - 1, int(round(0.1 * rate_hz)))
-    v0 = abs(x[k] - x[0]) * rate_hz / k if k > 0 else 0.0
-    return v0 if v0 > creep_um_s else creep_um_s
 
 
 class SimRig:
@@ -296,18 +242,13 @@ class SimRig:
         if lo < lv.min_um or hi > lv.max_um:
             raise ValueError(f"x_ref_um spans {lo:g}..{hi:g} µm, outside the LVDT range "
                              f"{lv.min_um:g}..{lv.max_um:g} µm of profile '{self.profile.name}'")
-        sw = dict(controller or {})
-        unknown = set(sw) - {"ff1", "friction_ff"}
-        if unknown:
-            raise ValueError(f"controller switches: unknown {sorted(unknown)} (known: ff1, friction_ff)")
-        self.c = controller_params_from_profile(self.profile)
-        if not sw.get("ff1", True):
-            self.c[C_FF1] = 0.0
+        self.c = apply_switches(controller_params_from_profile(self.profile), controller)
         v_init = initial_velocity_um_s(xref, self.rate_hz, self.profile.sim.initial_creep_um_s)
-        ff = np.empty(0)
-        if sw.get("friction_ff", False):
-            ff = friction_feedforward_N(xref, self.dt_s, self.ff_model or feedforward_model(self.friction_model),
-                                        2.0 * self.normal_force_N, v_init)
+        if self.ff_model is not None and (controller or {}).get("friction_ff", False):
+            ff = friction_feedforward_N(xref, self.dt_s, self.ff_model, 2.0 * self.normal_force_N, v_init)
+        else:
+            ff = friction_feedforward_for_plan(controller, xref, self.dt_s, self.friction_model,
+                                               2.0 * self.normal_force_N, v_init)
         self.ff_N = ff
         return self._blocks(xref, ff, block_ticks, reset, chunk_ticks, v_init)
 
