@@ -79,6 +79,26 @@ def default_jobs() -> int:
 CONNECT_TIMEOUT_S = 10.0  # how long to try reaching --scheduler before giving up
 
 
+# The LocalCluster's configuration (measured in docs/scaling.md, "Where the time went"):
+# - workers are separate processes (the analyses hold the GIL), one thread each;
+# - no spill to disk and no memory target: tasks are small and their data travels by path;
+# - the worker environment is Dask's default *without* MALLOC_TRIM_THRESHOLD_=65536: with it,
+#   glibc hands every freed block above 64 kB back to the kernel and the next numpy temporary
+#   faults it in again; a reproduce trial then costs 22 % more CPU than in a plain process
+#   (10.8 s against 8.8 s for 24 trials, the same in a serial run given that variable);
+#   one BLAS/OpenMP thread per worker is kept (N workers on N cores);
+# - no statistical profiler in the workers (it samples the task's stack every 10 ms, 3-4 %
+#   of a task's CPU, for a dashboard that is off).
+WORKER_CONFIG = {
+    "distributed.worker.daemon": False,
+    "distributed.admin.tick.limit": "60s",
+    "distributed.worker.memory.spill": False,
+    "distributed.worker.memory.target": False,
+    "distributed.nanny.pre-spawn-environ": {"OMP_NUM_THREADS": 1, "MKL_NUM_THREADS": 1, "OPENBLAS_NUM_THREADS": 1},
+    "distributed.worker.profile.enabled": False,
+}
+
+
 class BatchError(RuntimeError):
     """The engine could not start (bad --jobs, unreachable scheduler, Dask missing)."""
 
@@ -108,10 +128,7 @@ def dask_client(jobs: int | None = None, scheduler: str | None = None) -> Iterat
         raise BatchError(f"--jobs must be at least 1 (got {jobs})")
     import dask
 
-    # workers are separate processes (the analyses hold the GIL); no dashboard, no spill
-    # to disk: tasks are small and their data travels by path
-    with dask.config.set({"distributed.worker.daemon": False, "distributed.admin.tick.limit": "60s",
-                          "distributed.worker.memory.spill": False, "distributed.worker.memory.target": False}):
+    with dask.config.set(WORKER_CONFIG):
         cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
                                silence_logs=40)
         client = Client(cluster)
@@ -124,12 +141,16 @@ def dask_client(jobs: int | None = None, scheduler: str | None = None) -> Iterat
 
 def run_tasks(fn: Callable[[Any], Any], items: Iterable[Any], *, jobs: int | None = None,
               scheduler: str | None = None, progress: Callable[[int, int, TaskResult], None] | None = None,
-              client: Any = None) -> list[TaskResult]:
+              client: Any = None, cost: Callable[[Any], float] | None = None) -> list[TaskResult]:
     """Map ``fn`` (a top-level function of one plain argument) over ``items``.
 
     ``jobs=1`` and no ``scheduler``/``client``: serial, in this process. Otherwise on Dask
     (see the module docstring). The results are in the order of ``items``; a failed task
     is a ``TaskResult`` with ``ok=False``; ``progress`` sees each one as it finishes.
+
+    ``cost(item)``, an estimate of a task's run time in any unit, orders the work on Dask:
+    longest first (LPT), so that the batch does not end with one worker finishing a long task
+    while the others are idle. It changes no result, only the order of completion.
     """
     items = list(items)
     total = len(items)
@@ -144,18 +165,31 @@ def run_tasks(fn: Callable[[Any], Any], items: Iterable[Any], *, jobs: int | Non
                 progress(i + 1, total, r)
         return out
     if client is not None:
-        return _run_on(client, fn, items, progress)
+        return _run_on(client, fn, items, progress, cost)
     with dask_client(jobs, scheduler) as c:
-        return _run_on(c, fn, items, progress)
+        return _run_on(c, fn, items, progress, cost)
 
 
-def _run_on(client, fn, items, progress) -> list[TaskResult]:
+def lpt_order(items: list, cost: Callable[[Any], float] | None) -> list[int]:
+    """Indices of ``items``, longest estimated ``cost`` first (ties: input order); the input
+    order when ``cost`` is None."""
+    if cost is None:
+        return list(range(len(items)))
+    c = [float(cost(it)) for it in items]
+    return sorted(range(len(items)), key=lambda i: (-c[i], i))
+
+
+def _run_on(client, fn, items, progress, cost=None) -> list[TaskResult]:
     from distributed import as_completed
 
-    # pure=False: every item is its own task, even equal ones; the key keeps the order
-    futures = [client.submit(_guarded, fn, it, pure=False, key=f"rig-task-{i}-{os.getpid()}-{time.time_ns()}")
-               for i, it in enumerate(items)]
-    index = {f.key: i for i, f in enumerate(futures)}
+    order = lpt_order(items, cost)
+    # pure=False: every item is its own task, even equal ones; the key maps a result back to
+    # its item; the priority (higher first) makes the scheduler hand them out in LPT order
+    stamp = f"{os.getpid()}-{time.time_ns()}"
+    futures = [client.submit(_guarded, fn, items[i], pure=False, key=f"rig-task-{i}-{stamp}",
+                             priority=len(order) - rank)
+               for rank, i in enumerate(order)]
+    index = {f.key: i for f, i in zip(futures, order)}
     out: list[TaskResult | None] = [None] * len(items)
     done = 0
     for fut in as_completed(futures):
@@ -174,7 +208,7 @@ def _run_on(client, fn, items, progress) -> list[TaskResult]:
 
 @contextmanager
 def mapper(jobs: int | None = None, scheduler: str | None = None, progress: Callable[[], None] | None = None):
-    """A ``map(fn, items) -> list`` for code that takes a mapper (``rig reproduce``, ``rig
+    """A ``map(fn, items, cost=None) -> list`` for code that takes a mapper (``rig reproduce``, ``rig
     stability``), as a context manager holding one Dask client for all its calls (none when
     ``jobs=1``): results in order; a failed task raises ``RuntimeError`` naming it (those
     runs have no per-item failure to record). ``progress()`` is called per finished task."""
@@ -187,20 +221,20 @@ def mapper(jobs: int | None = None, scheduler: str | None = None, progress: Call
         return [r.value for r in res]
 
     if jobs == 1 and scheduler is None:
-        yield lambda fn, items: _check(run_tasks(fn, items, jobs=1, progress=cb))
+        yield lambda fn, items, cost=None: _check(run_tasks(fn, items, jobs=1, progress=cb))
         return
     with ExitStack() as stack:
         clients: list = []
 
-        def _map(fn, items):
+        def _map(fn, items, cost=None):
             items = list(items)
             if len(items) <= 1 and scheduler is None and not clients:  # one task: no cluster to start
                 return _check(run_tasks(fn, items, jobs=1, progress=cb))
             if not clients:  # started on first use, kept for the later calls
                 clients.append(stack.enter_context(dask_client(jobs, scheduler)))
-            return _check(run_tasks(fn, items, client=clients[0], progress=cb))
+            return _check(run_tasks(fn, items, client=clients[0], progress=cb, cost=cost))
 
         yield _map
 
 
-__all__ = ["TaskResult", "BatchError", "run_tasks", "dask_client", "mapper", "default_jobs"]
+__all__ = ["TaskResult", "BatchError", "run_tasks", "dask_client", "mapper", "default_jobs", "lpt_order"]
