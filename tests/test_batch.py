@@ -182,3 +182,19 @@ def test_local_cluster_workers_and_longest_first_order():
     assert longest["params"]["L_um"] == max(t["params"]["L_um"] for t in dry)
     assert trial_cost_s(longest) > max(trial_cost_s(t) for t in boundary)
     assert trial_cost_s({"params": {"L_um": 5.0}}) == trial_cost_s({"params": {"L_um": 19.0}})
+
+
+def test_own_cluster_starts_while_this_process_works(files):
+    """run_tasks(jobs=2) with no cluster: this process runs the cheapest files while its
+    LocalCluster starts, the workers the rest; the results are the serial ones, in order."""
+    root, good, bad = files
+    items = [(str(p), {}) for p in good]
+    serial = run_tasks(identify_file, items, jobs=1)
+    seen = []
+    par = run_tasks(identify_file, items, jobs=2, cost=lambda it: int(it[0][-5]),  # t0..t5: t0 cheapest
+                    progress=lambda d, t, r: seen.append(d))
+    assert seen == list(range(1, len(items) + 1))
+    where = [r.worker.split(":")[0] for r in par]
+    assert "local" in where and "tcp" in where  # both took part
+    assert where[0] == "local"  # the cheapest first here (longest first on the workers)
+    assert [_canon(a.value) for a in serial] == [_canon(b.value) for b in par]

@@ -24,6 +24,7 @@ so a run on a cluster is bit for bit the serial run (``tests/test_batch.py``).
 from __future__ import annotations
 
 import os
+import threading
 import time
 import traceback
 from contextlib import ExitStack, contextmanager
@@ -99,14 +100,31 @@ WORKER_CONFIG = {
 }
 
 
+# A Nanny with Dask's default configuration writes its pre-spawn variables into *this*
+# process's environment and leaves them there (distributed 2026.8, nanny.py), so one default
+# LocalCluster in a process would hand MALLOC_TRIM_THRESHOLD_ to every later worker; the
+# value this process started with is put back before each of ours starts.
+_MALLOC_ENV = "MALLOC_TRIM_THRESHOLD_"
+_MALLOC_ENV_AT_IMPORT = os.environ.get(_MALLOC_ENV)
+
+
+def _restore_malloc_env() -> None:
+    if _MALLOC_ENV_AT_IMPORT is None:
+        os.environ.pop(_MALLOC_ENV, None)
+    else:
+        os.environ[_MALLOC_ENV] = _MALLOC_ENV_AT_IMPORT
+
+
 class BatchError(RuntimeError):
     """The engine could not start (bad --jobs, unreachable scheduler, Dask missing)."""
 
 
 @contextmanager
-def dask_client(jobs: int | None = None, scheduler: str | None = None) -> Iterator[Any]:
+def dask_client(jobs: int | None = None, scheduler: str | None = None, preload: Iterable[str] = ()) -> Iterator[Any]:
     """A ``distributed.Client``: to ``scheduler`` when given, else to a new LocalCluster of
-    ``jobs`` worker processes (default: every core), one thread each; closed on exit."""
+    ``jobs`` worker processes (default: every core), one thread each; closed on exit.
+    ``preload``: modules each new worker imports before it joins (a task's module), so that
+    a joined worker computes at once instead of importing numpy, scipy and rig first."""
     try:
         from distributed import Client, LocalCluster
     except ImportError as exc:  # pragma: no cover - a dependency of rig
@@ -128,9 +146,10 @@ def dask_client(jobs: int | None = None, scheduler: str | None = None) -> Iterat
         raise BatchError(f"--jobs must be at least 1 (got {jobs})")
     import dask
 
+    _restore_malloc_env()
     with dask.config.set(WORKER_CONFIG):
         cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
-                               silence_logs=40)
+                               silence_logs=40, preload=list(preload))
         client = Client(cluster)
         try:
             yield client
@@ -139,13 +158,127 @@ def dask_client(jobs: int | None = None, scheduler: str | None = None) -> Iterat
             cluster.close()
 
 
+class Engine:
+    """Where a batch's tasks run, for one or more :meth:`run` calls (one cluster for all).
+
+    - ``jobs=1``, no ``scheduler``: serially in this process (no Dask);
+    - ``scheduler``: on that cluster, connected at the first run;
+    - otherwise a LocalCluster of ``jobs`` workers (default: every core), started **in the
+      background** at the first run with more than one task, its workers importing the task's
+      module before they join; meanwhile this process computes the batch's cheapest tasks
+      itself (the end of the longest-first order), one at a time, and hands the rest to the
+      workers once they are up. The start (1.5-3 s here) and the workers' imports (about 1 s)
+      then cost a batch little: this process's core would otherwise be idle, waiting.
+
+    The results do not depend on where a task ran (pure tasks: ``tests/test_batch.py``).
+    """
+
+    def __init__(self, jobs: int | None = None, scheduler: str | None = None, client: Any = None):
+        if jobs is not None and int(jobs) < 1:
+            raise BatchError(f"--jobs must be at least 1 (got {jobs})")
+        self.jobs, self.scheduler = jobs, scheduler
+        self._client = client
+        self._stack = ExitStack()
+        self._thread: threading.Thread | None = None
+        self._ready = threading.Event()
+        self._error: BaseException | None = None
+        self.local_tasks = 0  # tasks this process ran while the cluster started (a figure for benchmarks)
+
+    @property
+    def serial(self) -> bool:
+        return self._client is None and self.scheduler is None and self.jobs == 1
+
+    def _start(self, preload: list[str]) -> None:
+        def _run():
+            try:
+                self._client = self._stack.enter_context(dask_client(self.jobs, None, preload=preload))
+            except BaseException as exc:  # noqa: BLE001 - reported by client()
+                self._error = exc
+            finally:
+                self._ready.set()
+
+        self._thread = threading.Thread(target=_run, name="rig-cluster-start", daemon=True)
+        self._thread.start()
+
+    def client(self) -> Any:
+        """The Dask client (waits for a cluster being started; raises its start's error)."""
+        if self._thread is not None:
+            self._thread.join()
+            if self._error is not None:
+                if isinstance(self._error, BatchError):
+                    raise self._error
+                raise BatchError(f"the local Dask cluster did not start: {type(self._error).__name__}: "
+                                 f"{self._error}") from self._error
+        elif self._client is None:
+            self._client = self._stack.enter_context(dask_client(self.jobs, self.scheduler))
+        return self._client
+
+    def run(self, fn: Callable[[Any], Any], items: Iterable[Any], *,
+            progress: Callable[[int, int, TaskResult], None] | None = None,
+            cost: Callable[[Any], float] | None = None) -> list[TaskResult]:
+        """:func:`run_tasks` on this engine."""
+        items = list(items)
+        n = len(items)
+        out: list[TaskResult | None] = [None] * n
+        order = lpt_order(items, cost)
+        done = 0
+
+        def _local(i):
+            nonlocal done
+            r = _guarded(fn, items[i])
+            out[i] = r
+            done += 1
+            if progress:
+                progress(done, n, r)
+
+        nothing_started = self._client is None and self._thread is None
+        if self.serial or (nothing_started and self.scheduler is None and n <= 1):  # one task: no cluster
+            for i in range(n):
+                _local(i)
+            return out  # type: ignore[return-value]
+        if nothing_started and self.scheduler is None:
+            self._start([fn.__module__] if fn.__module__ not in ("__main__", "__mp_main__") else [])
+        rest = order
+        if self._thread is not None:
+            # the cheapest tasks here while the cluster starts; the rest (longest first) to it
+            while len(rest) > 1 and not self._ready.is_set():
+                _local(rest[-1])
+                rest = rest[:-1]
+                self.local_tasks += 1
+        if rest:
+            d0 = done
+            sub = _run_on(self.client(), fn, [items[i] for i in rest],
+                          (lambda d, t, r: progress(d0 + d, n, r)) if progress else None)
+            for i, r in zip(rest, sub):
+                out[i] = r
+        return out  # type: ignore[return-value]
+
+    def close(self) -> None:
+        if self._thread is not None:
+            self._thread.join()
+        self._stack.close()
+
+
+@contextmanager
+def engine(jobs: int | None = None, scheduler: str | None = None) -> Iterator[Engine]:
+    """An :class:`Engine` for several runs (one cluster), closed on exit; pass it as
+    ``run_tasks(..., client=engine)``."""
+    eng = Engine(jobs, scheduler)
+    try:
+        yield eng
+    finally:
+        eng.close()
+
+
 def run_tasks(fn: Callable[[Any], Any], items: Iterable[Any], *, jobs: int | None = None,
               scheduler: str | None = None, progress: Callable[[int, int, TaskResult], None] | None = None,
               client: Any = None, cost: Callable[[Any], float] | None = None) -> list[TaskResult]:
     """Map ``fn`` (a top-level function of one plain argument) over ``items``.
 
     ``jobs=1`` and no ``scheduler``/``client``: serial, in this process. Otherwise on Dask
-    (see the module docstring). The results are in the order of ``items``; a failed task
+    (see the module docstring): ``client`` a ``distributed.Client`` or an :class:`Engine`;
+    without one, an engine for this call alone (its LocalCluster starts while this process
+    works, see :class:`Engine`). The results are in the order of ``items``; a failed task
     is a ``TaskResult`` with ``ok=False``; ``progress`` sees each one as it finishes.
 
     ``cost(item)``, an estimate of a task's run time in any unit, orders the work on Dask:
@@ -153,21 +286,14 @@ def run_tasks(fn: Callable[[Any], Any], items: Iterable[Any], *, jobs: int | Non
     while the others are idle. It changes no result, only the order of completion.
     """
     items = list(items)
-    total = len(items)
     if not items:
         return []
-    if client is None and scheduler is None and (jobs == 1 or total == 1):  # serial; one task: no cluster
-        out = []
-        for i, it in enumerate(items):
-            r = _guarded(fn, it)
-            out.append(r)
-            if progress:
-                progress(i + 1, total, r)
-        return out
+    if isinstance(client, Engine):
+        return client.run(fn, items, progress=progress, cost=cost)
     if client is not None:
         return _run_on(client, fn, items, progress, cost)
-    with dask_client(jobs, scheduler) as c:
-        return _run_on(c, fn, items, progress, cost)
+    with engine(jobs, scheduler) as eng:
+        return eng.run(fn, items, progress=progress, cost=cost)
 
 
 def lpt_order(items: list, cost: Callable[[Any], float] | None) -> list[int]:
@@ -208,10 +334,10 @@ def _run_on(client, fn, items, progress, cost=None) -> list[TaskResult]:
 
 @contextmanager
 def mapper(jobs: int | None = None, scheduler: str | None = None, progress: Callable[[], None] | None = None):
-    """A ``map(fn, items, cost=None) -> list`` for code that takes a mapper (``rig reproduce``, ``rig
-    stability``), as a context manager holding one Dask client for all its calls (none when
-    ``jobs=1``): results in order; a failed task raises ``RuntimeError`` naming it (those
-    runs have no per-item failure to record). ``progress()`` is called per finished task."""
+    """A ``map(fn, items, cost=None) -> list`` for code that takes a mapper (``rig reproduce``,
+    ``rig stability``), as a context manager holding one :class:`Engine` for all its calls:
+    results in order; a failed task raises ``RuntimeError`` naming it (those runs have no
+    per-item failure to record). ``progress()`` is called per finished task."""
     cb = (lambda d, t, r: progress()) if progress else None
 
     def _check(res):
@@ -220,21 +346,8 @@ def mapper(jobs: int | None = None, scheduler: str | None = None, progress: Call
                 raise RuntimeError(f"task {repr(r.item)[:160]} failed: {r.error}")
         return [r.value for r in res]
 
-    if jobs == 1 and scheduler is None:
-        yield lambda fn, items, cost=None: _check(run_tasks(fn, items, jobs=1, progress=cb))
-        return
-    with ExitStack() as stack:
-        clients: list = []
-
-        def _map(fn, items, cost=None):
-            items = list(items)
-            if len(items) <= 1 and scheduler is None and not clients:  # one task: no cluster to start
-                return _check(run_tasks(fn, items, jobs=1, progress=cb))
-            if not clients:  # started on first use, kept for the later calls
-                clients.append(stack.enter_context(dask_client(jobs, scheduler)))
-            return _check(run_tasks(fn, items, client=clients[0], progress=cb, cost=cost))
-
-        yield _map
+    with engine(jobs, scheduler) as eng:
+        yield lambda fn, items, cost=None: _check(eng.run(fn, items, progress=cb, cost=cost))
 
 
-__all__ = ["TaskResult", "BatchError", "run_tasks", "dask_client", "mapper", "default_jobs", "lpt_order"]
+__all__ = ["TaskResult", "BatchError", "run_tasks", "dask_client", "mapper", "default_jobs", "lpt_order", "Engine", "engine"]
