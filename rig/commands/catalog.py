@@ -166,7 +166,7 @@ def run_batch(kind: str, inputs: list[str], options: dict, *, jobs: Optional[int
     the engine with a progress bar, write the results into the catalogue, print a summary.
     Exit status 0 when every file was analysed, 1 when some failed (they are listed)."""
     from rig.catalog import CatalogError, build, default_db, expand_inputs
-    from rig.catalog.batch import BatchError, dask_client, run_tasks
+    from rig.catalog.batch import BatchError, engine, run_tasks
     from rig.catalog.build import record_diagnose, record_identify
     from rig.catalog.tasks import diagnose_file, file_cost, identify_file
 
@@ -191,7 +191,7 @@ def run_batch(kind: str, inputs: list[str], options: dict, *, jobs: Optional[int
             # one cluster for the indexing of new files and the analysis (none for --jobs 1 or one file)
             client = None
             if scheduler is not None or (jobs != 1 and len(items) > 1):
-                client = stack.enter_context(dask_client(jobs, scheduler))
+                client = stack.enter_context(engine(jobs, scheduler))
             build(base, db, files=files, jobs=1, prune=False, client=client)
             prog, cb = progress_bar(f"{kind} ({len(files)} files)", len(items))
             results = []
