@@ -17,6 +17,11 @@ other tasks go on. ``progress(done, total, result)`` is called in the caller's
 process as each task finishes (in completion order), so a rich progress bar can
 follow the work.
 
+An :class:`Engine` holds one cluster for several runs (``rig identify DIR`` indexes and
+analyses on one; ``mapper`` wraps one for ``rig reproduce`` and ``rig stability``); it
+orders the work longest first when given a ``cost`` and, for its own LocalCluster, computes
+in this process while the cluster starts (docs/scaling.md, "Where the time went").
+
 Determinism: the tasks are pure functions of their arguments (seeds included),
 so a run on a cluster is bit for bit the serial run (``tests/test_batch.py``).
 """
@@ -148,8 +153,11 @@ def dask_client(jobs: int | None = None, scheduler: str | None = None, preload: 
 
     _restore_malloc_env()
     with dask.config.set(WORKER_CONFIG):
+        # no dashboard; the scheduler's own HTTP routes (health, metrics) on a free port rather
+        # than 8787, which another cluster on the host may hold (a warning, and a wait)
         cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
-                               silence_logs=40, preload=list(preload))
+                               scheduler_kwargs={"dashboard_address": ":0"}, silence_logs=40,
+                               preload=list(preload))
         client = Client(cluster)
         try:
             yield client
@@ -168,7 +176,8 @@ class Engine:
       module before they join; meanwhile this process computes the batch's cheapest tasks
       itself (the end of the longest-first order), one at a time, and hands the rest to the
       workers once they are up. The start (1.5-3 s here) and the workers' imports (about 1 s)
-      then cost a batch little: this process's core would otherwise be idle, waiting.
+      then no longer leave this process idle; their CPU (about 5 s for two workers here,
+      docs/scaling.md) remains, which only a batch of minutes amortises.
 
     The results do not depend on where a task ran (pure tasks: ``tests/test_batch.py``).
     """
@@ -176,6 +185,8 @@ class Engine:
     def __init__(self, jobs: int | None = None, scheduler: str | None = None, client: Any = None):
         if jobs is not None and int(jobs) < 1:
             raise BatchError(f"--jobs must be at least 1 (got {jobs})")
+        if jobs is None and scheduler is None and client is None and default_jobs() == 1:
+            jobs = 1  # one core: a worker process would only add its start
         self.jobs, self.scheduler = jobs, scheduler
         self._client = client
         self._stack = ExitStack()
