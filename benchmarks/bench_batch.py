@@ -209,7 +209,10 @@ def _rig() -> list[str]:
 
 
 def _timed(cmd: list[str]) -> tuple[float, float, str]:
-    """Wall time, CPU time of the command and all its children (user + system), output."""
+    """Wall time, CPU time of the command and the children it reaps (user + system), output.
+    Workers forked by a forkserver (the engine's default start) are the forkserver's children,
+    and the forkserver is not reaped by the command: their CPU is missing from the figure;
+    ``RIG_BATCH_START_METHOD=spawn`` makes it complete."""
     r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     p = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "COLUMNS": "200"})
@@ -222,7 +225,8 @@ def _timed(cmd: list[str]) -> tuple[float, float, str]:
 
 def bench_cli(jobs: int, n_files: int, n_trials: int, rounds: int = 2) -> dict:
     """The commands end to end, fresh processes: --jobs 1 against --jobs N, interleaved."""
-    print(f"cli: fresh `rig` processes, --jobs 1 (serial, no Dask) against --jobs {jobs}, {autogroup()}, {load()}")
+    print(f"cli: fresh `rig` processes, --jobs 1 (serial, no Dask) against --jobs {jobs}, worker start "
+          f"{os.environ.get('RIG_BATCH_START_METHOD', 'forkserver')}, {autogroup()}, {load()}")
     out: dict = {}
     with tempfile.TemporaryDirectory() as d:
         d = Path(d)
@@ -245,7 +249,8 @@ def bench_cli(jobs: int, n_files: int, n_trials: int, rounds: int = 2) -> dict:
                 w, c, _ = _timed(cmd(j, k))
                 walls[j].append(w)
                 cpus[j].append(c)
-                print(f"  {name:9s} --jobs {j}: {w:6.2f} s wall, {c:6.2f} s CPU (all processes), load before {la:.2f}")
+                print(f"  {name:9s} --jobs {j}: {w:6.2f} s wall, {c:6.2f} s CPU (reaped processes), "
+                      f"load before {la:.2f}")
             if name == "reproduce":
                 reps = [json.loads(p.read_text()) for p in sorted(d.glob("rep-*.json"))]
                 same = len({json.dumps(_strip(r), sort_keys=True) for r in reps}) == 1

@@ -120,6 +120,23 @@ def _restore_malloc_env() -> None:
         os.environ[_MALLOC_ENV] = _MALLOC_ENV_AT_IMPORT
 
 
+# How worker processes start. "forkserver": one server process imports distributed and the
+# task's module (numpy, scipy, numba, rig) once, and each worker is forked from it with all
+# of that loaded, instead of every spawned worker importing it all again (docs/scaling.md).
+START_METHOD = os.environ.get("RIG_BATCH_START_METHOD", "forkserver")
+
+
+def _forkserver_preload(modules: list[str]) -> None:
+    """The modules the forkserver imports when it starts (the first cluster of this process;
+    later calls change nothing once it runs)."""
+    import dask
+    from distributed.utils import get_mp_context
+
+    with dask.config.set({"distributed.worker.multiprocessing-method": "forkserver"}):
+        ctx = get_mp_context()  # distributed sets its own preload list on the first call; ours replaces it
+    ctx.set_forkserver_preload(list(dict.fromkeys(modules)))
+
+
 class BatchError(RuntimeError):
     """The engine could not start (bad --jobs, unreachable scheduler, Dask missing)."""
 
@@ -152,7 +169,9 @@ def dask_client(jobs: int | None = None, scheduler: str | None = None, preload: 
     import dask
 
     _restore_malloc_env()
-    with dask.config.set(WORKER_CONFIG):
+    if START_METHOD == "forkserver":
+        _forkserver_preload(["distributed", *preload])
+    with dask.config.set({**WORKER_CONFIG, "distributed.worker.multiprocessing-method": START_METHOD}):
         # no dashboard; the scheduler's own HTTP routes (health, metrics) on a free port rather
         # than 8787, which another cluster on the host may hold (a warning, and a wait)
         cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
