@@ -195,8 +195,9 @@ class Engine:
       module before they join; meanwhile this process computes the batch's cheapest tasks
       itself (the end of the longest-first order), one at a time, and hands the rest to the
       workers once they are up. The start (1.5-3 s here) and the workers' imports (about 1 s)
-      then no longer leave this process idle; their CPU (about 5 s for two workers here,
-      docs/scaling.md) remains, which only a batch of minutes amortises.
+      then no longer leave this process idle; their CPU (the workers are forked from a
+      forkserver that imported everything once, see ``START_METHOD``) remains, which only a
+      batch of minutes amortises (docs/scaling.md).
 
     The results do not depend on where a task ran (pure tasks: ``tests/test_batch.py``).
     """
