@@ -28,6 +28,7 @@ so a run on a cluster is bit for bit the serial run (``tests/test_batch.py``).
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 import threading
 import time
@@ -124,6 +125,8 @@ def _restore_malloc_env() -> None:
 # task's module (numpy, scipy, numba, rig) once, and each worker is forked from it with all
 # of that loaded, instead of every spawned worker importing it all again (docs/scaling.md).
 START_METHOD = os.environ.get("RIG_BATCH_START_METHOD", "forkserver")
+if START_METHOD not in multiprocessing.get_all_start_methods():  # e.g. no forkserver on Windows
+    START_METHOD = "spawn"
 
 
 def _forkserver_preload(modules: list[str]) -> None:
