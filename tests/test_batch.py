@@ -143,3 +143,58 @@ def test_cli_diagnose_batch_records_findings(files, tmp_path):
     rep = json.loads(rows[0]["report"])
     assert rep["schema"] == "rig.diagnosis/1" and rows[0]["causes"] == [f["cause"] for f in rep["findings"]]
     assert 0 < rows[0]["holdout_rms_N"] < 1.0  # the synthetic noise is 0.25 N
+
+
+def _worker_env(_):
+    import os
+
+    import dask
+
+    return (os.environ.get("MALLOC_TRIM_THRESHOLD_"), os.environ.get("OMP_NUM_THREADS"),
+            dask.config.get("distributed.worker.profile.enabled"))
+
+
+def _echo(x):
+    return x
+
+
+def test_local_cluster_workers_and_longest_first_order():
+    """The engine's own LocalCluster: workers without glibc's aggressive trimming (it costs a
+    reproduce trial 22 % more CPU, docs/scaling.md), one BLAS thread, no profiler; a ``cost``
+    makes the work run longest first while the results stay in the input order."""
+    from rig.catalog.batch import dask_client, lpt_order
+    from rig.analysis.reproduce import plan_lubricant, trial_cost_s
+
+    with dask_client(1) as client:
+        env = run_tasks(_worker_env, [0], client=client)[0]
+        assert env.ok and env.value == (None, "1", False)
+        done = []
+        items = [3.0, 9.0, 1.0, 9.0, 5.0]
+        res = run_tasks(_echo, items, client=client, cost=lambda x: x, progress=lambda d, t, r: done.append(r.item))
+    assert [r.value for r in res] == items  # input order
+    assert done == [9.0, 9.0, 5.0, 3.0, 1.0]  # one worker: completion order is the run order
+    assert lpt_order(items, None) == [0, 1, 2, 3, 4] and lpt_order(items, float) == [1, 3, 4, 0, 2]
+    # a reproduce trial's cost grows with its L (a longer slide before each step, 6 L, at least
+    # 120 µm): dry's L = 79 µm draw of seed 0 costs more than any boundary trial
+    dry, _, _ = plan_lubricant("dry", 8, seed=0, engine="synth")
+    boundary, _, _ = plan_lubricant("boundary", 8, seed=0, engine="synth")
+    longest = max(dry, key=trial_cost_s)
+    assert longest["params"]["L_um"] == max(t["params"]["L_um"] for t in dry)
+    assert trial_cost_s(longest) > max(trial_cost_s(t) for t in boundary)
+    assert trial_cost_s({"params": {"L_um": 5.0}}) == trial_cost_s({"params": {"L_um": 19.0}})
+
+
+def test_own_cluster_starts_while_this_process_works(files):
+    """run_tasks(jobs=2) with no cluster: this process runs the cheapest files while its
+    LocalCluster starts, the workers the rest; the results are the serial ones, in order."""
+    root, good, bad = files
+    items = [(str(p), {}) for p in good]
+    serial = run_tasks(identify_file, items, jobs=1)
+    seen = []
+    par = run_tasks(identify_file, items, jobs=2, cost=lambda it: int(it[0][-5]),  # t0..t5: t0 cheapest
+                    progress=lambda d, t, r: seen.append(d))
+    assert seen == list(range(1, len(items) + 1))
+    where = [r.worker.split(":")[0] for r in par]
+    assert "local" in where and "tcp" in where  # both took part
+    assert where[0] == "local"  # the cheapest first here (longest first on the workers)
+    assert [_canon(a.value) for a in serial] == [_canon(b.value) for b in par]

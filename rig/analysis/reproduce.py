@@ -182,10 +182,22 @@ def plan_lubricant(lubricant: str, n_trials: int, *, seed: int = 0, profile=None
     return tasks, flags, mu0
 
 
+def trial_cost_s(task: dict) -> float:
+    """A trial task's cost estimate: the simulated seconds of its protocol (the slide before each
+    step at v1, ``max(120, 6 L)`` µm, and the slide after it at v2, as :func:`step_recipe` plans
+    them). The run time follows it: 0.28 s for a boundary trial (600 simulated s) to 0.97 s for a
+    dry one with L = 79 µm (1670 s), serially on this machine. Orders the work longest first."""
+    L = float(task["params"]["L_um"])
+    v1, highs = 1.0, (2.0, 5.0, 10.0)
+    before = max(120.0, 6.0 * L)
+    return sum(before / v1 + 1.1 * (250.0 + 8.0 * vh) / vh for vh in highs)
+
+
 def _map_trials(tasks: list[dict], progress=None, map_fn=None) -> list[dict]:
-    """Run trial tasks: serially here, or through ``map_fn(fn, tasks)`` (rig.catalog.batch)."""
+    """Run trial tasks: serially here, or through ``map_fn(fn, tasks, cost=...)``
+    (:func:`rig.catalog.batch.mapper`; longest trials first, results in the tasks' order)."""
     if map_fn is not None:
-        return list(map_fn(run_trial_task, tasks))
+        return list(map_fn(run_trial_task, tasks, cost=trial_cost_s))
     out = []
     for t in tasks:
         out.append(run_trial_task(t))

@@ -17,13 +17,20 @@ other tasks go on. ``progress(done, total, result)`` is called in the caller's
 process as each task finishes (in completion order), so a rich progress bar can
 follow the work.
 
+An :class:`Engine` holds one cluster for several runs (``rig identify DIR`` indexes and
+analyses on one; ``mapper`` wraps one for ``rig reproduce`` and ``rig stability``); it
+orders the work longest first when given a ``cost`` and, for its own LocalCluster, computes
+in this process while the cluster starts (docs/scaling.md, "Where the time went").
+
 Determinism: the tasks are pure functions of their arguments (seeds included),
 so a run on a cluster is bit for bit the serial run (``tests/test_batch.py``).
 """
 
 from __future__ import annotations
 
+import multiprocessing
 import os
+import threading
 import time
 import traceback
 from contextlib import ExitStack, contextmanager
@@ -79,14 +86,70 @@ def default_jobs() -> int:
 CONNECT_TIMEOUT_S = 10.0  # how long to try reaching --scheduler before giving up
 
 
+# The LocalCluster's configuration (measured in docs/scaling.md, "Where the time went"):
+# - workers are separate processes (the analyses hold the GIL), one thread each;
+# - no spill to disk and no memory target: tasks are small and their data travels by path;
+# - the worker environment is Dask's default *without* MALLOC_TRIM_THRESHOLD_=65536: with it,
+#   glibc hands every freed block above 64 kB back to the kernel and the next numpy temporary
+#   faults it in again; a reproduce trial then costs 22 % more CPU than in a plain process
+#   (10.8 s against 8.8 s for 24 trials, the same in a serial run given that variable);
+#   one BLAS/OpenMP thread per worker is kept (N workers on N cores);
+# - no statistical profiler in the workers (it samples the task's stack every 10 ms, 3-4 %
+#   of a task's CPU, for a dashboard that is off).
+WORKER_CONFIG = {
+    "distributed.worker.daemon": False,
+    "distributed.admin.tick.limit": "60s",
+    "distributed.worker.memory.spill": False,
+    "distributed.worker.memory.target": False,
+    "distributed.nanny.pre-spawn-environ": {"OMP_NUM_THREADS": 1, "MKL_NUM_THREADS": 1, "OPENBLAS_NUM_THREADS": 1},
+    "distributed.worker.profile.enabled": False,
+}
+
+
+# A Nanny with Dask's default configuration writes its pre-spawn variables into *this*
+# process's environment and leaves them there (distributed 2026.8, nanny.py), so one default
+# LocalCluster in a process would hand MALLOC_TRIM_THRESHOLD_ to every later worker; the
+# value this process started with is put back before each of ours starts.
+_MALLOC_ENV = "MALLOC_TRIM_THRESHOLD_"
+_MALLOC_ENV_AT_IMPORT = os.environ.get(_MALLOC_ENV)
+
+
+def _restore_malloc_env() -> None:
+    if _MALLOC_ENV_AT_IMPORT is None:
+        os.environ.pop(_MALLOC_ENV, None)
+    else:
+        os.environ[_MALLOC_ENV] = _MALLOC_ENV_AT_IMPORT
+
+
+# How worker processes start. "forkserver": one server process imports distributed and the
+# task's module (numpy, scipy, numba, rig) once, and each worker is forked from it with all
+# of that loaded, instead of every spawned worker importing it all again (docs/scaling.md).
+START_METHOD = os.environ.get("RIG_BATCH_START_METHOD", "forkserver")
+if START_METHOD not in multiprocessing.get_all_start_methods():  # e.g. no forkserver on Windows
+    START_METHOD = "spawn"
+
+
+def _forkserver_preload(modules: list[str]) -> None:
+    """The modules the forkserver imports when it starts (the first cluster of this process;
+    later calls change nothing once it runs)."""
+    import dask
+    from distributed.utils import get_mp_context
+
+    with dask.config.set({"distributed.worker.multiprocessing-method": "forkserver"}):
+        ctx = get_mp_context()  # distributed sets its own preload list on the first call; ours replaces it
+    ctx.set_forkserver_preload(list(dict.fromkeys(modules)))
+
+
 class BatchError(RuntimeError):
     """The engine could not start (bad --jobs, unreachable scheduler, Dask missing)."""
 
 
 @contextmanager
-def dask_client(jobs: int | None = None, scheduler: str | None = None) -> Iterator[Any]:
+def dask_client(jobs: int | None = None, scheduler: str | None = None, preload: Iterable[str] = ()) -> Iterator[Any]:
     """A ``distributed.Client``: to ``scheduler`` when given, else to a new LocalCluster of
-    ``jobs`` worker processes (default: every core), one thread each; closed on exit."""
+    ``jobs`` worker processes (default: every core), one thread each; closed on exit.
+    ``preload``: modules each new worker imports before it joins (a task's module), so that
+    a joined worker computes at once instead of importing numpy, scipy and rig first."""
     try:
         from distributed import Client, LocalCluster
     except ImportError as exc:  # pragma: no cover - a dependency of rig
@@ -108,12 +171,15 @@ def dask_client(jobs: int | None = None, scheduler: str | None = None) -> Iterat
         raise BatchError(f"--jobs must be at least 1 (got {jobs})")
     import dask
 
-    # workers are separate processes (the analyses hold the GIL); no dashboard, no spill
-    # to disk: tasks are small and their data travels by path
-    with dask.config.set({"distributed.worker.daemon": False, "distributed.admin.tick.limit": "60s",
-                          "distributed.worker.memory.spill": False, "distributed.worker.memory.target": False}):
+    _restore_malloc_env()
+    if START_METHOD == "forkserver":
+        _forkserver_preload(["distributed", *preload])
+    with dask.config.set({**WORKER_CONFIG, "distributed.worker.multiprocessing-method": START_METHOD}):
+        # no dashboard; the scheduler's own HTTP routes (health, metrics) on a free port rather
+        # than 8787, which another cluster on the host may hold (a warning, and a wait)
         cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
-                               silence_logs=40)
+                               scheduler_kwargs={"dashboard_address": ":0"}, silence_logs=40,
+                               preload=list(preload))
         client = Client(cluster)
         try:
             yield client
@@ -122,40 +188,168 @@ def dask_client(jobs: int | None = None, scheduler: str | None = None) -> Iterat
             cluster.close()
 
 
+class Engine:
+    """Where a batch's tasks run, for one or more :meth:`run` calls (one cluster for all).
+
+    - ``jobs=1``, no ``scheduler``: serially in this process (no Dask);
+    - ``scheduler``: on that cluster, connected at the first run;
+    - otherwise a LocalCluster of ``jobs`` workers (default: every core), started **in the
+      background** at the first run with more than one task, its workers importing the task's
+      module before they join; meanwhile this process computes the batch's cheapest tasks
+      itself (the end of the longest-first order), one at a time, and hands the rest to the
+      workers once they are up. The start (1.5-3 s here) and the workers' imports (about 1 s)
+      then no longer leave this process idle; their CPU (the workers are forked from a
+      forkserver that imported everything once, see ``START_METHOD``) remains, which only a
+      batch of minutes amortises (docs/scaling.md).
+
+    The results do not depend on where a task ran (pure tasks: ``tests/test_batch.py``).
+    """
+
+    def __init__(self, jobs: int | None = None, scheduler: str | None = None, client: Any = None):
+        if jobs is not None and int(jobs) < 1:
+            raise BatchError(f"--jobs must be at least 1 (got {jobs})")
+        if jobs is None and scheduler is None and client is None and default_jobs() == 1:
+            jobs = 1  # one core: a worker process would only add its start
+        self.jobs, self.scheduler = jobs, scheduler
+        self._client = client
+        self._stack = ExitStack()
+        self._thread: threading.Thread | None = None
+        self._ready = threading.Event()
+        self._error: BaseException | None = None
+        self.local_tasks = 0  # tasks this process ran while the cluster started (a figure for benchmarks)
+
+    @property
+    def serial(self) -> bool:
+        return self._client is None and self.scheduler is None and self.jobs == 1
+
+    def _start(self, preload: list[str]) -> None:
+        def _run():
+            try:
+                self._client = self._stack.enter_context(dask_client(self.jobs, None, preload=preload))
+            except BaseException as exc:  # noqa: BLE001 - reported by client()
+                self._error = exc
+            finally:
+                self._ready.set()
+
+        self._thread = threading.Thread(target=_run, name="rig-cluster-start", daemon=True)
+        self._thread.start()
+
+    def client(self) -> Any:
+        """The Dask client (waits for a cluster being started; raises its start's error)."""
+        if self._thread is not None:
+            self._thread.join()
+            if self._error is not None:
+                if isinstance(self._error, BatchError):
+                    raise self._error
+                raise BatchError(f"the local Dask cluster did not start: {type(self._error).__name__}: "
+                                 f"{self._error}") from self._error
+        elif self._client is None:
+            self._client = self._stack.enter_context(dask_client(self.jobs, self.scheduler))
+        return self._client
+
+    def run(self, fn: Callable[[Any], Any], items: Iterable[Any], *,
+            progress: Callable[[int, int, TaskResult], None] | None = None,
+            cost: Callable[[Any], float] | None = None) -> list[TaskResult]:
+        """:func:`run_tasks` on this engine."""
+        items = list(items)
+        n = len(items)
+        out: list[TaskResult | None] = [None] * n
+        order = lpt_order(items, cost)
+        done = 0
+
+        def _local(i):
+            nonlocal done
+            r = _guarded(fn, items[i])
+            out[i] = r
+            done += 1
+            if progress:
+                progress(done, n, r)
+
+        nothing_started = self._client is None and self._thread is None
+        if self.serial or (nothing_started and self.scheduler is None and n <= 1):  # one task: no cluster
+            for i in range(n):
+                _local(i)
+            return out  # type: ignore[return-value]
+        if nothing_started and self.scheduler is None:
+            self._start([fn.__module__] if fn.__module__ not in ("__main__", "__mp_main__") else [])
+        rest = order
+        if self._thread is not None:
+            # the cheapest tasks here while the cluster starts; the rest (longest first) to it
+            while len(rest) > 1 and not self._ready.is_set():
+                _local(rest[-1])
+                rest = rest[:-1]
+                self.local_tasks += 1
+        if rest:
+            d0 = done
+            sub = _run_on(self.client(), fn, [items[i] for i in rest],
+                          (lambda d, t, r: progress(d0 + d, n, r)) if progress else None)
+            for i, r in zip(rest, sub):
+                out[i] = r
+        return out  # type: ignore[return-value]
+
+    def close(self) -> None:
+        if self._thread is not None:
+            self._thread.join()
+        self._stack.close()
+
+
+@contextmanager
+def engine(jobs: int | None = None, scheduler: str | None = None) -> Iterator[Engine]:
+    """An :class:`Engine` for several runs (one cluster), closed on exit; pass it as
+    ``run_tasks(..., client=engine)``."""
+    eng = Engine(jobs, scheduler)
+    try:
+        yield eng
+    finally:
+        eng.close()
+
+
 def run_tasks(fn: Callable[[Any], Any], items: Iterable[Any], *, jobs: int | None = None,
               scheduler: str | None = None, progress: Callable[[int, int, TaskResult], None] | None = None,
-              client: Any = None) -> list[TaskResult]:
+              client: Any = None, cost: Callable[[Any], float] | None = None) -> list[TaskResult]:
     """Map ``fn`` (a top-level function of one plain argument) over ``items``.
 
     ``jobs=1`` and no ``scheduler``/``client``: serial, in this process. Otherwise on Dask
-    (see the module docstring). The results are in the order of ``items``; a failed task
+    (see the module docstring): ``client`` a ``distributed.Client`` or an :class:`Engine`;
+    without one, an engine for this call alone (its LocalCluster starts while this process
+    works, see :class:`Engine`). The results are in the order of ``items``; a failed task
     is a ``TaskResult`` with ``ok=False``; ``progress`` sees each one as it finishes.
+
+    ``cost(item)``, an estimate of a task's run time in any unit, orders the work on Dask:
+    longest first (LPT), so that the batch does not end with one worker finishing a long task
+    while the others are idle. It changes no result, only the order of completion.
     """
     items = list(items)
-    total = len(items)
     if not items:
         return []
-    if client is None and scheduler is None and (jobs == 1 or total == 1):  # serial; one task: no cluster
-        out = []
-        for i, it in enumerate(items):
-            r = _guarded(fn, it)
-            out.append(r)
-            if progress:
-                progress(i + 1, total, r)
-        return out
+    if isinstance(client, Engine):
+        return client.run(fn, items, progress=progress, cost=cost)
     if client is not None:
-        return _run_on(client, fn, items, progress)
-    with dask_client(jobs, scheduler) as c:
-        return _run_on(c, fn, items, progress)
+        return _run_on(client, fn, items, progress, cost)
+    with engine(jobs, scheduler) as eng:
+        return eng.run(fn, items, progress=progress, cost=cost)
 
 
-def _run_on(client, fn, items, progress) -> list[TaskResult]:
+def lpt_order(items: list, cost: Callable[[Any], float] | None) -> list[int]:
+    """Indices of ``items``, longest estimated ``cost`` first (ties: input order); the input
+    order when ``cost`` is None."""
+    if cost is None:
+        return list(range(len(items)))
+    c = [float(cost(it)) for it in items]
+    return sorted(range(len(items)), key=lambda i: (-c[i], i))
+
+
+def _run_on(client, fn, items, progress, cost=None) -> list[TaskResult]:
     from distributed import as_completed
 
-    # pure=False: every item is its own task, even equal ones; the key keeps the order
-    futures = [client.submit(_guarded, fn, it, pure=False, key=f"rig-task-{i}-{os.getpid()}-{time.time_ns()}")
-               for i, it in enumerate(items)]
-    index = {f.key: i for i, f in enumerate(futures)}
+    order = lpt_order(items, cost)
+    # pure=False: every item is its own task, even equal ones; the key maps a result back to
+    # its item; the priority (higher first) makes the scheduler hand them out in LPT order
+    stamp = f"{os.getpid()}-{time.time_ns()}"
+    futures = [client.submit(_guarded, fn, items[i], pure=False, key=f"rig-task-{i}-{stamp}",
+                             priority=len(order) - rank)
+               for rank, i in enumerate(order)]
+    index = {f.key: i for f, i in zip(futures, order)}
     out: list[TaskResult | None] = [None] * len(items)
     done = 0
     for fut in as_completed(futures):
@@ -174,10 +368,10 @@ def _run_on(client, fn, items, progress) -> list[TaskResult]:
 
 @contextmanager
 def mapper(jobs: int | None = None, scheduler: str | None = None, progress: Callable[[], None] | None = None):
-    """A ``map(fn, items) -> list`` for code that takes a mapper (``rig reproduce``, ``rig
-    stability``), as a context manager holding one Dask client for all its calls (none when
-    ``jobs=1``): results in order; a failed task raises ``RuntimeError`` naming it (those
-    runs have no per-item failure to record). ``progress()`` is called per finished task."""
+    """A ``map(fn, items, cost=None) -> list`` for code that takes a mapper (``rig reproduce``,
+    ``rig stability``), as a context manager holding one :class:`Engine` for all its calls:
+    results in order; a failed task raises ``RuntimeError`` naming it (those runs have no
+    per-item failure to record). ``progress()`` is called per finished task."""
     cb = (lambda d, t, r: progress()) if progress else None
 
     def _check(res):
@@ -186,21 +380,8 @@ def mapper(jobs: int | None = None, scheduler: str | None = None, progress: Call
                 raise RuntimeError(f"task {repr(r.item)[:160]} failed: {r.error}")
         return [r.value for r in res]
 
-    if jobs == 1 and scheduler is None:
-        yield lambda fn, items: _check(run_tasks(fn, items, jobs=1, progress=cb))
-        return
-    with ExitStack() as stack:
-        clients: list = []
-
-        def _map(fn, items):
-            items = list(items)
-            if len(items) <= 1 and scheduler is None and not clients:  # one task: no cluster to start
-                return _check(run_tasks(fn, items, jobs=1, progress=cb))
-            if not clients:  # started on first use, kept for the later calls
-                clients.append(stack.enter_context(dask_client(jobs, scheduler)))
-            return _check(run_tasks(fn, items, client=clients[0], progress=cb))
-
-        yield _map
+    with engine(jobs, scheduler) as eng:
+        yield lambda fn, items, cost=None: _check(eng.run(fn, items, progress=cb, cost=cost))
 
 
-__all__ = ["TaskResult", "BatchError", "run_tasks", "dask_client", "mapper", "default_jobs"]
+__all__ = ["TaskResult", "BatchError", "run_tasks", "dask_client", "mapper", "default_jobs", "lpt_order", "Engine", "engine"]

@@ -24,7 +24,7 @@ from typing import Callable, Iterable
 
 from rig.catalog.batch import TaskResult, run_tasks
 from rig.catalog.schema import DEFAULT_DB_NAME, open_catalog, utcnow
-from rig.catalog.tasks import TRIAL_SUFFIXES, index_file, sha256_file
+from rig.catalog.tasks import TRIAL_SUFFIXES, file_cost, index_file, sha256_file
 
 
 @dataclass
@@ -156,7 +156,8 @@ def build(root: str | Path, db: str | Path | None = None, *, jobs: int | None = 
                     rep.touched.append(key)
                     continue
             to_read.append(key)
-        results = run_tasks(index_file, to_read, jobs=jobs, scheduler=scheduler, progress=progress, client=client)
+        results = run_tasks(index_file, to_read, jobs=jobs, scheduler=scheduler, progress=progress, client=client,
+                            cost=file_cost)
         con.execute("BEGIN TRANSACTION")
         for r in results:
             key = r.item

@@ -31,6 +31,17 @@ def sha256_file(path: str | os.PathLike, bufsize: int = 1 << 20) -> str:
     return h.hexdigest()
 
 
+def file_cost(item) -> float:
+    """A per-file task's cost estimate for longest-first ordering (rig.catalog.batch): the
+    file's size in bytes (reading and fitting scale with the samples); 0 when it cannot be
+    stat'ed (the task itself will report why). ``item`` is a path or a (path, options) pair."""
+    path = item[0] if isinstance(item, (tuple, list)) else item
+    try:
+        return float(os.path.getsize(path))
+    except OSError:
+        return 0.0
+
+
 def _float(v) -> float | None:
     try:
         f = float(v)

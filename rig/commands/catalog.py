@@ -170,9 +170,9 @@ def run_batch(kind: str, inputs: list[str], options: dict, *, jobs: Optional[int
     the engine with a progress bar, write the results into the catalogue, print a summary.
     Exit status 0 when every file was analysed, 1 when some failed (they are listed)."""
     from rig.catalog import CatalogError, build, default_db, expand_inputs
-    from rig.catalog.batch import BatchError, dask_client, run_tasks
+    from rig.catalog.batch import BatchError, engine, run_tasks
     from rig.catalog.build import record_diagnose, record_identify
-    from rig.catalog.tasks import diagnose_file, identify_file
+    from rig.catalog.tasks import diagnose_file, file_cost, identify_file
 
     _check_jobs(jobs, scheduler)
     files: list[Path] = []
@@ -195,7 +195,7 @@ def run_batch(kind: str, inputs: list[str], options: dict, *, jobs: Optional[int
             # one cluster for the indexing of new files and the analysis (none for --jobs 1 or one file)
             client = None
             if scheduler is not None or (jobs != 1 and len(items) > 1):
-                client = stack.enter_context(dask_client(jobs, scheduler))
+                client = stack.enter_context(engine(jobs, scheduler))
             build(base, db, files=files, jobs=1, prune=False, client=client)
             prog, cb = progress_bar(f"{kind} ({len(files)} files)", len(items))
             results = []
@@ -203,7 +203,7 @@ def run_batch(kind: str, inputs: list[str], options: dict, *, jobs: Optional[int
                 # in chunks: each chunk's results go into the catalogue before the next is sent, so
                 # memory stays bounded and an interrupted archive-wide run keeps what it finished
                 for i in range(0, len(items), BATCH_CHUNK):
-                    chunk = run_tasks(fn, items[i:i + BATCH_CHUNK], jobs=1, client=client,
+                    chunk = run_tasks(fn, items[i:i + BATCH_CHUNK], jobs=1, client=client, cost=file_cost,
                                       progress=lambda d, t, r, i=i: cb(i + d, len(items), r))
                     (record_identify if kind == "identify" else record_diagnose)(db, chunk, options)
                     results += chunk
