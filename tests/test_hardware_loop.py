@@ -119,6 +119,42 @@ def test_clean_run_blocks_stats_and_tracking(rig_env):
     _safe_state(rig_env.emu)  # a completed trial also ends nulled and disabled
 
 
+@pytest.mark.parametrize("switches", [{"ff1": False, "friction_ff": True}, {"ff1": True, "friction_ff": False}])
+def test_recipe_controller_switches_reach_the_hardware_loop(rig_env, switches):
+    """The recipe's ``controller: {ff1, friction_ff}`` switches act on the real loop as on the
+    simulated rig: the valve command less the logged P, I, D and dither terms is FF1 x v_ref
+    (0 with ff1 off) plus the friction feed-forward of the profile's boundary law along the
+    reference (rig.model.feedforward; empty with friction_ff off)."""
+    from rig.model.feedforward import friction_feedforward_for_plan, initial_velocity_um_s
+
+    _clear(rig_env.emu)
+    n = 1500
+    t = np.arange(n) / 1000.0
+    x = 500.0 + np.clip(t - 0.3, 0, None) * 10.0
+    plan = _plan(x)
+    plan.controller = switches
+    w = MemWriter()
+    res = run_trial(plan, HardwareBackend(rig_env.hw, rig_env.profile, emulator=rig_env.emu, lubricant="boundary",
+                                          normal_force_N=100.0), w, handle_signals=False)
+    assert res.status == "completed", res.reason
+    c = rig_env.profile.controller
+    fs = rig_env.profile.actuator.full_scale_force_N
+    out = w.col("valve_cmd") * fs - (w.col("pid_p") + w.col("pid_i") + w.col("pid_d") + w.col("dither"))
+    k = np.rint(w.col("t_s") * 1000.0).astype(int)
+    ok = np.abs(w.col("valve_cmd")) < 0.99  # not clipped at full scale
+    v_ref = np.gradient(x) * 1000.0
+    ff = friction_feedforward_for_plan(switches, x, 1e-3, rig_env.profile.friction_model("boundary"), 200.0,
+                                       initial_velocity_um_s(x, 1000.0, rig_env.profile.sim.initial_creep_um_s))
+    expect = (c.ff1_N_s_per_um * v_ref[k] if switches["ff1"] else 0.0) + (ff[k] if ff.size else 0.0)
+    moving = ok & (k > 400) & (k < n - 2)
+    if switches["friction_ff"]:
+        assert np.max(np.abs(ff[k][moving])) > 0.05  # the law's force along the ramp is there to be seen
+    if switches["ff1"]:
+        assert c.ff1_N_s_per_um * 10.0 > 0.05
+    assert np.allclose(out[moving], expect[moving], atol=0.02 + 1e-3 * fs / 16384), \
+        np.max(np.abs(out[moving] - expect[moving]))
+
+
 def _run_with_fault(rig_env, x, inject, after_s=0.3, confirmed_safe=True):
     _clear(rig_env.emu)
     w = MemWriter(after_s, (lambda: inject(rig_env.emu)) if inject else None)
@@ -197,38 +233,3 @@ def test_port_vanishes_mid_run_trips_device_lost(rig_env):
     assert "LVDT conditioner at serial:" in trip["message"]
     assert trip["values"]["address"].startswith("serial:")
 
-
-@pytest.mark.parametrize("switches", [{"ff1": False, "friction_ff": True}, {"ff1": True, "friction_ff": False}])
-def test_recipe_controller_switches_reach_the_hardware_loop(rig_env, switches):
-    """The recipe's ``controller: {ff1, friction_ff}`` switches act on the real loop as on the
-    simulated rig: the valve command less the logged P, I, D and dither terms is FF1 x v_ref
-    (0 with ff1 off) plus the friction feed-forward of the profile's boundary law along the
-    reference (rig.model.feedforward; empty with friction_ff off)."""
-    from rig.model.feedforward import friction_feedforward_for_plan, initial_velocity_um_s
-
-    _clear(rig_env.emu)
-    n = 1500
-    t = np.arange(n) / 1000.0
-    x = 500.0 + np.clip(t - 0.3, 0, None) * 10.0
-    plan = _plan(x)
-    plan.controller = switches
-    w = MemWriter()
-    res = run_trial(plan, HardwareBackend(rig_env.hw, rig_env.profile, emulator=rig_env.emu, lubricant="boundary",
-                                          normal_force_N=100.0), w, handle_signals=False)
-    assert res.status == "completed", res.reason
-    c = rig_env.profile.controller
-    fs = rig_env.profile.actuator.full_scale_force_N
-    out = w.col("valve_cmd") * fs - (w.col("pid_p") + w.col("pid_i") + w.col("pid_d") + w.col("dither"))
-    k = np.rint(w.col("t_s") * 1000.0).astype(int)
-    ok = np.abs(w.col("valve_cmd")) < 0.99  # not clipped at full scale
-    v_ref = np.gradient(x) * 1000.0
-    ff = friction_feedforward_for_plan(switches, x, 1e-3, rig_env.profile.friction_model("boundary"), 200.0,
-                                       initial_velocity_um_s(x, 1000.0, rig_env.profile.sim.initial_creep_um_s))
-    expect = (c.ff1_N_s_per_um * v_ref[k] if switches["ff1"] else 0.0) + (ff[k] if ff.size else 0.0)
-    moving = ok & (k > 400) & (k < n - 2)
-    if switches["friction_ff"]:
-        assert np.max(np.abs(ff[k][moving])) > 0.05  # the law's force along the ramp is there to be seen
-    if switches["ff1"]:
-        assert c.ff1_N_s_per_um * 10.0 > 0.05
-    assert np.allclose(out[moving], expect[moving], atol=0.02 + 1e-3 * fs / 16384), \
-        np.max(np.abs(out[moving] - expect[moving]))
