@@ -475,9 +475,20 @@ def detect_steps(trial, *, use_events: bool = True, min_ratio: float = 1.25, sli
         if source == "events":
             drop = set(rejected)  # events are genuine; these are starts from rest and the like
         else:
-            # a spurious candidate can make its genuine neighbour fail too: drop the weakest
-            # rejected candidate only, and refine again
-            drop = {min(rejected, key=lambda j: strength[j])}
+            # a spurious candidate can make its genuine neighbour fail too (a candidate's segment
+            # ends at its neighbours): of adjacent rejected candidates keep only those stronger
+            # than their rejected neighbours, drop the rest, and refine again (a pair loses its
+            # weaker one; a long run of rejected candidates -- a sawtooth's ~700 reversals -- most
+            # of its members at once: a few rounds, not one per candidate and O(K^2) segment fits)
+            rej = set(rejected)
+            drop = set()
+            for j in rejected:
+                nb = [q for q in (j - 1, j + 1) if q in rej]
+                if not nb or any(strength[q] >= strength[j] for q in nb):
+                    drop.add(j)
+            if len(drop) == len(rej) and len(rej) > 1 and all(
+                    any(q in rej for q in (j - 1, j + 1)) for j in rej):
+                drop.discard(max(rejected, key=lambda j: strength[j]))  # ties: keep the strongest
         sel = [j for j in range(len(times)) if j not in drop]
         times = [times[j] for j in sel]
         strength = [strength[j] for j in sel]
