@@ -85,3 +85,18 @@ def test_synthetic_same_causes_at_25_hz_and_1_khz_and_two_crops():
         got, rep = causes(crop(trial, t0, t1, every))
         assert got == {"second_state_variable"}, (t0, t1, every, rep["findings"])
         assert abs(rep["model"]["params"]["L2_um"] - 200.0) < 0.35 * 200.0
+
+
+def test_basalt_velstep7_same_answer_from_every_crop():
+    """A second public BRAVA basalt record (tests/data/giacomel-basalt-velstep7.csv, MIT; 100 -> 300
+    um/s at 1 kHz, Giacomel et al. 2021 Fig. 1e): the whole record, from 0.5 s and up to 4 s give
+    the same answer -- one state (A ~ 0.0095, B ~ 0.0112, L ~ 13 um; identify's whole-record fit
+    with stiffness: 0.0105 +- 0.0007, 0.0116 +- 0.0007, 11.3 +- 0.9 um) and no finding."""
+    from pathlib import Path
+
+    tr = load_trial(Path(__file__).parent / "data" / "giacomel-basalt-velstep7.csv")
+    for t0, t1 in ((0.0, np.inf), (0.5, np.inf), (0.0, 4.0)):
+        got, rep = causes(crop(tr, t0, t1))
+        assert got == set(), (t0, t1, rep["findings"])
+        p = rep["baseline"]["params"]
+        assert abs(p["A_mu"] - 0.0105) < 0.2 * 0.0105 and abs(p["B_mu"] - 0.0116) < 0.2 * 0.0116, p

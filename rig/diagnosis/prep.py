@@ -110,6 +110,8 @@ class Grid:
     # the 20 equal time blocks (the linear-drift check), and how fit / hold-out were split
     time_block: np.ndarray | None = None
     holdout_design: str = "time blocks"
+    # the velocity steps identify finds (rig.kinematics.detect_steps), grid time (s); None: not given
+    step_times_s: np.ndarray | None = None
 
     @property
     def n_raw(self) -> int:
@@ -448,4 +450,5 @@ def prepare(trial: TrialData, n_blocks: int = 20, slip_window_um: float = 3.0,
         normals_vary = nstd > 0.0
     return Grid(t=tb, x=xb, v=vb, F_mean=Fm, N_tot=Nb, count=bc, ss_within=ssw, block=blk, N_nom=N_nom,
                 t0=t0, has_normals=trial.has_normals, normals_vary=normals_vary, noise_N=noise_N, noise_corr=noise_corr,
-                slide_ok=slide_ok, time_resolution_s=time_res, time_block=time_blk, holdout_design=holdout_design, kin={"t": tk, "x": xs, "v": vs, "F": Fs / cnt, "N": Nk, "count": cnt, "x_meas": xk})
+                slide_ok=slide_ok, time_resolution_s=time_res, time_block=time_blk, holdout_design=holdout_design,
+                step_times_s=None if step_times_s is None else np.asarray(step_times_s, dtype=float) - t0, kin={"t": tk, "x": xs, "v": vs, "F": Fs / cnt, "N": Nk, "count": cnt, "x_meas": xk})
