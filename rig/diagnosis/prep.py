@@ -302,7 +302,7 @@ def _holdout_blocks(tk: np.ndarray, vs: np.ndarray, time_blk: np.ndarray, T: flo
         # the boundary just before the change (the window of velocity_changes is +-1 s)
         bnd = np.asarray(fwd) - 1.0
         return np.searchsorted(bnd, tk).astype(np.int64), f"blocks aligned to {len(fwd)} velocity steps"
-    if fwd and PHASE_TO_STEP:
+    if PHASE_TO_STEP and 0 < len(fwd) < MIN_STEPS_ALIGNED:
         # one to three steps: the equal time blocks, phased so that the first step's transient
         # starts (1 s before the step) at the start of a fit block; unphased, a crop that moves the
         # boundaries decided whether the single step's peak was fitted or held out (the basalt
