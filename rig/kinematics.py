@@ -540,12 +540,23 @@ def _detect_times(t, x, *, min_ratio, slip_window_um, min_points, max_window_s) 
         j = g[np.argmax(np.abs(r[g]))]
         peaks.append(j)
     # non-maximum suppression within the smaller of the two windows
+    # (chosen peaks kept sorted in time: only those within the largest window can suppress, so each
+    # test looks at a few neighbours, not at every chosen peak -- a sawtooth has thousands of peaks)
+    import bisect
+
     peaks.sort(key=lambda j: -abs(r[j]))
+    radius = np.maximum(half_l, half_r)
+    r_max = float(radius.max()) if radius.size else 0.0
     chosen: list[int] = []
+    ct: list[float] = []
     for j in peaks:
-        if all(abs(tb[j] - tb[c]) > max(half_l[c], half_r[c]) for c in chosen):
-            chosen.append(j)
-    chosen.sort()
+        tj = float(tb[j])
+        lo = bisect.bisect_left(ct, tj - r_max)
+        hi = bisect.bisect_right(ct, tj + r_max)
+        if all(abs(tj - tb[c]) > radius[c] for c in chosen[lo:hi]):
+            k = bisect.bisect_left(ct, tj)
+            ct.insert(k, tj)
+            chosen.insert(k, j)
     return [float(tb[j]) for j in chosen], [float(abs(r[j])) for j in chosen]
 
 

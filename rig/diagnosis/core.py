@@ -422,9 +422,11 @@ def transient_scaling(grid: Grid, before: np.ndarray, after: np.ndarray):
     pairs = []
     tv = t
 
-    # the steps identify finds when diagnose passed them (the ln-v detector also fires on the noise
-    # and bursty sampling of real records: 753 "velocity changes" on a one-step record)
-    te = grid.step_times_s if grid.step_times_s is not None else velocity_changes(grid.kin["t"], grid.kin["v"])
+    # the ln-v detector's changes, unless they outnumber the steps identify finds several times: it
+    # fires on the noise and bursty sampling of real records (753 "velocity changes" on a one-step one)
+    te = velocity_changes(grid.kin["t"], grid.kin["v"])
+    if grid.step_times_s is not None and te.size > 3 * (grid.step_times_s.size + 1):
+        te = grid.step_times_s  # the detector fired on noise: identify's steps instead
     ev = sorted(set(int(i) for i in np.clip(np.searchsorted(t, te - 1.0), 0, t.size - 1)))
     for k, i in enumerate(ev):
         j_end = ev[k + 1] if k + 1 < len(ev) else t.size - 1
