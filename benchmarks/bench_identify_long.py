@@ -1,8 +1,9 @@
 """Speed of `rig identify` on a one-hour 1 kHz CSV with a sawtooth position (issue 10 item 7,
 issue 13: it ran past 180 s). Target: well under 30 s on this machine.
 
-The record: 3.6 M rows, a 5 s cycle repeated 720 times -- 2 s at 2 um/s, 2 s at 10 um/s
-(an up-step), 1 s back at -24 um/s (the return that makes the sawtooth) -- friction from the
+The record: 3.6 M rows, a 5 s cycle repeated 720 times -- 3 s at 5 um/s, 1.5 s at 20 um/s
+(an up-step, 15 and 30 um of slip on its sides), 0.5 s back at -90 um/s (the return that makes
+the sawtooth) -- friction from the
 steady-state rate-and-state curve (a - b = -0.003 per e-fold) plus 0.25 N noise, LVDT noise
 0.25 um quantized to 0.076 um. Written as a measured-data CSV and identified from the file,
 as a user would (`rig identify FILE`), so the CSV reader is timed too.
@@ -32,7 +33,7 @@ def sawtooth_record(hours: float = 1.0, rate_hz: float = 1000.0, seed: int = 13)
     n = int(round(hours * 3600.0 * rate_hz))
     t = np.arange(n) / rate_hz
     phase = np.mod(t, 5.0)
-    v = np.where(phase < 2.0, 2.0, np.where(phase < 4.0, 10.0, -24.0))  # um/s
+    v = np.where(phase < 3.0, 5.0, np.where(phase < 4.5, 20.0, -90.0))  # um/s
     x = np.concatenate([[0.0], np.cumsum(0.5 * (v[1:] + v[:-1]) / rate_hz)])
     N = 100.0
     mu = np.sign(v) * (0.12 - 0.003 * np.log(np.abs(v)))
