@@ -16,6 +16,7 @@ Velocity estimators:
 
 from __future__ import annotations
 
+import bisect
 import math
 from dataclasses import dataclass
 
@@ -542,8 +543,6 @@ def _detect_times(t, x, *, min_ratio, slip_window_um, min_points, max_window_s) 
     # non-maximum suppression within the smaller of the two windows
     # (chosen peaks kept sorted in time: only those within the largest window can suppress, so each
     # test looks at a few neighbours, not at every chosen peak -- a sawtooth has thousands of peaks)
-    import bisect
-
     peaks.sort(key=lambda j: -abs(r[j]))
     radius = np.maximum(half_l, half_r)
     r_max = float(radius.max()) if radius.size else 0.0
