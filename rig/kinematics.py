@@ -16,6 +16,7 @@ Velocity estimators:
 
 from __future__ import annotations
 
+import bisect
 import math
 from dataclasses import dataclass
 
@@ -475,9 +476,20 @@ def detect_steps(trial, *, use_events: bool = True, min_ratio: float = 1.25, sli
         if source == "events":
             drop = set(rejected)  # events are genuine; these are starts from rest and the like
         else:
-            # a spurious candidate can make its genuine neighbour fail too: drop the weakest
-            # rejected candidate only, and refine again
-            drop = {min(rejected, key=lambda j: strength[j])}
+            # a spurious candidate can make its genuine neighbour fail too (a candidate's segment
+            # ends at its neighbours): of adjacent rejected candidates keep only those stronger
+            # than their rejected neighbours, drop the rest, and refine again (a pair loses its
+            # weaker one; a long run of rejected candidates -- a sawtooth's ~700 reversals -- most
+            # of its members at once: a few rounds, not one per candidate and O(K^2) segment fits)
+            rej = set(rejected)
+            drop = set()
+            for j in rejected:
+                nb = [q for q in (j - 1, j + 1) if q in rej]
+                if not nb or any(strength[q] >= strength[j] for q in nb):
+                    drop.add(j)
+            if len(drop) == len(rej) and len(rej) > 1 and all(
+                    any(q in rej for q in (j - 1, j + 1)) for j in rej):
+                drop.discard(max(rejected, key=lambda j: strength[j]))  # ties: keep the strongest
         sel = [j for j in range(len(times)) if j not in drop]
         times = [times[j] for j in sel]
         strength = [strength[j] for j in sel]
@@ -529,12 +541,21 @@ def _detect_times(t, x, *, min_ratio, slip_window_um, min_points, max_window_s) 
         j = g[np.argmax(np.abs(r[g]))]
         peaks.append(j)
     # non-maximum suppression within the smaller of the two windows
+    # (chosen peaks kept sorted in time: only those within the largest window can suppress, so each
+    # test looks at a few neighbours, not at every chosen peak -- a sawtooth has thousands of peaks)
     peaks.sort(key=lambda j: -abs(r[j]))
+    radius = np.maximum(half_l, half_r)
+    r_max = float(radius.max()) if radius.size else 0.0
     chosen: list[int] = []
+    ct: list[float] = []
     for j in peaks:
-        if all(abs(tb[j] - tb[c]) > max(half_l[c], half_r[c]) for c in chosen):
-            chosen.append(j)
-    chosen.sort()
+        tj = float(tb[j])
+        lo = bisect.bisect_left(ct, tj - r_max)
+        hi = bisect.bisect_right(ct, tj + r_max)
+        if all(abs(tj - tb[c]) > radius[c] for c in chosen[lo:hi]):
+            k = bisect.bisect_left(ct, tj)
+            ct.insert(k, tj)
+            chosen.insert(k, j)
     return [float(tb[j]) for j in chosen], [float(abs(r[j])) for j in chosen]
 
 

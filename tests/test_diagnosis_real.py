@@ -7,17 +7,13 @@
   Dc = 25 µm. The residual left is an oscillation of ~0.5 s period, reported as
   `unexplained` following frequency: the small sawtooth after the step that the
   README mentions. Physically sensible: the load-point displacement is not the
-  interface slip, and the sawtooth is not a catalogue cause. Measured: k = 448 kN/m,
-  A = 0.00745, B = 0.00681, L = 26.2 µm, hold-out gain 21 %; sawtooth period 0.50 s.
+  interface slip, and the sawtooth is not a catalogue cause; sawtooth period 0.50 s.
 - giacomel-sepiolite-tr2 (0.2 -> 2 µm/s): one state fits the long transient badly
-  (b < 0). A second state gains ~31 % on the hold-out blocks but only with
-  |B2| = 0.08 > 0.05 (a cancelling pair): not named. The stiffness fit on the fit
-  blocks of this single step predicts the hold-out blocks worse (-5 %): no finding
-  (before issue 10 it named finite_stiffness; docs/validation.md).
-- giacomel-basalt-brava (3 -> 10 µm/s): one state fits with b < 0 at the L bound; a
-  slower second state (7.5 % gain) is the only cause that passes.
-- Leeman measured now: k = 448 kN/m on the fit blocks, 593 kN/m refitted on all data;
-  final A = 0.00779, B = 0.00721, L = 25.6 µm (published 0.007722, 0.007067, 25.46).
+  (b < 0); no cause passes on the whole record (docs/validation.md).
+- giacomel-basalt-brava (3 -> 10 µm/s): with the single step in a fit block, one state
+  explains it (A 0.0074-0.0080, B 0.0077-0.0080, L 10-12.5 µm); no transient cause.
+- Leeman measured now (step-phased blocks): k = 667 kN/m on the fit blocks, hold-out gain
+  26 %; final A = 0.00779, B = 0.00721, L = 25.6 µm (published 0.007722, 0.007067, 25.46).
 """
 
 from __future__ import annotations
@@ -50,30 +46,34 @@ def test_leeman_finite_stiffness_and_sawtooth(real_data_dir, tmp_path):
 
 
 def test_sepiolite_one_state_fits_badly_and_nothing_negligible_is_named(real_data_dir):
-    """Sepiolite (0.2 -> 2 um/s, one step): one state fits with b < 0 (README). A second state
-    gains on the hold-out blocks but only with |B2| > 0.05 (a cancelling pair, implausible), so
-    it is not named. Known limitation (docs/diagnosis.md): the stiffness fit on the fit blocks of
-    this single-step record lands in a minimum that predicts the held-out blocks worse; hold-out
-    windows aligned to the step (issue 10, item 4) are not done yet."""
+    """Sepiolite (0.2 -> 2 um/s, one step): one state fits with b < 0 (README), and nothing passes
+    as a finding on the whole record (docs/validation.md: a second state is what the physics
+    suggests, but its fits here need |B2| > 0.05 or reach no gain; not named)."""
     d = diagnose(load_trial(real_data_dir / "giacomel-sepiolite-tr2.csv"))
     rep = d.report()
     assert rep["baseline"]["params"]["B_mu"] < 0  # one state fits badly (README)
-    cands = {c.cause: c for c in d.tried[0]}
-    assert cands["second_state_variable"].gain_pct > 5 and not cands["second_state_variable"].accepted
-    for f in rep["findings"]:
-        assert f["gain_pct"] >= 1.0
+    assert rep["findings"] == []
 
 
-def test_basalt_second_state_at_most(real_data_dir):
-    """Basalt (3 -> 10 um/s): one state fits with b < 0. The only cause that passes, if any, is a
-    slower second state (reported with L2 > L, the spec's convention); its parameters stay
-    inside the physical bounds."""
+def test_basalt_one_state_with_the_step_fitted(real_data_dir):
+    """Basalt (3 -> 10 um/s at 68.7 s): with the hold-out blocks phased so that the single step is
+    fitted, one state explains the transient (A ~ B ~ 0.008, L ~ 10 um; identify's whole-record
+    fit with stiffness: 0.0095, 0.0097, 8.1 um); before, the step was held out, the baseline ran to
+    A ~ 0, B = -0.17, L = 1e5 um (a drift) and a near-cancelling second state (B 0.0138, B2 -0.0149,
+    L 171 / 214 um) was named. Now no transient cause is named (a slow drift may be)."""
     res = CliRunner().invoke(app, ["diagnose", str(real_data_dir / "giacomel-basalt-brava.csv")])
     assert res.exit_code == 0
     rep = diagnose(load_trial(real_data_dir / "giacomel-basalt-brava.csv")).report()
-    assert rep["baseline"]["params"]["B_mu"] < 0
-    assert [f["cause"] for f in rep["findings"]] in ([], ["second_state_variable"])
-    for f in rep["findings"]:
-        p = rep["model"]["params"]
-        assert p["L2_um"] > p["L_um"]
-        assert abs(p["B2_mu"]) < 0.05
+    p = rep["baseline"]["params"]
+    assert 0.005 < p["A_mu"] < 0.012 and 0.005 < p["B_mu"] < 0.012 and 5.0 < p["L_um"] < 20.0, p
+    assert {f["cause"] for f in rep["findings"]} <= {"slip_wear_drift", "force_offset_drift"}
+
+
+def test_one_step_record_evidence_counts_its_step_only(real_data_dir):
+    """Issue 13: on a one-step record the evidence counted 753 "velocity changes" (the ln-v detector
+    firing on noise) and said "a fixed time" while naming finite stiffness. The transient's scaling
+    is now measured on the steps identify finds: one step gives no slope, so no claim."""
+    d = diagnose(load_trial(real_data_dir / "leeman-p4309-step2.csv"))
+    ev = d.findings[0]["evidence"]
+    assert d.findings[0]["cause"] == "finite_stiffness"
+    assert "velocity changes" not in ev and "a fixed time" not in ev, ev

@@ -12,7 +12,7 @@ sine and cosine amplitude (linear) and reported as ``amplitude_mu`` and
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -27,11 +27,17 @@ _REPARAM = {"_pc": Param("_pc", "1", -0.5, 0.5, scale=1e-3), "_ps": Param("_ps",
 _NOT_CHECKED = ("mu0", "amplitude_mu", "phase_rad")
 
 
-def param(name: str) -> Param:
-    """The fitted parameter ``name`` (unit, bounds, scaling) of rig.model.spec.PARAMS."""
+def param(name: str, grid: Grid | None = None) -> Param:
+    """The fitted parameter ``name`` (unit, bounds, scaling) of rig.model.spec.PARAMS; with a
+    ``grid``, the first state's ``L_um`` is bounded by the record (``Grid.max_state_um``)."""
     if name in _REPARAM:
         return _REPARAM[name]
-    return Param.of(name, PARAMS[name])
+    p = Param.of(name, PARAMS[name])
+    if name == "L_um" and grid is not None:
+        hi = grid.max_state_um
+        if math.isfinite(hi) and 10.0 * p.lo < hi < p.hi:
+            p = replace(p, hi=hi)
+    return p
 
 
 @dataclass
@@ -128,7 +134,7 @@ def fit(grid: Grid, baseline: str, extensions: list[str], init: dict[str, float]
     """Least-squares fit of all the model's parameters from ``init`` on the fit blocks (or ``mask``)."""
     names = _free_names(baseline, extensions, init)
     internal = _from_params(init)
-    pset = ParamSet([param(nm) for nm in names])
+    pset = ParamSet([param(nm, grid) for nm in names])
     fixed = {k: v for k, v in internal.items() if k not in names and not k.startswith("_")
              and k not in ("amplitude_mu", "phase_rad")}
     if "position_periodic" not in extensions:
@@ -175,19 +181,20 @@ def multistart(grid: Grid, baseline: str, extensions: list[str], starts: list[di
     best = None
     for st in order:
         r = fit(grid, baseline, extensions, st, max_nfev=max_nfev)
-        r.extra["at_bound"] = at_bound(r.params)
+        r.extra["at_bound"] = at_bound(r.params, grid)
         if best is None or (r.extra["at_bound"], r.sse_fit) < (best.extra["at_bound"], best.sse_fit):
             best = r
     return best
 
 
-def at_bound(params: dict) -> bool:
-    """True when a fitted parameter sits on its bound (the fit then stands in for something else)."""
+def at_bound(params: dict, grid: Grid | None = None) -> bool:
+    """True when a fitted parameter sits on its bound (the fit then stands in for something else);
+    with a ``grid``, its bounds for that record (``param``)."""
     for nm, v in params.items():
         if nm not in PARAMS or nm in _NOT_CHECKED:
             continue
         if nm == "A_mu" and v <= 1e-9:
             continue
-        if param(nm).at_bound(v):
+        if param(nm, grid).at_bound(v):
             return True
     return False
