@@ -232,7 +232,7 @@ def build_identification(idn, max_steps: int = 9):
             a.axvspan(d0, d1, color="C1" if best else "0.8", alpha=0.3 if best else 0.35, lw=0)
             dd = np.linspace(0, max(d1, 1.0), 300)
             a.plot(dd, f["mu2"] + f["a"] * np.exp(-dd / f["L_um"]), "-" if best else ":",
-                   color="C3" if best else "C4", lw=1.1 if best else 0.8)
+                   color="k" if best else "C4", lw=1.1 if best else 0.8)
         fl = flagged(warns, step_where(r.to_json(), rep["n_trials"]))
         line2 = ", ".join(f"{lab} = {g3(val, 2 if lab in ('A', 'B') else 3)}{u}" + (" (!)" if key in fl else "")
                           for lab, key, val, u in (("A", "A_mu", r.A_mu, ""), ("B", "B_mu", r.B_mu, ""),
@@ -248,10 +248,10 @@ def build_identification(idn, max_steps: int = 9):
         lax.axis("off")
         handles = record_handles[1:] + [Line2D([], [], ls="", marker=".", color="0.5", label="measured μ"),
                    Line2D([], [], ls="--", color="C0", label="μ1: mean before the step"),
-                   Line2D([], [], ls="-", color="C3", label="eq. (12) fit, window kept (best r²)"),
+                   Line2D([], [], ls="-", color="k", label="eq. (12) fit, window kept (best r²)"),
                    Line2D([], [], ls=":", color="C4", label="eq. (12) fit, other windows"),
                    Patch(color="C1", alpha=0.3, label="μ2 window kept"),
-                   Patch(color="0.8", alpha=0.35, label="other μ2 windows (50, 100, 250 µm)")]
+                   Patch(color="0.8", alpha=0.35, label="other μ2 windows tried")]
         lax.legend(handles=handles, loc="center", ncols=3)
     if foot:
         footnote_axes(fig, gs[len(heights) - 1, :], foot)

@@ -924,8 +924,8 @@ def find_unexplained(grid: Grid, cur: FitResult) -> list[dict]:
            "gain_pct_by_quantity": {k: _r(v[0], 4) for k, v in scores.items()}}
     if best == "frequency":
         ent.update(freq_info)
-        ent["evidence"] = (f"the residual oscillates in time with period {freq_info['period_s']} s, amplitude "
-                           f"{freq_info['amplitude_N']} N (hold-out gain {g:.1f}% if modelled); not periodic in "
+        ent["evidence"] = (f"the residual oscillates in time with period {freq_info['period_s']:.3g} s, amplitude "
+                           f"{freq_info['amplitude_N']:.2g} N (hold-out gain {g:.1f}% if modelled); not periodic in "
                            "position, so not the surface; no catalogue extension explains it")
     out.append(ent)
     return out
