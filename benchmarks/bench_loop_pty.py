@@ -41,8 +41,8 @@ def _fifo(prio: int) -> bool:
         return False
 
 
-def _writer(master: int, seconds: float) -> None:
-    _fifo(70)
+def _ticks(seconds: float):
+    """Sleep to each 1 ms deadline for ``seconds``; yields once per tick."""
     t0 = time.monotonic()
     k = 0
     while time.monotonic() - t0 < seconds:
@@ -50,6 +50,12 @@ def _writer(master: int, seconds: float) -> None:
         r = t0 + k * 1e-3 - time.monotonic()
         if r > 0:
             time.sleep(r)
+        yield k
+
+
+def _writer(master: int, seconds: float) -> None:
+    _fifo(70)
+    for _ in _ticks(seconds):
         os.write(master, FRAME)
 
 
@@ -62,14 +68,9 @@ def run(mode: str, seconds: float) -> dict:
     fcntl.fcntl(slave, fcntl.F_SETFL, fcntl.fcntl(slave, fcntl.F_GETFL) | os.O_NONBLOCK)
     inq = array.array("i", [0])
     dt = []
-    last_data = t0 = time.monotonic()
+    last_data = time.monotonic()
     data_gap = 0.0
-    k = 0
-    while time.monotonic() - t0 < seconds:
-        k += 1
-        r = t0 + k * 1e-3 - time.monotonic()
-        if r > 0:
-            time.sleep(r)
+    for _ in _ticks(seconds):
         a = time.perf_counter()
         got = b""
         if mode == "inq":
