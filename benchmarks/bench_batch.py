@@ -110,6 +110,16 @@ def bench_identify(jobs: int, n_files: int) -> dict:
                 t = time.perf_counter()
                 par += run_tasks(identify_file, rd, client=client)
                 t_warm += time.perf_counter() - t
+            # the whole batch at once on the warm cluster (the rounds of 10 above pay the tail of
+            # each round: 5 tail waits instead of 1), alternated with the whole batch serially
+            whole_s, whole_p = [], []
+            for _ in range(2):
+                t = time.perf_counter()
+                run_tasks(identify_file, items, jobs=1)
+                whole_s.append(time.perf_counter() - t)
+                t = time.perf_counter()
+                run_tasks(identify_file, items, client=client)
+                whole_p.append(time.perf_counter() - t)
         per_task = [r.seconds for r in serial]
         print(f"  serial: {t_serial:.2f} s ({t_serial / n_files * 1e3:.0f} ms per file), {load()}")
         # end to end: a fresh cluster, cold workers, the whole batch
@@ -126,7 +136,11 @@ def bench_identify(jobs: int, n_files: int) -> dict:
         print(f"  {jobs} workers, warm: {t_warm:.2f} s -> speed-up {t_serial / t_warm:.2f}x; "
               f"end to end (cluster start {t_start:.1f} s): {t_e2e:.2f} s -> {t_serial / t_e2e:.2f}x; "
               f"results identical: {same}; {load()}")
-        return {"n_files": n_files, "csv_MB": mb, "serial_s": t_serial, "warm_s": t_warm, "end_to_end_s": t_e2e,
+        print(f"  the whole {n_files}-file batch at once, warm cluster, alternated with serial: serial "
+              f"{', '.join(f'{x:.2f}' for x in whole_s)} s, {jobs} workers {', '.join(f'{x:.2f}' for x in whole_p)} s "
+              f"-> speed-up {min(whole_s) / min(whole_p):.2f}x best, "
+              f"{sorted(a / b for a, b in zip(whole_s, whole_p))[0]:.2f}x worst pair; {load()}")
+        return {"n_files": n_files, "whole_serial_s": whole_s, "whole_parallel_s": whole_p, "csv_MB": mb, "serial_s": t_serial, "warm_s": t_warm, "end_to_end_s": t_e2e,
                 "cluster_start_s": t_start, "per_task_s_mean": sum(per_task) / len(per_task),
                 "per_task_s_max": max(per_task), "speedup_warm": t_serial / t_warm,
                 "speedup_end_to_end": t_serial / t_e2e, "identical": same, "jobs": jobs,
