@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -172,3 +173,19 @@ def test_zero_normal_forces_never_divide_by_zero(tmp_path):
         zero.normal_force_N
     write_csv(zero, tmp_path / "z_out.csv")  # still writable, without a normal_force_N line
     assert "normal_force_N" not in (tmp_path / "z_out.csv").read_text()
+
+
+def test_converted_public_records_load_with_source_and_licence():
+    """tests/data's converted public records (tests/data/convert_giacomel.py) read without a
+    warning, to the spec, and say where they come from and under which licence."""
+    files = sorted((Path(__file__).parent / "data").glob("giacomel-*.csv"))
+    assert len(files) >= 3
+    for p in files:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            tr = read_csv(p)
+        assert len(tr) > 1000 and np.all(np.diff(tr.time_s) > 0)
+        assert tr.metadata["position_source"] == "load_point"
+        assert "github.com/pgiacomel/steadystate, commit" in tr.metadata["source"]
+        assert tr.metadata["licence"].startswith("MIT")
+        assert 0.3 < float(np.median(tr.mu)) < 1.0

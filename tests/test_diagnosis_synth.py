@@ -170,3 +170,16 @@ def test_structure_outside_the_catalogue_is_unexplained():
     assert rep["findings"] == []
     u = rep["unexplained"]
     assert [e["follows"] for e in u] == ["frequency"] and abs(u[0]["period_s"] - 13.0) < 0.5
+
+
+def test_extension_parameters_outside_their_physical_range_are_not_plausible():
+    """A cause's own parameters must lie in rig.model.spec.PLAUSIBLE, both when it is judged
+    and when the final model is refitted on all data (a 72 s sensor lag is no sensor's)."""
+    from rig.diagnosis.core import _ext_params_plausible
+    from rig.model.spec import PLAUSIBLE
+
+    hi = PLAUSIBLE["tau_s"].hi
+    assert _ext_params_plausible(("sensor_lag",), {"tau_s": 1.4})
+    assert not _ext_params_plausible(("sensor_lag",), {"tau_s": 7.2 * hi})
+    assert not _ext_params_plausible(("finite_stiffness", "time_delay"), {"delay_s": 2 * PLAUSIBLE["delay_s"].hi})
+    assert _ext_params_plausible(("finite_stiffness",), {"stiffness_kN_per_m": 500.0})

@@ -41,7 +41,7 @@ from rig.data import TrialData
 from .fit import FitResult, evaluate, fit, multistart
 from rig.kinematics import velocity_changes
 from rig.model.forward import as_model
-from rig.model.spec import EXT_PARAMS, model_params
+from rig.model.spec import EXT_PARAMS, PLAUSIBLE, model_params
 from .prep import Grid, prepare
 
 # a finding must matter in practice, not only pass a significance test (docs/diagnosis.md):
@@ -668,11 +668,24 @@ def _drift_leftover(grid: Grid, before: np.ndarray, after: np.ndarray) -> float:
     return a / b if b > 0 else math.inf
 
 
+def _ext_params_plausible(extensions, p: dict) -> bool:
+    """The extensions' own parameters inside their physical range (rig.model.spec.PLAUSIBLE, the
+    ranges rig.model.checks warns with): a 72 s "sensor lag" on a 2.8 h gouge record is no sensor's."""
+    for e in extensions:
+        for name in EXT_PARAMS.get(e, ()):
+            rng = PLAUSIBLE.get(name)
+            if rng is not None and name in p and not (rng.lo <= p[name] <= rng.hi):
+                return False
+    return True
+
+
 def _plausible(cause: str, p: dict, grid: Grid) -> bool:
     """Reject fits that ran to a bound (the extension then stands in for something else)."""
     from .fit import at_bound
 
     if at_bound(p, grid):
+        return False
+    if not _ext_params_plausible((cause,), p):
         return False
     # large cancelling coefficients (e.g. B = 0.13, B2 = -0.13) stand in for something else: real
     # rate-and-state coefficients are O(0.001-0.02) (Table 2; rock friction)
@@ -799,7 +812,8 @@ def refit_all(grid: Grid, res: FitResult) -> dict:
     from .fit import at_bound
 
     if (not np.all(np.isfinite(list(p.values()))) or at_bound(p, grid)
-            or any(abs(p.get(k, 0.0)) > 0.05 for k in ("A_mu", "B_mu", "B2_mu"))):
+            or any(abs(p.get(k, 0.0)) > 0.05 for k in ("A_mu", "B_mu", "B2_mu"))
+            or not _ext_params_plausible(res.extensions, p)):
         return dict(res.params)  # ran away on the joined data: keep the validated split fit
     if "second_state_variable" in res.extensions and "aging_law" not in res.extensions:
         swap_slower_second(p)
