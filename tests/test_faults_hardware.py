@@ -101,6 +101,14 @@ def _finish(p, timeout_s: float = 60.0) -> str:
         raise AssertionError("rig run hung") from None
 
 
+def _recovered_s(out: Path, rec: Path) -> float:
+    """`rig recover OUT --out REC` (exit 0), then the trial seconds of raw data it kept."""
+    r = subprocess.run([sys.executable, "-m", "rig.cli", "recover", str(out), "--out", str(rec)], cwd=REPO,
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stdout + r.stderr
+    return float(read_trial(rec, channel="raw").time_s[-1])
+
+
 def _safe_valve(env, timeout_s: float = 3.0) -> dict:
     t_end = time.monotonic() + timeout_s
     while True:
@@ -231,11 +239,7 @@ def test_disk_full_ends_the_trial_safely(env):
         assert st["valve"]["nmt"] in ("PRE-OPERATIONAL", "OPERATIONAL")
         assert not st["valve_watchdog"]  # nulled by the loop (told by the session), not by the valve's watchdog
         # what reached the disk before it filled reads back after `rig recover`
-        rec = env.tmp / "full-recovered.mcap"
-        r = subprocess.run([sys.executable, "-m", "rig.cli", "recover", str(out), "--out", str(rec)], cwd=REPO,
-                           capture_output=True, text=True, timeout=60)
-        assert r.returncode == 0, r.stdout + r.stderr
-        assert read_trial(rec, channel="raw").time_s[-1] > 0.5
+        assert _recovered_s(out, env.tmp / "full-recovered.mcap") > 0.5
 
 
 def test_kill9_of_the_logger(env):
@@ -249,11 +253,7 @@ def test_kill9_of_the_logger(env):
     print(f"\nFAULT kill -9 logger: valve disabled {(st['t_valve_disabled'] - t_kill) * 1e3:.1f} ms after the kill")
     p.wait(10)
     assert not st["valve_watchdog"]  # nulled by the loop's safe stop, not by the valve's watchdog
-    rec = env.tmp / "kill-logger-recovered.mcap"
-    r = subprocess.run([sys.executable, "-m", "rig.cli", "recover", str(out), "--out", str(rec)], cwd=REPO,
-                       capture_output=True, text=True, timeout=60)
-    assert r.returncode == 0, r.stdout + r.stderr
-    assert read_trial(rec, channel="raw").time_s[-1] > 0.3
+    assert _recovered_s(out, env.tmp / "kill-logger-recovered.mcap") > 0.3
 
 
 def test_kill9_of_the_loop(env):

@@ -202,9 +202,11 @@ def _num(d: dict, k: str):
     return float(v) if isinstance(v, (int, float)) else None
 
 
-def record_identify(db: str | Path, results: list[TaskResult], options: dict) -> None:
-    """Write batch ``identify`` results (from :func:`rig.catalog.tasks.identify_file`) into ``db``:
-    the latest result per file replaces the previous one; failures are recorded with their error."""
+def _record(db: str | Path, table: str, results: list[TaskResult], ok_row, failed_cols: str, failed_row) -> None:
+    """Write batch results into ``table`` in one transaction: the latest result per file replaces
+    the previous one. ``ok_row(r)`` gives a full row after (path, sha256, run_utc, rig_version, ok,
+    error); a failure stores ``failed_cols`` from ``failed_row(r)`` after (path, run_utc,
+    rig_version, ok, error)."""
     from rig import __version__
 
     con = open_catalog(db)
@@ -212,46 +214,40 @@ def record_identify(db: str | Path, results: list[TaskResult], options: dict) ->
         con.execute("BEGIN TRANSACTION")
         for r in results:
             path = str(r.item[0])
-            con.execute("DELETE FROM identify_results WHERE path = ?", [path])
+            con.execute(f"DELETE FROM {table} WHERE path = ?", [path])
             if r.ok:
-                rep = r.value["report"]
-                m, e = rep.get("mean", {}), rep.get("sem", {})
-                con.execute("INSERT INTO identify_results VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                            [path, r.value["sha256"], utcnow(), __version__, True, None, json.dumps(options),
-                             rep.get("n_steps"), _num(m, "A_mu"), _num(m, "B_mu"), _num(m, "L_um"),
-                             _num(e, "A_mu"), _num(e, "B_mu"), _num(e, "L_um"), _num(m, "k_cr_kN_per_m"),
-                             r.seconds, json.dumps(rep, allow_nan=False)])
+                row = [path, r.value["sha256"], utcnow(), __version__, True, None, *ok_row(r)]
+                con.execute(f"INSERT INTO {table} VALUES ({', '.join('?' * len(row))})", row)
             else:
-                con.execute("INSERT INTO identify_results (path, run_utc, rig_version, ok, error, options, seconds) "
-                            "VALUES (?, ?, ?, ?, ?, ?, ?)",
-                            [path, utcnow(), __version__, False, r.error, json.dumps(options), r.seconds])
+                row = [path, utcnow(), __version__, False, r.error, *failed_row(r)]
+                con.execute(f"INSERT INTO {table} (path, run_utc, rig_version, ok, error, {failed_cols}) "
+                            f"VALUES ({', '.join('?' * len(row))})", row)
         con.execute("COMMIT")
     finally:
         con.close()
+
+
+def record_identify(db: str | Path, results: list[TaskResult], options: dict) -> None:
+    """Write batch ``identify`` results (from :func:`rig.catalog.tasks.identify_file`) into ``db``:
+    the latest result per file replaces the previous one; failures are recorded with their error."""
+    def ok_row(r):
+        rep = r.value["report"]
+        m, e = rep.get("mean", {}), rep.get("sem", {})
+        return [json.dumps(options), rep.get("n_steps"), _num(m, "A_mu"), _num(m, "B_mu"), _num(m, "L_um"),
+                _num(e, "A_mu"), _num(e, "B_mu"), _num(e, "L_um"), _num(m, "k_cr_kN_per_m"),
+                r.seconds, json.dumps(rep, allow_nan=False)]
+
+    _record(db, "identify_results", results, ok_row, "options, seconds",
+            lambda r: [json.dumps(options), r.seconds])
 
 
 def record_diagnose(db: str | Path, results: list[TaskResult], options: dict) -> None:
     """Write batch ``diagnose`` results (:func:`rig.catalog.tasks.diagnose_file`) into ``db``."""
-    from rig import __version__
+    def ok_row(r):
+        rep = r.value["report"]
+        causes = [f.get("cause") for f in rep.get("findings", [])]
+        return [rep.get("baseline", {}).get("model"), _num(rep.get("baseline", {}), "holdout_rms_N"),
+                _num(rep, "holdout_rms_N"), len(causes), causes, r.seconds, json.dumps(rep, allow_nan=False)]
 
-    con = open_catalog(db)
-    try:
-        con.execute("BEGIN TRANSACTION")
-        for r in results:
-            path = str(r.item[0])
-            con.execute("DELETE FROM diagnose_results WHERE path = ?", [path])
-            if r.ok:
-                rep = r.value["report"]
-                causes = [f.get("cause") for f in rep.get("findings", [])]
-                con.execute("INSERT INTO diagnose_results VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                            [path, r.value["sha256"], utcnow(), __version__, True, None,
-                             rep.get("baseline", {}).get("model"),
-                             _num(rep.get("baseline", {}), "holdout_rms_N"), _num(rep, "holdout_rms_N"),
-                             len(causes), causes, r.seconds, json.dumps(rep, allow_nan=False)])
-            else:
-                con.execute("INSERT INTO diagnose_results (path, run_utc, rig_version, ok, error, baseline, seconds) "
-                            "VALUES (?, ?, ?, ?, ?, ?, ?)",
-                            [path, utcnow(), __version__, False, r.error, options.get("baseline"), r.seconds])
-        con.execute("COMMIT")
-    finally:
-        con.close()
+    _record(db, "diagnose_results", results, ok_row, "baseline, seconds",
+            lambda r: [options.get("baseline"), r.seconds])
