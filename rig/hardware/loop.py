@@ -196,6 +196,7 @@ def _run(hw_dict, profile, x_ref, out_q, abort_flag, stop_req, options, logger_a
     trip: Trip | None = None
     mode = Mode.RUN
     hold_ref = 0.0
+    hold_ff_k = 0
     hold_end_k = 0
     stop_k = n_ticks
 
@@ -308,6 +309,7 @@ def _run(hw_dict, profile, x_ref, out_q, abort_flag, stop_req, options, logger_a
                 out_q.put(("event", t_s, "interlock", tr.as_dict()))
             elif mode is Mode.RUN and (abort_flag.value or stop_req["why"]):
                 status, mode, hold_ref = "aborted", Mode.HOLD, xr
+                hold_ff_k = kr  # the feed-forward holds with the reference
                 hold_end_k = kr + hold_ticks
                 stop_k = hold_end_k + 1
                 out_q.put(("event", t_s, "abort", {"reason": "operator abort" if abort_flag.value
@@ -319,7 +321,8 @@ def _run(hw_dict, profile, x_ref, out_q, abort_flag, stop_req, options, logger_a
         else:
             ffk = 0.0
             if n_ff:  # held with the reference (hold, stall): the force of the tick the reference is at
-                ffk = float(ff_N[kr if kr < n_ff else n_ff - 1])
+                kf = hold_ff_k if mode is Mode.HOLD else kr
+                ffk = float(ff_N[kf if kf < n_ff else n_ff - 1])
             cmd, p, i_, d_, dz = controller_step_v(cpar, cst, xr, x, math.nan, ffk)
             s_ = cmd + p + i_ + d_ + dz
             if s_ - s_ != 0.0:  # a non-finite controller output: never sent (the driver would null it)
