@@ -326,13 +326,25 @@ class CanopenValve:
             self._pump(0.002)
 
     def start(self, timeout_s: float = 1.0) -> None:
-        """NMT start, fault reset, enable; returns once a TPDO shows the valve enabled."""
+        """NMT start, fault reset, enable; returns once a TPDO shows the valve enabled.
+
+        The host's heartbeat goes out first: between connect and start the host may have been
+        silent for longer than the valve's consumer time (a loaded machine), and a valve that then
+        left OPERATIONAL gets the NMT start again while this explicit start sequence lasts (at
+        most every 50 ms); it never does so outside it."""
+        self._next_hb = 0.0
+        self._heartbeat_if_due(time.monotonic())
         self.node.nmt.state = "OPERATIONAL"
-        t_end = time.monotonic() + timeout_s
+        t_nmt = time.monotonic()
+        t_end = t_nmt + timeout_s
         phase = 0
         n0 = self.read().n_tpdo
         while True:
             st = self.read()
+            if not st.operational and time.monotonic() - t_nmt >= 0.05:
+                self.node.nmt.state = "OPERATIONAL"  # left it (heartbeat lost): again, from phase 0
+                t_nmt = time.monotonic()
+                phase = 0
             # phase 0: enable low (+ fault reset) until 3 fresh TPDOs show OPERATIONAL, no latch
             if phase == 0 and st.operational and st.n_tpdo >= n0 + 3 and not st.reset_required \
                     and not st.enabled:

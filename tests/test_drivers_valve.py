@@ -625,3 +625,40 @@ def test_loopback_only(xproc):
     # the bus's sockets are AF_UNIX in the abstract namespace, named by the channel
     names = [ln.split()[-1] for ln in open("/proc/net/unix") if f"rig-can/{cfg.channel}/" in ln]
     assert len(names) >= 2 and all(n.startswith("@rig-can/") for n in names)
+
+
+def test_a_host_silent_between_connect_and_start_still_starts(inproc):
+    """A loaded host can be silent for longer than the valve's heartbeat consumer time between
+    connect and the explicit start: the valve then leaves OPERATIONAL (heartbeat lost, latched),
+    and start() (heartbeat first, NMT start again, fault reset) still brings it up enabled."""
+    cfg, em, v = inproc
+    v.connect()
+    time.sleep(3 * cfg.heartbeat_timeout_s)  # no tick, no heartbeat: the consumer fires
+    assert em.latched and em.nmt_state == "PRE-OPERATIONAL"  # the valve saw the host go silent
+    v.start()
+    st = v.read()
+    assert st.operational and st.enabled and not st.reset_required
+    assert _drive(v, 0.2, lambda: abs(em.spool - 0.2) < 1e-3)
+
+
+def test_a_host_stall_inside_start_is_recovered_by_start(inproc):
+    """The host stalls inside start() for longer than the consumer time (one write takes 2x the
+    heartbeat timeout, as a descheduled process would): the valve leaves OPERATIONAL, and start()
+    sends the NMT start again and finishes enabled within its time."""
+    cfg, em, v = inproc
+    v.connect()
+    write, calls = v.write, []
+
+    def stalling_write(*a, **kw):
+        calls.append(1)
+        if len(calls) == 3:
+            time.sleep(2 * cfg.heartbeat_timeout_s)
+        return write(*a, **kw)
+
+    v.write = stalling_write
+    v.start(timeout_s=5.0)
+    v.write = write
+    assert EMCY_HEARTBEAT in em.emcy_sent  # the stall was seen by the valve
+    st = v.read()
+    assert st.operational and st.enabled and not st.reset_required
+    assert _drive(v, 0.2, lambda: abs(em.spool - 0.2) < 1e-3)
