@@ -111,26 +111,61 @@ def jacobian_stderr(pset: ParamSet, z: np.ndarray, jac: np.ndarray, resid: np.nd
 def least_squares_fit(residual: Callable[[dict[str, float]], np.ndarray], pset: ParamSet,
                       starts: list[dict[str, float]], *, max_nfev: int = 400, diff_step: float | None = 1e-6,
                       xtol: float = 1e-8, ftol: float = 1e-9, x_scale="jac", keep: int | None = None,
-                      bad_value: float = 1e6) -> FitOutcome | None:
+                      bad_value: float = 1e6,
+                      jac: Callable[[dict[str, float]], np.ndarray | None] | None = None) -> FitOutcome | None:
     """Minimise ``sum(residual(params)**2)`` from several starts; the best fit, or None.
 
     ``residual`` takes named params in their units; a start whose residual is not finite or
     raises ValueError/ZeroDivisionError/OverflowError is penalised with ``bad_value``. With
-    ``keep``, the starts are ranked by their initial cost and only the best ``keep`` fitted."""
+    ``keep``, the starts are ranked by their initial cost and only the best ``keep`` fitted.
+
+    ``jac`` (optional) gives the residual's exact derivatives: ``jac(params)`` returns an
+    (n_residuals, n_params) array of d residual / d param in each parameter's unit (columns in
+    ``pset`` order); a column of NaN (or None for all) asks for a forward difference of that
+    parameter alone (step ``diff_step`` in the internal variable, as scipy's)."""
     lo, hi = pset.bounds()
     n_res = [0]
     ncall = [0]
+    last = [None, None]  # the last (z, residual), reused by the finite-difference columns
 
     def fun(z):
         ncall[0] += 1
         try:
             r = np.asarray(residual(pset.unpack(z)), dtype=float)
         except (ValueError, ZeroDivisionError, OverflowError):
-            return np.full(max(n_res[0], 1), bad_value)
-        n_res[0] = r.size
-        if not np.all(np.isfinite(r)):
-            return np.full(r.size, bad_value)
+            r = np.full(max(n_res[0], 1), bad_value)
+        else:
+            n_res[0] = r.size
+            if not np.all(np.isfinite(r)):
+                r = np.full(r.size, bad_value)
+        last[0], last[1] = np.array(z, dtype=float), r
         return r
+
+    def jac_fun(z):
+        try:
+            J = jac(pset.unpack(z))
+        except (ValueError, ZeroDivisionError, OverflowError):
+            J = None
+        if last[0] is None or not np.array_equal(last[0], z):
+            fun(z)
+        r0 = last[1]
+        J = np.full((r0.size, z.size), np.nan) if J is None else np.array(J, dtype=float)
+        if J.shape != (r0.size, z.size) or (r0 == bad_value).all():
+            J = np.full((r0.size, z.size), np.nan)
+        for i, prm in enumerate(pset.params):
+            col = J[:, i]
+            if np.isnan(col).all() or not np.all(np.isfinite(col)):
+                h = (diff_step or 1e-8) * max(1.0, abs(float(z[i])))
+                if z[i] + h > hi[i]:
+                    h = -h
+                zh = np.array(z, dtype=float)
+                zh[i] += h
+                rh = fun(zh)
+                last[0], last[1] = np.array(z, dtype=float), r0
+                J[:, i] = (rh - r0) / h
+            else:
+                J[:, i] = col * (prm.to_value(float(z[i])) if prm.log else prm.scale)
+        return J
 
     z0s = [np.clip(pset.pack(s), lo + 1e-9, hi - 1e-9) for s in starts]
     if keep is not None and len(z0s) > keep:
@@ -140,7 +175,7 @@ def least_squares_fit(residual: Callable[[dict[str, float]], np.ndarray], pset: 
     for z0 in z0s:
         try:
             sol = least_squares(fun, z0, bounds=(lo, hi), method="trf", x_scale=x_scale, diff_step=diff_step,
-                                max_nfev=max_nfev, xtol=xtol, ftol=ftol)
+                                max_nfev=max_nfev, xtol=xtol, ftol=ftol, jac=jac_fun if jac is not None else "2-point")
         except (ValueError, np.linalg.LinAlgError):
             continue
         if best is None or sol.cost < best.cost:

@@ -20,6 +20,7 @@ import numpy as np
 from numba import njit
 
 from rig.model import sensors
+from rig.model import friction as fr
 from rig.model.friction import N_STATE, P_B2, P_STATE_ON, mu_of, mu_series
 from rig.model.loading import stiff_series
 from rig.model.spec import FrictionModel
@@ -75,3 +76,60 @@ def predict_force(model: FrictionModel, t_s: np.ndarray, x_um: np.ndarray, v_um_
     if "force_offset_drift" in ext:
         F = F + sensors.offset_drift(t, model.get("rate_N_per_s"))
     return F
+
+
+# the parameters whose exact derivatives :func:`force_sensitivities` gives (rigid slip-law path),
+# mapped to the friction kernel's columns; ``periodic_cos_mu`` / ``periodic_sin_mu`` are the
+# periodic term written c cos(2 pi x / wavelength) + s sin(2 pi x / wavelength)
+_SENS_COLS = {"mu0": fr.P_MU0, "A_mu": fr.P_A, "B_mu": fr.P_B, "L_um": fr.P_L, "B2_mu": fr.P_B2, "L2_um": fr.P_L2,
+              "rate_mu_per_mm": fr.P_WEAR, "amplitude_mu": fr.P_AMP, "wavelength_um": fr.P_WAVE,
+              "phase_rad": fr.P_PHASE, "v_init_um_s": fr.D_V_INIT, "periodic_cos_mu": fr.D_PER_COS,
+              "periodic_sin_mu": fr.D_PER_SIN}
+
+
+def has_sensitivities(baseline: str, extensions: list[str]) -> bool:
+    """True when :func:`force_sensitivities` applies: a state variable with the slip law and a
+    rigid loading system (the stiffness and the aging law are differentiated numerically)."""
+    has_state = baseline == "rate_state" or "frictional_memory" in extensions
+    return has_state and "aging_law" not in extensions and "finite_stiffness" not in extensions
+
+
+def force_sensitivities(model: FrictionModel, t_s: np.ndarray, x_um: np.ndarray, v_um_s: np.ndarray,
+                        N_tot_N: np.ndarray | None, N_nom_N: float, names: list[str],
+                        v_init_um_s: float | None = None) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """:func:`predict_force` (the same numbers) and exact dF/d(name) (N per unit of the parameter)
+    for those of ``names`` it can differentiate along the integration
+    (:func:`rig.model.friction.mu_series_sens`; the sensor chain is linear in F, ``tau_s`` by a
+    central difference of the low-pass alone). Names it cannot give (``delay_s``, stiffness,
+    aging) are absent: the caller differentiates them numerically. Needs :func:`has_sensitivities`."""
+    ext = model.extensions
+    if not has_sensitivities(model.baseline, ext):
+        raise ValueError("force_sensitivities: the model has no analytic sensitivities (stiffness or aging law)")
+    p = model.to_array()
+    t = np.ascontiguousarray(t_s, dtype=float)
+    x = np.ascontiguousarray(x_um, dtype=float)
+    v = np.ascontiguousarray(v_um_s, dtype=float)
+    nfac = sensors.normal_factor(t.size, N_tot_N, N_nom_N, "normal_force_variation" in ext)
+    v_eff = v
+    if "time_delay" in ext:
+        v_eff = sensors.delayed(t, v, model.get("delay_s"))
+    if v_init_um_s is None:
+        v_init_um_s = float(np.median(v_eff[: max(3, min(50, v_eff.size))]))
+    law = [nm for nm in names if nm in _SENS_COLS]
+    cols = np.array([_SENS_COLS[nm] for nm in law], dtype=np.int64)
+    mu, dmu = fr.mu_series_sens(p, t, v_eff, x, float(v_init_um_s), cols)
+    F = mu * nfac
+    J = dmu * nfac[:, None]
+    out = {nm: J[:, j] for j, nm in enumerate(law)}
+    if "sensor_lag" in ext:
+        tau = model.get("tau_s")
+        if "tau_s" in names:
+            h = 1e-5 * tau
+            out["tau_s"] = (sensors.lowpass_uneven(t, F, tau + h) - sensors.lowpass_uneven(t, F, tau - h)) / (2 * h)
+        F = sensors.lowpass_uneven(t, F, tau)
+        out.update({nm: sensors.lowpass_uneven(t, out[nm], tau) for nm in law})
+    if "force_offset_drift" in ext:
+        F = F + sensors.offset_drift(t, model.get("rate_N_per_s"))
+        if "rate_N_per_s" in names:
+            out["rate_N_per_s"] = t.copy()
+    return F, out

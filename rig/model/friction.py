@@ -219,3 +219,154 @@ def mu_series(p, t_s, v_um_s, x_um, v_init_um_s):
         advance_state(p, s, vm, dt)
         out[i] = mu_of(p, s, v_um_s[i], x_um[i])
     return out
+
+
+# ---------------------------------------------------------------------------
+# Forward-mode sensitivities of mu_series (exact Jacobians for the fits)
+# ---------------------------------------------------------------------------
+# derivative columns of :func:`mu_series_sens` besides the P_* indices
+D_V_INIT = N_PARAMS       # d/d v_init_um_s, the speed whose steady state the record starts in
+D_PER_COS = N_PARAMS + 1  # d/d c of the periodic term written c cos(2 pi x / wavelength) + s sin(...)
+D_PER_SIN = N_PARAMS + 2  # d/d s of the same (c = amplitude sin(phase), s = amplitude cos(phase))
+
+
+@njit(cache=True)
+def mu_regularized_grad(v_um_s, theta_total, mu0, a, v0, v_reg):
+    """(mu, d mu/d base, d mu/d a) of :func:`mu_regularized`, base = mu0 + theta_total."""
+    base = mu0 + theta_total
+    av = abs(v_um_s)
+    sgn = 1.0 if v_um_s >= 0.0 else -1.0
+    if a > 0.0:
+        if av == 0.0:
+            return 0.0, 0.0, 0.0
+        lnz = math.log(av / (2.0 * v0)) + base / a
+        if lnz > 30.0:
+            lv = math.log(av / v0)
+            return sgn * (base + a * lv), sgn, sgn * lv
+        z = math.exp(lnz)
+        q = z / math.sqrt(1.0 + z * z)   # d asinh(z) / d ln z
+        ash = math.asinh(z)
+        return sgn * a * ash, sgn * q, sgn * (ash - base / a * q)
+    r = v_um_s / math.sqrt(v_um_s * v_um_s + v_reg * v_reg)
+    return base * r, r, 0.0
+
+
+@njit(cache=True)
+def mu_series_sens(p, t_s, v_um_s, x_um, v_init_um_s, cols):
+    """:func:`mu_series` (the same numbers) and its exact derivatives d mu / d p[cols[j]].
+
+    Forward-mode sensitivities carried along the same integration: per interval the exact slip-law
+    update theta' = th_ss + (theta - th_ss) E, E = exp(-dslip / L), th_ss = -B ln(v/V0) (eq. 6)
+    gives dtheta'/dq = E dtheta/dq + (1 - E) dth_ss/dq + (theta - th_ss) E dslip / L^2 [q = L],
+    and mu (eq. 5, arcsinh form, plus the periodic and wear terms) is differentiated at every
+    sample. One call costs little more than one evaluation of the model, instead of one per
+    parameter for finite differences. Slip law only (no aging law), state on (rate_state).
+
+    ``cols``: P_MU0, P_A, P_B, P_L, P_B2, P_L2, P_WEAR, P_AMP, P_WAVE, P_PHASE, D_V_INIT,
+    D_PER_COS, D_PER_SIN. Returns (mu, jac) with jac[i, j] = d mu_i / d p[cols[j]].
+    """
+    n = t_s.shape[0]
+    m = cols.shape[0]
+    out = np.empty(n)
+    jac = np.zeros((n, m))
+    on = p[P_STATE_ON] > 0.5
+    b = p[P_B]
+    l_um = p[P_L]
+    b2 = p[P_B2]
+    l2 = p[P_L2]
+    v0 = p[P_V0]
+    amp = p[P_AMP]
+    wave = p[P_WAVE]
+    phase = p[P_PHASE]
+    wear = p[P_WEAR]
+    # initial steady state (init_state)
+    vi = max(abs(v_init_um_s), 1e-12)
+    lvi = math.log(vi / v0)
+    th = -b * lvi if on else 0.0
+    th2 = -b2 * lvi
+    dlvi = 1.0 / v_init_um_s if abs(v_init_um_s) > 1e-12 else 0.0
+    dth = np.zeros(m)
+    dth2 = np.zeros(m)
+    for j in range(m):
+        c = cols[j]
+        if c == P_B and on:
+            dth[j] = -lvi
+        elif c == P_B2:
+            dth2[j] = -lvi
+        elif c == D_V_INIT:
+            if on:
+                dth[j] = -b * dlvi
+            dth2[j] = -b2 * dlvi
+    slip = 0.0
+    for i in range(n):
+        if i > 0:
+            dt = t_s[i] - t_s[i - 1]
+            vm = 0.5 * (v_um_s[i] + v_um_s[i - 1])
+            va = abs(vm)
+            dslip = va * dt
+            if dslip > 0.0:
+                lv = math.log(max(va, 1e-12) / v0)
+                if on:
+                    e = math.exp(-dslip / l_um)
+                    thss = -b * lv
+                    for j in range(m):
+                        c = cols[j]
+                        d = dth[j] * e
+                        if c == P_B:
+                            d += -lv * (1.0 - e)
+                        elif c == P_L:
+                            d += (th - thss) * e * dslip / (l_um * l_um)
+                        dth[j] = d
+                    if b != 0.0:
+                        th = thss + (th - thss) * math.exp(-dslip / l_um)
+                if b2 != 0.0:
+                    e2 = math.exp(-dslip / l2)
+                    thss2 = -b2 * lv
+                    for j in range(m):
+                        c = cols[j]
+                        d = dth2[j] * e2
+                        if c == P_B2:
+                            d += -lv * (1.0 - e2)
+                        elif c == P_L2:
+                            d += (th2 - thss2) * e2 * dslip / (l2 * l2)
+                        dth2[j] = d
+                    th2 = thss2 + (th2 - thss2) * math.exp(-dslip / l2)
+            slip += dslip
+        v = v_um_s[i]
+        x = x_um[i]
+        tt = th2
+        if on:
+            tt += th
+        mu, gb, ga = mu_regularized_grad(v, tt, p[P_MU0], p[P_A], v0, p[P_VREG])
+        sg = 1.0 if v >= 0.0 else -1.0
+        per = 0.0
+        arg = 0.0
+        if amp != 0.0:
+            arg = 2.0 * math.pi * x / wave + phase
+            per = amp * math.sin(arg)
+        wr = 0.0
+        if wear != 0.0:
+            wr = wear * slip * 1e-3
+        extra = per + wr
+        out[i] = mu + extra if v >= 0.0 else mu - extra
+        for j in range(m):
+            c = cols[j]
+            d = gb * (dth2[j] + dth[j]) if on else gb * dth2[j]
+            if c == P_MU0:
+                d += gb
+            elif c == P_A:
+                d += ga
+            elif c == P_WEAR:
+                d += sg * slip * 1e-3
+            elif c == P_AMP:
+                d += sg * math.sin(2.0 * math.pi * x / wave + phase)
+            elif c == P_PHASE:
+                d += sg * amp * math.cos(2.0 * math.pi * x / wave + phase)
+            elif c == P_WAVE:
+                d += -sg * amp * math.cos(2.0 * math.pi * x / wave + phase) * 2.0 * math.pi * x / (wave * wave)
+            elif c == D_PER_COS:
+                d += sg * math.cos(2.0 * math.pi * x / wave)
+            elif c == D_PER_SIN:
+                d += sg * math.sin(2.0 * math.pi * x / wave)
+            jac[i, j] = d
+    return out, jac
