@@ -22,7 +22,7 @@ from numba import njit
 from rig.model import sensors
 from rig.model import friction as fr
 from rig.model.friction import N_STATE, P_B2, P_STATE_ON, mu_of, mu_series
-from rig.model.loading import stiff_series
+from rig.model.loading import D_STIFF, stiff_series, stiff_series_sens
 from rig.model.spec import FrictionModel
 
 
@@ -63,7 +63,10 @@ def predict_force(model: FrictionModel, t_s: np.ndarray, x_um: np.ndarray, v_um_
     if v_init_um_s is None:
         v_init_um_s = float(np.median(v_eff[: max(3, min(50, v_eff.size))]))
     k = model.stiffness_N_per_um
-    if k is not None:
+    if k is not None and _slip_law(model.baseline, ext):
+        # the same spring balance with its Newton derivative in closed form (1.5x faster)
+        F, _ = stiff_series_sens(p, t, x, v_eff, nfac, k, float(v_init_um_s), _NO_COLS)
+    elif k is not None:
         F = stiff_series(p, t, x, v_eff, nfac, k, float(v_init_um_s))
     elif p[P_STATE_ON] > 0.5 or p[P_B2] != 0.0:
         F = mu_series(p, t, v_eff, x, float(v_init_um_s)) * nfac
@@ -87,11 +90,19 @@ _SENS_COLS = {"mu0": fr.P_MU0, "A_mu": fr.P_A, "B_mu": fr.P_B, "L_um": fr.P_L, "
               "periodic_sin_mu": fr.D_PER_SIN}
 
 
+_NO_COLS = np.zeros(0, dtype=np.int64)
+
+
+def _slip_law(baseline: str, extensions: list[str]) -> bool:
+    """A state variable with the Ruina slip law (what the sensitivity kernels differentiate)."""
+    return (baseline == "rate_state" or "frictional_memory" in extensions) and "aging_law" not in extensions
+
+
 def has_sensitivities(baseline: str, extensions: list[str]) -> bool:
-    """True when :func:`force_sensitivities` applies: a state variable with the slip law and a
-    rigid loading system (the stiffness and the aging law are differentiated numerically)."""
-    has_state = baseline == "rate_state" or "frictional_memory" in extensions
-    return has_state and "aging_law" not in extensions and "finite_stiffness" not in extensions
+    """True when :func:`force_sensitivities` applies: a state variable with the slip law, rigid or
+    with ``finite_stiffness`` (the aging law and the steady_state baseline are differentiated
+    numerically)."""
+    return _slip_law(baseline, extensions)
 
 
 def force_sensitivities(model: FrictionModel, t_s: np.ndarray, x_um: np.ndarray, v_um_s: np.ndarray,
@@ -99,12 +110,13 @@ def force_sensitivities(model: FrictionModel, t_s: np.ndarray, x_um: np.ndarray,
                         v_init_um_s: float | None = None) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """:func:`predict_force` (the same numbers) and exact dF/d(name) (N per unit of the parameter)
     for those of ``names`` it can differentiate along the integration
-    (:func:`rig.model.friction.mu_series_sens`; the sensor chain is linear in F, ``tau_s`` by a
-    central difference of the low-pass alone). Names it cannot give (``delay_s``, stiffness,
-    aging) are absent: the caller differentiates them numerically. Needs :func:`has_sensitivities`."""
+    (:func:`rig.model.friction.mu_series_sens`, with a spring :func:`rig.model.loading.stiff_series_sens`;
+    the sensor chain is linear in F, ``tau_s`` by a central difference of the low-pass alone).
+    Names it cannot give (``delay_s``) are absent: the caller differentiates them numerically.
+    Needs :func:`has_sensitivities`."""
     ext = model.extensions
     if not has_sensitivities(model.baseline, ext):
-        raise ValueError("force_sensitivities: the model has no analytic sensitivities (stiffness or aging law)")
+        raise ValueError("force_sensitivities: the model has no analytic sensitivities (aging law or no state)")
     p = model.to_array()
     t = np.ascontiguousarray(t_s, dtype=float)
     x = np.ascontiguousarray(x_um, dtype=float)
@@ -117,9 +129,18 @@ def force_sensitivities(model: FrictionModel, t_s: np.ndarray, x_um: np.ndarray,
         v_init_um_s = float(np.median(v_eff[: max(3, min(50, v_eff.size))]))
     law = [nm for nm in names if nm in _SENS_COLS]
     cols = np.array([_SENS_COLS[nm] for nm in law], dtype=np.int64)
-    mu, dmu = fr.mu_series_sens(p, t, v_eff, x, float(v_init_um_s), cols)
-    F = mu * nfac
-    J = dmu * nfac[:, None]
+    k = model.stiffness_N_per_um
+    if k is not None:
+        if "stiffness_kN_per_m" in names:
+            law.append("stiffness_kN_per_m")
+            cols = np.append(cols, D_STIFF)
+        F, J = stiff_series_sens(p, t, x, v_eff, nfac, k, float(v_init_um_s), cols)
+        if "stiffness_kN_per_m" in names:
+            J[:, -1] *= 1e-3  # d/dk (N/µm) -> per kN/m
+    else:
+        mu, dmu = fr.mu_series_sens(p, t, v_eff, x, float(v_init_um_s), cols)
+        F = mu * nfac
+        J = dmu * nfac[:, None]
     out = {nm: J[:, j] for j, nm in enumerate(law)}
     if "sensor_lag" in ext:
         tau = model.get("tau_s")

@@ -232,23 +232,24 @@ D_PER_SIN = N_PARAMS + 2  # d/d s of the same (c = amplitude sin(phase), s = amp
 
 @njit(cache=True)
 def mu_regularized_grad(v_um_s, theta_total, mu0, a, v0, v_reg):
-    """(mu, d mu/d base, d mu/d a) of :func:`mu_regularized`, base = mu0 + theta_total."""
+    """(mu, d mu/d base, d mu/d a, d mu/d v) of :func:`mu_regularized`, base = mu0 + theta_total."""
     base = mu0 + theta_total
     av = abs(v_um_s)
     sgn = 1.0 if v_um_s >= 0.0 else -1.0
     if a > 0.0:
         if av == 0.0:
-            return 0.0, 0.0, 0.0
+            return 0.0, 0.0, 0.0, a * math.exp(min(base / a, 700.0)) / (2.0 * v0)
         lnz = math.log(av / (2.0 * v0)) + base / a
         if lnz > 30.0:
             lv = math.log(av / v0)
-            return sgn * (base + a * lv), sgn, sgn * lv
+            return sgn * (base + a * lv), sgn, sgn * lv, a / av
         z = math.exp(lnz)
         q = z / math.sqrt(1.0 + z * z)   # d asinh(z) / d ln z
         ash = math.asinh(z)
-        return sgn * a * ash, sgn * q, sgn * (ash - base / a * q)
-    r = v_um_s / math.sqrt(v_um_s * v_um_s + v_reg * v_reg)
-    return base * r, r, 0.0
+        return sgn * a * ash, sgn * q, sgn * (ash - base / a * q), a * q / av
+    den = v_um_s * v_um_s + v_reg * v_reg
+    r = v_um_s / math.sqrt(den)
+    return base * r, r, 0.0, base * v_reg * v_reg / den ** 1.5
 
 
 @njit(cache=True)
@@ -337,7 +338,7 @@ def mu_series_sens(p, t_s, v_um_s, x_um, v_init_um_s, cols):
         tt = th2
         if on:
             tt += th
-        mu, gb, ga = mu_regularized_grad(v, tt, p[P_MU0], p[P_A], v0, p[P_VREG])
+        mu, gb, ga, _ = mu_regularized_grad(v, tt, p[P_MU0], p[P_A], v0, p[P_VREG])
         sg = 1.0 if v >= 0.0 else -1.0
         per = 0.0
         arg = 0.0
