@@ -1,6 +1,7 @@
 """Benchmarks of rig diagnose: speed on one-hour records, accuracy and false-finding rate over seeds.
 
     python benchmarks/bench_diagnose.py speed        # 25 Hz and 1 kHz one-hour records
+    python benchmarks/bench_diagnose.py real         # the 75,220-row real record (velstep2), read + diagnosed
     python benchmarks/bench_diagnose.py clean N      # false-finding rate over N clean records
     python benchmarks/bench_diagnose.py accuracy N   # per cause: named and within 25 %, over N seeds
     ... [NOISE_SCALE]: records' sensor noise in units of the profile's (2 = the paper's ± as 1 sigma)
@@ -33,6 +34,26 @@ def speed():
         print(f"speed: {dur / 3600:.2g} h at {rate:g} Hz{' (irregular)' if jit else ''} ({len(trial)} samples, "
               f"{d.timings['n_bins']} fit bins): {dt:.1f} s (budget {budget:g} s) "
               f"findings={[f['cause'] for f in d.findings]}; load average {os.getloadavg()[0]:.2f}", flush=True)
+
+
+def real():
+    """`rig diagnose tests/data/giacomel-sepiolite-velstep2.csv` in-process: 75,220 irregular rows
+    (2.8 h at ~7 Hz), reading the CSV included, after a JIT warm-up on a cut of it."""
+    import os
+    from pathlib import Path
+
+    from rig.log import load_trial
+
+    path = Path(__file__).resolve().parent.parent / "tests" / "data" / "giacomel-sepiolite-velstep2.csv"
+    warm = load_trial(path)
+    diagnose(warm.select(np.arange(len(warm)) < 2000))  # JIT warm-up
+    t0 = time.perf_counter()
+    trial = load_trial(path)
+    t_read = time.perf_counter() - t0
+    d = diagnose(trial)
+    dt = time.perf_counter() - t0
+    print(f"real: {path.name} ({len(trial)} rows, {d.timings['n_bins']} fit bins): {dt:.1f} s (reading {t_read:.1f} s; "
+          f"budget 20 s) findings={[f['cause'] for f in d.findings]}; load average {os.getloadavg()[0]:.2f}", flush=True)
 
 
 def clean(n):
@@ -82,4 +103,4 @@ NOISE = float(sys.argv[3]) if len(sys.argv) > 3 else 1.0
 if __name__ == "__main__":
     what = sys.argv[1] if len(sys.argv) > 1 else "speed"
     n = int(sys.argv[2]) if len(sys.argv) > 2 else 10
-    {"speed": lambda: speed(), "clean": lambda: clean(n), "accuracy": lambda: accuracy(n)}[what]()
+    {"speed": lambda: speed(), "real": lambda: real(), "clean": lambda: clean(n), "accuracy": lambda: accuracy(n)}[what]()
