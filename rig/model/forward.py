@@ -9,6 +9,9 @@ the simulated rig's closed-loop kernel (rig.sim.plant) calls the same friction-l
 sensor kernels tick by tick, with the loading system's compliance chosen by
 :func:`rig.model.loading.lvdt_to_interface_compliance_um_per_N`.
 
+:func:`force_sensitivities` gives the same force and its exact derivatives with respect to the
+parameters (forward-mode sensitivities along the same integration), for the fits' Jacobians.
+
 Without ``finite_stiffness`` the interface slips with the measured position (diagnosis.md);
 with it, the interface's slip follows from the spring (:func:`rig.model.loading.stiff_series`)
 and position-periodic friction is evaluated at the interface's position.

@@ -10,6 +10,12 @@ safeguarded Newton iteration on ``asinh(v / VS)`` (signed: stops and returns); t
 is integrated in the interface's slip and position-periodic friction is evaluated at the
 interface's position.
 
+:func:`stiff_series_sens` is the same balance for a state with the slip law (what the
+forward model uses for it), with the Newton derivative in closed form and the exact
+derivatives of the force with respect to every parameter (implicit function theorem per
+interval): the diagnosis fits' Jacobians. :func:`stiff_series` serves the aging law and
+the steady_state baseline; the two agree to the solver's tolerance.
+
 In the simulated rig the same stiffness is the series compliance between the LVDT point and
 the interface; :func:`lvdt_to_interface_compliance_um_per_N` says which compliance that is:
 a model with ``finite_stiffness`` REPLACES the profile's fixture compliance (the diagnosis
