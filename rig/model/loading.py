@@ -282,9 +282,9 @@ def stiff_series_sens(p, t, x, v, nfac, k, v_init, cols):
         lo = -20.0
         hi = 20.0
         u = math.asinh(vprev / VS)
+        vv = VS * math.sinh(u)
+        r = _spring_step(p, on, th, th2, slip, xi, vv, dt, nf, k)
         for it in range(60):
-            vv = VS * math.sinh(u)
-            r = _spring_step(p, on, th, th2, slip, xi, vv, dt, nf, k)
             g = r[0] - rhs
             if abs(g) < 1e-12 * (1.0 + abs(rhs)):
                 break
@@ -299,8 +299,9 @@ def stiff_series_sens(p, t, x, v, nfac, k, v_init, cols):
             if hi - lo < 1e-13:
                 break
             u = un
-        vv = VS * math.sinh(u)
-        r = _spring_step(p, on, th, th2, slip, xi, vv, dt, nf, k)
+            vv = VS * math.sinh(u)
+            r = _spring_step(p, on, th, th2, slip, xi, vv, dt, nf, k)
+        # r is the balance at the final u (the last evaluation): no recomputation
         dgdv = r[1]
         thn, th2n, e, e2, lv, dthv, dth2v, gb, ga, mut = r[2], r[3], r[4], r[5], r[6], r[7], r[8], r[9], r[10], r[11]
         dslip = abs(vv) * dt
