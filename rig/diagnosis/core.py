@@ -500,8 +500,9 @@ def _evidence(cause: str, res: FitResult, grid: Grid, info: dict, others: dict[s
              "force channel, not a slip distance")
     elif cause == "finite_stiffness":
         k = p["stiffness_kN_per_m"]
-        s = (f"the interface lags the LVDT by F/k: the rise after a velocity change spans a slip set by "
-             f"k = {k:.4g} kN/m (load point moves {1.0 / (k * 1e-3):.3g} um per N of friction change)")
+        s = (f"the interface lags the measured position (LVDT or load point) by F/k: the rise after a "
+             f"velocity change spans a slip set by k = {k:.4g} kN/m (the measured point moves "
+             f"{1.0 / (k * 1e-3):.3g} um per N of friction change before the interface does)")
     elif cause == "normal_force_variation":
         s = (f"the residual follows mu x (N1 + N2 - 2 N_nom) with slope {info.get('normal_slope', float('nan')):.2f} "
              f"(z = {info.get('normal_z', float('nan')):.1f}): friction scales with the measured normal force")
