@@ -42,11 +42,14 @@ Use: ``UnixCanBus(channel="rig-A")`` or, through python-can's plugin entry point
 
 from __future__ import annotations
 
+import array
 import collections
 import errno
+import fcntl
 import select
 import socket
 import struct
+import termios
 import threading
 import time
 
@@ -58,6 +61,7 @@ _BATCH_HDR = struct.Struct("<BB")
 KIND_FRAME, KIND_BATCH = 0, 1
 BATCH_MAX = 16
 F_EXT, F_RTR, F_ERR = 0x01, 0x02, 0x04
+ACCEPT_EVERY_S = 0.005  # new peers accepted (and hung-up ones noticed) at least this often
 RECV_SIZE = 2 + BATCH_MAX * (_HDR.size + 8) + 1  # a longer message is malformed (and seen as too long)
 
 
@@ -158,7 +162,9 @@ class UnixCanBus(can.BusABC):
         self._gone: set[socket.socket] = set()
         self._listener = None
         self._next_accept = 0.0
+        self._next_full = 0.0    # the next drain that reads until EAGAIN/EOF even when gated
         self._rx: collections.deque = collections.deque()  # decoded frames not yet returned by recv
+        self._inq = array.array("i", [0])  # SIOCINQ result
         lst = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
         self.slot = -1
         for s in range(slots):
@@ -220,7 +226,7 @@ class UnixCanBus(can.BusABC):
             raise can.CanOperationError(f"rig_unix:{self.channel}: bus is shut down")
         now = time.monotonic()
         if now >= self._next_accept:  # new peers: also accepted on every recv
-            self._next_accept = now + 0.005
+            self._next_accept = now + ACCEPT_EVERY_S
             self._accept()
         for c in tuple(self._conns):
             if c in self._gone:
@@ -245,13 +251,33 @@ class UnixCanBus(can.BusABC):
         """Send arbitrary bytes to every peer (fault injection: malformed frames)."""
         self._send_datagram(bytes(datagram))
 
-    def _drain(self) -> None:
-        """Read every message queued on every connection (non-blocking) into ``self._rx``."""
+    def _drain(self, gated: bool = False) -> None:
+        """Read every message queued on every connection (non-blocking) into ``self._rx``.
+
+        ``gated``: ask each connection first how many bytes it holds (SIOCINQ, which counts every
+        queued message of a seqpacket socket) and read only those, instead of reading until EAGAIN
+        (a Python exception per connection per tick). A peer that hung up queues nothing that
+        SIOCINQ counts, so every ``ACCEPT_EVERY_S`` (and for a connection a send found gone) the
+        drain reads until EAGAIN or EOF as the ungated one does."""
         if self._listener is None:
             raise can.CanOperationError(f"rig_unix:{self.channel}: bus is shut down")
         rx = self._rx
+        now = time.monotonic()
+        full = not gated or now >= self._next_full
+        if full:
+            self._next_full = now + ACCEPT_EVERY_S
+        inq = self._inq
         for c in tuple(self._conns):
-            while True:  # this peer's queue, until empty
+            left = -1
+            if not full and c not in self._gone:
+                try:
+                    fcntl.ioctl(c.fileno(), termios.FIONREAD, inq, True)
+                except OSError:
+                    inq[0] = 1  # let recv say what is wrong
+                left = inq[0]
+                if left <= 0:
+                    continue
+            while left:  # this peer's queue, until empty (ungated: left stays negative)
                 try:
                     buf = c.recv(RECV_SIZE)
                 except BlockingIOError:
@@ -267,21 +293,22 @@ class UnixCanBus(can.BusABC):
                         break
                     self.n_malformed += 1  # an empty message, not the end of the connection
                     continue
+                if left > 0:
+                    left = max(0, left - len(buf))
                 frames = decode_frames(buf)
                 if frames is None:
                     self.n_malformed += 1
                     continue
                 rx.extend(frames)
-        now = time.monotonic()
         if now >= self._next_accept:
-            self._next_accept = now + 0.005
+            self._next_accept = now + ACCEPT_EVERY_S
             self._accept()
 
     def drain_frames(self) -> list:
         """Every frame received so far, non-blocking, as ``(arbitration id, flags, data)`` tuples
         (``F_EXT``, ``F_RTR``, ``F_ERR`` in flags), oldest first; what a real-time caller uses
-        instead of ``recv(0)`` one frame at a time."""
-        self._drain()
+        instead of ``recv(0)`` one frame at a time (gated by SIOCINQ: see :meth:`_drain`)."""
+        self._drain(gated=True)
         rx = self._rx
         out = list(rx)
         rx.clear()
