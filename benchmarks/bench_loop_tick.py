@@ -65,6 +65,7 @@ def phases(hw, profile, seconds: float, fifo: bool) -> dict:
 
     import numpy as np
 
+    from drivers.errors import DeviceError
     from rig.control import controller_params_from_profile, controller_step_v, new_controller_state
     from rig.hardware.devices import build_devices, wait_for_data
     from rig.hardware.interlocks import Interlocks
@@ -97,15 +98,25 @@ def phases(hw, profile, seconds: float, fifo: bool) -> dict:
     gc.disable()
     pacer.start()
     trips = []
+    errors = 0
     try:
         for i in range(n):
             _, dl, wake = pacer.wait()
             c0 = perf()
-            lvdt.read(wake)
+            try:  # as the loop: a device error is counted (the interlocks judge it), the tick goes on
+                lvdt.read(wake)
+            except DeviceError:
+                errors += 1
             c1 = perf()
-            cells.read(wake)
+            try:
+                cells.read(wake)
+            except DeviceError:
+                errors += 1
             c2 = perf()
-            valve.read(wake)
+            try:
+                valve.read(wake)
+            except DeviceError:
+                errors += 1
             c3 = perf()
             for d in devs:
                 d.health(wake)
@@ -134,6 +145,7 @@ def phases(hw, profile, seconds: float, fifo: bool) -> dict:
     out["sched"] = rt["sched"]
     out["skipped"] = pacer.skipped
     out["trips"] = [tr.name for tr in trips[:5]]
+    out["device_errors"] = errors
     return out
 
 
@@ -203,7 +215,7 @@ def main(argv=None) -> int:
         else:
             res = phases(emu.hw, profile, a.seconds, not a.no_fifo)
             print(f"per phase of a tick, {a.seconds:g} s at 1 kHz, {res['sched']}, skipped {res['skipped']}, "
-                  f"trips {res['trips'] or 'none'}:")
+                  f"trips {res['trips'] or 'none'}, device errors {res['device_errors']}:")
             for name in PHASES:
                 print(f"  {name:15s} p50 {res[name]['p50_us']:7.1f} µs   p99 {res[name]['p99_us']:7.1f} µs")
     finally:

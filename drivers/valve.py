@@ -49,7 +49,9 @@ when due; setpoint in [-1, 1], saturated, NaN -> 0 and counted); ``v.health()`` 
 list of problems (empty = healthy; any entry should trip); ``v.safe_stop()`` nulls
 and disables and returns True only when a TPDO (or the valve leaving OPERATIONAL)
 confirms it; ``v.close()``. Nothing here blocks inside ``read``/``write``: frames are
-drained with ``recv(0)`` and dispatched to canopen on the caller's thread.
+drained without waiting (on ``rig_unix`` its ``drain_frames()``, elsewhere ``recv(0)``) and
+dispatched on the caller's thread (the status PDO here, the rest to canopen); on ``rig_unix`` the
+set-point PDO and the SYNC go out as one message (``send_frames``).
 
 For the loop integrator: per tick ``st = v.read()``; ``probs = v.health()``; trip on
 any entry of ``probs`` (it covers foreign/malformed frames, EMCY/fault, watchdog,
