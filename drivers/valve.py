@@ -283,7 +283,7 @@ class CanopenValve:
                                      is_extended_id=False)
         self._sync_msg = can.Message(arbitration_id=self.network.sync.cob_id, data=bytearray(1),
                                      is_extended_id=False)
-        self._expected = {self._tpdo.cob_id: 6, 0x700 + n: 1, 0x080 + n: 8, 0x580 + n: 8}
+        self._expected = {self._tpdo.cob_id: TPDO_FMT.size, 0x700 + n: 1, 0x080 + n: 8, 0x580 + n: 8}
         self._tpdo_cob, self._hb_cob, self._sdo_tx = self._tpdo.cob_id, 0x700 + n, 0x580 + n
         self._sync_cob = self.network.sync.cob_id
         self._send_frames = getattr(self.bus, "send_frames", None)  # RPDO + SYNC in one message
@@ -461,7 +461,7 @@ class CanopenValve:
             self._foreign(cid)
             return
         if cid == self._tpdo_cob:
-            if len(data) != 6:
+            if len(data) != TPDO_FMT.size:
                 st.malformed_frames += 1
                 return
             if st.n_tpdo >= self._n_sync:  # more status frames than SYNCs: someone else sends them
