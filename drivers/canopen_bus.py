@@ -21,8 +21,20 @@ Message layout (little-endian), one CAN frame each::
     u8 kind (0 = frame)  u8 flags (bit0 extended id, bit1 remote,
     bit2 error frame)  u32 arbitration id  u8 dlc  dlc bytes of data (0..8)
 
-Anything else (wrong length, dlc > 8, id out of range, unknown kind) is dropped and
-counted in :attr:`UnixCanBus.n_malformed`; it never raises.
+or several frames sent together (:meth:`UnixCanBus.send_frames`: the host's set-point
+PDO and its SYNC in one socket operation, one wake-up of the peer instead of two)::
+
+    u8 kind (1 = batch)  u8 n (2..BATCH_MAX)  then n frames as above, back to back
+
+A receiver splits a batch back into its frames, in order: ``recv()`` returns them one by
+one as ordinary ``can.Message`` s (canopen on the other side sees normal frames).
+Anything else (wrong length, dlc > 8, id out of range, unknown kind, a batch whose frames
+do not add up to the message exactly or that holds a batch) is dropped whole and counted
+once in :attr:`UnixCanBus.n_malformed`; it never raises.
+
+Per tick the host does not go through python-can's ``BusABC.recv`` (its filter and
+timeout logic per call): :meth:`UnixCanBus.drain_frames` reads everything queued on
+every connection and returns it as ``(arbitration id, flags, data)`` tuples.
 
 Use: ``UnixCanBus(channel="rig-A")`` or, through python-can's plugin entry point,
 ``can.Bus(interface="rig_unix", channel="rig-A")``.
@@ -30,10 +42,14 @@ Use: ``UnixCanBus(channel="rig-A")`` or, through python-can's plugin entry point
 
 from __future__ import annotations
 
+import array
+import collections
 import errno
+import fcntl
 import select
 import socket
 import struct
+import termios
 import threading
 import time
 
@@ -41,8 +57,12 @@ import can
 
 SLOTS = 16
 _HDR = struct.Struct("<BBIB")
-KIND_FRAME = 0
+_BATCH_HDR = struct.Struct("<BB")
+KIND_FRAME, KIND_BATCH = 0, 1
+BATCH_MAX = 16
 F_EXT, F_RTR, F_ERR = 0x01, 0x02, 0x04
+ACCEPT_EVERY_S = 0.005  # new peers accepted (and hung-up ones noticed) at least this often
+RECV_SIZE = 2 + BATCH_MAX * (_HDR.size + 8) + 1  # a longer message is malformed (and seen as too long)
 
 
 def slot_address(channel: str, slot: int) -> bytes:
@@ -57,19 +77,67 @@ def encode_frame(msg: can.Message) -> bytes:
     return _HDR.pack(KIND_FRAME, flags, msg.arbitration_id, len(data)) + data
 
 
+def encode_frames(frames) -> bytes:
+    """Standard (11-bit) data frames ``(arbitration id, data)`` as one message: a single frame as
+    :func:`encode_frame` does, two or more (up to ``BATCH_MAX``) as a batch."""
+    n = len(frames)
+    if not 1 <= n <= BATCH_MAX:
+        raise ValueError(f"rig_unix: {n} frames in one message (1..{BATCH_MAX})")
+    parts = [] if n == 1 else [_BATCH_HDR.pack(KIND_BATCH, n)]
+    for arb, data in frames:
+        if not 0 <= arb <= 0x7FF or len(data) > 8:
+            raise ValueError(f"rig_unix: frame id 0x{arb:x} with {len(data)} bytes is not a standard CAN frame")
+        parts.append(_HDR.pack(KIND_FRAME, 0, arb, len(data)))
+        parts.append(data)
+    return b"".join(parts)
+
+
+def _frame_at(buf: bytes, off: int):
+    """The frame at ``off``: ((arbitration id, flags, data), end offset), or None if not a valid one."""
+    if len(buf) - off < _HDR.size:
+        return None
+    kind, flags, arb, dlc = _HDR.unpack_from(buf, off)
+    end = off + _HDR.size + dlc
+    if kind != KIND_FRAME or dlc > 8 or end > len(buf) or flags & ~0x07 \
+            or arb > (0x1FFFFFFF if flags & F_EXT else 0x7FF):
+        return None
+    return (arb, flags, buf[off + _HDR.size:end]), end
+
+
+def decode_frames(buf: bytes) -> list | None:
+    """A received message as its frames ``[(arbitration id, flags, data), ...]`` (one, or a batch's
+    in order), or None when it is not exactly a valid frame or batch."""
+    if len(buf) >= 2 and buf[0] == KIND_BATCH:
+        n = buf[1]
+        if not 2 <= n <= BATCH_MAX:
+            return None
+        out, off = [], 2
+        for _ in range(n):
+            fr = _frame_at(buf, off)
+            if fr is None:
+                return None
+            out.append(fr[0])
+            off = fr[1]
+        return out if off == len(buf) else None
+    fr = _frame_at(buf, 0)
+    if fr is None or fr[1] != len(buf):
+        return None
+    return [fr[0]]
+
+
+def to_message(arb: int, flags: int, data: bytes, channel: str | None = None) -> can.Message:
+    """A decoded frame as a python-can message."""
+    return can.Message(arbitration_id=arb, is_extended_id=bool(flags & F_EXT), is_remote_frame=bool(flags & F_RTR),
+                       is_error_frame=bool(flags & F_ERR), dlc=len(data), data=data, timestamp=time.time(),
+                       channel=channel, check=False)
+
+
 def decode_frame(buf: bytes) -> can.Message | None:
-    """A received datagram as a frame, or None when it is not a valid one."""
-    if len(buf) < _HDR.size:
+    """A received datagram holding one frame as a message, or None when it is not a valid one."""
+    frames = decode_frames(buf)
+    if frames is None or len(frames) != 1 or buf[0] != KIND_FRAME:
         return None
-    kind, flags, arb, dlc = _HDR.unpack_from(buf)
-    if kind != KIND_FRAME or dlc > 8 or len(buf) != _HDR.size + dlc or flags & ~0x07:
-        return None
-    ext = bool(flags & F_EXT)
-    if arb > (0x1FFFFFFF if ext else 0x7FF):
-        return None
-    return can.Message(arbitration_id=arb, is_extended_id=ext, is_remote_frame=bool(flags & F_RTR),
-                       is_error_frame=bool(flags & F_ERR), dlc=dlc, data=buf[_HDR.size:],
-                       timestamp=time.time(), check=False)
+    return to_message(*frames[0])
 
 
 def _peer_closed(sock: socket.socket) -> bool:
@@ -94,6 +162,9 @@ class UnixCanBus(can.BusABC):
         self._gone: set[socket.socket] = set()
         self._listener = None
         self._next_accept = 0.0
+        self._next_full = 0.0    # the next drain that reads until EAGAIN/EOF even when gated
+        self._rx: collections.deque = collections.deque()  # decoded frames not yet returned by recv
+        self._inq = array.array("i", [0])  # SIOCINQ result
         lst = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
         self.slot = -1
         for s in range(slots):
@@ -155,7 +226,7 @@ class UnixCanBus(can.BusABC):
             raise can.CanOperationError(f"rig_unix:{self.channel}: bus is shut down")
         now = time.monotonic()
         if now >= self._next_accept:  # new peers: also accepted on every recv
-            self._next_accept = now + 0.005
+            self._next_accept = now + ACCEPT_EVERY_S
             self._accept()
         for c in tuple(self._conns):
             if c in self._gone:
@@ -171,42 +242,89 @@ class UnixCanBus(can.BusABC):
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         self._send_datagram(encode_frame(msg))
 
+    def send_frames(self, frames) -> None:
+        """Send standard data frames ``(arbitration id, data)`` in one message (one socket send per
+        peer): the receivers get them as separate frames, in this order."""
+        self._send_datagram(encode_frames(frames))
+
     def send_raw(self, datagram: bytes) -> None:
         """Send arbitrary bytes to every peer (fault injection: malformed frames)."""
         self._send_datagram(bytes(datagram))
+
+    def _drain(self, gated: bool = False) -> None:
+        """Read every message queued on every connection (non-blocking) into ``self._rx``.
+
+        ``gated``: ask each connection first how many bytes it holds (SIOCINQ, which counts every
+        queued message of a seqpacket socket) and read only those, instead of reading until EAGAIN
+        (a Python exception per connection per tick). A peer that hung up queues nothing that
+        SIOCINQ counts, so every ``ACCEPT_EVERY_S`` (and for a connection a send found gone) the
+        drain reads until EAGAIN or EOF as the ungated one does."""
+        if self._listener is None:
+            raise can.CanOperationError(f"rig_unix:{self.channel}: bus is shut down")
+        rx = self._rx
+        now = time.monotonic()
+        full = not gated or now >= self._next_full
+        if full:
+            self._next_full = now + ACCEPT_EVERY_S
+        inq = self._inq
+        for c in tuple(self._conns):
+            left = -1
+            if not full and c not in self._gone:
+                try:
+                    fcntl.ioctl(c.fileno(), termios.FIONREAD, inq, True)
+                except OSError:
+                    inq[0] = 1  # let recv say what is wrong
+                left = inq[0]
+                if left <= 0:
+                    continue
+            while left:  # this peer's queue, until empty (ungated: left stays negative)
+                try:
+                    buf = c.recv(RECV_SIZE)
+                except BlockingIOError:
+                    break
+                except ConnectionResetError:
+                    continue  # the peer left with unread frames; what it sent is still queued
+                except OSError:
+                    self._drop(c)
+                    break
+                if not buf:
+                    if _peer_closed(c):
+                        self._drop(c)
+                        break
+                    self.n_malformed += 1  # an empty message, not the end of the connection
+                    continue
+                if left > 0:
+                    left = max(0, left - len(buf))
+                frames = decode_frames(buf)
+                if frames is None:
+                    self.n_malformed += 1
+                    continue
+                rx.extend(frames)
+        if now >= self._next_accept:
+            self._next_accept = now + ACCEPT_EVERY_S
+            self._accept()
+
+    def drain_frames(self) -> list:
+        """Every frame received so far, non-blocking, as ``(arbitration id, flags, data)`` tuples
+        (``F_EXT``, ``F_RTR``, ``F_ERR`` in flags), oldest first; what a real-time caller uses
+        instead of ``recv(0)`` one frame at a time (gated by SIOCINQ: see :meth:`_drain`)."""
+        self._drain(gated=True)
+        rx = self._rx
+        out = list(rx)
+        rx.clear()
+        return out
 
     def _recv_internal(self, timeout: float | None):
         if self._listener is None:
             raise can.CanOperationError(f"rig_unix:{self.channel}: bus is shut down")
         deadline = None if timeout is None else time.monotonic() + timeout
+        rx = self._rx
         while True:
-            for c in tuple(self._conns):
-                while True:  # this peer's queue, until a valid frame or empty
-                    try:
-                        buf = c.recv(256)
-                    except BlockingIOError:
-                        break
-                    except ConnectionResetError:
-                        continue  # the peer left with unread frames; what it sent is still queued
-                    except OSError:
-                        self._drop(c)
-                        break
-                    if not buf:
-                        if _peer_closed(c):
-                            self._drop(c)
-                            break
-                        self.n_malformed += 1  # an empty message, not the end of the connection
-                        continue
-                    msg = decode_frame(buf)
-                    if msg is None:
-                        self.n_malformed += 1
-                        continue
-                    msg.channel = self.channel
-                    return msg, False
+            if not rx:
+                self._drain()
+            if rx:
+                return to_message(*rx.popleft(), channel=self.channel), False
             now = time.monotonic()
-            if now >= self._next_accept:
-                self._next_accept = now + 0.005
-                self._accept()
             wait = None if deadline is None else deadline - now
             if wait is not None and wait <= 0:
                 return None, False
@@ -257,4 +375,5 @@ def local_pids_on_channel(channel: str) -> list[int]:  # pragma: no cover - diag
     return sorted(out)
 
 
-__all__ = ["UnixCanBus", "encode_frame", "decode_frame", "slot_address", "SLOTS"]
+__all__ = ["UnixCanBus", "encode_frame", "encode_frames", "decode_frame", "decode_frames", "to_message",
+           "slot_address", "SLOTS", "BATCH_MAX", "F_EXT", "F_RTR", "F_ERR"]

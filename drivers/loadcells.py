@@ -48,6 +48,9 @@ from drivers.errors import DeviceError
 
 DEVICE = "load-cell conditioner"
 CHANNELS = ("friction", "normal_1", "normal_2")
+_U16 = struct.Struct(">H")
+_MBAP = struct.Struct(">HHH")   # transaction id, protocol id (0), length of what follows
+_VALUE = {"float32": struct.Struct(">f"), "int32": struct.Struct(">i"), "int16": struct.Struct(">h")}
 
 
 def decode_value(regs: list[int], encoding: str, word_order: str) -> float:
@@ -97,6 +100,7 @@ class LoadCellReader:
         self._health = DeviceHealth(DEVICE, self.address)
         self.forces_N: tuple[float, float, float] = (float("nan"),) * 3
         self._first, self._count = cfg.span()
+        self._build_decoder()
         self._client = None
         self._last_counter: int | None = None
         self._last_change_t = 0.0
@@ -147,8 +151,10 @@ class LoadCellReader:
         self._rx.clear()
         self._out_tid = None
         fc = 4 if c.register_type == "input" else 3
-        self._req_tail = struct.pack(">HHBBHH", 0, 6, c.device_id, fc, self._first, self._count)
+        # the request, built once; each send only writes its transaction id into the first two bytes
+        self._req = bytearray(struct.pack(">HHHBBHH", 0, 0, 6, c.device_id, fc, self._first, self._count))
         self._fc = fc
+        self._answer_len = 6 + 3 + 2 * self._count  # MBAP + unit, function code, byte count + registers
         self._last_change_t = time.monotonic()
 
     def close(self) -> None:
@@ -209,72 +215,109 @@ class LoadCellReader:
         self.n_errors += 1
         self.consecutive_errors += 1
 
-    def _value(self, regs: list[int], ch: str) -> float:
-        cal = getattr(self.cfg, ch)
-        i = cal.address - self._first
-        raw = decode_value(regs[i:i + self.cfg.words_per_value], self.cfg.encoding,
-                           self.cfg.word_order)
-        return raw * cal.scale + cal.offset - cal.tare_N
+    def _build_decoder(self) -> None:
+        """Byte offsets of every field inside the registers' bytes, and each channel's struct (a
+        big-word-order float32/int32 or an int16 is one big-endian value in the register bytes; the
+        little word order swaps the two words first)."""
+        c, first = self.cfg, self._first
+        self._chan = [(2 * (getattr(c, ch).address - first), getattr(c, ch)) for ch in CHANNELS]
+        self._val = _VALUE[c.encoding]
+        self._swap = c.encoding != "int16" and c.word_order == "little"
+        self._cnt_off = None if c.counter_address is None else 2 * (c.counter_address - first)
+        self._st_off = None if c.status_address is None else 2 * (c.status_address - first)
+
+    def _decode(self, buf: bytes, base: int, now: float) -> tuple[float, float, float]:
+        """The fields of the register bytes at ``buf[base:]`` (counter, status, three forces,
+        calibrated and tared)."""
+        if self._cnt_off is not None:
+            cnt = _U16.unpack_from(buf, base + self._cnt_off)[0]
+            if cnt != self._last_counter:
+                self._last_counter = cnt
+                self._last_change_t = now
+                self.reads_since_new = 0
+            else:
+                self.reads_since_new += 1
+            self.counter = cnt
+        else:
+            self._last_change_t = now
+        if self._st_off is not None:
+            self.status = _U16.unpack_from(buf, base + self._st_off)[0]
+        val, out = self._val, []
+        for off, cal in self._chan:
+            o = base + off
+            raw = val.unpack(buf[o + 2:o + 4] + buf[o:o + 2])[0] if self._swap else val.unpack_from(buf, o)[0]
+            out.append(raw * cal.scale + cal.offset - cal.tare_N)
+        self.forces_N = (out[0], out[1], out[2])
+        return self.forces_N
 
     # -- pipelined Modbus TCP ----------------------------------------------------------
     def _send_request(self, now: float) -> None:
         self._tid = (self._tid + 1) & 0xFFFF
+        _U16.pack_into(self._req, 0, self._tid)
         try:
-            self._sock.send(struct.pack(">H", self._tid) + self._req_tail)
+            self._sock.send(self._req)
         except OSError as exc:
             self._error()
             raise DeviceError(DEVICE, self.address, f"connection lost: {exc}") from exc
         self._out_tid, self._out_t = self._tid, now
 
-    def _collect(self, now: float) -> list[int] | None:
-        """The answer to the request in flight if it has arrived (registers), else None."""
+    def _collect(self, now: float) -> bytes | None:
+        """The answer to the request in flight if it has arrived (its PDU: unit id, function code,
+        byte count, registers), else None. Validated: transaction id (a late answer is dropped),
+        protocol id, unit id, function code, byte count, exception responses."""
+        rx = self._rx
         try:
             while True:
                 chunk = self._sock.recv(4096)
                 if not chunk:
                     raise DeviceError(DEVICE, self.address, "connection lost (closed by the conditioner)")
-                self._rx += chunk
+                rx += chunk
+                if len(rx) >= self._answer_len:
+                    break  # a whole answer's worth is here: no second recv just to hear EAGAIN
         except BlockingIOError:
             pass
         except OSError as exc:
             if exc.errno not in (errno.EAGAIN, errno.EWOULDBLOCK):
                 raise DeviceError(DEVICE, self.address, f"connection lost: {exc}") from exc
-        rx = self._rx
-        regs = None
+        frame = None
         while len(rx) >= 8:
-            tid, _pid, ln = struct.unpack_from(">HHH", rx)
-            if ln < 2 or ln > 260:
-                rx.clear()  # not Modbus: drop what we have, the request will time out
+            tid, pid, ln = _MBAP.unpack_from(rx)
+            if pid != 0 or ln < 2 or ln > 260:
+                rx.clear()  # not Modbus TCP: drop what we have, the request will time out
                 break
             if len(rx) < 6 + ln:
                 break
-            frame = bytes(rx[6:6 + ln])
+            pdu = bytes(rx[6:6 + ln])
             del rx[:6 + ln]
             if tid != self._out_tid:
                 self.late_answers += 1  # an answer to a request that timed out: never used
                 continue
             self._out_tid = None
-            fc = frame[1]
+            unit, fc = pdu[0], pdu[1]
+            if unit != self.cfg.device_id:
+                self._error()
+                raise DeviceError(DEVICE, self.address, f"answer from unit {unit}, not {self.cfg.device_id}",
+                                  kind="protocol")
             if fc & 0x80:
                 self._error()
-                raise DeviceError(DEVICE, self.address, f"Modbus exception response (code {frame[2]})",
+                raise DeviceError(DEVICE, self.address, f"Modbus exception response (code {pdu[2]})",
                                   kind="protocol")
-            nbytes = frame[2] if len(frame) > 2 else 0
-            if fc != self._fc or nbytes != 2 * self._count or len(frame) != 3 + nbytes:
+            nbytes = pdu[2] if len(pdu) > 2 else 0
+            if fc != self._fc or nbytes != 2 * self._count or len(pdu) != 3 + nbytes:
                 self._error()
-                raise DeviceError(DEVICE, self.address, f"short or malformed response ({len(frame)} bytes)",
+                raise DeviceError(DEVICE, self.address, f"short or malformed response ({len(pdu)} bytes)",
                                   kind="protocol")
-            regs = list(struct.unpack_from(f">{self._count}H", frame, 3))
-        return regs
+            frame = pdu
+        return frame
 
-    def _read_pipelined(self, now: float) -> list[int] | None:
+    def _read_pipelined(self, now: float) -> bytes | None:
         if self._sock is None:
             raise DeviceError(DEVICE, self.address, "not connected")
-        regs = None
+        pdu = None
         try:
             if self._out_tid is not None:
-                regs = self._collect(now)
-                if regs is None:
+                pdu = self._collect(now)
+                if pdu is None:
                     if now - self._out_t > self.cfg.timeout_s:
                         self._out_tid = None
                         self._error()
@@ -285,39 +328,22 @@ class LoadCellReader:
         finally:
             if self._out_tid is None and self._sock is not None:
                 self._send_request(now)  # the next request goes out now, answered while the loop works
-        if regs is not None:
+        if pdu is not None:
             self.consecutive_errors = 0
             self.n_reads += 1
-        return regs
+        return pdu
 
     def read(self, now: float | None = None) -> tuple[float, float, float]:
         """One request: ``forces_N`` = (friction_N, normal_1_N, normal_2_N), calibrated and tared
         (also returned). Pipelined: the answer to the previous tick's request, if it has arrived."""
-        if self.pipelined:
-            now = time.monotonic() if now is None else now
-            regs = self._read_pipelined(now)
-            if regs is None:
-                return self.forces_N
-        else:
-            regs = self.read_raw()
         now = time.monotonic() if now is None else now
-        c = self.cfg
-        if c.counter_address is not None:
-            cnt = regs[c.counter_address - self._first]
-            if cnt != self._last_counter:
-                self._last_counter = cnt
-                self._last_change_t = now
-                self.reads_since_new = 0
-            else:
-                self.reads_since_new += 1
-            self.counter = cnt
-        else:
-            self._last_change_t = now
-        if c.status_address is not None:
-            self.status = regs[c.status_address - self._first]
-        self.forces_N = (self._value(regs, "friction"), self._value(regs, "normal_1"),
-                         self._value(regs, "normal_2"))
-        return self.forces_N
+        if self.pipelined:
+            pdu = self._read_pipelined(now)
+            if pdu is None:
+                return self.forces_N
+            return self._decode(pdu, 3, now)  # registers after unit id, function code, byte count
+        regs = self.read_raw()
+        return self._decode(struct.pack(f">{len(regs)}H", *regs), 0, now)
 
     def write(self, now: float | None = None) -> None:
         pass

@@ -41,6 +41,7 @@ DEVICE = "LVDT conditioner"
 SYNC = b"\xa5\x5a"
 FRAME_LEN = 11
 _BODY = struct.Struct("<HiB")
+_CRC = struct.Struct(">H")
 VANISH_CHECK_POLLS = 20  # polls without data between two checks that the port's path still exists
 
 
@@ -61,8 +62,22 @@ class FrameParser:
         self.lost_frames = 0
         self._last_seq: int | None = None
 
+    def _good(self, body: bytes) -> tuple[int, int, int]:
+        seq, counts, status = _BODY.unpack(body)
+        if self._last_seq is not None:
+            gap = (seq - self._last_seq - 1) & 0xFFFF
+            if gap and gap < 0x8000:
+                self.lost_frames += gap
+        self._last_seq = seq
+        self.good_frames += 1
+        return seq, counts, status
+
     def feed(self, data: bytes) -> list[tuple[int, int, int]]:
         buf = self.buf
+        if not buf and len(data) == FRAME_LEN and data[:2] == SYNC:  # the usual tick: one whole frame
+            body = data[2:9]
+            if binascii.crc_hqx(body, 0xFFFF) == _CRC.unpack_from(data, 9)[0]:
+                return [self._good(body)]
         buf += data
         out = []
         i = 0
@@ -86,14 +101,7 @@ class FrameParser:
                 self.bad_frames += 1
                 i = j + 2  # resync after this sync pair
                 continue
-            seq, counts, status = _BODY.unpack(body)
-            if self._last_seq is not None:
-                gap = (seq - self._last_seq - 1) & 0xFFFF
-                if gap and gap < 0x8000:
-                    self.lost_frames += gap
-            self._last_seq = seq
-            self.good_frames += 1
-            out.append((seq, counts, status))
+            out.append(self._good(body))
             i = j + FRAME_LEN
         del buf[:i]
         return out

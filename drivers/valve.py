@@ -49,7 +49,9 @@ when due; setpoint in [-1, 1], saturated, NaN -> 0 and counted); ``v.health()`` 
 list of problems (empty = healthy; any entry should trip); ``v.safe_stop()`` nulls
 and disables and returns True only when a TPDO (or the valve leaving OPERATIONAL)
 confirms it; ``v.close()``. Nothing here blocks inside ``read``/``write``: frames are
-drained with ``recv(0)`` and dispatched to canopen on the caller's thread.
+drained without waiting (on ``rig_unix`` its ``drain_frames()``, elsewhere ``recv(0)``) and
+dispatched on the caller's thread (the status PDO here, the rest to canopen); on ``rig_unix`` the
+set-point PDO and the SYNC go out as one message (``send_frames``).
 
 For the loop integrator: per tick ``st = v.read()``; ``probs = v.health()``; trip on
 any entry of ``probs`` (it covers foreign/malformed frames, EMCY/fault, watchdog,
@@ -81,6 +83,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+from drivers.canopen_bus import F_ERR, F_EXT, F_RTR
 from drivers.config import CanopenValveConfig
 from drivers.errors import DeviceError
 
@@ -275,11 +278,15 @@ class CanopenValve:
         self._check_layout()
         self._tpdo.add_callback(self._on_tpdo)
         # the per-tick frames, built once from canopen's maps (COB-IDs, sizes) and reused
+        self._rpdo_cob = self._rpdo.cob_id
         self._rpdo_msg = can.Message(arbitration_id=self._rpdo.cob_id, data=bytearray(RPDO_FMT.size),
                                      is_extended_id=False)
         self._sync_msg = can.Message(arbitration_id=self.network.sync.cob_id, data=bytearray(1),
                                      is_extended_id=False)
-        self._expected = {self._tpdo.cob_id: 6, 0x700 + n: 1, 0x080 + n: 8, 0x580 + n: 8}
+        self._expected = {self._tpdo.cob_id: TPDO_FMT.size, 0x700 + n: 1, 0x080 + n: 8, 0x580 + n: 8}
+        self._tpdo_cob, self._hb_cob, self._sdo_tx = self._tpdo.cob_id, 0x700 + n, 0x580 + n
+        self._sync_cob = self.network.sync.cob_id
+        self._send_frames = getattr(self.bus, "send_frames", None)  # RPDO + SYNC in one message
         self._master_ids = {NMT_COB, SYNC_COB, self._rpdo.cob_id, 0x600 + n, 0x700 + self.cfg.host_node_id}
         stop = threading.Event()
         pump = threading.Thread(target=self._pump_until, args=(stop,), daemon=True, name="canopen-connect")
@@ -376,13 +383,17 @@ class CanopenValve:
         self._recent.pop((self._counter - RECENT) & 0xFF, None)
         self._st.spool_command = cmd
         self._sync_count = self._sync_count % SYNC_OVERFLOW + 1
-        rp, sy = self._rpdo_msg, self._sync_msg
-        rp.data[:] = RPDO_FMT.pack(to_counts(cmd), self._cw, self._counter)
-        sy.data[0] = self._sync_count
+        rpdo = RPDO_FMT.pack(to_counts(cmd), self._cw, self._counter)
         try:
             with self.network.send_lock:
-                self.bus.send(rp)
-                self.bus.send(sy)
+                if self._send_frames is not None:  # one socket operation, split back into frames
+                    self._send_frames(((self._rpdo_cob, rpdo), (self._sync_cob, bytes((self._sync_count,)))))
+                else:
+                    rp, sy = self._rpdo_msg, self._sync_msg
+                    rp.data[:] = rpdo
+                    sy.data[0] = self._sync_count
+                    self.bus.send(rp)
+                    self.bus.send(sy)
             self._n_sync += 1
             self._heartbeat_if_due(time.monotonic())
         except Exception as exc:  # noqa: BLE001 - can.CanError, OSError
@@ -408,52 +419,73 @@ class CanopenValve:
         return st
 
     def _pump(self, timeout: float) -> None:
+        """Dispatch what arrived; wait up to ``timeout`` for the first frame. On the machine-local bus
+        the frames are drained straight from its sockets (no ``can.Message``, no per-call filter and
+        timeout logic of python-can's ``recv``: the per-tick path)."""
+        bus = self.bus
+        drain = getattr(bus, "drain_frames", None)
         with self._pump_lock:
-            first = True
-            while True:
-                try:
-                    msg = self.bus.recv(timeout if first else 0.0)
-                except Exception as exc:  # noqa: BLE001
-                    raise DeviceError(DEVICE, self.address, f"CAN receive failed: {exc}", kind="bus") from exc
-                first = False
-                if msg is None:
+            try:
+                if drain is not None:
+                    if timeout > 0.0:
+                        msg = bus.recv(timeout)
+                        if msg is not None:
+                            self._on_message(msg)
+                    for cid, flags, data in drain():
+                        self._on_frame(cid, flags, data)
                     return
-                self._on_frame(msg)
+                first = True
+                while True:
+                    msg = bus.recv(timeout if first else 0.0)
+                    first = False
+                    if msg is None:
+                        return
+                    self._on_message(msg)
+            except DeviceError:
+                raise
+            except Exception as exc:  # noqa: BLE001
+                raise DeviceError(DEVICE, self.address, f"CAN receive failed: {exc}", kind="bus") from exc
 
-    def _on_frame(self, msg) -> None:
+    def _on_message(self, msg) -> None:
+        flags = (F_EXT if msg.is_extended_id else 0) | (F_RTR if msg.is_remote_frame else 0) \
+            | (F_ERR if msg.is_error_frame else 0)
+        self._on_frame(msg.arbitration_id, flags, bytes(msg.data))
+
+    def _on_frame(self, cid: int, flags: int, data: bytes) -> None:
+        """One received frame (``flags``: the transport's F_EXT / F_RTR / F_ERR bits)."""
         st = self._st
-        cid = msg.arbitration_id
-        if msg.is_error_frame:
+        if flags & F_ERR:
             st.malformed_frames += 1
             return
-        if msg.is_remote_frame or msg.is_extended_id or cid in self._master_ids \
-                or (cid == 0x580 + self.cfg.node_id and not self._sdo_open):
+        if flags or cid in self._master_ids or (cid == self._sdo_tx and not self._sdo_open):
             self._foreign(cid)
+            return
+        if cid == self._tpdo_cob:
+            if len(data) != TPDO_FMT.size:
+                st.malformed_frames += 1
+                return
+            if st.n_tpdo >= self._n_sync:  # more status frames than SYNCs: someone else sends them
+                self._foreign(cid)
+                return
+            self._t_tpdo = time.monotonic()
+            # the per-tick status: unpacked here with the layout checked against the EDS at connect
+            # (canopen's generic PDO dispatch costs ~20 µs a tick); canopen handles everything else
+            self._on_tpdo_data(data)
             return
         want = self._expected.get(cid)
         if want is None:
             self._foreign(cid)
             return
-        if len(msg.data) != want and not (cid == 0x580 + self.cfg.node_id):
+        if len(data) != want and cid != self._sdo_tx:
             st.malformed_frames += 1
             return
-        now = time.monotonic()
-        if cid == 0x700 + self.cfg.node_id:
-            self._t_hb = now
-        elif cid == self._tpdo.cob_id:
-            if st.n_tpdo >= self._n_sync:  # more status frames than SYNCs: someone else sends them
-                self._foreign(cid)
-                return
-            self._t_tpdo = now
-            # the per-tick status: unpacked here with the layout checked against the EDS at connect
-            # (canopen's generic PDO dispatch costs ~20 µs a tick); canopen handles everything else
-            self._on_tpdo_data(bytes(msg.data))
-            return
+        if cid == self._hb_cob:
+            self._t_hb = time.monotonic()
         try:
-            self.network.notify(cid, msg.data, msg.timestamp)
+            self.network.notify(cid, data, time.time())
         except Exception:  # noqa: BLE001 - canopen could not decode it
             st.malformed_frames += 1
-        if cid == 0x700 + self.cfg.node_id:
+        if cid == self._hb_cob:
             st.nmt_state = self.node.nmt.state
 
     def _foreign(self, cid: int) -> None:

@@ -151,3 +151,100 @@ def test_rtu_over_bridged_ptys(tmp_path):
         rd.close()
         em.stop()
         bridge.close()
+
+
+@pytest.mark.parametrize("encoding,word_order", [("float32", "big"), ("float32", "little"), ("int32", "little"),
+                                                 ("int16", "big")])
+def test_pipelined_decodes_as_the_blocking_read(tcp_cfg, encoding, word_order):
+    """The loop's pipelined reader (one prebuilt request per tick, the answer collected the next tick)
+    decodes every encoding and word order exactly as the blocking pymodbus read does."""
+    cfg = LoadCellConfig.model_validate({**tcp_cfg.model_dump(), "encoding": encoding, "word_order": word_order,
+                                         "friction": {"address": 2, "scale": 0.5 if encoding != "float32" else 1.0,
+                                                      "offset": 0.25},
+                                         "normal_1": {"address": 6, "scale": 0.01 if encoding != "float32" else 1.0},
+                                         "normal_2": {"address": 9, "scale": 0.01 if encoding != "float32" else 1.0}})
+    em = _serve(cfg)
+    blocking, pipe = LoadCellReader(cfg), LoadCellReader(cfg, pipelined=True)
+    try:
+        em.update(-12.25, 101.25, 98.75)
+        blocking.connect()
+        pipe.connect()
+        want = blocking.read()
+        assert want == pytest.approx((-12.25, 101.25, 98.75), abs=0.01)
+        assert pipe.read() == (pytest.approx(float("nan"), nan_ok=True),) * 3  # request sent, nothing yet
+        got = None
+        t_end = time.monotonic() + 2.0
+        while got is None and time.monotonic() < t_end:
+            time.sleep(0.002)
+            if pipe.n_reads == 0:
+                pipe.read()
+            got = pipe.forces_N if pipe.n_reads else None
+        assert got == want  # bit for bit (nothing updated the registers in between)
+        assert pipe.status == 0 and pipe.consecutive_errors == 0
+    finally:
+        blocking.close()
+        pipe.close()
+        em.stop()
+
+
+class _RawModbusServer:
+    """A Modbus TCP server on a real socket that answers each request with ``answer(request)`` bytes."""
+
+    def __init__(self, answer):
+        import socket
+        import threading
+
+        self.answer = answer
+        self.lst = socket.create_server(("127.0.0.1", 0))
+        self.port = self.lst.getsockname()[1]
+        self.th = threading.Thread(target=self._serve, daemon=True)
+        self.th.start()
+
+    def _serve(self):
+        try:
+            c, _ = self.lst.accept()
+            with c:
+                while True:
+                    req = c.recv(12)
+                    if len(req) < 12:
+                        return
+                    c.sendall(self.answer(req))
+        except OSError:  # the client hung up (its close after the test)
+            return
+
+    def close(self):
+        self.lst.close()
+
+
+def _answer(req, *, unit=None, pid=0, fc=None, regs=8, exception=None):
+    import struct
+
+    tid, _, _, u, f, _first, count = struct.unpack(">HHHBBHH", req)
+    if exception is not None:
+        pdu = bytes((unit if unit is not None else u, f | 0x80, exception))
+    else:
+        pdu = bytes((unit if unit is not None else u, fc if fc is not None else f, 2 * regs)) + b"\x00\x01" * regs
+    return struct.pack(">HHH", tid, pid, len(pdu)) + pdu
+
+
+@pytest.mark.parametrize("kw,words", [({"unit": 9}, "unit 9"), ({"exception": 2}, "exception response (code 2)"),
+                                      ({"fc": 3}, "malformed"), ({"regs": 7}, "malformed"),
+                                      ({"pid": 5}, "no answer")])
+def test_pipelined_validates_every_answer(kw, words):
+    """Every answer is checked: unit id, exception, function code, byte count; not Modbus TCP at all
+    (a protocol id other than 0) is never used and times out."""
+    srv = _RawModbusServer(lambda req: _answer(req, **kw))
+    rd = LoadCellReader(LoadCellConfig(port=srv.port, timeout_s=0.05), pipelined=True)
+    try:
+        rd.connect()
+        rd.read()  # sends the first request
+        with pytest.raises(DeviceError) as ei:
+            t_end = time.monotonic() + 2.0
+            while time.monotonic() < t_end:
+                time.sleep(0.002)
+                rd.read()
+        assert words in str(ei.value) and f"127.0.0.1:{srv.port}" in str(ei.value)
+        assert rd.n_reads == 0 and rd.n_errors == 1
+    finally:
+        rd.close()
+        srv.close()

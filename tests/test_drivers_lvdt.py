@@ -102,3 +102,17 @@ def test_port_vanishes(streamer):
     with pytest.raises(DeviceError) as ei:
         LvdtReader(streamer.cfg).connect()
     assert "cannot open port" in str(ei.value)
+
+
+def test_parser_one_frame_per_read_counts_as_the_general_path():
+    """The usual tick hands the parser exactly one frame: a good one, a corrupted one (bad CRC: counted,
+    nothing kept), a gap in the sequence (lost frames counted), then a split frame: same counts as ever."""
+    p = FrameParser()
+    assert p.feed(encode_frame(1, 100)) == [(1, 100, 0)]
+    bad = bytearray(encode_frame(2, 200))
+    bad[5] ^= 0x01
+    assert p.feed(bytes(bad)) == [] and p.bad_frames == 1
+    assert p.feed(encode_frame(5, -7, 2)) == [(5, -7, 2)] and p.lost_frames == 3
+    f = encode_frame(6, 9)
+    assert p.feed(f[:4]) == [] and p.feed(f[4:]) == [(6, 9, 0)]
+    assert (p.good_frames, p.bad_frames, p.lost_frames, p.buf) == (3, 1, 3, bytearray())

@@ -20,7 +20,7 @@ import uuid
 import can
 import pytest
 
-from drivers.canopen_bus import UnixCanBus, decode_frame, encode_frame
+from drivers.canopen_bus import BATCH_MAX, F_RTR, UnixCanBus, decode_frame, decode_frames, encode_frame, encode_frames
 from drivers.emulators.valve_controller import ValveControllerEmulator, send_foreign, send_malformed
 from drivers.errors import DeviceError
 from drivers.valve import (
@@ -147,6 +147,56 @@ def test_frame_codec_exact_bytes_and_rejects():
                 bytes.fromhex("0000ff0f0000") + b"\x00",              # 11-bit id out of range
                 bytes.fromhex("000003020000") + b"\x09" + b"\x00" * 9):  # dlc 9
         assert decode_frame(bad) is None
+
+
+def test_batch_codec_exact_bytes_and_rejects():
+    """Several frames in one message (the set-point PDO and the SYNC: one send, one wake-up of the
+    peer): exact bytes; anything that does not add up exactly is rejected whole."""
+    raw = encode_frames(((0x203, b"\x10\x00\x01\x00\x07"), (0x080, b"\x05")))
+    assert raw.hex() == "0102" + "000003020000" + "05" + "1000010007" + "000080000000" + "01" + "05"
+    assert decode_frames(raw) == [(0x203, 0, b"\x10\x00\x01\x00\x07"), (0x080, 0, b"\x05")]
+    assert encode_frames(((0x080, b"\x05"),)) == encode_frame(can.Message(arbitration_id=0x80, data=b"\x05",
+                                                                             is_extended_id=False))
+    one = encode_frames(((0x080, b"\x05"),))
+    for bad in (raw[:-1], raw + b"\x00", b"\x01\x02" + one, b"\x01\x01" + one, b"\x01\x00",
+                bytes((1, BATCH_MAX + 1)) + one * (BATCH_MAX + 1),
+                b"\x01\x02" + raw + one,                               # a batch inside a batch
+                b"\x01\x02" + one + bytes.fromhex("0000ff0f000000")):  # 11-bit id out of range
+        assert decode_frames(bad) is None
+    assert decode_frame(raw) is None  # one frame expected: a batch is not one
+    for bad in ([], [(0x80, b"")] * (BATCH_MAX + 1), [(0x800, b"")], [(0x80, b"\x00" * 9)]):
+        with pytest.raises(ValueError):
+            encode_frames(bad)
+
+
+def test_batch_over_the_bus_arrives_as_ordinary_frames_in_order():
+    a = UnixCanBus(channel="t-" + uuid.uuid4().hex)
+    b = UnixCanBus(channel=a.channel)
+    try:
+        a.send_frames(((0x203, b"\x01\x02\x03\x04\x05"), (0x080, b"\x07")))
+        first = b.recv(2.0)
+        second = b.recv(0.5)
+        assert (first.arbitration_id, bytes(first.data)) == (0x203, b"\x01\x02\x03\x04\x05")
+        assert (second.arbitration_id, bytes(second.data)) == (0x080, b"\x07")
+        assert not first.is_extended_id and first.channel == a.channel
+        # the real-time drain: every frame queued, as tuples, oldest first; a bad batch counted once
+        a.send(can.Message(arbitration_id=0x181, data=b"\x00" * 6, is_extended_id=False))
+        a.send_raw(encode_frames(((0x203, b"\x01"), (0x080, b"\x07")))[:-1])
+        a.send_frames(((0x701, b"\x05"), (0x081, b"\x00" * 8)))
+        a.send(can.Message(arbitration_id=0x600, is_remote_frame=True, is_extended_id=False))
+        time.sleep(0.05)
+        b._next_full = time.monotonic() + 10.0  # the gated drain (SIOCINQ: every queued message's bytes)
+        got = b.drain_frames()
+        assert [(cid, flags, len(d)) for cid, flags, d in got] == [(0x181, 0, 6), (0x701, 0, 1), (0x081, 0, 8),
+                                                                   (0x600, F_RTR, 0)]
+        assert b.n_malformed == 1 and b.drain_frames() == [] and b.recv(0.02) is None
+        # a peer that hung up is noticed by the drain too (SIOCINQ counts nothing for it)
+        a.shutdown()
+        b._next_full = 0.0
+        assert _until(lambda: (b.drain_frames(), b.n_peers == 0)[1], 2.0)
+    finally:
+        a.shutdown()
+        b.shutdown()
 
 
 def test_bus_broadcast_isolated_channels_and_garbage():

@@ -232,7 +232,8 @@ def _run(hw_dict, profile, x_ref, out_q, abort_flag, stop_req, options, logger_a
     win_skip0, win_t = 0, None
     max_skip_per_s = ilc.max_skipped_fraction / period
     last_wake = float("nan")
-    skipped_seen = prev_skipped = 0
+    prev_skipped = carry_skip = stall_due = 0
+    stall_gap = None  # this tick's gap when it is a stall
     # the logger: blocks sent and when; the session acknowledges each block it has logged
     sent_t: list[float] = []
     log_timeout = ilc.logger_timeout_s
@@ -275,14 +276,12 @@ def _run(hw_dict, profile, x_ref, out_q, abort_flag, stop_req, options, logger_a
         last_wake = wake
         if mode is not Mode.SAFE:
             tr = dev_trip
-            if gap > stall_ev:  # a stall (NaN on the first tick: no)
-                n_skip = pacer.skipped - skipped_seen
-                out_q.put(("event", t_s, "stall", {"gap_s": gap, "skipped": n_skip, "reference_held": True,
-                                                   "wake_monotonic_s": wake}))
+            if gap > stall_ev:  # a stall (NaN on the first tick: no); its event goes out after advance()
+                stall_due = pacer.due_skips(wake)
+                stall_gap = gap
                 if tr is None and not (gap <= stall_trip):
                     tr = Trip("loop_stall", f"no tick for {gap * 1e3:.0f} ms (limit {stall_trip * 1e3:g} ms)",
-                              t_s, {"gap_s": gap, "skipped": n_skip})
-            skipped_seen = pacer.skipped
+                              t_s, {"gap_s": gap, "skipped": carry_skip + stall_due})
             if tr is None:
                 tr = il.check(t_s, wake, xr, x, f, n1, n2, health, wake - dl, v_ref)
             if tr is None and sent_t and logger_ack is not None:
@@ -371,6 +370,16 @@ def _run(hw_dict, profile, x_ref, out_q, abort_flag, stop_req, options, logger_a
         prev_skipped = pacer.advance(now)
         if prev_skipped:
             blk.skipped += prev_skipped
+        # the cycles a stall cost: those the previous tick's overrun skipped (they made this gap) and,
+        # for a late wake, those already due when this tick woke (skipped by this tick's advance)
+        if stall_gap is not None:
+            due = min(prev_skipped, stall_due)
+            out_q.put(("event", t_s, "stall", {"gap_s": stall_gap, "skipped": carry_skip + due,
+                                               "reference_held": True, "wake_monotonic_s": wake}))
+            carry_skip = prev_skipped - due
+            stall_gap = None
+        else:
+            carry_skip = prev_skipped
         # skipped cycles within the last second
         if win_t is None or not (now - win_t < 1.0):
             win_t, win_skip0 = now, pacer.skipped

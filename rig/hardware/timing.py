@@ -95,6 +95,13 @@ class Pacer:
                 pass
         return self.k, dl, mono()
 
+    def due_skips(self, now: float) -> int:
+        """The deadlines :meth:`advance` would skip if the current tick ended at ``now`` (a late wake:
+        the cycles a stall already cost before the tick ran)."""
+        if now > self.t0 + (self.k + 2) * self.period_s:
+            return max(0, int((now - self.t0) / self.period_s) - self.k)
+        return 0
+
     def advance(self, now: float | None = None) -> int:
         """Move to the next tick, skipping deadlines already past; returns ticks skipped."""
         now = time.monotonic() if now is None else now
