@@ -15,5 +15,7 @@ class DeviceError(RuntimeError):
         self.device = device
         self.address = address
         self.message = message
-        self.kind = kind  # "io" (lost/timeout), "protocol" (exception response, bad frame), "fault"
+        # "io" (timeout, no answer), "lost" (the connection or port is gone: trips at once),
+        # "protocol" (exception response, bad frame), "bus" (CAN send/receive), "fault"
+        self.kind = kind
         super().__init__(f"{device} at {address}: {message}")

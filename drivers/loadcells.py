@@ -211,6 +211,21 @@ class LoadCellReader:
         except Exception:  # noqa: BLE001 - reported by the next read
             pass
 
+    def _lost(self, message: str) -> DeviceError:
+        """The TCP connection is gone (the conditioner closed it, died or reset it): counted, the
+        socket dropped (every later read says so too, never a stale value taken for a new one), and
+        the error returned with ``kind="lost"``, which the loop trips on at once (``device_lost``)."""
+        self._error()
+        if self._sock is not None:
+            try:
+                self._sock.close()
+            except OSError:
+                pass
+            self._sock = None
+        self._out_tid = None
+        self._rx.clear()
+        return DeviceError(DEVICE, self.address, message, kind="lost")
+
     def _error(self):
         self.n_errors += 1
         self.consecutive_errors += 1
@@ -257,8 +272,7 @@ class LoadCellReader:
         try:
             self._sock.send(self._req)
         except OSError as exc:
-            self._error()
-            raise DeviceError(DEVICE, self.address, f"connection lost: {exc}") from exc
+            raise self._lost(f"connection lost: {exc}") from exc
         self._out_tid, self._out_t = self._tid, now
 
     def _collect(self, now: float) -> bytes | None:
@@ -270,7 +284,7 @@ class LoadCellReader:
             while True:
                 chunk = self._sock.recv(4096)
                 if not chunk:
-                    raise DeviceError(DEVICE, self.address, "connection lost (closed by the conditioner)")
+                    raise self._lost("connection lost (closed by the conditioner)")
                 rx += chunk
                 if len(rx) >= self._answer_len:
                     break  # a whole answer's worth is here: no second recv just to hear EAGAIN
@@ -278,7 +292,7 @@ class LoadCellReader:
             pass
         except OSError as exc:
             if exc.errno not in (errno.EAGAIN, errno.EWOULDBLOCK):
-                raise DeviceError(DEVICE, self.address, f"connection lost: {exc}") from exc
+                raise self._lost(f"connection lost: {exc}") from exc
         frame = None
         while len(rx) >= 8:
             tid, pid, ln = _MBAP.unpack_from(rx)
@@ -312,7 +326,7 @@ class LoadCellReader:
 
     def _read_pipelined(self, now: float) -> bytes | None:
         if self._sock is None:
-            raise DeviceError(DEVICE, self.address, "not connected")
+            raise DeviceError(DEVICE, self.address, "not connected", kind="lost")
         pdu = None
         try:
             if self._out_tid is not None:

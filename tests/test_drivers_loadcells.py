@@ -248,3 +248,45 @@ def test_pipelined_validates_every_answer(kw, words):
     finally:
         rd.close()
         srv.close()
+
+
+def test_pipelined_server_gone_is_lost_at_once_and_stays_lost(tcp_cfg):
+    """The conditioner's process dies mid-run (its TCP connection closed or reset): the pipelined
+    reader says so as a ``lost`` error, which the loop trips on at once, and every later read says
+    so again; it never returns the last forces as if they were new (that kept a trial running on
+    frozen forces before)."""
+    em = _serve(tcp_cfg)
+    rd = LoadCellReader(tcp_cfg, pipelined=True)
+    try:
+        rd.connect()
+        t_end = time.monotonic() + 2.0
+        while rd.n_reads < 3 and time.monotonic() < t_end:
+            rd.read()
+            time.sleep(0.002)
+        assert rd.n_reads >= 3
+        em.stop()
+        with pytest.raises(DeviceError) as ei:
+            t_end = time.monotonic() + 2.0
+            while time.monotonic() < t_end:
+                time.sleep(0.002)
+                rd.read()
+        assert ei.value.kind == "lost" and str(tcp_cfg.port) in str(ei.value)
+        with pytest.raises(DeviceError) as again:
+            rd.read()
+        assert again.value.kind == "lost"
+    finally:
+        rd.close()
+
+
+def test_a_lost_device_trips_at_once_other_errors_are_counted():
+    from drivers.config import InterlockConfig
+    from drivers.device import DeviceHealth
+    from rig.hardware.interlocks import Interlocks
+
+    il = Interlocks(InterlockConfig(), -5000.0, 5000.0, 0.05, 1e-3)
+    h = DeviceHealth("load-cell conditioner", "modbus-tcp://127.0.0.1:1 unit 1", consecutive_errors=1)
+    lost = DeviceError(h.device, h.address, "connection lost (closed by the conditioner)", kind="lost")
+    slow = DeviceError(h.device, h.address, "no answer within 2 ms")
+    trip = il.device_error(0.5, "loadcells", lost, h)
+    assert trip is not None and trip.name == "device_lost" and "closed by the conditioner" in trip.message
+    assert il.device_error(0.5, "loadcells", slow, h) is None  # one timeout is counted, not a trip

@@ -268,3 +268,35 @@ def test_kill9_of_the_loop(env):
     assert st["valve_watchdog"] or st["valve"]["latched"]
     tr = read_trial(out, channel="raw")
     assert any(e["kind"] == "loop_died" for e in tr.events)
+
+
+def test_kill9_of_the_load_cell_conditioner(tmp_path):
+    """The conditioner's process dies (its Modbus TCP connection closed by the kernel): a fault no
+    injection models. The loop trips at once on the lost device, nulls and disables the valve, and
+    never goes on with the last forces as if they were new (it did: the trial completed, exit 0,
+    on frozen forces). Its own emulator: the module's one keeps its Modbus server."""
+    prof = private_profile(tmp_path, autostart=False)
+    profile = load_profile(prof)
+    recipe = tmp_path / "faults.yaml"
+    recipe.write_text(RECIPE)
+    plan = compile_recipe(load_recipe(recipe), profile)
+    emu = start_emulator_process(hardware_of_profile(profile), profile, lubricant="boundary", seed=5,
+                                 private=False)
+    try:
+        env2 = SimpleNamespace(tmp=tmp_path, prof=prof, recipe=recipe, emu=emu, x0=float(plan.x_ref_um[0]))
+        out = tmp_path / "kill-conditioner.mcap"
+        p = _start(env2, out)
+        _wait_running(env2, p)
+        kids = [int(k) for k in subprocess.run(["pgrep", "-P", str(emu.proc.pid)], capture_output=True,
+                                               text=True).stdout.split()]
+        assert len(kids) == 1, kids  # the Modbus server's process (the emulator's only child)
+        os.kill(kids[0], signal.SIGKILL)
+        text = _finish(p)
+        assert p.returncode == 1, text
+        assert "device_lost" in text and "load-cell conditioner" in text, text
+        _safe_valve(env2)
+        trip, tr = _trip(out, {"device_lost"})
+        assert "load-cell conditioner" in trip["message"]
+        assert tr.time_s[-1] < 3.0  # the 5 s trial ended at the trip
+    finally:
+        emu.stop()

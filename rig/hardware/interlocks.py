@@ -206,6 +206,8 @@ class Interlocks:
         (a port lost, a bus gone) at once."""
         c = self.cfg
         kind = exc.kind
+        if kind == "lost":  # the connection itself is gone: nothing to count, no next answer to wait for
+            return Trip("device_lost", str(exc), t_s, {"device": exc.device, "address": exc.address})
         limit = {"loadcells": c.max_modbus_errors, "valve": c.max_can_errors if kind == "bus" else None}.get(name)
         if limit is not None:
             n = health.consecutive_errors
