@@ -270,6 +270,25 @@ def test_kill9_of_the_loop(env):
     assert any(e["kind"] == "loop_died" for e in tr.events)
 
 
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP])
+def test_sigterm_or_sighup_of_rig_run_stops_safely(env, sig):
+    """`kill` (SIGTERM) or the operator's terminal going away (SIGHUP, an SSH session dropped): an
+    operator's stop, as Ctrl-C: the valve nulled and disabled, the log finished and readable, exit
+    130. SIGHUP used to kill `rig run` outright: no footer on the MCAP, the loop stopped only by
+    its logger-died check."""
+    out = env.tmp / f"{sig.name}.mcap"
+    p = _start(env, out)
+    _wait_running(env, p)
+    os.kill(p.pid, sig)
+    text = _finish(p)
+    assert p.returncode == 130, text
+    assert f"operator abort ({sig.name})" in text, text
+    _safe_valve(env)
+    tr = read_trial(out, channel="raw")  # finished: readable without recovery
+    assert tr.metadata["status"] == "interrupted"
+    assert tr.valve_cmd[-1] == 0.0
+
 def test_kill9_of_the_load_cell_conditioner(tmp_path):
     """The conditioner's process dies (its Modbus TCP connection closed by the kernel): a fault no
     injection models. The loop trips at once on the lost device, nulls and disables the valve, and

@@ -8,7 +8,7 @@ Exit codes (one table, kept by every subcommand; ``tests/test_exit_codes.py`` ch
 1     a failed run: a trial that failed or tripped, a device that did not
       answer, a file that could not be written, an internal error
 2     bad input: a file, option or value rig cannot use (nothing is written)
-130   aborted by the operator (Ctrl-C, SIGTERM)
+130   aborted by the operator (Ctrl-C, SIGTERM, SIGHUP)
 ====  =====================================================================
 
 Conventions (``rig --help`` shows them): ``-o/--out PATH`` names a command's

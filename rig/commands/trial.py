@@ -191,7 +191,7 @@ def _check_size(est: dict, n_trials: int, out: Path, yes: bool, hardware: bool) 
 
 
 class _SignalNote:
-    """Ctrl-C / SIGTERM noted for the whole of `rig run` (the session installs its own handlers for the
+    """Ctrl-C / SIGTERM / SIGHUP noted for the whole of `rig run` (the session installs its own handlers for the
     run itself and restores these): a signal while the log is opened or finished is not lost, and a
     second signal then is not a traceback. ``caught``: names of the signals noted."""
 
@@ -204,7 +204,9 @@ class _SignalNote:
 
     def __enter__(self) -> "_SignalNote":
         if threading.current_thread() is threading.main_thread():
-            for sig in (signal.SIGINT, signal.SIGTERM):
+            from rig.session.core import STOP_SIGNALS
+
+            for sig in STOP_SIGNALS:
                 self._old[sig] = signal.signal(sig, self._note)
         return self
 

@@ -12,7 +12,7 @@ backend (the simulated rig, :class:`rig.session.sim.SimBackend`; the hardware,
   window figures, e.g. the hardware loop's lateness);
 * handles stopping, as a small explicit state machine (:class:`StopMachine`):
   ``RUNNING -> STOPPING -> SAFE -> DONE``, with the reason and its cause.
-  Ctrl-C / SIGTERM (or a KeyboardInterrupt raised while the session runs) asks
+  Ctrl-C / SIGTERM / SIGHUP (or a KeyboardInterrupt raised while the session runs) asks
   the backend for a controlled stop; the session keeps logging what the
   backend still sends (the hardware holds position, then nulls and disables
   the valve) until the backend says it is safe. A third signal insists (the
@@ -38,6 +38,12 @@ from enum import Enum
 from typing import Any, Callable, Protocol, runtime_checkable
 
 import numpy as np
+
+
+# the signals that ask for an operator's stop (safe stop, finished log, exit 130): Ctrl-C, SIGTERM
+# (a service manager, `kill`) and SIGHUP (the operator's terminal or SSH session went away: a trial
+# must not be cut off mid-block with an unfinished log by that)
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 
 # ---------------------------------------------------------------------------
@@ -128,7 +134,7 @@ class Phase(str, Enum):
 
 class Cause(str, Enum):
     END_OF_PLAN = "end_of_plan"
-    OPERATOR = "operator"     # Ctrl-C, SIGTERM
+    OPERATOR = "operator"     # Ctrl-C, SIGTERM, SIGHUP
     TRIP = "trip"             # an interlock
     FAILURE = "failure"       # a device, the loop process, the session itself
 
@@ -397,7 +403,7 @@ class TrialSession:
     ``progress(t_s)``: called after every block. ``echo(text)``: operator
     messages (interlock trips, the backend's final report). ``trial_fields``:
     extra fields of the ``trial_start`` event. ``handle_signals``: install
-    SIGINT/SIGTERM handlers for the run (main thread only).
+    SIGINT/SIGTERM/SIGHUP handlers for the run (main thread only).
     """
 
     def __init__(self, plan, backend: Backend, writer, *, progress: Callable[[float], Any] | None = None,
@@ -438,7 +444,7 @@ class TrialSession:
         old = {}
         if not self.handle_signals or threading.current_thread() is not threading.main_thread():
             return old
-        for sig in (signal.SIGINT, signal.SIGTERM):
+        for sig in STOP_SIGNALS:
             old[sig] = signal.signal(sig, self._on_signal)
         return old
 
