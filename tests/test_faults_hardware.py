@@ -289,6 +289,49 @@ def test_sigterm_or_sighup_of_rig_run_stops_safely(env, sig):
     assert tr.metadata["status"] == "interrupted"
     assert tr.valve_cmd[-1] == 0.0
 
+
+def test_terminal_hangup_stops_safely(env):
+    """`rig run` on a real terminal (a pty) that goes away (its master closed: the kernel sends SIGHUP
+    and every later write to it fails with EIO): the stop completes, valve safe, log finished, exit
+    130. It exited 1 with an MCAP cut mid-record: the stop's own messages failed with EIO."""
+    import pty
+    import select
+
+    for dev, fault in FAULTS:
+        env.emu.inject(dev, fault, None)
+    env.emu.reset_plant(env.x0)
+    out = env.tmp / "hangup.mcap"
+    n0 = env.emu.stats()["n_setpoints"]
+    pid, fd = pty.fork()
+    if pid == 0:  # the child: rig run with the pty as its controlling terminal
+        try:
+            os.chdir(REPO)
+            os.execv(sys.executable, [sys.executable, "-m", "rig.cli", "run", str(env.recipe), "--hardware",
+                                      str(env.prof), "--out", str(out)])
+        finally:
+            os._exit(127)
+    try:
+        t_end = time.monotonic() + 60
+        while env.emu.stats()["n_setpoints"] - n0 < 700 and time.monotonic() < t_end:
+            if select.select([fd], [], [], 0.02)[0]:
+                try:
+                    os.read(fd, 65536)  # what the operator would have seen
+                except OSError:
+                    break
+        assert env.emu.stats()["n_setpoints"] - n0 >= 700, "the loop did not start"
+    finally:
+        os.close(fd)  # the terminal goes away
+    t_end = time.monotonic() + 60
+    while (w := os.waitpid(pid, os.WNOHANG))[0] == 0:
+        if time.monotonic() > t_end:
+            os.kill(pid, signal.SIGKILL)
+            raise AssertionError("rig run hung after the hangup")
+        time.sleep(0.05)
+    assert os.waitstatus_to_exitcode(w[1]) == 130
+    _safe_valve(env)
+    tr = read_trial(out, channel="raw")  # finished: readable without recovery
+    assert tr.metadata["status"] == "interrupted" and tr.valve_cmd[-1] == 0.0
+
 def test_kill9_of_the_load_cell_conditioner(tmp_path):
     """The conditioner's process dies (its Modbus TCP connection closed by the kernel): a fault no
     injection models. The loop trips at once on the lost device, nulls and disables the valve, and

@@ -200,6 +200,10 @@ class _SignalNote:
         self._old: dict = {}
 
     def _note(self, signum, _frame) -> None:
+        if signum == signal.SIGHUP:
+            from rig.session.core import detach_from_terminal
+
+            detach_from_terminal()
         self.caught.append(signal.Signals(signum).name)
 
     def __enter__(self) -> "_SignalNote":

@@ -46,6 +46,26 @@ import numpy as np
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 
+def detach_from_terminal() -> None:
+    """The terminal is gone (SIGHUP): standard output and error that went to it go to /dev/null
+    from now on, so that a message written while the trial stops is not an EIO that cuts the stop
+    short and leaves the log unfinished. Output to a file or a pipe is kept."""
+    import os
+    import stat
+
+    try:
+        null = os.open(os.devnull, os.O_WRONLY)
+    except OSError:
+        return
+    for fd in (1, 2):
+        try:
+            if stat.S_ISCHR(os.fstat(fd).st_mode):
+                os.dup2(null, fd)
+        except OSError:
+            pass
+    os.close(null)
+
+
 # ---------------------------------------------------------------------------
 # What a backend sends
 # ---------------------------------------------------------------------------
@@ -438,6 +458,8 @@ class TrialSession:
 
     def _on_signal(self, signum, _frame) -> None:
         # only note it here: the run loop turns it into a stop request between two messages
+        if signum == signal.SIGHUP:
+            detach_from_terminal()
         self._signals.append(signal.Signals(signum).name)
 
     def _install_signals(self) -> dict:
