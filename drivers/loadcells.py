@@ -157,13 +157,16 @@ class LoadCellReader:
         self._answer_len = 6 + 3 + 2 * self._count  # MBAP + unit, function code, byte count + registers
         self._last_change_t = time.monotonic()
 
-    def close(self) -> None:
+    def _drop_socket(self) -> None:
         if self._sock is not None:
             try:
                 self._sock.close()
             except OSError:
                 pass
             self._sock = None
+
+    def close(self) -> None:
+        self._drop_socket()
         if self._client is not None:
             try:
                 self._client.close()
@@ -216,12 +219,7 @@ class LoadCellReader:
         socket dropped (every later read says so too, never a stale value taken for a new one), and
         the error returned with ``kind="lost"``, which the loop trips on at once (``device_lost``)."""
         self._error()
-        if self._sock is not None:
-            try:
-                self._sock.close()
-            except OSError:
-                pass
-            self._sock = None
+        self._drop_socket()
         self._out_tid = None
         self._rx.clear()
         return DeviceError(DEVICE, self.address, message, kind="lost")

@@ -50,9 +50,8 @@ segments:
 """
 
 
-@pytest.fixture(scope="module")
-def env(tmp_path_factory):
-    tmp = tmp_path_factory.mktemp("faults")
+def _emulated_env(tmp: Path) -> SimpleNamespace:
+    """A private profile, the fault recipe and an emulated rig in its own process (stop ``.emu``)."""
     prof = private_profile(tmp, autostart=False)
     profile = load_profile(prof)
     recipe = tmp / "faults.yaml"
@@ -60,9 +59,15 @@ def env(tmp_path_factory):
     plan = compile_recipe(load_recipe(recipe), profile)
     emu = start_emulator_process(hardware_of_profile(profile), profile, lubricant="boundary", seed=5,
                                  private=False)
-    yield SimpleNamespace(tmp=tmp, prof=prof, recipe=recipe, emu=emu, x0=float(plan.x_ref_um[0]),
-                          channel=emu.hw.valve.channel, node=emu.hw.valve.node_id)
-    emu.stop()
+    return SimpleNamespace(tmp=tmp, prof=prof, recipe=recipe, emu=emu, x0=float(plan.x_ref_um[0]),
+                           channel=emu.hw.valve.channel, node=emu.hw.valve.node_id)
+
+
+@pytest.fixture(scope="module")
+def env(tmp_path_factory):
+    e = _emulated_env(tmp_path_factory.mktemp("faults"))
+    yield e
+    e.emu.stop()
 
 
 FAULTS = (("valve", "fault"), ("valve", "silent"), ("valve", "ignore_setpoints"), ("valve", "stuck"),
@@ -332,20 +337,15 @@ def test_terminal_hangup_stops_safely(env):
     tr = read_trial(out, channel="raw")  # finished: readable without recovery
     assert tr.metadata["status"] == "interrupted" and tr.valve_cmd[-1] == 0.0
 
+
 def test_kill9_of_the_load_cell_conditioner(tmp_path):
     """The conditioner's process dies (its Modbus TCP connection closed by the kernel): a fault no
     injection models. The loop trips at once on the lost device, nulls and disables the valve, and
     never goes on with the last forces as if they were new (it did: the trial completed, exit 0,
     on frozen forces). Its own emulator: the module's one keeps its Modbus server."""
-    prof = private_profile(tmp_path, autostart=False)
-    profile = load_profile(prof)
-    recipe = tmp_path / "faults.yaml"
-    recipe.write_text(RECIPE)
-    plan = compile_recipe(load_recipe(recipe), profile)
-    emu = start_emulator_process(hardware_of_profile(profile), profile, lubricant="boundary", seed=5,
-                                 private=False)
+    env2 = _emulated_env(tmp_path)
+    emu = env2.emu
     try:
-        env2 = SimpleNamespace(tmp=tmp_path, prof=prof, recipe=recipe, emu=emu, x0=float(plan.x_ref_um[0]))
         out = tmp_path / "kill-conditioner.mcap"
         p = _start(env2, out)
         _wait_running(env2, p)
