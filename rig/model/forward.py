@@ -48,12 +48,10 @@ def as_model(baseline: str, extensions: list[str], params: dict[str, float]) -> 
                          params={k: float(v) for k, v in params.items() if k != "v_init_um_s"})
 
 
-def predict_force(model: FrictionModel, t_s: np.ndarray, x_um: np.ndarray, v_um_s: np.ndarray,
-                  N_tot_N: np.ndarray | None, N_nom_N: float, v_init_um_s: float | None = None) -> np.ndarray:
-    """Measured friction force (N) on a record (t from the file start, x measured, v, N1+N2).
-
-    ``v_init_um_s``: the speed whose steady state the record starts in (default: the median
-    of the first velocities)."""
+def _inputs(model: FrictionModel, t_s, x_um, v_um_s, N_tot_N, N_nom_N: float, v_init_um_s: float | None):
+    """What the force and its sensitivities start from: the parameter array, the record as
+    contiguous float arrays, the normal-force factor, the (delayed) velocity the friction sees and
+    the speed of the starting steady state (default: the median of the first velocities)."""
     ext = model.extensions
     p = model.to_array()
     t = np.ascontiguousarray(t_s, dtype=float)
@@ -65,6 +63,17 @@ def predict_force(model: FrictionModel, t_s: np.ndarray, x_um: np.ndarray, v_um_
         v_eff = sensors.delayed(t, v, model.get("delay_s"))
     if v_init_um_s is None:
         v_init_um_s = float(np.median(v_eff[: max(3, min(50, v_eff.size))]))
+    return p, t, x, v, nfac, v_eff, v_init_um_s
+
+
+def predict_force(model: FrictionModel, t_s: np.ndarray, x_um: np.ndarray, v_um_s: np.ndarray,
+                  N_tot_N: np.ndarray | None, N_nom_N: float, v_init_um_s: float | None = None) -> np.ndarray:
+    """Measured friction force (N) on a record (t from the file start, x measured, v, N1+N2).
+
+    ``v_init_um_s``: the speed whose steady state the record starts in (default: the median
+    of the first velocities)."""
+    ext = model.extensions
+    p, t, x, v, nfac, v_eff, v_init_um_s = _inputs(model, t_s, x_um, v_um_s, N_tot_N, N_nom_N, v_init_um_s)
     k = model.stiffness_N_per_um
     if k is not None and _slip_law(model.baseline, ext):
         # the same spring balance with its Newton derivative in closed form (1.5x faster)
@@ -120,16 +129,7 @@ def force_sensitivities(model: FrictionModel, t_s: np.ndarray, x_um: np.ndarray,
     ext = model.extensions
     if not has_sensitivities(model.baseline, ext):
         raise ValueError("force_sensitivities: the model has no analytic sensitivities (aging law or no state)")
-    p = model.to_array()
-    t = np.ascontiguousarray(t_s, dtype=float)
-    x = np.ascontiguousarray(x_um, dtype=float)
-    v = np.ascontiguousarray(v_um_s, dtype=float)
-    nfac = sensors.normal_factor(t.size, N_tot_N, N_nom_N, "normal_force_variation" in ext)
-    v_eff = v
-    if "time_delay" in ext:
-        v_eff = sensors.delayed(t, v, model.get("delay_s"))
-    if v_init_um_s is None:
-        v_init_um_s = float(np.median(v_eff[: max(3, min(50, v_eff.size))]))
+    p, t, x, v, nfac, v_eff, v_init_um_s = _inputs(model, t_s, x_um, v_um_s, N_tot_N, N_nom_N, v_init_um_s)
     law = [nm for nm in names if nm in _SENS_COLS]
     cols = np.array([_SENS_COLS[nm] for nm in law], dtype=np.int64)
     k = model.stiffness_N_per_um
