@@ -253,6 +253,32 @@ def mu_regularized_grad(v_um_s, theta_total, mu0, a, v0, v_reg):
 
 
 @njit(cache=True)
+def init_state_sens(p, v_init_um_s, dv_init, cols, dth, dth2):
+    """The states' steady state at ``v_init_um_s`` (:func:`init_state`: theta = -B ln(v/V0), eq. 6)
+    and their derivatives, written into ``dth`` and ``dth2`` (per column of ``cols``; D_V_INIT with
+    ``dv_init`` the derivative of the starting speed itself). Returns (theta, theta2)."""
+    on = p[P_STATE_ON] > 0.5
+    b = p[P_B]
+    b2 = p[P_B2]
+    vi = max(abs(v_init_um_s), 1e-12)
+    lvi = math.log(vi / p[P_V0])
+    th = -b * lvi if on else 0.0
+    th2 = -b2 * lvi
+    dlvi = dv_init / v_init_um_s if abs(v_init_um_s) > 1e-12 else 0.0
+    for j in range(cols.shape[0]):
+        c = cols[j]
+        if c == P_B and on:
+            dth[j] = -lvi
+        elif c == P_B2:
+            dth2[j] = -lvi
+        elif c == D_V_INIT:
+            if on:
+                dth[j] = -b * dlvi
+            dth2[j] = -b2 * dlvi
+    return th, th2
+
+
+@njit(cache=True)
 def mu_series_sens(p, t_s, v_um_s, x_um, v_init_um_s, cols):
     """:func:`mu_series` (the same numbers) and its exact derivatives d mu / d p[cols[j]].
 
@@ -281,23 +307,9 @@ def mu_series_sens(p, t_s, v_um_s, x_um, v_init_um_s, cols):
     phase = p[P_PHASE]
     wear = p[P_WEAR]
     # initial steady state (init_state)
-    vi = max(abs(v_init_um_s), 1e-12)
-    lvi = math.log(vi / v0)
-    th = -b * lvi if on else 0.0
-    th2 = -b2 * lvi
-    dlvi = 1.0 / v_init_um_s if abs(v_init_um_s) > 1e-12 else 0.0
     dth = np.zeros(m)
     dth2 = np.zeros(m)
-    for j in range(m):
-        c = cols[j]
-        if c == P_B and on:
-            dth[j] = -lvi
-        elif c == P_B2:
-            dth2[j] = -lvi
-        elif c == D_V_INIT:
-            if on:
-                dth[j] = -b * dlvi
-            dth2[j] = -b2 * dlvi
+    th, th2 = init_state_sens(p, v_init_um_s, 1.0, cols, dth, dth2)
     slip = 0.0
     for i in range(n):
         if i > 0:

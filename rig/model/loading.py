@@ -30,7 +30,7 @@ import numpy as np
 from numba import njit
 
 from rig.model.friction import (D_PER_COS, D_PER_SIN, D_V_INIT, N_STATE, P_A, P_AMP, P_B, P_B2, P_L, P_L2, P_MU0,
-                                P_PHASE, P_STATE_ON, P_V0, P_VREG, P_WAVE, P_WEAR, advance_state, init_state,
+                                P_PHASE, P_STATE_ON, P_V0, P_VREG, P_WAVE, P_WEAR, advance_state, init_state, init_state_sens,
                                 mu_of, mu_regularized_grad)
 
 
@@ -237,20 +237,7 @@ def stiff_series_sens(p, t, x, v, nfac, k, v_init, cols):
     dth2q = np.zeros(m)
     v0 = v_init if abs(v_init) > 1e-6 else 1e-6
     dv0 = 1.0 if abs(v_init) > 1e-6 else 0.0
-    vi = max(abs(v0), 1e-12)
-    lvi = math.log(vi / v0p)
-    th = -b * lvi if on else 0.0
-    th2 = -b2 * lvi
-    for j in range(m):
-        c = cols[j]
-        if c == P_B and on:
-            dth[j] = -lvi
-        elif c == P_B2:
-            dth2[j] = -lvi
-        elif c == D_V_INIT:
-            if on:
-                dth[j] = -b / v0 * dv0
-            dth2[j] = -b2 / v0 * dv0
+    th, th2 = init_state_sens(p, v0, dv0, cols, dth, dth2)
     # the interface sits where the spring's stretch F / k puts it (two passes, as stiff_series)
     xi = x[0]
     F = 0.0
