@@ -30,6 +30,7 @@ Method (docs/diagnosis.md):
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time as _time
 from dataclasses import dataclass, field
@@ -648,8 +649,6 @@ def try_candidate(grid: Grid, cur: FitResult, cause: str, info: dict, prior: dic
 
 def _swapped(grid: Grid) -> Grid:
     """The same grid with fit and hold-out blocks exchanged."""
-    import dataclasses
-
     return dataclasses.replace(grid, block=grid.block + 1)
 
 
@@ -884,8 +883,6 @@ def _joint_profile_gain(grid: Grid, cur: FitResult, q: np.ndarray, nb: int = 20,
     """Hold-out gain (%) and z of the current model plus a free step-function profile in q, the
     two fitted together on the fit blocks (alternately: profile of the residual, model refit to the
     data minus the profile), so that the model's own parameters cannot hide the structure."""
-    import dataclasses
-
     fm = grid.fit_mask()
     qs = np.unique(np.quantile(q[grid.sliding], np.linspace(0, 1, nb + 1)))
     if qs.size < 4:
@@ -915,8 +912,6 @@ def find_unexplained(grid: Grid, cur: FitResult) -> list[dict]:
         # a free profile in time or slip cannot reach a held-out segment that is a whole step (no
         # fitted bin falls in it), so the profiles are judged on the 20 equal time blocks, as the
         # linear-drift check is
-        import dataclasses
-
         grid = dataclasses.replace(grid, block=grid.time_block)
         cur = evaluate(grid, cur.baseline, cur.extensions, cur.params, pred=cur.pred)
     r = grid.F_mean - cur.pred
