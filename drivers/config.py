@@ -25,6 +25,7 @@ Dupont & Dunlap (1995, section 3) and how the real-time loop guards them:
 
 from __future__ import annotations
 
+import datetime as _dt
 from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
@@ -38,17 +39,70 @@ class StrictModel(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False, validate_assignment=True)
 
 
+class CalibrationRecord(StrictModel):
+    """A sensor's calibration, as its certificate states it (ASTM E4 / ISO 7500-1 practice for load cells).
+
+    Forces in N (an LVDT's record in µm: ``capacity_um``, ``verified_range_um``, ``uncertainty_um``,
+    ``shunt_reference_um``). ``verified_range_*``: the range the calibration verified; ``class``: the
+    ISO 7500-1 class (0.5, 1, 2, 3: the relative error allowed, in %); ``shunt_reference_*``: the
+    conditioner's shunt-calibration reading recorded at calibration, to which each shunt check compares
+    (``shunt_tolerance_fraction`` of it, default 0.1 %); ``uncertainty_*``: the expanded uncertainty
+    (k = 2) of a reading.
+    """
+
+    serial: str = Field(min_length=1, max_length=100)
+    capacity_N: float | None = Field(None, gt=0)
+    capacity_um: float | None = Field(None, gt=0)
+    verified_range_N: tuple[float, float] | None = None
+    verified_range_um: tuple[float, float] | None = None
+    class_: str | None = Field(None, alias="class", description="ISO 7500-1 class: 0.5, 1, 2 or 3")
+    certificate: str | None = None
+    calibrated_on: _dt.date | None = None
+    due_on: _dt.date | None = None
+    shunt_reference_N: float | None = None
+    shunt_reference_um: float | None = None
+    shunt_tolerance_fraction: float = Field(0.001, gt=0, le=0.1)
+    uncertainty_N: float | None = Field(None, ge=0)
+    uncertainty_um: float | None = Field(None, ge=0)
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, validate_assignment=True,
+                              populate_by_name=True)
+
+    @model_validator(mode="after")
+    def _ranges(self):
+        for name in ("verified_range_N", "verified_range_um"):
+            r = getattr(self, name)
+            if r is not None and not r[0] < r[1]:
+                raise ValueError(f"{name}: [lo, hi] with lo < hi")
+        if self.calibrated_on and self.due_on and self.due_on < self.calibrated_on:
+            raise ValueError("due_on is before calibrated_on")
+        if self.class_ is not None and self.class_ not in CALIBRATION_CLASSES:
+            raise ValueError(f"class {self.class_!r}: one of {', '.join(CALIBRATION_CLASSES)} (ISO 7500-1)")
+        return self
+
+    @property
+    def class_error_fraction(self) -> float | None:
+        """The relative error the class allows (ISO 7500-1: class 1 -> 1 %), None without a class."""
+        return CALIBRATION_CLASSES.get(self.class_) if self.class_ is not None else None
+
+
+#: ISO 7500-1 classes and their allowed relative error of indication
+CALIBRATION_CLASSES = {"0.5": 0.005, "1": 0.01, "2": 0.02, "3": 0.03}
+
+
 class ChannelCal(StrictModel):
     """One load-cell channel: ``force_N = raw * scale + offset - tare_N``.
 
     ``address`` is the first register of the value (absolute Modbus address).
     ``raw`` is the float32 or the scaled integer read from the conditioner.
+    ``calibration``: the load cell's calibration record (:class:`CalibrationRecord`).
     """
 
     address: int = Field(ge=0, le=65535)
     scale: float = 1.0
     offset: float = 0.0
     tare_N: float = 0.0
+    calibration: CalibrationRecord | None = None
 
 
 class LoadCellConfig(StrictModel):
@@ -110,6 +164,7 @@ class LvdtConfig(StrictModel):
                                             "defaults to sensors.lvdt.quantization_um and must equal it")
     offset_um: float = 0.0
     invert: bool = False
+    calibration: CalibrationRecord | None = None
 
     @property
     def address_text(self) -> str:
@@ -240,6 +295,25 @@ class HardwareConfig(StrictModel):
     interlocks: InterlockConfig = InterlockConfig()
     realtime: RealtimeConfig = RealtimeConfig()
     emulators: EmulatorConfig = EmulatorConfig()
+
+
+def calibration_records(hw: "HardwareConfig") -> dict[str, CalibrationRecord | None]:
+    """Every force channel's and the LVDT's calibration record, by channel name."""
+    lc = hw.loadcells
+    return {"friction": lc.friction.calibration, "normal_1": lc.normal_1.calibration,
+            "normal_2": lc.normal_2.calibration, "lvdt": hw.lvdt.calibration}
+
+
+def calibration_problems(hw: "HardwareConfig", today: _dt.date) -> list[dict]:
+    """The channels whose calibration is past its ``due_on`` on ``today``: one dict each
+    (``channel``, ``serial``, ``due_on``, ``message`` naming the channel and the date)."""
+    out = []
+    for ch, cal in calibration_records(hw).items():
+        if cal is not None and cal.due_on is not None and cal.due_on < today:
+            out.append({"channel": ch, "serial": cal.serial, "due_on": cal.due_on.isoformat(),
+                        "message": f"hardware.{'lvdt' if ch == 'lvdt' else 'loadcells.' + ch}: calibration of "
+                                   f"{cal.serial} was due on {cal.due_on.isoformat()}"})
+    return out
 
 
 class HardwareConfigError(ValueError):

@@ -375,11 +375,13 @@ def _fmt(x: float) -> str:
     return repr(float(x)) if abs(x) >= 1e15 or (x != 0 and abs(x) < 1e-6) else f"{x:.9g}"
 
 
-def write_csv(trial: TrialData, path: str | os.PathLike) -> Path:
+def write_csv(trial: TrialData, path: str | os.PathLike, *, overwrite: bool = True) -> Path:
     """Write ``trial`` as a measured-data CSV (version 1), atomically.
 
     The file appears complete or not at all (written to a temporary file in the
-    same directory, then renamed).
+    same directory, then renamed). ``overwrite=False``: FileExistsError when ``path`` exists
+    (checked atomically at the rename). The trial's ``trial_uid``, ``specimen``, ``operator`` and
+    other metadata are ``# key: value`` lines (measured-data.md).
     """
     path = Path(path)
     cols = trial.columns()
@@ -407,14 +409,16 @@ def write_csv(trial: TrialData, path: str | os.PathLike) -> Path:
                   for n in names]
         for row in zip(*series):
             buf.write(",".join(row) + "\n")
-    atomic_write_text(path, buf.getvalue())
+    atomic_write_text(path, buf.getvalue(), overwrite=overwrite)
     return path
 
 
 @contextlib.contextmanager
-def atomic_path(path: str | os.PathLike):
+def atomic_path(path: str | os.PathLike, *, overwrite: bool = True):
     """Yield a temporary path beside ``path``; on success it replaces ``path`` (after fsync),
-    on any error it is removed. The file at ``path`` is complete or absent, never half-written."""
+    on any error it is removed. The file at ``path`` is complete or absent, never half-written.
+    ``overwrite=False``: the temporary file is linked to ``path`` instead (atomic, no clobber):
+    FileExistsError when ``path`` exists, which is left as it was."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
@@ -426,7 +430,11 @@ def atomic_path(path: str | os.PathLike):
         yield Path(tmp)
         with open(tmp, "rb") as fh:
             os.fsync(fh.fileno())
-        os.replace(tmp, path)
+        if overwrite:
+            os.replace(tmp, path)
+        else:
+            os.link(tmp, path)
+            os.unlink(tmp)
     except BaseException:
         try:
             os.unlink(tmp)
@@ -435,11 +443,11 @@ def atomic_path(path: str | os.PathLike):
         raise
 
 
-def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
+def atomic_write_bytes(path: str | os.PathLike, data: bytes, *, overwrite: bool = True) -> None:
     """Write ``data`` to ``path`` so that the file is complete or absent, never half-written."""
-    with atomic_path(path) as tmp:
+    with atomic_path(path, overwrite=overwrite) as tmp:
         tmp.write_bytes(data)
 
 
-def atomic_write_text(path: str | os.PathLike, text: str) -> None:
-    atomic_write_bytes(path, text.encode("utf-8"))
+def atomic_write_text(path: str | os.PathLike, text: str, *, overwrite: bool = True) -> None:
+    atomic_write_bytes(path, text.encode("utf-8"), overwrite=overwrite)

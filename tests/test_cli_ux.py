@@ -38,8 +38,8 @@ def test_help_has_no_python_types(cmd):
 
 
 def test_choices_are_shown_and_enforced():
-    res = runner.invoke(app, ["run", "--help"], env={"COLUMNS": "200"})
-    assert "<dry|paraffin|boundary>" in res.output
+    res = runner.invoke(app, ["stability", "--help"], env={"COLUMNS": "200"})
+    assert "<dry|paraffin|boundary>" in res.output  # Table 2's; rig run takes a lab's own name (issue 21)
     res = runner.invoke(app, ["identify", "--help"], env={"COLUMNS": "200"})
     assert "<both|up|down>" in res.output and "<paper|local_poly>" in res.output
     res = runner.invoke(app, ["diagnose", "--help"], env={"COLUMNS": "200"})

@@ -56,7 +56,7 @@ def test_good_recipe_defaults(tmp_path):
 @pytest.mark.parametrize("old,new,field,line", [
     ("v2_um_s: 2", "v2_um_s: -2", "segments[1].steps[0].v2_um_s", 10),
     ("duration_s: 1", "duration_z: 1", "segments[0].duration_s", 5),  # missing -> the segment's line
-    ("lubricant: boundary", "lubricant: oil", "lubricant", 2),
+    ("lubricant: boundary", "lubricant: \"\"", "lubricant", 2),  # a free name (issue 21), not an empty one
     ("speed_um_s: 50", "speed_um_s: fast", "segments[3].speed_um_s", 14),
     ("  - kind: stepped_pass", "  - kind: stepped_pas", "segments[2]", 11),
     ("normal_force_N: 100", "normal_force_N: .nan", "normal_force_N", 3),

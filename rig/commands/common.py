@@ -206,6 +206,16 @@ def check_output_path(path: Path, option: str, suffixes: tuple[str, ...] = ()) -
         fail(f"{option} {path}: expected a {' or '.join(suffixes)} file name")
 
 
+def check_new_output(path: Path, option: str, overwrite: bool) -> None:
+    """A trial file (a log, its export, import or recovery) is never overwritten: an existing ``path``
+    is exit 2 naming it, the file untouched, unless ``overwrite`` (``--overwrite``). The write itself
+    is atomic and, without ``overwrite``, refuses a file that appeared meanwhile (FileExistsError)."""
+    if path is None or str(path) == "-" or overwrite:
+        return
+    if path.exists() or path.is_symlink():
+        fail(f"{option} {path}: exists; not overwritten (--overwrite replaces it)")
+
+
 # ---------------------------------------------------------------------------
 # warnings: one clean line, no Python source
 # ---------------------------------------------------------------------------
@@ -324,7 +334,7 @@ def report_exception(exc: BaseException) -> ExitCode:
 
 __all__ = ["ExitCode", "EXIT_OK", "EXIT_FAILED", "EXIT_BAD_INPUT", "EXIT_ABORTED", "EXIT_TABLE", "CONVENTIONS",
            "JSON_HELP", "err_console", "console", "fail", "warn", "write_json", "json_to_stdout",
-           "check_output_path", "RigGroup", "report_exception", "Lubricant", "tidy_help"]
+           "check_output_path", "check_new_output", "RigGroup", "report_exception", "Lubricant", "tidy_help"]
 
 
 class Lubricant(str, Enum):

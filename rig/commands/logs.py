@@ -15,8 +15,8 @@ from typing import Optional
 import typer
 from rich.table import Table
 
-from rig.commands.common import (EXIT_BAD_INPUT, EXIT_FAILED, JSON_HELP, check_output_path, console, fail,
-                                 json_to_stdout, warn, write_json)
+from rig.commands.common import (EXIT_BAD_INPUT, EXIT_FAILED, JSON_HELP, check_new_output, check_output_path,
+                                 console, fail, json_to_stdout, warn, write_json)
 
 _fail = fail
 _warn = warn
@@ -56,6 +56,9 @@ def info_command(
     started = info["metadata"].get("trial", {}).get("started_utc")
     if started:
         console.print(f"started: {started}", highlight=False)
+    who = [f"{k} {info[k]}" for k in ("trial_uid", "specimen", "operator") if info.get(k)]
+    console.print("trial: " + ("; ".join(who) if who else "(no trial_uid: written before rig recorded one)")
+                  + (f"; note: {info['note']}" if info.get("note") else ""), highlight=False, markup=False)
     tab = Table(title="channels")
     for col in ("topic", "schema", "encoding", "messages"):
         tab.add_column(col)
@@ -110,6 +113,7 @@ def export_command(
     extra: bool = typer.Option(True, "--extra/--no-extra", help="Keep extra columns (raw: pid_*, dither, "
                                                                 "true_*) after the standard ones."),
     strict: bool = typer.Option(False, "--strict", help="A corrupt chunk is an error (exit 2), not a warning."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing output file (exit 2 otherwise)."),
 ):
     """Export a trial log to the measured-data CSV and/or Parquet, atomically.
 
@@ -134,6 +138,7 @@ def export_command(
     for opt, p in (("--csv", csv), ("--parquet", parquet)):
         if p is not None:
             check_output_path(p, opt)
+            check_new_output(p, opt, overwrite)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", LogDamageWarning)  # shown below from trial.warnings
@@ -148,7 +153,9 @@ def export_command(
         if target is None:
             continue
         try:
-            write(trial, target)
+            write(trial, target, overwrite=overwrite)
+        except FileExistsError:
+            _fail(f"{target}: appeared while exporting; not overwritten (--overwrite replaces it)")
         except OSError as exc:
             _fail(f"cannot write {target}: {exc.strerror or exc}", EXIT_FAILED)
         console.print(f"wrote {target}: {len(trial)} rows, columns {', '.join(trial.columns())}", highlight=False)
@@ -157,6 +164,7 @@ def export_command(
 def import_command(
     path: Path = typer.Argument(..., help="Measured-data CSV (version 1).", show_default=False, metavar="IN.csv"),
     out: Path = typer.Option(..., "--out", "-o", help="Trial log to write (.mcap).", show_default=False),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --out file (exit 2 otherwise)."),
 ):
     """Import a measured-data CSV into a trial log (MCAP), atomically.
 
@@ -171,6 +179,7 @@ def import_command(
     from rig.log import write_trial_data
 
     check_output_path(out, "--out", (".mcap",))
+    check_new_output(out, "--out", overwrite)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
@@ -180,9 +189,11 @@ def import_command(
     for w in caught:
         _warn(str(w.message))
     try:
-        write_trial_data(trial, out, extra_metadata={"imported_from": str(path)})
+        write_trial_data(trial, out, extra_metadata={"imported_from": str(path)}, overwrite=overwrite)
     except DataFormatError as exc:
         _fail(str(exc))
+    except FileExistsError:
+        _fail(f"--out {out}: appeared while importing; not overwritten (--overwrite replaces it)")
     except OSError as exc:
         _fail(f"cannot write {out}: {exc.strerror or exc}", EXIT_FAILED)
     console.print(f"wrote {out}: {len(trial)} samples, columns {', '.join(trial.columns())}", highlight=False)
@@ -192,6 +203,7 @@ def recover_command(
     path: Path = typer.Argument(..., help="Damaged or truncated trial log (.mcap).", show_default=False,
                                 metavar="FILE.mcap"),
     out: Path = typer.Option(..., "--out", "-o", help="Readable trial log to write (.mcap).", show_default=False),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --out file (exit 2 otherwise)."),
 ):
     """Rewrite a truncated or damaged trial log (e.g. after a crash) into a readable one.
 
@@ -205,8 +217,11 @@ def recover_command(
     check_output_path(out, "--out", (".mcap",))
     if out.exists() and path.exists() and out.resolve() == path.resolve():
         _fail(f"--out {out}: the same file as the damaged log (write the readable one beside it)")
+    check_new_output(out, "--out", overwrite)
     try:
-        res = recover(path, out)
+        res = recover(path, out, overwrite=overwrite)
+    except FileExistsError:
+        _fail(f"--out {out}: appeared while recovering; not overwritten (--overwrite replaces it)")
     except (DataFormatError, ValueError) as exc:
         _fail(str(exc))
     except OSError as exc:

@@ -14,11 +14,13 @@ finished with what was logged and marked ``interrupted``).
 
 from __future__ import annotations
 
+import datetime
 import math
 import signal
 import sys
 import threading
 import time
+import uuid
 from pathlib import Path
 from typing import Any, Optional
 
@@ -27,7 +29,7 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from rig.commands.common import (EXIT_ABORTED, EXIT_BAD_INPUT, EXIT_FAILED, Lubricant, check_output_path, console,
+from rig.commands.common import (EXIT_ABORTED, EXIT_BAD_INPUT, EXIT_FAILED, check_output_path, console,
                                  err_console, fail, warn)
 
 EXIT_FAILURE = EXIT_FAILED
@@ -237,10 +239,24 @@ def run_command(
     hardware: Optional[Path] = typer.Option(None, "--hardware", metavar="PROFILE",
                                             help="Run on the real rig described by this hardware profile YAML "
                                                  "(rig.session.hardware.HardwareBackend)."),
-    lubricant: Optional[Lubricant] = typer.Option(None, "--lubricant", help="Override the recipe's lubricant."),
+    lubricant: Optional[str] = typer.Option(None, "--lubricant", metavar="NAME",
+                                            help="Override the recipe's lubricant: a name the profile maps to a "
+                                                 "friction model (dry, paraffin, boundary; its lubricant_map)."),
     out: Optional[Path] = typer.Option(None, "--out", "-o", metavar="PATH",
-                                       help="MCAP file to write (default out/<recipe name>.mcap); with "
-                                            "trials > 1 the files are numbered NAME-01.mcap, NAME-02.mcap, ..."),
+                                       help="MCAP file to write (default: a new out/<recipe name>/<UTC start>-"
+                                            "<trial id>.mcap per trial); with trials > 1 the files are numbered "
+                                            "NAME-01.mcap, NAME-02.mcap, ... An existing file is exit 2."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --out file (a trial log is "
+                                                              "never overwritten otherwise)."),
+    specimen: Optional[str] = typer.Option(None, "--specimen", metavar="ID", help="The test piece (specimen) "
+                                           "of this trial; overrides the recipe's metadata."),
+    operator: Optional[str] = typer.Option(None, "--operator", metavar="NAME", help="Who ran the trial."),
+    note: Optional[str] = typer.Option(None, "--note", metavar="TEXT", help="A note for the trial record."),
+    md: Optional[list[str]] = typer.Option(None, "--md", metavar="KEY=VALUE", help="Any metadata of the lab "
+                                           "(repeatable); overrides the recipe's metadata block."),
+    allow_expired_calibration: bool = typer.Option(False, "--allow-expired-calibration",
+                                                   help="--hardware: run although a calibration is past its "
+                                                        "due date or a shunt check drifted (logged as an event)."),
     profile_path: Optional[Path] = typer.Option(None, "--profile", metavar="PROFILE",
                                                 help="Rig profile YAML for --sim (default: the recipe's "
                                                      "'profile', else config/rigs/sim.yaml)."),
@@ -291,12 +307,18 @@ def run_command(
         pace = 1.0 if live else 0.0
     if out is not None:
         check_output_path(out, "--out", (".mcap",))
+    flags_md = _metadata_flags(specimen, operator, note, md or [])
     try:
         recipe = load_recipe(recipe_path)
     except RecipeError as exc:
         fail(str(exc))
     if lubricant is not None:
-        recipe.lubricant = lubricant.value
+        try:
+            recipe.lubricant = lubricant
+        except ValueError:
+            fail(f"--lubricant {lubricant!r}: expected a lubricant name (one line of printable text, "
+                 "up to 100 characters)")
+    trial_md = {**recipe.metadata, **flags_md}
 
     from rig.config.profile import ProfileError, default_profile_path, load_profile
 
@@ -305,14 +327,33 @@ def run_command(
         profile = load_profile(ppath)
     except ProfileError as exc:
         fail(str(exc))
-    if recipe.lubricant not in profile.lubricants:
-        fail(f"{recipe_path}: lubricant {recipe.lubricant!r} is not in the profile {ppath} "
-             f"(it has: {', '.join(profile.lubricants)})")
+    missing = [k for k in profile.required_metadata if not str(trial_md.get(k, "")).strip()]
+    if missing:
+        fail(f"{ppath}: the profile requires trial metadata {', '.join(missing)}: give "
+             + " ".join(f"--{k} ..." if k in ("specimen", "operator", "note") else f"--md {k}=..." for k in missing)
+             + f" or set them in the recipe's metadata block ({recipe_path}); nothing was run")
     fm = _load_friction_model(friction_model) if friction_model is not None else None
+    lub_key = profile.lubricant_key(recipe.lubricant)
+    plan_fm = fm
+    if lub_key is None and fm is None:
+        if hardware is None:
+            where = "--lubricant" if lubricant is not None else f"{recipe_path}: lubricant"
+            fail(f"{where} {recipe.lubricant!r} has no friction model in the profile {ppath} "
+                 f"(it has: {', '.join(profile.lubricant_names())}; map a lab's name to one with the profile's "
+                 "lubricant_map, or give --friction-model)")
+        # the real rig runs any lubricant; the plan's run-up takes the longest slip length the profile knows
+        plan_fm = profile.friction_model(max(profile.lubricants, key=lambda k: profile.lubricants[k].L_um))
     try:
-        plan = compile_recipe(recipe, profile, friction_model=fm)
+        plan = compile_recipe(recipe, profile, friction_model=plan_fm)
     except PlanError as exc:
         fail(f"{recipe_path}: {exc}")
+    if lub_key is None and fm is None and not plan_only:
+        note_ff = ""
+        if plan.controller.get("friction_ff"):
+            plan.controller["friction_ff"] = False
+            note_ff = "; friction feed-forward off"
+        warn(f"lubricant {recipe.lubricant!r} is not mapped to a friction model in {ppath}: run-ups sized for the "
+             f"longest slip length the profile knows{note_ff}")
     if plan_only:
         typer.echo(plan.summary())
         est = estimate_log(plan, recipe, hardware is not None)
@@ -332,8 +373,15 @@ def run_command(
     from rig.session.logfile import git_describe, run_to_log
     from rig.session.sim import SimBackend
 
-    out = out or Path("out") / f"{recipe.name}.mcap"
-    paths = _trial_paths(out, recipe.trials)
+    if out is not None:
+        paths: list[Path | None] = _trial_paths(out, recipe.trials)
+        taken = [p for p in paths if p.exists() or p.is_symlink()]
+        if taken and not overwrite:
+            fail(f"--out {taken[0]}: exists; a trial log is never overwritten (--overwrite replaces it, or give "
+                 "another name; without --out each trial gets a new file)")
+    else:
+        paths = [None] * recipe.trials
+    calib_events = _check_calibration(hw, allow_expired_calibration) if hardware is not None else []
     view = None
     if live:
         from rig.log.live import LiveView, LiveViewError
@@ -349,7 +397,8 @@ def run_command(
     base_seed = recipe.seed if seed is None else seed
     if base_seed + len(paths) - 1 > 2**32 - 1:
         fail(f"--seed {seed}: seed + trials - 1 must stay below 2**32")
-    _check_size(estimate_log(plan, recipe, hardware is not None), len(paths), out, yes, hardware is not None)
+    _check_size(estimate_log(plan, recipe, hardware is not None), len(paths),
+                out or Path("out") / recipe.name / "x.mcap", yes, hardware is not None)
     git_commit = git_describe()
     block_ticks = max(1, int(round(recipe.log.block_s * plan.loop_rate_hz)))
     with _SignalNote() as note:
@@ -359,7 +408,15 @@ def run_command(
                                   markup=False)
                 raise typer.Exit(EXIT_INTERRUPTED)
             trial_seed = base_seed + k
-            meta = {"recipe": recipe.name, "recipe_file": str(recipe_path), "lubricant": recipe.lubricant,
+            uid = str(uuid.uuid4())
+            if path is None:
+                path = default_trial_path(recipe.name, uid)
+            elif overwrite and (path.exists() or path.is_symlink()):
+                try:
+                    path.unlink()
+                except OSError as exc:
+                    fail(f"--overwrite: cannot remove {path}: {exc.strerror or exc}", EXIT_FAILURE)
+            meta = {"trial_uid": uid, "recipe": recipe.name, "recipe_file": str(recipe_path), "lubricant": recipe.lubricant,
                     "normal_force_N": recipe.normal_force_N, "seed": trial_seed, "trial": k + 1,
                     "trials": len(paths), "profile": str(ppath), "profile_name": profile.name,
                     "backend": "hardware" if hardware is not None else "sim",
@@ -367,9 +424,14 @@ def run_command(
                     "plan_duration_s": plan.duration_s, "git_commit": git_commit}
             if fm is not None:
                 meta["friction_model_json"] = fm.model_dump_json()
+            if lub_key is not None and lub_key != recipe.lubricant:
+                meta["lubricant_model"] = lub_key
+            meta.update(trial_md)
+            if hardware is not None:
+                meta["calibration"] = calibration_snapshot(hw)
             try:
                 if hardware is not None:
-                    backend = HardwareBackend(hw, profile, lubricant=recipe.lubricant,
+                    backend = HardwareBackend(hw, profile, lubricant=recipe.lubricant if lub_key else None,
                                               normal_force_N=recipe.normal_force_N, seed=trial_seed)
                 else:
                     backend = SimBackend(profile, fm if fm is not None else profile.friction_model(recipe.lubricant),
@@ -383,7 +445,10 @@ def run_command(
                                         echo=lambda text: err_console.print(text, highlight=False, markup=False),
                                         trial_fields={"normal_force_N": recipe.normal_force_N,
                                                       "seed": trial_seed},
-                                        on_open=view.attach if view is not None else None)
+                                        on_open=_on_open(view, calib_events))
+            except FileExistsError:
+                fail(f"{path}: appeared while the trial was being prepared; a trial log is never overwritten",
+                     EXIT_FAILURE)
             except OSError as exc:
                 fail(f"cannot write {path}: {exc.strerror or exc}", EXIT_FAILURE)
             if result.close_error:
@@ -402,6 +467,77 @@ def run_command(
                 err_console.print(f"interrupted ({note.caught[0]}) while {path} was being finished: it holds the "
                                   "complete trial (status 'completed'); no further trial started", markup=False)
                 raise typer.Exit(EXIT_INTERRUPTED)
+
+
+def default_trial_path(recipe_name: str, uid: str, when: datetime.datetime | None = None) -> Path:
+    """A trial's default log: ``out/<recipe name>/<UTC start, YYYYmmddTHHMMSSZ>-<first 8 of the trial id>.mcap``
+    (new for every trial: created with O_EXCL, never overwriting one)."""
+    when = when or datetime.datetime.now(datetime.timezone.utc)
+    return Path("out") / recipe_name / f"{when.strftime('%Y%m%dT%H%M%SZ')}-{uid[:8]}.mcap"
+
+
+def _metadata_flags(specimen, operator, note, md: list[str]) -> dict[str, str]:
+    """--specimen/--operator/--note/--md KEY=VALUE as one dict (bad input: exit 2 naming the flag)."""
+    import re
+
+    from rig.config.recipe import METADATA_KEY, RESERVED_METADATA
+
+    out: dict[str, str] = {}
+    for item in md:
+        key, sep, value = item.partition("=")
+        key = key.strip()
+        if not sep or not re.match(METADATA_KEY, key):
+            fail(f"--md {item!r}: expected KEY=VALUE with KEY of letters, digits, '_', '.', '-' (starting with a "
+                 "letter or '_')")
+        if key in RESERVED_METADATA:
+            fail(f"--md {key}: set by rig itself")
+        out[key] = value.strip()
+    for name, value in (("specimen", specimen), ("operator", operator), ("note", note)):
+        if value is not None:
+            out[name] = value.strip()
+    for key, value in out.items():
+        if "\n" in value or "\r" in value or len(value) > 2000:
+            fail(f"metadata {key}: one line of at most 2000 characters")
+    return out
+
+
+def calibration_snapshot(hw) -> str:
+    """Every channel's calibration record of the profile's hardware section, as JSON (the MCAP's trial
+    record keeps it: which load cell, calibrated when, within which range, produced the trial)."""
+    import json
+
+    from drivers.config import calibration_records
+
+    return json.dumps({ch: (cal.model_dump(mode="json", by_alias=True, exclude_none=True) if cal is not None else None)
+                       for ch, cal in calibration_records(hw).items()}, sort_keys=True)
+
+
+def _check_calibration(hw, allow: bool) -> list[tuple[str, dict]]:
+    """Refuse (exit 2, naming the channel and the date) a calibration past its due date; with
+    ``allow`` the run goes on and the events to log are returned."""
+    from drivers.config import calibration_problems
+
+    problems = calibration_problems(hw, datetime.date.today())
+    if problems and not allow:
+        fail(f"{problems[0]['message']}" + (f" (and {len(problems) - 1} more)" if len(problems) > 1 else "")
+             + "; recalibrate (`rig calibrate verify --hardware PROFILE`) or run with --allow-expired-calibration "
+               "(logged); nothing was run")
+    for p in problems:
+        warn(f"{p['message']}: running anyway (--allow-expired-calibration; logged)")
+    return [("calibration_expired", p) for p in problems]
+
+
+def _on_open(view, events: list[tuple[str, dict]]):
+    """What runs once the log is open: the calibration events (--allow-expired-calibration), the live view."""
+    if not events and view is None:
+        return None
+
+    def on_open(writer) -> None:
+        for kind, data in events:
+            writer.event(0.0, kind, **data)
+        if view is not None:
+            view.attach(writer)
+    return on_open
 
 
 def _close_at_exit(view) -> None:

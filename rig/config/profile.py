@@ -17,7 +17,10 @@ Sections (docs/sim.md, docs/hardware.md):
 * ``servovalve``, ``actuator``, ``fixture``, ``normal``, ``sensors``, ``stroke``: the
   plant (simulated by :mod:`rig.sim.plant`, documented in docs/sim.md).
 * ``lubricants``: per-lubricant friction parameters, Table 2 means for A, B, L; the paper
-  gives no ``mu0``, so the values here are assumptions.
+  gives no ``mu0``, so the values here are assumptions. ``lubricant_map``: a lab's own
+  lubricant names (a recipe's free ``lubricant``) mapped to one of ``lubricants``.
+* ``required_metadata``: keys every trial must record (e.g. ``[specimen, operator]``):
+  ``rig run`` refuses, exit 2, before anything moves when one is missing.
 * ``sim``: numerical settings of the simulated rig.
 * ``hardware``: the devices, typed by :class:`drivers.config.HardwareConfig`
   (``null``: a simulated rig only).
@@ -211,11 +214,19 @@ class RigProfile(StrictModel):
     sensors: SensorsConfig = Field(default_factory=SensorsConfig)
     stroke: StrokeConfig = Field(default_factory=StrokeConfig)
     lubricants: dict[str, LubricantParams] = Field(default_factory=_default_lubricants)
+    lubricant_map: dict[str, str] = Field(default_factory=dict, description="a lab's lubricant name -> the key of "
+                                                                          "its friction model in lubricants")
+    required_metadata: list[str] = Field(default_factory=list, description="trial metadata keys rig run requires "
+                                                                         "(e.g. specimen, operator)")
     sim: SimConfig = Field(default_factory=SimConfig)
     hardware: HardwareConfig | None = None
 
     @model_validator(mode="after")
     def _cross_checks(self):
+        for name, key in self.lubricant_map.items():
+            if key not in self.lubricants:
+                raise field_error(f"lubricant_map.{name}", f"{key!r} is not in lubricants (it has: "
+                                                           f"{', '.join(self.lubricants)})")
         lv = self.sensors.lvdt
         if lv.min_um >= lv.max_um:
             raise field_error("sensors.lvdt.max_um", f"must exceed sensors.lvdt.min_um ({lv.min_um:g})")
@@ -259,11 +270,26 @@ class RigProfile(StrictModel):
                          initial_position_um=self.stroke.home_um, source=source or self.name,
                          max_speed_note=note)
 
+    def lubricant_key(self, lubricant: str) -> str | None:
+        """The key in ``lubricants`` of a lubricant name (itself, or through ``lubricant_map``); None:
+        this profile has no friction model for it."""
+        if lubricant in self.lubricants:
+            return lubricant
+        return self.lubricant_map.get(lubricant)
+
+    def lubricant_names(self) -> list[str]:
+        """Every lubricant name this profile maps to a friction model."""
+        return list(self.lubricants) + [k for k in self.lubricant_map if k not in self.lubricants]
+
+    def lubricant_params(self, lubricant: str) -> LubricantParams:
+        key = self.lubricant_key(lubricant)
+        if key is None:
+            raise ValueError(f"unknown lubricant {lubricant!r}; this profile has: {', '.join(self.lubricant_names())}")
+        return self.lubricants[key]
+
     def friction_model(self, lubricant: str) -> FrictionModel:
         """The rate-and-state :class:`FrictionModel` (eqs. 5-6) for a lubricant of this profile."""
-        if lubricant not in self.lubricants:
-            raise ValueError(f"unknown lubricant {lubricant!r}; this profile has: {', '.join(self.lubricants)}")
-        lp = self.lubricants[lubricant]
+        lp = self.lubricant_params(lubricant)
         return FrictionModel(params={"mu0": lp.mu0, "A_mu": lp.A_mu, "B_mu": lp.B_mu, "L_um": lp.L_um})
 
     def k_cr_N_per_um(self, lubricant: str, total: bool = True) -> float:
@@ -272,7 +298,7 @@ class RigProfile(StrictModel):
         ``total=True`` uses the force on the sliding test piece, 2 N (both interfaces of the
         double-shear fixture); ``total=False`` uses N per rider, as the paper's Table 2 does.
         """
-        lp = self.lubricants[lubricant]
+        lp = self.lubricant_params(lubricant)
         n = self.normal.nominal_force_N * (2.0 if total else 1.0)
         return (lp.B_mu - lp.A_mu) * n / lp.L_um
 

@@ -64,7 +64,17 @@ MAX_DURATION_S = 8 * 3600.0   # the planner's limit of one plan
 MAX_ACCEL_UM_S2 = 1e8
 MAX_RATE_HZ = 1e5
 SEED_MAX = 2**32 - 1          # numpy's legacy seeds; seed + trial - 1 must stay below
-SAFE_NAME = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,99}$"  # a file stem: out/<name>.mcap
+SAFE_NAME = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,99}$"  # a file stem: out/<name>/...mcap
+#: a lubricant's name: free text of a lab (printable, one line, no leading blank), up to 100 characters
+LUBRICANT_NAME = r"^[^\s\x00-\x1f][^\x00-\x1f]{0,99}$"
+#: a metadata key (recipe ``metadata:``, ``rig run --md KEY=VALUE``): a CSV ``# KEY: value`` line must read back
+METADATA_KEY = r"^[A-Za-z_][A-Za-z0-9_.-]{0,63}$"
+#: keys the trial log writes itself: a recipe or --md cannot set them
+RESERVED_METADATA = ("trial_uid", "recipe", "recipe_file", "lubricant", "normal_force_N", "seed", "trial", "trials",
+                     "profile", "profile_name", "backend", "friction_model", "plan_duration_s", "git_commit",
+                     "software_version", "started_utc", "start_time_ns", "log_time", "loop_rate_hz", "raw_rate_hz",
+                     "decimated_rate_hz", "clock", "status", "rig-trial-csv")
+MetadataValue = Annotated[str, Field(max_length=2000, pattern=r"^[^\r\n]*$")] | int | float | bool
 
 Speed = Annotated[float, Field(gt=0, le=MAX_SPEED_UM_S)]
 Distance = Annotated[float, Field(gt=0, le=MAX_DISTANCE_UM)]
@@ -218,7 +228,9 @@ class Recipe(StrictModel):
     name: str = Field(pattern=SAFE_NAME, description="Names the trial and its default log out/<name>.mcap: "
                                                       "letters, digits, '.', '_', '-' (no path).")
     description: str | None = None
-    lubricant: Literal["dry", "paraffin", "boundary"]
+    lubricant: str = Field(pattern=LUBRICANT_NAME, description="The lubricant: a free name the rig profile maps to "
+                                                            "a friction model (lubricants, lubricant_map); the "
+                                                            "paper's dry, paraffin, boundary by default.")
     normal_force_N: Annotated[float, Field(gt=0, le=MAX_NORMAL_FORCE_N)] = Field(
         100.0, description="Nominal per-rider normal force (N); 100 N in the paper.")
     segments: list[Segment] = Field(min_length=1, max_length=10_000)
@@ -233,10 +245,22 @@ class Recipe(StrictModel):
                                                   "else to the recipe file).")
     controller: ControllerSwitches = Field(default_factory=ControllerSwitches,
                                            description="Feed-forward switches: ff1, friction_ff (on/off).")
+    metadata: dict[Annotated[str, Field(pattern=METADATA_KEY)], MetadataValue] = Field(
+        default_factory=dict, description="Who and what: specimen, operator, note and any KEY: value of the lab "
+                                          "(into the trial log's 'trial' record, rig info, the CSV export, the "
+                                          "catalogue); `rig run --specimen/--operator/--note/--md` override it.")
 
     # filled by load_recipe, not part of the YAML
     _source_path: str | None = PrivateAttr(None)
     _source_text: str | None = PrivateAttr(None)
+
+    @field_validator("metadata")
+    @classmethod
+    def _not_reserved(cls, v: dict) -> dict:
+        bad = sorted(set(v) & set(RESERVED_METADATA))
+        if bad:
+            raise ValueError(f"{', '.join(bad)}: set by rig itself, not by a recipe's metadata")
+        return v
 
     @property
     def source_path(self) -> str | None:
@@ -320,10 +344,11 @@ def state_length(recipe: Recipe, profile, friction_model=None) -> tuple[float, s
     if friction_model is not None and getattr(friction_model, "has_state", False):
         return float(friction_model.get("L_um")), "the friction model given"
     prof = profile if profile is not None else RigProfile()
-    lp = prof.lubricants.get(recipe.lubricant)
+    key = prof.lubricant_key(recipe.lubricant)
+    lp = prof.lubricants.get(key) if key is not None else None
     if lp is None:
         raise tj.PlanError(f"lubricant {recipe.lubricant!r} is not in profile {prof.name} (it has: "
-                           f"{', '.join(prof.lubricants)}): no slip length L for the run-up before a step")
+                           f"{', '.join(prof.lubricant_names())}): no slip length L for the run-up before a step")
     return lp.L_um, f"{recipe.lubricant} in profile {prof.name}"
 
 

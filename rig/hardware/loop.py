@@ -218,6 +218,9 @@ def _run(hw_dict, profile, x_ref, out_q, abort_flag, stop_req, options, logger_a
     gc.freeze()
     gc.disable()
     pacer.start()
+    # issue 21 (the log's clock): the wall-clock time of the loop's monotonic clock, taken once at tick 0;
+    # every block carries the wall-clock time of its last tick (tim["wall_ns"])
+    wall0_ns, mono0 = time.time_ns(), mono()
     perf = time.perf_counter
     if trip is not None:
         status, mode, stop_k = "tripped", Mode.SAFE, 0
@@ -362,6 +365,7 @@ def _run(hw_dict, profile, x_ref, out_q, abort_flag, stop_req, options, logger_a
         blk.exec[j] = perf() - c0
         if blk.i >= blk.n:
             b, tim = blk.take()
+            tim["wall_ns"] = wall0_ns + int((wake - mono0) * 1e9)  # issue 21: wall clock of its last tick
             tim["devices"] = _device_counters(devices)
             out_q.put(("block", b, tim))
             sent_t.append(mono())
@@ -409,6 +413,7 @@ def _run(hw_dict, profile, x_ref, out_q, abort_flag, stop_req, options, logger_a
         pass
     if blk.i:
         b, tim = blk.take()
+        tim["wall_ns"] = wall0_ns + int((wake - mono0) * 1e9)  # issue 21: wall clock of its last tick
         tim["devices"] = _device_counters(devices)
         out_q.put(("block", b, tim))
     summary = {"status": status, "ticks": int(kr), "skipped": int(pacer.skipped),

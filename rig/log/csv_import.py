@@ -5,6 +5,7 @@ from __future__ import annotations
 import datetime as _dt
 import os
 import time
+import uuid
 from pathlib import Path
 
 import numpy as np
@@ -39,7 +40,7 @@ def _anchor_ns(trial: TrialData) -> int:
 
 
 def write_trial_data(trial: TrialData, path: str | os.PathLike, *, decimated_rate_hz: float | None = None,
-                     extra_metadata: dict | None = None) -> Path:
+                     extra_metadata: dict | None = None, overwrite: bool = True) -> Path:
     """Write a :class:`TrialData` (e.g. an imported CSV) as a trial log, atomically.
 
     Every sample goes to the raw channel (exact float64 columns, blocks of 100)
@@ -47,6 +48,8 @@ def write_trial_data(trial: TrialData, path: str | os.PathLike, *, decimated_rat
     extra text columns to the attachment ``text_columns.json``.
     ``log_time`` is anchored at the CSV's ``started_utc`` metadata, else at the
     time of the import. Times too large for the log's clock are a DataFormatError.
+    The trial keeps its ``trial_uid`` (a CSV exported from a log, a copy) or gets a new one.
+    ``overwrite=False``: FileExistsError when ``path`` exists (left as it was).
     """
     path = Path(path)
     t = np.asarray(trial.time_s, dtype=float)
@@ -62,7 +65,9 @@ def write_trial_data(trial: TrialData, path: str | os.PathLike, *, decimated_rat
     meta = dict(trial.metadata)
     meta.pop("start_time_ns", None)
     meta.update(extra_metadata or {})
-    with atomic_path(path) as tmp:
+    if not str(meta.get("trial_uid", "")).strip():
+        meta["trial_uid"] = str(uuid.uuid4())
+    with atomic_path(path, overwrite=overwrite) as tmp:
         w = TrialLogWriter(tmp, loop_rate_hz=rate, decimated_rate_hz=decimated_rate_hz or rate, metadata=meta,
                            flush_interval_s=1e9, fsync=False, raw_columns="exact", start_time_ns=anchor)
         try:
@@ -94,7 +99,7 @@ def write_trial_data(trial: TrialData, path: str | os.PathLike, *, decimated_rat
     return path
 
 
-def write_parquet(trial: TrialData, path: str | os.PathLike) -> Path:
+def write_parquet(trial: TrialData, path: str | os.PathLike, *, overwrite: bool = True) -> Path:
     """Write ``trial`` as Parquet (pyarrow), atomically: the measured-data columns (standard first, then
     extra), float64, with the metadata as the file's key-value metadata (``rig.`` prefix)."""
     import pyarrow as pa
@@ -106,6 +111,6 @@ def write_parquet(trial: TrialData, path: str | os.PathLike) -> Path:
     meta = {f"rig.{k}": str(v) for k, v in trial.metadata.items()}
     meta["rig.format"] = "rig-trial-csv columns (../shared/specs/measured-data.md), units in the names"
     table = table.replace_schema_metadata({**(table.schema.metadata or {}), **meta})
-    with atomic_path(path) as tmp:
+    with atomic_path(path, overwrite=overwrite) as tmp:
         pq.write_table(table, tmp, compression="zstd")
     return path

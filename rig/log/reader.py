@@ -313,7 +313,11 @@ def trial_info(path: str | os.PathLike) -> dict:
         problems.append(c.error or "no footer (cut off)")
     if c.damage:
         problems.append(f"{len(c.damage)} corrupt chunk(s): {c.damage_text()}")
+    trial = records.get("trial", {})
     return {"path": str(path), "size_bytes": path.stat().st_size,
+            # who and what (issue 21): the trial's identity, test piece, operator, note
+            "trial_uid": trial.get("trial_uid"), "specimen": trial.get("specimen"),
+            "operator": trial.get("operator"), "note": trial.get("note"),
             "complete": c.complete and not c.error and not c.damage,
             "damage": "; ".join(problems) or None, "corrupt_chunks": c.damage,
             "recovered": "recovery" in records, "channels": channels, "duration_s": dur,

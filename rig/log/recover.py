@@ -14,7 +14,7 @@ from rig.log.reader import scan
 from rig.log.schemas import MCAP_PROFILE
 
 
-def recover(path_in: str | os.PathLike, path_out: str | os.PathLike) -> dict:
+def recover(path_in: str | os.PathLike, path_out: str | os.PathLike, *, overwrite: bool = True) -> dict:
     """Rewrite a truncated/damaged trial log (no footer, or chunks failing their CRC) into a readable one.
 
     Keeps every intact chunk and record up to where the file's framing ends; a
@@ -34,7 +34,7 @@ def recover(path_in: str | os.PathLike, path_out: str | os.PathLike) -> dict:
     t0 = c.start_time_ns
     counts: dict[str, int] = {}
     last_t = 0.0
-    with atomic_path(path_out) as tmp, open(tmp, "wb") as fh:
+    with atomic_path(path_out, overwrite=overwrite) as tmp, open(tmp, "wb") as fh:
         w = Writer(fh, compression=CompressionType.ZSTD)
         w.start(profile=(c.header.profile if c.header else MCAP_PROFILE), library=f"rig {__version__} (recover)")
         sid_map = {sid: w.register_schema(s.name, s.encoding, s.data) for sid, s in sorted(c.schemas.items())}

@@ -381,9 +381,15 @@ def dumps(obj: Any) -> bytes:
 
 
 def meta_str(v: Any) -> str:
+    """A metadata value as text: numbers as plain numbers (numpy scalars too: never 'np.float64(...)')."""
     if isinstance(v, str):
         return v
-    if isinstance(v, float):
+    if isinstance(v, (bool, np.bool_)):
+        return str(bool(v))
+    if isinstance(v, np.integer):
+        return str(int(v))
+    if isinstance(v, (float, np.floating)):
+        v = float(v)
         return repr(v) if math.isfinite(v) else str(v)
     if isinstance(v, (dict, list, tuple)):
         return json.dumps(jsonable(v), allow_nan=False)

@@ -3,8 +3,12 @@
 The file is chunked (zstd), with message indexes, statistics and a summary, as
 ``mcap.writer.Writer`` writes it. ``log_time`` is wall-clock nanoseconds since
 the Unix epoch: the trial's start (``start_time_ns``, the time the writer was
-opened unless given) plus the sample's trial time ``t_s``, which stays a field
-of every message. Crash safety: the writer closes the chunk in progress,
+opened unless given, then the wall-clock time of the first sample once the
+backend reports it: :meth:`TrialLogWriter.anchor`) plus the sample's trial time
+``t_s``, which stays a field of every message. A backend that reports the
+wall-clock time of its blocks (the hardware loop's tick, a paced simulation)
+re-anchors the clock at every block, so ``log_time`` is the time each sample was
+taken even after a stall of the loop. Crash safety: the writer closes the chunk in progress,
 flushes and ``os.fsync``s at least every ``flush_interval_s`` of wall time
 (1 s), so a crash loses at most the last second; ``rig recover`` rewrites a
 file cut off anywhere.
@@ -231,7 +235,8 @@ class TrialLogWriter:
     Writer (compression, file I/O, fsync) run in a background thread. ``compression``: zstd, lz4 or none.
     ``raw_encoding`` and ``raw_dtype`` are obsolete and ignored (the raw
     channel is always ``rig.columns.v2``; older encodings are read, no longer
-    written).
+    written). ``exclusive``: create the file with ``O_EXCL`` (``FileExistsError``
+    when it exists: a trial log is never overwritten).
     """
 
     def __init__(self, path: str | os.PathLike, *, loop_rate_hz: float = 1000.0,
@@ -240,7 +245,8 @@ class TrialLogWriter:
                  recipe: dict | None = None, profile: dict | None = None,
                  raw_encoding: str = "binary", raw_dtype: str | None = None, flush_interval_s: float = 1.0,
                  chunk_size: int = 1 << 18, fsync: bool = True, threaded: bool = True,
-                 compression: str = "zstd", start_time_ns: int | None = None, raw_columns: str = "device"):
+                 compression: str = "zstd", start_time_ns: int | None = None, raw_columns: str = "device",
+                 exclusive: bool = False):
         if raw_encoding not in ("binary", "base64", "json"):
             raise ValueError(f"raw_encoding must be 'binary', not {raw_encoding!r}")
         if compression not in _COMPRESSION:
@@ -256,6 +262,8 @@ class TrialLogWriter:
         self._dec_every = decimation_factor(self.loop_rate_hz, self.decimated_rate_hz)
         self._dec = BlockMean(self._dec_every)
         self.start_time_ns = int(time.time_ns() if start_time_ns is None else start_time_ns)
+        self._origin_ns = self.start_time_ns  # wall-clock ns of trial time 0 (re-anchored by anchor())
+        self._anchored = False
         lvdt_step = None
         try:
             lvdt_step = float(profile["sensors"]["lvdt"]["quantization_um"]) if profile else None
@@ -268,7 +276,7 @@ class TrialLogWriter:
         if raw_columns == "exact":
             self._enc.column = lambda key: EXACT  # every column exact
         self.flush_interval_s = float(flush_interval_s)
-        self._fh = open(self.path, "wb")
+        self._fh = open(self.path, "xb" if exclusive else "wb")
         sink = _Sink(self._fh, fsync, compression, int(chunk_size))
         sink.w.start(profile=MCAP_PROFILE, library=f"rig {__version__} (mcap {_mcap_version()})")
         self._chan: dict[str, int] = {}
@@ -342,9 +350,32 @@ class TrialLogWriter:
                 self.listener_errors.append(f"{getattr(fn, '__name__', fn)!s}: {type(exc).__name__}: {exc}")
                 self._listeners.remove(fn)
 
+    # -- the clock -------------------------------------------------------------
+    def anchor(self, t_s: float, wall_ns: int) -> None:
+        """The sample at trial time ``t_s`` was taken at wall-clock ``wall_ns`` (ns since the epoch).
+
+        The first call fixes the trial's ``start_time_ns`` (the first sample's wall-clock time,
+        written as an update of the ``trial`` metadata record and flushed at once); every call
+        re-anchors ``log_time`` of what follows, never backwards (a stalled loop's trial time
+        falls behind the wall clock; log_time stays the time each sample was taken)."""
+        if not math.isfinite(t_s):
+            return
+        origin = int(wall_ns) - int(round(float(t_s) * 1e9))
+        if not self._anchored:
+            self._anchored = True
+            self._origin_ns = origin
+            self.start_time_ns = origin
+            started = _dt.datetime.fromtimestamp(origin / 1e9, _dt.timezone.utc)
+            upd = {"start_time_ns": origin, "started_utc": started.isoformat(), "clock": "first_sample"}
+            self.metadata.update({k: meta_str(v) for k, v in upd.items()})
+            self.add_metadata("trial", self.metadata)
+            self.flush()
+        elif origin > self._origin_ns:
+            self._origin_ns = origin
+
     # -- writing ---------------------------------------------------------------
     def _ns(self, t_s: float) -> int:
-        ns = self.start_time_ns + int(round(float(t_s) * 1e9)) if math.isfinite(t_s) else self.start_time_ns
+        ns = self._origin_ns + int(round(float(t_s) * 1e9)) if math.isfinite(t_s) else self._origin_ns
         return min(max(ns, 0), _U64_MAX)
 
     def _add(self, topic: str, t_s: float, payload: bytes) -> None:
@@ -458,7 +489,7 @@ class TrialLogWriter:
         k = len(payloads)
         ts = m[0]
         rel = np.clip(np.rint(np.nan_to_num(ts) * 1e9), -9e18, 9e18).astype(np.int64).tolist()
-        t0n = self.start_time_ns  # integer arithmetic: float64 cannot hold epoch ns exactly
+        t0n = self._origin_ns  # integer arithmetic: float64 cannot hold epoch ns exactly
         ns = [min(max(t0n + v, 0), _U64_MAX) for v in rel]
         seq0 = self._seq[LOG25_TOPIC]
         cid = self._chan[LOG25_TOPIC]

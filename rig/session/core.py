@@ -72,9 +72,14 @@ def detach_from_terminal() -> None:
 
 @dataclass(slots=True)
 class Block:
-    """Loop samples: a dict of equal-length numpy arrays (``t_s`` and the block keys)."""
+    """Loop samples: a dict of equal-length numpy arrays (``t_s`` and the block keys).
+
+    ``wall_ns``: the wall-clock time (ns since the epoch) at which the block's LAST sample was
+    taken, when the backend knows it (the hardware loop's tick, a paced or a starting simulation);
+    the session anchors the log's clock on it (:meth:`rig.log.TrialLogWriter.anchor`)."""
 
     data: dict
+    wall_ns: int | None = None
 
 
 @dataclass(slots=True)
@@ -486,6 +491,7 @@ class TrialSession:
         old = self._install_signals()
         w.warm_up()  # numba & co. compiled/loaded now: the first second of the run is as durable as the rest
         self._logged = getattr(backend, "block_logged", None)
+        anchor = getattr(w, "anchor", None)  # the log's clock: the wall-clock time of the samples
         monitor = _WriterMonitor(self, poll_s=0.005)
         try:
             try:
@@ -502,6 +508,8 @@ class TrialSession:
                             break
                         if type(msg) is Block:
                             self._in_write = time.monotonic()
+                            if msg.wall_ns is not None and anchor is not None and len(msg.data["t_s"]):
+                                anchor(float(msg.data["t_s"][-1]), msg.wall_ns)
                             w.write_block(msg.data)
                             self._in_write = None
                             if self._logged is not None:

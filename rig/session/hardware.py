@@ -153,7 +153,7 @@ class HardwareBackend:
                 self.read_slow += int((rd > 1e-3).sum())
             self._devices = tim.get("devices", self._devices)
             self._t_last = float(blk["t_s"][-1])
-            return Block(blk)
+            return Block(blk, tim.get("wall_ns"))  # issue 21: the wall-clock time of its last tick
         if kind == "event":
             _, t_s, ev, data = msg
             return Event(float(t_s), ev, {k: v for k, v in data.items() if k not in ("t_s", "kind")})

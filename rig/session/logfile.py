@@ -20,8 +20,10 @@ def git_describe() -> str:
         return ""
 
 
-def open_log(path: Path, plan, recipe, profile, metadata: dict, flush_interval_s: float = 1.0):
-    """A :class:`rig.log.TrialLogWriter` for one trial of ``recipe`` (raises OSError)."""
+def open_log(path: Path, plan, recipe, profile, metadata: dict, flush_interval_s: float = 1.0,
+             exclusive: bool = True):
+    """A :class:`rig.log.TrialLogWriter` for one trial of ``recipe`` (raises OSError; ``exclusive``:
+    the file is created with O_EXCL, FileExistsError when it exists: a trial is never overwritten)."""
     from rig.log import TrialLogWriter
 
     return TrialLogWriter(path, loop_rate_hz=plan.loop_rate_hz, decimated_rate_hz=recipe.log.decimated_rate_hz,
@@ -29,7 +31,7 @@ def open_log(path: Path, plan, recipe, profile, metadata: dict, flush_interval_s
                           recipe_yaml=recipe.source_text, recipe=recipe.model_dump(mode="json"),
                           profile=profile.model_dump(mode="json"),
                           raw_encoding=recipe.log.raw_encoding, raw_dtype=recipe.log.raw_dtype,
-                          flush_interval_s=flush_interval_s)
+                          flush_interval_s=flush_interval_s, exclusive=exclusive)
 
 
 def run_to_log(path: Path, plan, recipe, profile, backend: Backend, metadata: dict, *,

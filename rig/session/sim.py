@@ -33,6 +33,11 @@ class SimBackend:
     of wall time (0.1 s, ten updates a second for a live view). The simulated
     data do not depend on the pace or the block size. A machine too slow for
     the pace just runs behind it.
+
+    The log's clock (:class:`rig.session.core.Block` ``wall_ns``): trial time 0 is
+    the wall-clock time the run starts; a paced run re-anchors it on every block
+    (the wall-clock time it is handed over), as the hardware's loop does. A paced
+    run's log is flushed every 0.5 s (``log_flush_interval_s``), as the hardware's.
     """
 
     PACED_BLOCK_WALL_S = 0.1
@@ -67,6 +72,14 @@ class SimBackend:
         self._blocks = self.rig.run_blocks(plan.x_ref_um, block_ticks=ticks,
                                            controller=getattr(plan, "controller", None) or None)
         self._wall0 = time.monotonic()
+        self._wall0_ns = time.time_ns()
+        self._first = True
+
+    @property
+    def log_flush_interval_s(self) -> float:
+        """How often the log is flushed and fsync'd (wall time): 0.5 s when paced (a person watches a
+        trial in real time: kill -9 loses at most about that), else every second."""
+        return 0.5 if self.pace > 0 else 1.0
 
     def _wait_for(self, t_end_s: float) -> None:
         """Sleep until the wall clock reaches trial time ``t_end_s`` at the pace (from :meth:`start`)."""
@@ -84,11 +97,15 @@ class SimBackend:
         if blk is None:
             self._ended = True
             return None
-        if self.pace > 0:
-            t = blk["t_s"]
-            if t.size:
-                self._wait_for(float(t[-1]) + self._dt_s)
-        return Block(blk)
+        t = blk["t_s"]
+        wall_ns = None
+        if self.pace > 0 and t.size:
+            self._wait_for(float(t[-1]) + self._dt_s)
+            wall_ns = time.time_ns() - int(self._dt_s * 1e9)  # handed over one tick after its last sample
+        elif self._first and t.size:
+            wall_ns = self._wall0_ns + int(round(float(t[-1]) * 1e9))  # unpaced: trial time 0 is the start
+        self._first = False
+        return Block(blk, wall_ns)
 
     def request_stop(self, reason: str, insist: bool = False) -> None:
         self._stop = reason
