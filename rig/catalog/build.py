@@ -5,8 +5,9 @@ reads only what is new or changed: a file whose size and mtime match its
 ``files`` row is skipped without opening it; one whose size or mtime changed is
 hashed, and re-read only when its sha256 changed too. A file that cannot be
 read gets its ``files`` row with ``ok = false`` and the error; the build goes
-on. Files gone from the directory are dropped from ``files`` and ``trials``
-(their analysis results stay, keyed by path, until the path is catalogued again).
+on. Files gone from the directory are dropped from ``files`` and ``trial_files``;
+analysis results stay, keyed by the trial's ``trial_uid``: a moved or renamed file
+(or a copy, an export) joins them again when it is catalogued (issue 21).
 
 The reading runs on the batch engine (:mod:`rig.catalog.batch`); the database
 is written in this process only.
@@ -96,25 +97,37 @@ def _parse_utc(text) -> _dt.datetime | None:
     return d
 
 
+_TRIAL_COLUMNS = ("path", "trial_uid", "uid_source", "sha256", "kind", "recipe", "lubricant", "specimen", "operator",
+                  "note", "rig_profile", "backend", "started_utc", "duration_s", "status", "log_status",
+                  "normal_force_N", "seed", "n_samples", "n_events", "slip_mm", "written_by", "metadata")
+
+
+def trial_key(row: dict) -> tuple[str, str]:
+    """(trial_uid, where it came from) of an indexed file: its ``trial_uid`` metadata (a log, its
+    exports, imports, copies and recoveries share it), else ``sha256:<file digest>`` (a file from
+    another system: a moved or renamed copy keeps its results, an edited one is another trial)."""
+    uid = str(row.get("trial_uid") or "").strip()
+    if uid:
+        return uid, "metadata"
+    return f"sha256:{row['sha256']}", "content"
+
+
 def _write_trial(con, row: dict) -> None:
-    con.execute("DELETE FROM trials WHERE path = ?", [row["path"]])
-    con.execute(
-        "INSERT INTO trials (path, sha256, kind, recipe, lubricant, rig_profile, backend, started_utc, duration_s, "
-        "status, log_status, normal_force_N, seed, n_samples, n_events, written_by, metadata) "
-        "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-        [row["path"], row["sha256"], row["kind"], row["recipe"], row["lubricant"], row["rig_profile"],
-         row["backend"], _parse_utc(row["started_utc"]), row["duration_s"], row["status"], row["log_status"],
-         row["normal_force_N"], row["seed"], row["n_samples"], row["n_events"], row["written_by"],
-         row["metadata"]])
+    row = dict(row)
+    row["trial_uid"], row["uid_source"] = trial_key(row)
+    row["started_utc"] = _parse_utc(row.get("started_utc"))
+    con.execute("DELETE FROM trial_files WHERE path = ?", [row["path"]])
+    con.execute(f"INSERT INTO trial_files ({', '.join(_TRIAL_COLUMNS)}) VALUES ({', '.join('?' * len(_TRIAL_COLUMNS))})",
+                [row.get(c) for c in _TRIAL_COLUMNS])
 
 
 def _write_file(con, path: str, *, kind: str, size: int, mtime_ns: int, sha: str | None, ok: bool,
-                error: str | None, read: bool) -> None:
+                error: str | None, read: bool, trial_uid: str | None = None) -> None:
     prev = con.execute("SELECT reads FROM files WHERE path = ?", [path]).fetchone()
     reads = ((prev[0] or 0) if prev else 0) + (1 if read else 0)
     con.execute("DELETE FROM files WHERE path = ?", [path])
-    con.execute("INSERT INTO files VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                [path, kind, size, mtime_ns, sha, utcnow(), ok, error, reads])
+    con.execute("INSERT INTO files VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                [path, kind, size, mtime_ns, sha, utcnow(), ok, error, reads, trial_uid])
 
 
 def build(root: str | Path, db: str | Path | None = None, *, jobs: int | None = 1, scheduler: str | None = None,
@@ -171,14 +184,14 @@ def build(root: str | Path, db: str | Path | None = None, *, jobs: int | None = 
                 row = r.value
                 _write_trial(con, row)
                 _write_file(con, key, kind=row["kind"], size=row["size_bytes"], mtime_ns=row["mtime_ns"],
-                            sha=row["sha256"], ok=True, error=None, read=True)
+                            sha=row["sha256"], ok=True, error=None, read=True, trial_uid=trial_key(row)[0])
                 rep.read.append(key)
             else:
                 try:
                     sha = sha256_file(p)
                 except OSError:
                     sha = None
-                con.execute("DELETE FROM trials WHERE path = ?", [key])
+                con.execute("DELETE FROM trial_files WHERE path = ?", [key])
                 _write_file(con, key, kind=p.suffix.lower().lstrip("."), size=size, mtime_ns=mtime, sha=sha,
                             ok=False, error=r.error, read=True)
                 rep.read.append(key)
@@ -189,7 +202,7 @@ def build(root: str | Path, db: str | Path | None = None, *, jobs: int | None = 
             for key in known:
                 if key.startswith(rootr) and key not in here:
                     con.execute("DELETE FROM files WHERE path = ?", [key])
-                    con.execute("DELETE FROM trials WHERE path = ?", [key])
+                    con.execute("DELETE FROM trial_files WHERE path = ?", [key])
                     rep.removed.append(key)
         con.execute("COMMIT")
     finally:
@@ -202,10 +215,20 @@ def _num(d: dict, k: str):
     return float(v) if isinstance(v, (int, float)) else None
 
 
+def _uid_of(con, path: str, sha: str | None) -> str:
+    """The trial a result belongs to: its file's ``trial_uid`` in the catalogue (the batch run indexes
+    the files first), else the one its content gives (``sha256:...``), else the path itself."""
+    row = con.execute("SELECT trial_uid FROM files WHERE path = ?", [path]).fetchone()
+    if row and row[0]:
+        return row[0]
+    return f"sha256:{sha}" if sha else f"path:{path}"
+
+
 def _record(db: str | Path, table: str, results: list[TaskResult], ok_row, failed_cols: str, failed_row) -> None:
-    """Write batch results into ``table`` in one transaction: the latest result per file replaces
-    the previous one. ``ok_row(r)`` gives a full row after (path, sha256, run_utc, rig_version, ok,
-    error); a failure stores ``failed_cols`` from ``failed_row(r)`` after (path, run_utc,
+    """Write batch results into ``table`` in one transaction: the latest result per trial (its
+    ``trial_uid``) replaces the previous one, so a moved, renamed or copied file keeps it.
+    ``ok_row(r)`` gives a full row after (trial_uid, path, sha256, run_utc, rig_version, ok,
+    error); a failure stores ``failed_cols`` from ``failed_row(r)`` after (trial_uid, path, run_utc,
     rig_version, ok, error)."""
     from rig import __version__
 
@@ -214,13 +237,14 @@ def _record(db: str | Path, table: str, results: list[TaskResult], ok_row, faile
         con.execute("BEGIN TRANSACTION")
         for r in results:
             path = str(r.item[0])
-            con.execute(f"DELETE FROM {table} WHERE path = ?", [path])
+            uid = _uid_of(con, path, r.value["sha256"] if r.ok else None)
+            con.execute(f"DELETE FROM {table} WHERE trial_uid = ?", [uid])
             if r.ok:
-                row = [path, r.value["sha256"], utcnow(), __version__, True, None, *ok_row(r)]
+                row = [uid, path, r.value["sha256"], utcnow(), __version__, True, None, *ok_row(r)]
                 con.execute(f"INSERT INTO {table} VALUES ({', '.join('?' * len(row))})", row)
             else:
-                row = [path, utcnow(), __version__, False, r.error, *failed_row(r)]
-                con.execute(f"INSERT INTO {table} (path, run_utc, rig_version, ok, error, {failed_cols}) "
+                row = [uid, path, utcnow(), __version__, False, r.error, *failed_row(r)]
+                con.execute(f"INSERT INTO {table} (trial_uid, path, run_utc, rig_version, ok, error, {failed_cols}) "
                             f"VALUES ({', '.join('?' * len(row))})", row)
         con.execute("COMMIT")
     finally:

@@ -1,8 +1,8 @@
 """The catalogue's DuckDB schema (documented in docs/catalog.md; keep the two in step).
 
-Version 1. :func:`open_catalog` creates the tables in a new file and refuses a
-file written with another schema version (one clear error, never a silent
-migration).
+Version 2 (issue 21: trials keyed by their ``trial_uid``, files as attributes).
+:func:`open_catalog` creates the tables in a new file and refuses a file written
+with another schema version (one clear error, never a silent migration).
 """
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from __future__ import annotations
 import datetime as _dt
 from pathlib import Path
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 DEFAULT_DB_NAME = "catalog.duckdb"
 
 TABLES = {
@@ -30,15 +30,21 @@ TABLES = {
             indexed_utc  TIMESTAMP,
             ok           BOOLEAN,
             error        VARCHAR,
-            reads        INTEGER
+            reads        INTEGER,
+            trial_uid    VARCHAR
         )""",
-    "trials": """
-        CREATE TABLE IF NOT EXISTS trials (
+    "trial_files": """
+        CREATE TABLE IF NOT EXISTS trial_files (
             path           VARCHAR PRIMARY KEY,
+            trial_uid      VARCHAR NOT NULL,
+            uid_source     VARCHAR,
             sha256         VARCHAR,
             kind           VARCHAR,
             recipe         VARCHAR,
             lubricant      VARCHAR,
+            specimen       VARCHAR,
+            operator       VARCHAR,
+            note           VARCHAR,
             rig_profile    VARCHAR,
             backend        VARCHAR,
             started_utc    TIMESTAMP,
@@ -49,12 +55,14 @@ TABLES = {
             seed           BIGINT,
             n_samples      BIGINT,
             n_events       INTEGER,
+            slip_mm        DOUBLE,
             written_by     VARCHAR,
             metadata       JSON
         )""",
     "identify_results": """
         CREATE TABLE IF NOT EXISTS identify_results (
-            path            VARCHAR PRIMARY KEY,
+            trial_uid       VARCHAR PRIMARY KEY,
+            path            VARCHAR,
             sha256          VARCHAR,
             run_utc         TIMESTAMP,
             rig_version     VARCHAR,
@@ -74,7 +82,8 @@ TABLES = {
         )""",
     "diagnose_results": """
         CREATE TABLE IF NOT EXISTS diagnose_results (
-            path                   VARCHAR PRIMARY KEY,
+            trial_uid              VARCHAR PRIMARY KEY,
+            path                   VARCHAR,
             sha256                 VARCHAR,
             run_utc                TIMESTAMP,
             rig_version            VARCHAR,
@@ -90,18 +99,54 @@ TABLES = {
         )""",
 }
 
+#: what a result column says when it was never computed (the ``results`` column of ``catalog``)
+NOT_COMPUTED = "not computed: run `rig {0} DIR`"
+
 VIEWS = {
-    "catalog": """
+    # one row per trial (its trial_uid): the columns of its primary file (the log rather than an export,
+    # the original rather than a recovery, then by path), and every file that holds it
+    "trials": """
+        CREATE OR REPLACE VIEW trials AS
+        WITH ranked AS (
+            SELECT *, row_number() OVER (PARTITION BY trial_uid
+                                         ORDER BY (kind <> 'mcap'), (status = 'recovered'), path) AS rank_
+            FROM trial_files),
+        grouped AS (
+            SELECT trial_uid, list(path ORDER BY path) AS paths, list(sha256 ORDER BY path) AS sha256s,
+                   count(*) AS n_files
+            FROM trial_files GROUP BY trial_uid)
+        SELECT r.* EXCLUDE (rank_), g.paths, g.sha256s, g.n_files
+        FROM ranked r JOIN grouped g USING (trial_uid)
+        WHERE r.rank_ = 1""",
+    "catalog": f"""
         CREATE OR REPLACE VIEW catalog AS
-        SELECT t.path, t.kind, t.recipe, t.lubricant, t.rig_profile, t.backend, t.started_utc, t.duration_s,
-               t.status, t.normal_force_N, t.seed, t.n_samples, t.sha256,
+        SELECT t.trial_uid, t.path, t.paths, t.n_files, t.kind, t.recipe, t.lubricant, t.specimen, t.operator,
+               t.note, t.rig_profile, t.backend, t.started_utc, t.duration_s, t.status, t.normal_force_N, t.seed,
+               t.n_samples, t.slip_mm, t.sha256,
                i.A_mu, i.B_mu, i.L_um, i.k_cr_kN_per_m, i.n_steps, i.rig_version AS identify_version,
-               i.ok AS identify_ok, (i.sha256 = t.sha256) AS identify_current,
+               i.ok AS identify_ok, list_contains(t.sha256s, i.sha256) AS identify_current,
                d.causes, d.n_findings, d.holdout_rms_N, d.rig_version AS diagnose_version,
-               d.ok AS diagnose_ok, (d.sha256 = t.sha256) AS diagnose_current
+               d.ok AS diagnose_ok, list_contains(t.sha256s, d.sha256) AS diagnose_current,
+               concat_ws('; ',
+                   CASE WHEN i.trial_uid IS NULL THEN 'identify {NOT_COMPUTED.format("identify")}'
+                        WHEN NOT i.ok THEN 'identify failed: ' || coalesce(i.error, '?')
+                        WHEN NOT list_contains(t.sha256s, i.sha256) THEN 'identify stale: the file changed since'
+                        ELSE 'identify done' END,
+                   CASE WHEN d.trial_uid IS NULL THEN 'diagnose {NOT_COMPUTED.format("diagnose")}'
+                        WHEN NOT d.ok THEN 'diagnose failed: ' || coalesce(d.error, '?')
+                        WHEN NOT list_contains(t.sha256s, d.sha256) THEN 'diagnose stale: the file changed since'
+                        ELSE 'diagnose done' END) AS results
         FROM trials t
-        LEFT JOIN identify_results i ON i.path = t.path
-        LEFT JOIN diagnose_results d ON d.path = t.path""",
+        LEFT JOIN identify_results i ON i.trial_uid = t.trial_uid
+        LEFT JOIN diagnose_results d ON d.trial_uid = t.trial_uid""",
+    # test pieces wear: trials per specimen, first and last use, cumulative slip
+    "specimens": """
+        CREATE OR REPLACE VIEW specimens AS
+        SELECT specimen, count(*) AS trials, min(started_utc) AS first_used_utc, max(started_utc) AS last_used_utc,
+               sum(slip_mm) AS cumulative_slip_mm, list(DISTINCT lubricant ORDER BY lubricant) AS lubricants,
+               list(DISTINCT operator ORDER BY operator) FILTER (WHERE operator IS NOT NULL) AS operators
+        FROM trials WHERE specimen IS NOT NULL AND specimen <> ''
+        GROUP BY specimen""",
 }
 
 

@@ -113,8 +113,20 @@ def index_file(path: str) -> dict[str, Any]:
         "n_events": len(tr.events),
         "written_by": meta.get("software_version"),
         "metadata": json.dumps(meta, sort_keys=True),
+        # who and what (issue 21): the trial's identity, test piece, operator, sliding distance
+        "trial_uid": meta.get("trial_uid"), "specimen": meta.get("specimen"), "operator": meta.get("operator"),
+        "note": meta.get("note"), "slip_mm": slip_mm(tr),
     })
     return row
+
+
+def slip_mm(tr) -> float | None:
+    """Sliding distance of a trial (mm): the path length of the commanded position when logged (free
+    of the LVDT's noise), else of the measured position; what wears a test piece."""
+    x = tr.position_ref_um if tr.position_ref_um is not None else tr.position_um
+    x = np.asarray(x, dtype=float)
+    x = x[np.isfinite(x)]
+    return float(np.abs(np.diff(x)).sum() / 1000.0) if x.size > 1 else None
 
 
 def identify_file(item: tuple[str, dict]) -> dict[str, Any]:

@@ -118,6 +118,7 @@ def query_cmd(
         res = query(db, sql)
     except CatalogError as exc:
         _fail(str(exc), 2)  # no such catalogue, a query that fails: bad input (rig.commands.common)
+    _note_not_computed(db, res)
     if json_out:
         if str(json_out) == "-":
             typer.echo(res.to_json())
@@ -145,6 +146,31 @@ def query_cmd(
     for r in res.rows:
         table.add_row(*(_cell(v) for v in r))
     console.print(table)
+
+
+#: result columns of the catalogue and the command that computes them
+_RESULT_COLUMNS = {"identify": {"A_mu", "B_mu", "L_um", "A_mu_sem", "B_mu_sem", "L_um_sem", "k_cr_kN_per_m", "n_steps",
+                                "identify_ok", "identify_current", "identify_version"},
+                   "diagnose": {"causes", "n_findings", "holdout_rms_N", "baseline_holdout_rms_N", "diagnose_ok",
+                                "diagnose_current", "diagnose_version"}}
+
+
+def _note_not_computed(db: Path, res) -> None:
+    """A query whose result columns are all empty because the analysis never ran says so (stderr)."""
+    from rig.catalog import query
+
+    for kind, cols in _RESULT_COLUMNS.items():
+        idx = [i for i, c in enumerate(res.columns) if c in cols]
+        if not idx or not res.rows or any(r[i] is not None for r in res.rows for i in idx):
+            continue
+        try:
+            n = query(db, f"SELECT count(*) FROM {kind}_results").rows[0][0]
+        except Exception:  # noqa: BLE001 - a note only
+            continue
+        what = "no trial" if n == 0 else "none of these trials"
+        err_console.print(f"note: {', '.join(res.columns[i] for i in idx)} empty: {kind} has been run on {what} "
+                          f"in this catalogue; `rig {kind} DIR` computes and stores it (the `results` column of "
+                          "`catalog` says which trials have results)", highlight=False, soft_wrap=True)
 
 
 # ---------------------------------------------------------------------------

@@ -28,6 +28,7 @@ import os
 import queue
 import threading
 import time
+import uuid
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
@@ -300,6 +301,8 @@ class TrialLogWriter:
                  "loop_rate_hz": self.loop_rate_hz, "raw_rate_hz": self.raw_rate_hz,
                  "decimated_rate_hz": self.decimated_rate_hz}
         trial.update(metadata or {})
+        if not str(trial.get("trial_uid", "") or "").strip():
+            trial["trial_uid"] = str(uuid.uuid4())  # every trial log has an identity (issue 21)
         self.metadata = {k: meta_str(v) for k, v in trial.items()}
         sink.w.add_metadata("trial", self.metadata)
         if recipe is not None:

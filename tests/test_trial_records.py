@@ -1,0 +1,219 @@
+"""Issue 21: never lose or confuse a trial. Unique outputs that are never overwritten, the trial's
+identity (trial_uid) through info, export, import and the catalogue, who and what (specimen,
+operator, metadata, required keys, a lab's lubricant names), calibration records, the log's clock."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from typer.testing import CliRunner
+
+from conftest import REPO, out_text
+from rig.cli import app
+from rig.log import read_log, read_trial
+
+TINY = """\
+name: tiny
+lubricant: boundary
+seed: 3
+metadata: {specimen: S-recipe, operator: recipe-op, humidity_pct: 40}
+segments:
+  - kind: hold
+    duration_s: 0.3
+  - kind: move
+    position_um: 520
+    speed_um_s: 100
+"""
+
+runner = CliRunner()
+
+
+def _sha(p: Path) -> str:
+    return hashlib.sha256(p.read_bytes()).hexdigest()
+
+
+@pytest.fixture()
+def lab(tmp_path, monkeypatch):
+    """A lab directory (the cwd) with the tiny recipe."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "tiny.yaml").write_text(TINY)
+    return tmp_path
+
+
+def _run(*args):
+    res = runner.invoke(app, ["run", "tiny.yaml", "-q", *map(str, args)])
+    return res.exit_code, out_text(res)
+
+
+def test_two_runs_without_out_give_two_files_and_out_existing_is_refused(lab):
+    code, text = _run("--sim")
+    assert code == 0, text
+    first = list((lab / "out" / "tiny").glob("*.mcap"))
+    assert len(first) == 1
+    digest = _sha(first[0])
+    code, text = _run("--sim")
+    assert code == 0, text
+    files = sorted((lab / "out" / "tiny").glob("*.mcap"))
+    assert len(files) == 2 and _sha(first[0]) == digest  # the first trial is untouched
+    uids = {read_log(f, topics=set()).metadata_dict()["trial"]["trial_uid"] for f in files}
+    assert len(uids) == 2 and all(f.name.split("-")[-1] == f"{u[:8]}.mcap" for f, u in
+                                  zip(files, (read_log(f, topics=set()).metadata_dict()["trial"]["trial_uid"]
+                                              for f in files)))
+    # --out EXISTING: exit 2 naming it, the file unchanged; --overwrite replaces it
+    target = lab / "keep.mcap"
+    shutil.copy(files[0], target)
+    code, text = _run("--sim", "--out", target)
+    assert code == 2 and "keep.mcap" in text and "--overwrite" in text
+    assert _sha(target) == digest
+    code, text = _run("--sim", "--out", target, "--overwrite")
+    assert code == 0, text
+    assert _sha(target) != digest
+    # the same rule for export, recover and import outputs
+    csv = lab / "t.csv"
+    assert runner.invoke(app, ["export", str(target), "-o", str(csv)]).exit_code == 0
+    before = _sha(csv)
+    res = runner.invoke(app, ["export", str(files[1]), "-o", str(csv)])
+    assert res.exit_code == 2 and "t.csv" in out_text(res) and _sha(csv) == before
+    assert runner.invoke(app, ["export", str(files[1]), "-o", str(csv), "--overwrite"]).exit_code == 0
+    assert _sha(csv) != before
+    res = runner.invoke(app, ["import", str(csv), "-o", str(files[0])])
+    assert res.exit_code == 2 and _sha(files[0]) == digest
+    res = runner.invoke(app, ["recover", str(files[1]), "-o", str(files[0])])
+    assert res.exit_code == 2 and _sha(files[0]) == digest
+
+
+def test_identity_specimen_operator_through_info_export_import_and_catalogue(lab):
+    from rig.catalog import build, query
+
+    out = lab / "archive" / "a.mcap"
+    code, text = _run("--sim", "--out", out, "--specimen", "P-7", "--operator", "ann", "--note", "fresh oil",
+                      "--md", "batch=B12")
+    assert code == 0, text
+    res = runner.invoke(app, ["info", str(out), "--json", "-"])
+    info = json.loads(res.stdout)
+    uid = info["trial_uid"]
+    assert len(uid) == 36 and info["specimen"] == "P-7" and info["operator"] == "ann"  # flags override the recipe
+    trial = info["metadata"]["trial"]
+    assert trial["humidity_pct"] == "40" and trial["batch"] == "B12" and trial["note"] == "fresh oil"
+    end = info["metadata"]["trial_end"]  # numbers are numbers, never 'np.float64(...)'
+    assert float(end["mean_friction_N"]) == pytest.approx(float(end["mean_friction_N"]))
+    # the CSV export carries them; importing it keeps the uid
+    csv = lab / "archive" / "a.csv"
+    assert runner.invoke(app, ["export", str(out), "-o", str(csv)]).exit_code == 0
+    head = [ln for ln in csv.read_text().splitlines() if ln.startswith("#")]
+    assert f"# trial_uid: {uid}" in head and "# specimen: P-7" in head and "# operator: ann" in head
+    assert "# batch: B12" in head
+    imp = lab / "elsewhere" / "imported.mcap"
+    assert runner.invoke(app, ["import", str(csv), "-o", str(imp)]).exit_code == 0
+    assert read_log(imp, topics=set()).metadata_dict()["trial"]["trial_uid"] == uid
+    # a CSV without one gets a new one
+    bare = lab / "bare.csv"
+    bare.write_text("\n".join(ln for ln in csv.read_text().splitlines() if not ln.startswith("# trial_uid")) + "\n")
+    assert runner.invoke(app, ["import", str(bare), "-o", str(lab / "bare.mcap")]).exit_code == 0
+    other = read_log(lab / "bare.mcap", topics=set()).metadata_dict()["trial"]["trial_uid"]
+    assert len(other) == 36 and other != uid
+    # the catalogue: the log and its export are one trial with both paths; the specimens view
+    rep = build(lab / "archive")
+    assert len(rep.read) == 2
+    db = lab / "archive" / "catalog.duckdb"
+    rows = query(db, "SELECT trial_uid, path, n_files, paths, specimen, operator, kind FROM trials").records()
+    assert len(rows) == 1
+    r = rows[0]
+    assert r["trial_uid"] == uid and r["n_files"] == 2 and r["kind"] == "mcap" and r["path"].endswith("a.mcap")
+    assert sorted(Path(p).name for p in r["paths"]) == ["a.csv", "a.mcap"]
+    assert (r["specimen"], r["operator"]) == ("P-7", "ann")
+    sp = query(db, "SELECT specimen, trials, cumulative_slip_mm, operators FROM specimens").records()
+    assert sp == [{"specimen": "P-7", "trials": 1, "cumulative_slip_mm": pytest.approx(0.02, abs=0.002),
+                   "operators": ["ann"]}]
+
+
+def test_moved_file_keeps_identify_results_and_never_computed_says_so(lab):
+    from rig.catalog import build, query
+    from rig.model.spec import FrictionModel
+    from rig.sim import synth
+    from rig.data import write_csv
+
+    model = FrictionModel.for_lubricant("boundary", 0.12)
+    segs = synth.paper_step_protocol(highs=(5.0,), pre_um=20.0, post_um=60.0, back_um=20.0)
+    tr = synth.generate(model, segs, seed=11, lubricant="boundary").trial
+    tr.metadata.update({"lubricant": "boundary", "normal_force_N": "100", "specimen": "P-9"})
+    root = lab / "arch"
+    write_csv(tr, lab / "step.csv")
+    assert runner.invoke(app, ["import", str(lab / "step.csv"), "-o", str(root / "step.mcap")]).exit_code == 0
+    db = root / "catalog.duckdb"
+    build(root)
+    res = runner.invoke(app, ["catalog", "query", "SELECT B_mu, results FROM catalog", "--db", str(db), "--json", "-"])
+    text = out_text(res)
+    assert res.exit_code == 0 and "rig identify DIR" in text  # the note and the results column say so
+    assert json.loads(res.stdout)[0]["results"].startswith("identify not computed")
+    assert runner.invoke(app, ["identify", str(root), "--jobs", "1"]).exit_code == 0
+    b_mu = query(db, "SELECT B_mu FROM catalog").rows[0][0]
+    assert b_mu is not None
+    # moved and renamed: after a rebuild the trial keeps its result (keyed by trial_uid)
+    (root / "2026").mkdir()
+    (root / "step.mcap").rename(root / "2026" / "renamed.mcap")
+    build(root)
+    rows = query(db, "SELECT path, B_mu, identify_current, results FROM catalog").records()
+    assert len(rows) == 1 and rows[0]["path"].endswith("renamed.mcap")
+    assert rows[0]["B_mu"] == b_mu and rows[0]["identify_current"] and "identify done" in rows[0]["results"]
+
+
+def _profile(lab: Path, **extra) -> Path:
+    p = lab / "lab-rig.yaml"
+    p.write_text(yaml.safe_dump({"extends": str(REPO / "config/rigs/sim.yaml"), **extra}))
+    return p
+
+
+def test_required_metadata_and_lab_lubricant_names(lab):
+    prof = _profile(lab, required_metadata=["specimen", "operator", "shift"],
+                    lubricant_map={"Shell Tellus 46": "paraffin"})
+    code, text = _run("--sim", "--profile", prof, "--out", lab / "x.mcap", "--operator", "")
+    assert code == 2 and "operator, shift" in text and "--md shift=" in text
+    assert not (lab / "x.mcap").exists() and not (lab / "out").exists()  # nothing written
+    ok = ("--md", "shift=night")
+    code, text = _run("--sim", "--profile", prof, "--plan-only", "--lubricant", "Shell Tellus 46", *ok)
+    assert code == 0, text
+    code, text = _run("--sim", "--profile", prof, "--plan-only", "--lubricant", "castor oil", *ok)
+    assert code == 2 and "'castor oil'" in text and "lubricant_map" in text
+    code, text = _run("--sim", "--md", "trial_uid=x")  # rig's own keys cannot be set
+    assert code == 2 and "trial_uid" in text
+
+
+def test_expired_calibration_is_refused_before_anything_moves(lab):
+    from hw_helpers import private_profile
+
+    cal = {"serial": "LC-1234", "capacity_N": 500.0, "verified_range_N": [5.0, 500.0], "class": "1",
+           "calibrated_on": "2019-01-01", "due_on": "2020-01-01", "uncertainty_N": 0.05}
+    prof = private_profile(lab, autostart=False, loadcells={"friction": {"calibration": cal}})
+    doc = yaml.safe_load(prof.read_text())
+    prof.write_text(yaml.safe_dump(doc).replace("'2019-01-01'", "2019-01-01").replace("'2020-01-01'", "2020-01-01"))
+    code, text = _run("--hardware", prof, "--out", lab / "h.mcap")
+    assert code == 2 and "friction" in text and "LC-1234" in text and "2020-01-01" in text, text
+    assert not (lab / "h.mcap").exists()
+
+
+def test_log_time_is_the_samples_wall_clock_on_a_paced_run(lab):
+    import time
+
+    t0 = time.time_ns()
+    code, text = _run("--sim", "--pace", "1", "--out", lab / "p.mcap")
+    t1 = time.time_ns()
+    assert code == 0, text
+    c = read_log(lab / "p.mcap")
+    trial = c.metadata_dict()["trial"]
+    start = int(trial["start_time_ns"])
+    assert trial["clock"] == "first_sample" and t0 < start < t1
+    from rig.log.schemas import LOG25_TOPIC
+
+    times = np.array([m.log_time for m in c.messages if c.topic_of(m) == LOG25_TOPIC])
+    tr = read_trial(lab / "p.mcap")
+    # each sample's log_time is its trial time after the first sample's wall clock, and it had happened
+    # by the time the run ended (a paced run hands a block over once its samples are due)
+    assert np.allclose((times - start) / 1e9, tr.time_s, atol=0.06)
+    assert times[-1] <= t1 + 20e6 and times[-1] > t1 - 3e9  # 20 ms: the monotonic pacing vs the wall clock
