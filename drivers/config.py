@@ -103,6 +103,9 @@ class ChannelCal(StrictModel):
     offset: float = 0.0
     tare_N: float = 0.0
     calibration: CalibrationRecord | None = None
+    shunt_address: int | None = Field(None, ge=0, le=65535,
+                                      description="input register (same encoding) of the channel's shunt-"
+                                                  "calibration reading; None: the conditioner has none")
 
 
 class LoadCellConfig(StrictModel):
@@ -286,6 +289,9 @@ class EmulatorConfig(StrictModel):
     cpu: int | None = Field(default=None, ge=0, description="pin the emulator processes to this CPU "
                                                            "(with realtime.cpu: keep them off the loop's)")
     run_dir: str = "/tmp/rig-emulated"
+    faults: dict[Literal["loadcells", "lvdt", "valve"], dict[str, float]] = Field(
+        default_factory=dict, description="faults set when the emulators start (CI): e.g. {loadcells: "
+                                          "{drift: 0.01}} (drivers.emulators.modbus_conditioner.FAULT_KEYS)")
 
 
 class HardwareConfig(StrictModel):

@@ -376,6 +376,30 @@ class LoadCellReader:
         now = time.monotonic() if now is None else now
         return now - self._last_change_t
 
+    def read_shunt(self, n: int = 10) -> dict[str, float]:
+        """Each channel's shunt-calibration reading (N, mean of ``n`` reads of its ``shunt_address``;
+        channels without one are left out). Blocking: for ``rig calibrate`` and the check before a
+        trial, never inside the loop. DeviceError when the conditioner does not answer."""
+        c = self.cfg
+        out: dict[str, float] = {}
+        for ch in CHANNELS:
+            cal = getattr(c, ch)
+            if cal.shunt_address is None:
+                continue
+            total = 0.0
+            for _ in range(n):
+                try:
+                    rr = self._client.read_input_registers(cal.shunt_address, count=c.words_per_value,
+                                                           device_id=c.device_id)
+                except Exception as exc:  # noqa: BLE001 - ModbusIOException, ConnectionException, OSError
+                    raise DeviceError(DEVICE, self.address, f"shunt register of {ch}: no answer: {exc}") from exc
+                if rr.isError():
+                    raise DeviceError(DEVICE, self.address, f"shunt register of {ch}: Modbus exception "
+                                      f"(code {getattr(rr, 'exception_code', None)})", kind="protocol")
+                total += decode_value(list(rr.registers), c.encoding, c.word_order) * cal.scale + cal.offset
+            out[ch] = total / n
+        return out
+
     def tare(self, n: int = 20) -> dict[str, float]:
         """Average ``n`` readings and make them the zeros (sets each channel's ``tare_N``)."""
         sums = [0.0, 0.0, 0.0]

@@ -43,6 +43,7 @@ COMMAND_MODULES = (
     "rig.commands.hardware",
     "rig.commands.warmup",
     "rig.commands.catalog",
+    "rig.commands.calibrate",
 )
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -185,17 +186,51 @@ def test_required_metadata_and_lab_lubricant_names(lab):
     assert code == 2 and "trial_uid" in text
 
 
-def test_expired_calibration_is_refused_before_anything_moves(lab):
+def _hw_profile(lab: Path, **overrides) -> Path:
     from hw_helpers import private_profile
 
+    prof = private_profile(lab, **overrides)
+    # YAML dates, as a lab writes them (safe_dump quotes the strings)
+    prof.write_text(re.sub(r"'(\d{4}-\d\d-\d\d)'", r"\1", prof.read_text()))
+    return prof
+
+
+def test_calibration_expired_and_shunt_drift_refused_override_logged(lab):
+    """One emulated rig whose friction cell is past due and whose bridges drifted 0.4 %."""
     cal = {"serial": "LC-1234", "capacity_N": 500.0, "verified_range_N": [5.0, 500.0], "class": "1",
-           "calibrated_on": "2019-01-01", "due_on": "2020-01-01", "uncertainty_N": 0.05}
-    prof = private_profile(lab, autostart=False, loadcells={"friction": {"calibration": cal}})
-    doc = yaml.safe_load(prof.read_text())
-    prof.write_text(yaml.safe_dump(doc).replace("'2019-01-01'", "2019-01-01").replace("'2020-01-01'", "2020-01-01"))
+           "calibrated_on": "2019-01-01", "due_on": "2020-01-01", "uncertainty_N": 0.05, "shunt_reference_N": 250.0}
+    prof = _hw_profile(lab, loadcells={"friction": {"calibration": cal}},
+                       emulators={"faults": {"loadcells": {"drift": 0.004}}})
     code, text = _run("--hardware", prof, "--out", lab / "h.mcap")
     assert code == 2 and "friction" in text and "LC-1234" in text and "2020-01-01" in text, text
     assert not (lab / "h.mcap").exists()
+    # the reference-load input: 0.4 % is within class 1 (1 %)
+    res = runner.invoke(app, ["calibrate", "verify", "--hardware", str(prof), "--cal-dir", str(lab / "cal"),
+                              "--points", "10,100", "--samples", "5"])
+    rec = json.loads(next((lab / "cal").glob("LC-1234-*.json")).read_text())
+    assert res.exit_code == 0 and rec["passed"] is True, out_text(res)
+    assert [p["relative_error"] for p in rec["points"]] == [pytest.approx(0.004, abs=1e-5)] * 2
+    # the override runs and logs both (the shunt check before the trial caught the drift through the
+    # emulator's shunt-calibration registers), naming the channel; the MCAP records the calibration snapshot
+    code, text = _run("--hardware", prof, "--out", lab / "h.mcap", "--allow-expired-calibration")
+    assert code == 0, text
+    tr = read_trial(lab / "h.mcap")
+    ev = [(e["kind"], e["channel"]) for e in tr.events if e["kind"].startswith("calibration_")]
+    assert ev == [("calibration_expired", "friction"), ("calibration_shunt_drift", "friction"),
+                  ("calibration_shunt_drift", "normal_1"), ("calibration_shunt_drift", "normal_2")]
+    assert [e["due_on"] for e in tr.events if e["kind"] == "calibration_expired"] == ["2020-01-01"]
+    snap = json.loads(tr.metadata["calibration"])
+    assert snap["friction"]["serial"] == "LC-1234" and snap["normal_1"]["serial"] == "EMU-LC-N01"
+
+
+def test_shunt_drift_is_caught_through_the_emulator(lab):
+    prof = _hw_profile(lab, emulators={"faults": {"loadcells": {"drift": -0.003}}})
+    res = runner.invoke(app, ["calibrate", "shunt", "--hardware", str(prof), "--cal-dir", str(lab / "cal")])
+    text = out_text(res)
+    assert res.exit_code == 1 and "friction (EMU-LC-F01) drifted -0.300 %" in text, text
+    rec = json.loads(next((lab / "cal").glob("shunt-*.json")).read_text())
+    assert [r["ok"] for r in rec["channels"]] == [False, False, False]
+    assert [r["deviation_fraction"] for r in rec["channels"]] == [pytest.approx(-0.003, abs=1e-6)] * 3
 
 
 def test_log_time_is_the_samples_wall_clock_on_a_paced_run(lab):

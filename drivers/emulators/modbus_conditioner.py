@@ -10,6 +10,16 @@ Faults (``self.faults``): ``slow_s`` (answer after a delay), ``silent`` (never
 answer), ``exception`` (Modbus exception 4, device failure), ``freeze_counter``,
 ``nan_friction`` (the friction channel reads NaN), ``inf_normal_1`` (normal force 1
 reads +inf): what a broken conditioner's float32 registers can hold.
+
+Calibration (issue 21): each channel with a ``shunt_address`` has a shunt-calibration
+register: the reading with the bridge's shunt resistor engaged, i.e. the
+channel's ``calibration.shunt_reference_N`` as the bridge reports it (ASTM E4 /
+ISO 7500-1 practice: a drifted bridge or amplifier moves it). ``drift`` (a
+fraction) scales every bridge output, the shunt readings included: a gain drift
+of the cell or its amplifier. ``reference_channel`` (1, 2, 3: friction, normal
+1, normal 2; 0 off) and ``reference_load_N``: the reference-load input, a known
+load applied to that cell (dead weights or a reference cell in a calibration
+frame) in place of the rig's force, for ``rig calibrate verify``.
 """
 
 from __future__ import annotations
@@ -21,7 +31,8 @@ from drivers.config import LoadCellConfig
 from drivers.loadcells import CHANNELS, encode_value
 
 
-FAULT_KEYS = ("slow_s", "silent", "exception", "freeze_counter", "nan_friction", "inf_normal_1")
+FAULT_KEYS = ("slow_s", "silent", "exception", "freeze_counter", "nan_friction", "inf_normal_1", "drift",
+              "reference_channel", "reference_load_N")
 
 
 class SharedSample:
@@ -75,7 +86,8 @@ class ModbusConditionerEmulator:
         self._ready = threading.Event()
         self._error: BaseException | None = None
         first, count = cfg.span()
-        self._size = max(first + count, 8) + 1
+        shunts = [getattr(cfg, ch).shunt_address for ch in CHANNELS if getattr(cfg, ch).shunt_address is not None]
+        self._size = max([first + count, 8] + [a + cfg.words_per_value for a in shunts]) + 1
 
     # -- values from the plant -------------------------------------------------------
     def update(self, friction_N: float, normal_1_N: float, normal_2_N: float) -> None:
@@ -95,11 +107,20 @@ class ModbusConditionerEmulator:
             forces[0] = float("nan")
         if f.get("inf_normal_1"):
             forces[1] = float("inf")
-        for ch, f in zip(CHANNELS, forces):
+        ref = int(f.get("reference_channel", 0))
+        if 1 <= ref <= 3:  # the reference-load input: a known load on that cell instead of the rig's force
+            forces[ref - 1] = float(f.get("reference_load_N", 0.0))
+        gain = 1.0 + float(f.get("drift", 0.0))
+        for ch, force in zip(CHANNELS, forces):
             cal = getattr(c, ch)
-            raw = (f - cal.offset) / cal.scale
-            for k, w in enumerate(encode_value(raw, c.encoding, c.word_order)):
-                out[cal.address + k] = w
+            values = [(cal.address, force * gain)]
+            if cal.shunt_address is not None:
+                shunt = cal.calibration.shunt_reference_N if cal.calibration is not None else None
+                values.append((cal.shunt_address, float("nan") if shunt is None else shunt * gain))
+            for addr, val in values:
+                raw = (val - cal.offset) / cal.scale
+                for k, w in enumerate(encode_value(raw, c.encoding, c.word_order)):
+                    out[addr + k] = w
         if c.counter_address is not None:
             out[c.counter_address] = self.counter
         if c.status_address is not None:

@@ -401,7 +401,7 @@ def run_command(
                 out or Path("out") / recipe.name / "x.mcap", yes, hardware is not None)
     git_commit = git_describe()
     block_ticks = max(1, int(round(recipe.log.block_s * plan.loop_rate_hz)))
-    with _SignalNote() as note:
+    with _SignalNote() as note, _Emulators() as emulators:
         for k, path in enumerate(paths):
             if note.caught:
                 err_console.print(f"interrupted ({note.caught[0]}) before trial {k + 1}: not started",
@@ -429,10 +429,20 @@ def run_command(
             meta.update(trial_md)
             if hardware is not None:
                 meta["calibration"] = calibration_snapshot(hw)
+            emulators.stop()
+            events = list(calib_events)
+            if hardware is not None:
+                # the emulated devices are started here (not by the backend) so that the shunt check of the
+                # load cells runs against them before anything moves
+                emu = emulators.start(hw, profile, lubricant=recipe.lubricant if lub_key else None,
+                                      normal_force_N=recipe.normal_force_N, seed=trial_seed)
+                if k == 0:
+                    calib_events = events = events + _check_shunt(emu.hw if emu is not None else hw,
+                                                                  allow_expired_calibration)
             try:
                 if hardware is not None:
                     backend = HardwareBackend(hw, profile, lubricant=recipe.lubricant if lub_key else None,
-                                              normal_force_N=recipe.normal_force_N, seed=trial_seed)
+                                              normal_force_N=recipe.normal_force_N, seed=trial_seed, emulator=emu)
                 else:
                     backend = SimBackend(profile, fm if fm is not None else profile.friction_model(recipe.lubricant),
                                          recipe.normal_force_N, trial_seed, block_ticks=block_ticks, pace=pace)
@@ -445,7 +455,7 @@ def run_command(
                                         echo=lambda text: err_console.print(text, highlight=False, markup=False),
                                         trial_fields={"normal_force_N": recipe.normal_force_N,
                                                       "seed": trial_seed},
-                                        on_open=_on_open(view, calib_events))
+                                        on_open=_on_open(view, events))
             except FileExistsError:
                 fail(f"{path}: appeared while the trial was being prepared; a trial log is never overwritten",
                      EXIT_FAILURE)
@@ -525,6 +535,66 @@ def _check_calibration(hw, allow: bool) -> list[tuple[str, dict]]:
     for p in problems:
         warn(f"{p['message']}: running anyway (--allow-expired-calibration; logged)")
     return [("calibration_expired", p) for p in problems]
+
+
+class _Emulators:
+    """The emulated devices of a --hardware trial (when the profile's emulators.autostart): one set per trial,
+    stopped before the next starts and when the command ends, however it ends."""
+
+    def __init__(self):
+        self.handle = None
+
+    def start(self, hw, profile, **kw):
+        if not hw.emulators.autostart:
+            return None
+        from rig.hardware.emulated import EmulatorError, start_emulator_process
+
+        try:
+            self.handle = start_emulator_process(hw, profile, **kw)
+        except EmulatorError as exc:
+            fail(f"the emulated devices did not start: {exc}", EXIT_FAILURE)
+        return self.handle
+
+    def stop(self) -> None:
+        if self.handle is not None:
+            self.handle.stop()
+            self.handle = None
+
+    def __enter__(self) -> "_Emulators":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+
+def _check_shunt(hw, allow: bool) -> list[tuple[str, dict]]:
+    """The load cells' shunt check before a --hardware trial (channels with a shunt register and a reference):
+    a drifted bridge is exit 2 naming the channel (``--allow-expired-calibration``: an event instead)."""
+    from rig.commands.calibrate import shunt_configured, shunt_rows
+
+    if not shunt_configured(hw):
+        return []
+    from drivers.errors import DeviceError
+
+    try:
+        rows = shunt_rows(hw)
+    except DeviceError as exc:
+        fail(f"shunt check before the trial: {exc}", EXIT_FAILURE)
+    today = datetime.date.today().isoformat()
+    bad = [r for r in rows if r["ok"] is False]
+    events = []
+    for r in bad:
+        dev = r["deviation_fraction"]
+        msg = (f"hardware.loadcells.{r['channel']}: shunt check of {r['serial']} on {today} drifted "
+               + (f"{dev * 100:+.3f} %" if dev is not None else "(no reading)")
+               + f" (tolerance ±{r['tolerance_fraction'] * 100:.3f} %)")
+        if not allow:
+            fail(msg + "; recalibrate (`rig calibrate verify --hardware PROFILE`) or run with "
+                       "--allow-expired-calibration (logged); nothing was run")
+        warn(msg + ": running anyway (--allow-expired-calibration; logged)")
+        events.append(("calibration_shunt_drift", {"channel": r["channel"], "serial": r["serial"], "date": today,
+                                                   "deviation_fraction": dev, "message": msg}))
+    return events
 
 
 def _on_open(view, events: list[tuple[str, dict]]):

@@ -452,6 +452,9 @@ def start_emulator_process(hw: HardwareConfig | dict, profile=None, lubricant: s
         proc.join(2)
         raise EmulatorError(str(payload))
     handle = EmulatorHandle(proc, parent, hw)
+    for device, faults in em.faults.items():  # the profile's emulator faults (issue 21: a drifted bridge in CI)
+        for fault, value in faults.items():
+            handle.inject(device, fault, value)
     import atexit
 
     atexit.register(handle.stop, 2.0)
