@@ -451,3 +451,57 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes, *, overwrite: bool 
 
 def atomic_write_text(path: str | os.PathLike, text: str, *, overwrite: bool = True) -> None:
     atomic_write_bytes(path, text.encode("utf-8"), overwrite=overwrite)
+
+
+# ---------------------------------------------------------------------------
+# calibration: what the force channels' records say about a trial's numbers (issue 21)
+# ---------------------------------------------------------------------------
+
+#: the force channels of a trial and their TrialData columns
+FORCE_CHANNELS = {"friction": "friction_N", "normal_1": "normal_1_N", "normal_2": "normal_2_N"}
+
+
+def calibration_records_of(trial: TrialData) -> dict[str, dict]:
+    """The calibration snapshot a trial log recorded (``calibration`` metadata: JSON by channel), {} when none."""
+    import json
+
+    text = trial.metadata.get("calibration")
+    if not text:
+        return {}
+    try:
+        doc = json.loads(text)
+    except ValueError:
+        return {}
+    return {k: v for k, v in doc.items() if isinstance(v, dict)} if isinstance(doc, dict) else {}
+
+
+def calibration_warnings(trial: TrialData, effects_N: dict[str, float] | None = None) -> list[dict]:
+    """Warnings (``{where, message}``) when a trial's numbers rest on more than its calibration covers:
+
+    * a force channel read outside its ``verified_range_N`` (its share of the samples is named);
+    * a fitted effect (``effects_N``: name -> size in N of the friction force it explains) smaller
+      than the friction channel's stated ``uncertainty_N``.
+
+    Nothing when the trial has no calibration snapshot (a CSV from another system, an older log)."""
+    cal = calibration_records_of(trial)
+    out: list[dict] = []
+    for ch, col in FORCE_CHANNELS.items():
+        rec = cal.get(ch) or {}
+        rng = rec.get("verified_range_N")
+        x = getattr(trial, col)
+        if not rng or x is None or len(rng) != 2:
+            continue
+        a = np.abs(np.asarray(x, dtype=float))
+        a = a[np.isfinite(a)]
+        outside = float(np.mean((a < rng[0]) | (a > rng[1]))) if a.size else 0.0
+        if outside > 0:
+            out.append({"where": f"calibration of {ch} ({rec.get('serial')})",
+                        "message": f"{outside * 100:.1f} % of its readings lie outside the verified range "
+                                   f"{rng[0]:g}..{rng[1]:g} N (|force|, certificate {rec.get('certificate')})"})
+    u = (cal.get("friction") or {}).get("uncertainty_N")
+    for name, size in (effects_N or {}).items():
+        if u and size is not None and math.isfinite(size) and abs(size) < u:
+            out.append({"where": f"calibration of friction ({cal['friction'].get('serial')})",
+                        "message": f"{name}: {abs(size):.3g} N is smaller than the friction channel's stated "
+                                   f"uncertainty {u:g} N"})
+    return out

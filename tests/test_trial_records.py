@@ -252,3 +252,19 @@ def test_log_time_is_the_samples_wall_clock_on_a_paced_run(lab):
     # by the time the run ended (a paced run hands a block over once its samples are due)
     assert np.allclose((times - start) / 1e9, tr.time_s, atol=0.06)
     assert times[-1] <= t1 + 20e6 and times[-1] > t1 - 3e9  # 20 ms: the monotonic pacing vs the wall clock
+
+
+def test_calibration_warnings_range_and_uncertainty():
+    from rig.data import TrialData, calibration_warnings
+
+    f = np.r_[np.full(90, 20.0), np.full(10, 2.0)]  # 10 % below the verified range's 5 N
+    snap = {"friction": {"serial": "LC-1", "verified_range_N": [5.0, 500.0], "uncertainty_N": 0.1},
+            "normal_1": {"serial": "LC-2", "verified_range_N": [10.0, 1000.0]}, "lvdt": None}
+    tr = TrialData(time_s=np.arange(100.0), position_um=np.zeros(100), friction_N=f,
+                   normal_1_N=np.full(100, 100.0), normal_2_N=np.full(100, 100.0),
+                   metadata={"calibration": json.dumps(snap)})
+    w = calibration_warnings(tr, {"the direct effect": 0.05, "the evolution effect": 0.5})
+    assert [x["where"] for x in w] == ["calibration of friction (LC-1)"] * 2
+    assert "10.0 % of its readings" in w[0]["message"] and "the direct effect: 0.05 N" in w[1]["message"]
+    tr.metadata.pop("calibration")
+    assert calibration_warnings(tr, {"the direct effect": 0.05}) == []  # no snapshot: nothing to say

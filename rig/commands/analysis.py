@@ -144,6 +144,7 @@ def identify_cmd(
     from rig.analysis.identify import step_where
     from rig.model.checks import MARK, flagged
 
+    rep.setdefault("warnings", []).extend(_calibration_warnings(trials, rep))  # issue 21
     warns = rep.get("warnings", [])
     table = Table(title="velocity steps (eqs. 10-12)")
     for c in ("trial", "t (s)", "v1 (µm/s)", "v2 (µm/s)", "A_mu", "B_mu", "L (µm)", "r2", "window (µm)", "t_r (s)"):
@@ -197,6 +198,29 @@ def identify_cmd(
 
         plot_identification(idn, plot)
         con.print(f"wrote {plot}", markup=False)
+
+
+def _calibration_warnings(trials, rep: dict) -> list[dict]:
+    """Forces outside a channel's verified range; step effects (eqs. 10-12, in N of friction at the smallest
+    velocity ratio: A ln(v2/v1) 2N, B ln(v2/v1) 2N, (A - B) ln(v2/v1) 2N) below its stated uncertainty."""
+    import math
+
+    from rig.data import calibration_warnings
+
+    m = rep["mean"]
+    ratios = [s["v2_um_s"] / s["v1_um_s"] for s in rep["steps"] if s.get("v1_um_s")]
+    out = []
+    for tr in trials:
+        try:
+            lnr, n2 = math.log(max(min(ratios), 1.0 / min(ratios))), 2.0 * tr.normal_force_N
+        except (ValueError, TypeError):
+            continue
+        effects = {"the direct effect A ln(v2/v1) 2N": m["A_mu"] * lnr * n2 if m.get("A_mu") is not None else None,
+                   "the evolution effect B ln(v2/v1) 2N": m["B_mu"] * lnr * n2 if m.get("B_mu") is not None else None,
+                   "the steady-state change (A - B) ln(v2/v1) 2N": (m["A_mu"] - m["B_mu"]) * lnr * n2
+                   if m.get("A_mu") is not None and m.get("B_mu") is not None else None}
+        out += calibration_warnings(tr, effects)
+    return out
 
 
 def register(app: typer.Typer) -> None:

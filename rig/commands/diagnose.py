@@ -78,7 +78,7 @@ def register(app: typer.Typer) -> None:
             fail(msg if str(data) in msg else f"{data}: {msg}", EXIT_BAD_INPUT)
         rep = d.report()
         rep["data"] = str(data)
-        rep["warnings"] = diagnosis_warnings(rep)
+        rep["warnings"] = diagnosis_warnings(rep) + _calibration_warnings(trial, rep)  # issue 21
         text = summary(dict(rep, _noise_N=d.grid.noise_N))
         if json_to_stdout(json_out):
             err_console.print(text, markup=False)
@@ -95,6 +95,16 @@ def register(app: typer.Typer) -> None:
                 d.model.to_yaml(model_out)
             except OSError as exc:
                 fail(f"cannot write {model_out}: {exc.strerror or exc}", EXIT_FAILED)
+
+
+def _calibration_warnings(trial, rep: dict) -> list[dict]:
+    """Forces outside a channel's verified range; the extended model's hold-out gain (N of RMS) below the
+    friction channel's stated uncertainty (:func:`rig.data.calibration_warnings`)."""
+    from rig.data import calibration_warnings
+
+    base, final = rep["baseline"].get("holdout_rms_N"), rep.get("holdout_rms_N")
+    gain = base - final if rep.get("findings") and base is not None and final is not None else None
+    return calibration_warnings(trial, {"the findings' hold-out gain": gain} if gain is not None else None)
 
 
 def diagnosis_warnings(rep: dict) -> list[dict]:
