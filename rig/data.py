@@ -81,6 +81,20 @@ class TrialData:
         return int(self.time_s.size)
 
     @property
+    def trial_uid(self) -> str | None:
+        """The trial's id (measured-data.md optional key), kept through export, import and copies."""
+        return self.metadata.get("trial_uid") or None
+
+    @property
+    def specimen(self) -> str | None:
+        """The test piece (measured-data.md optional key)."""
+        return self.metadata.get("specimen") or None
+
+    @property
+    def operator(self) -> str | None:
+        return self.metadata.get("operator") or None
+
+    @property
     def has_normals(self) -> bool:
         return self.normal_1_N is not None and self.normal_2_N is not None
 
