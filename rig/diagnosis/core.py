@@ -43,7 +43,7 @@ from .fit import FitResult, evaluate, fit, multistart
 from rig.kinematics import velocity_changes
 from rig.model.forward import as_model
 from rig.model.spec import EXT_PARAMS, PLAUSIBLE, model_params
-from .prep import Grid, prepare
+from .prep import Grid, canonical, prepare
 
 # a finding must matter in practice, not only pass a significance test (docs/diagnosis.md):
 # a hold-out RMS gain of at least MIN_GAIN_PCT, and (per cause, _plausible) an effect above the
@@ -760,6 +760,8 @@ def diagnose(trial: TrialData, baseline: str = "rate_state", progress=None, n_bl
 
     t0 = _time.perf_counter()
     check_analysable(trial, "diagnose")
+    # the file's clock and the position's zero are no physics: every step below sees them from 0
+    trial = canonical(trial)
     from rig.analysis.identify import decimated
     from rig.kinematics import detect_steps
 

@@ -80,10 +80,14 @@ def _make_bins(t, v, block, dt_max, slip_res, rel_v, growth, dt_min_first):
 class Grid:
     """Binned record on which models are fitted (all arrays per bin).
 
-    ``F_mean`` mean measured friction (N), ``count`` raw samples in the bin,
-    ``ss_within`` the raw samples' sum of squares about the bin mean (N²), so
-    that the raw-sample SSE of a model constant over the bin is
-    ``count * (F_mean - pred)² + ss_within``.
+    ``F_mean`` mean measured friction (N), ``count`` the bin's raw samples
+    weighted by the time each stands for (:func:`time_weights`: 1 per sample
+    at the record's usual rate, 10 per sample where it logs ten times
+    slower), ``ss_within`` the raw samples' weighted sum of squares about the
+    bin mean (N²), so that the raw-sample SSE of a model constant over the
+    bin is ``count * (F_mean - pred)² + ss_within``: every statistic weighs
+    the record by time, not by row count (diagnosis.md, "The answer depends on
+    the physics only").
     """
 
     t: np.ndarray
@@ -194,6 +198,49 @@ def _servo_fit(t, xr, x):
     if rms > 3.0 * max(noise, 0.05) + 0.1:
         return None, None
     return tau, m
+
+
+TIME_WEIGHT_WINDOW = 11
+
+
+def time_weights(t: np.ndarray) -> np.ndarray:
+    """Per-sample weight proportional to the time a sample stands for: the running median (over
+    TIME_WEIGHT_WINDOW intervals) of the local sampling interval over its median in the record.
+    1 for every sample of a uniformly sampled record (jitter averages out, a gap is no interval any
+    sample stands for); a record that logs at 10 Hz, then at 100 Hz weighs each slow sample 10: the
+    fast part does not count ten times more for being logged ten times faster."""
+    from scipy.ndimage import median_filter
+
+    t = np.asarray(t, dtype=float)
+    if t.size < 3:
+        return np.ones(t.size)
+    d = np.diff(t)
+    d = np.concatenate([d[:1], 0.5 * (d[1:] + d[:-1]), d[-1:]])  # the interval around each sample
+    loc = median_filter(d, size=min(TIME_WEIGHT_WINDOW, d.size), mode="nearest")
+    ref = float(np.median(loc))
+    if not ref > 0:
+        return np.ones(t.size)
+    u = loc / ref
+    # uniform sampling with rounding in the last digits: exactly 1
+    u[np.abs(u - 1.0) < 0.05] = 1.0
+    return u
+
+
+def canonical(trial: TrialData) -> TrialData:
+    """The record with its clock and position starting at 0 (a copy when they do not already):
+    what a file's clock and the position's zero happen to be is no physics."""
+    t0 = float(trial.time_s[0])
+    x0 = float(trial.position_um[0])
+    if t0 == 0.0 and x0 == 0.0:
+        return trial
+    out = trial.select(np.ones(len(trial), bool))
+    # rounded to 1e-9 s and 1e-9 um, far below any acquisition's resolution: 1000.1 - 1000 is
+    # 0.10000000000002 in floating point, and a bin limit of exactly 1 s must not depend on it
+    out.time_s = np.round(out.time_s - t0, 9)
+    out.position_um = np.round(out.position_um - x0, 9)
+    if out.position_ref_um is not None:
+        out.position_ref_um = np.round(out.position_ref_um - x0, 9)
+    return out
 
 
 def _noise_correlation(t: np.ndarray, F: np.ndarray) -> float:
@@ -357,15 +404,16 @@ def prepare(trial: TrialData, n_blocks: int = 20, slip_window_um: float = 3.0,
         idx = np.floor(tr / cell).astype(np.int64)
         _, idx = np.unique(idx, return_inverse=True)
     ncell = int(idx.max()) + 1
-    cnt = np.bincount(idx, minlength=ncell).astype(float)
+    u = time_weights(tr)
+    cnt = np.bincount(idx, weights=u, minlength=ncell)
 
     def cmean(y):
-        return np.bincount(idx, weights=y, minlength=ncell) / cnt
+        return np.bincount(idx, weights=y * u, minlength=ncell) / cnt
 
     tk = cmean(tr)
     xk = cmean(x_raw)
-    Fs = np.bincount(idx, weights=F, minlength=ncell)
-    F2s = np.bincount(idx, weights=F * F, minlength=ncell)
+    Fs = np.bincount(idx, weights=F * u, minlength=ncell)
+    F2s = np.bincount(idx, weights=F * F * u, minlength=ncell)
     Nk = cmean(Ntot)
     if trial.has_normals and tk.size > 5:
         # the normal load cells' noise (±0.6 N) would otherwise enter mu (N1 + N2): centred 0.5 s mean
