@@ -23,7 +23,7 @@ from mcap.stream_reader import StreamReader, breakup_chunk
 
 from rig.data import STANDARD_COLUMNS, DataFormatError, TrialData
 from rig.log.loopblock import PROTO_ENCODING, decode_loop_blocks
-from rig.log.schemas import EVENTS_TOPIC, LOG25_TOPIC, RAW_TOPIC, decode_raw
+from rig.log.schemas import BLOCK_KEYS, EVENTS_TOPIC, LOG25_TOPIC, RAW_TOPIC, decode_raw
 
 
 class LogDamageWarning(UserWarning):
@@ -268,7 +268,10 @@ def read_trial(path: str | os.PathLike, channel: str = "25hz", *, strict: bool =
                 raise DataFormatError(path, None, f"raw channel ({RAW_TOPIC}, protobuf): {exc}") from None
             for k, arr in fields.items():
                 cols.setdefault(k, []).append(arr)
-        arrays = {k: np.concatenate(v) for k, v in cols.items()}
+        # one column order whatever the layout (v2 grouped its columns by dtype): the loop's, then the rest
+        rank = {k: i for i, k in enumerate(BLOCK_KEYS)}
+        order = sorted(cols, key=lambda k: (rank.get(k, len(rank)), list(cols).index(k)))
+        arrays = {k: np.concatenate(cols[k]) for k in order}
     else:
         rows = [json.loads(m.data) for m in c.messages if c.topic_of(m) == LOG25_TOPIC]
         names: list[str] = list(rows[0]) if rows else []
