@@ -14,7 +14,7 @@ import pytest
 from mcap.reader import make_reader
 
 from rig.data import DataFormatError
-from rig.log import (BLOCK_KEYS, EVENTS_TOPIC, LOG25_TOPIC, RAW_TOPIC, RAW_V2_ENCODING, STATS_TOPIC,
+from rig.log import (BLOCK_KEYS, EVENTS_TOPIC, LOG25_TOPIC, RAW_TOPIC, STATS_TOPIC,
                      LogDamageWarning, TrialLogWriter, read_metadata, read_trial, recover, trial_info)
 from rig.log.schemas import DEVICE_COLUMNS, decode_v2
 
@@ -117,10 +117,17 @@ def test_layout_schemas_chunks_index_epoch_log_time(tmp_path):
         topics = {c.topic: c for c in summary.channels.values()}
         assert set(topics) == {RAW_TOPIC, LOG25_TOPIC, EVENTS_TOPIC, STATS_TOPIC}
         raw = topics[RAW_TOPIC]
-        assert raw.message_encoding == RAW_V2_ENCODING
-        schema = json.loads(summary.schemas[raw.schema_id].data)  # scale, offset, unit per column
-        assert schema["columns"]["position_um"]["scale"] == 0.076 and schema["columns"]["position_um"]["unit"] == "µm"
-        assert schema["columns"]["valve_cmd"]["dtype"] == "<i2"
+        # a well-known encoding: protobuf, its FileDescriptorSet in the file, units in the field names
+        assert raw.message_encoding == "protobuf"
+        sch = summary.schemas[raw.schema_id]
+        assert (sch.name, sch.encoding) == ("rig.LoopBlock", "protobuf")
+        from google.protobuf import descriptor_pb2
+        fds = descriptor_pb2.FileDescriptorSet.FromString(sch.data)
+        names = {f.name for f in fds.file[0].message_type[0].field}
+        assert {"t_s", "position_nm", "position_ref_um", "friction_mN", "normal_1_mN", "normal_2_mN",
+                "valve_cmd_per_32767", "pid_p_mN", "pid_i_uN", "pid_d_N", "dither_uN"} <= names
+        rig_cols = {c[0]: c for c in json.loads(raw.metadata["rig_columns"])}
+        assert rig_cols["position_um"][2:] == ["position_nm", "sint64", 1e-3, 0.076, 0.0]
         assert raw.metadata["json_twin"] == LOG25_TOPIC
         for c in topics.values():
             if c.topic != RAW_TOPIC:
@@ -154,12 +161,12 @@ def test_default_start_time_is_now(tmp_path):
 
 
 def test_v2_block_decodes_as_documented(tmp_path):
-    """b'RIG2', u32 header length, JSON header with [key, dtype, filter, scale, offset, nbytes], columns."""
+    """(the layout before protobuf, still written on request and read) b'RIG2', u32 header length, JSON header with [key, dtype, filter, scale, offset, nbytes], columns."""
     import zstandard
 
     blocks = make_blocks(3, n=1000)
     path = tmp_path / "b.mcap"
-    write_log(path, blocks).close()
+    write_log(path, blocks, raw_format="v2").close()
     with open(path, "rb") as fh:
         msgs = [m for _, _, m in make_reader(fh).iter_messages(topics=[RAW_TOPIC])]
     assert len(msgs) == 3

@@ -5,7 +5,8 @@ a :class:`LogDamageWarning` naming its time range and the channels it held;
 the other chunks' data is kept. ``strict=True`` turns the damage into a
 :class:`rig.data.DataFormatError`. A file cut off (no footer) is an error that
 names ``rig recover``, which rewrites it from every intact chunk.
-Reads v2 (``rig.columns.v2``), v1 and the older JSON raw blocks alike.
+Reads the protobuf ``rig.LoopBlock`` raw channel (:mod:`rig.log.loopblock`), v2 (``rig.columns.v2``), v1
+and the older JSON raw blocks alike.
 """
 
 from __future__ import annotations
@@ -21,7 +22,8 @@ from mcap.records import (Attachment, Channel, Chunk, Footer, Header, Message, M
 from mcap.stream_reader import StreamReader, breakup_chunk
 
 from rig.data import STANDARD_COLUMNS, DataFormatError, TrialData
-from rig.log.schemas import EVENTS_TOPIC, LOG25_TOPIC, RAW_TOPIC, decode_raw
+from rig.log.loopblock import PROTO_ENCODING, decode_loop_blocks
+from rig.log.schemas import BLOCK_KEYS, EVENTS_TOPIC, LOG25_TOPIC, RAW_TOPIC, decode_raw
 
 
 class LogDamageWarning(UserWarning):
@@ -245,17 +247,31 @@ def read_trial(path: str | os.PathLike, channel: str = "25hz", *, strict: bool =
     records = c.metadata_dict()
     if ch == "raw":
         cols: dict[str, list[np.ndarray]] = {}
+        proto: dict[int, list[bytes]] = {}  # protobuf blocks, decoded together per channel
         for m in c.messages:
             if c.topic_of(m) != RAW_TOPIC:
                 continue
             enc = c.channels[m.channel_id].message_encoding
+            if enc == PROTO_ENCODING:
+                proto.setdefault(m.channel_id, []).append(m.data)
+                continue
             try:
                 fields = decode_raw(enc, m.data)
             except (ValueError, KeyError, TypeError) as exc:
                 raise DataFormatError(path, None, f"raw block at log_time {m.log_time} ns: {exc}") from None
             for k, arr in fields.items():
                 cols.setdefault(k, []).append(arr)
-        arrays = {k: np.concatenate(v) for k, v in cols.items()}
+        for cid, payloads in proto.items():
+            try:
+                fields = decode_loop_blocks(payloads, c.channels[cid].metadata["rig_columns"])
+            except (ValueError, KeyError, TypeError) as exc:
+                raise DataFormatError(path, None, f"raw channel ({RAW_TOPIC}, protobuf): {exc}") from None
+            for k, arr in fields.items():
+                cols.setdefault(k, []).append(arr)
+        # one column order whatever the layout (v2 grouped its columns by dtype): the loop's, then the rest
+        rank = {k: i for i, k in enumerate(BLOCK_KEYS)}
+        order = sorted(cols, key=lambda k: (rank.get(k, len(rank)), list(cols).index(k)))
+        arrays = {k: np.concatenate(cols[k]) for k in order}
     else:
         rows = [json.loads(m.data) for m in c.messages if c.topic_of(m) == LOG25_TOPIC]
         names: list[str] = list(rows[0]) if rows else []

@@ -317,7 +317,8 @@ def decode_json_block(data: bytes) -> tuple[dict, dict[str, np.ndarray]]:
 
 
 def decode_raw(encoding: str, data: bytes) -> dict[str, np.ndarray]:
-    """Any raw block (v2, v1 or the old JSON ones) by its channel's message encoding."""
+    """Any raw block of the obsolete layouts (v2, v1 or the old JSON ones) by its channel's message encoding
+    (protobuf blocks need their channel's field map: :func:`decode_loop_blocks`)."""
     if encoding == RAW_V2_ENCODING:
         return decode_v2(data)[1]
     if encoding == RAW_V1_ENCODING:

@@ -37,6 +37,8 @@ from mcap.writer import CompressionType, Writer
 
 from rig import __version__
 from rig.log.decimate import BlockMean, decimation_factor
+from rig.log.loopblock import LOOP_BLOCK_SCHEMA, PROTO_ENCODING, LoopBlockEncoder
+from rig.log import loopblock as _loopblock
 from rig.log.schemas import (EVENTS_TOPIC, JSON_TOPICS, LOG25_TOPIC, MCAP_PROFILE, RAW_TOPIC, RAW_V2_ENCODING,
                              RAW_V2_LAYOUT, SAMPLE_FIELDS, SCHEMAS, STATS_TOPIC, EXACT, ColumnsV2Encoder,
                              device_columns, dumps, jsonable, meta_str)
@@ -234,10 +236,11 @@ class TrialLogWriter:
     :data:`rig.log.schemas.DEVICE_COLUMNS`) or ``"exact"`` (float64, for
     imported data). ``threaded``: the raw-block encoding and the ``mcap``
     Writer (compression, file I/O, fsync) run in a background thread. ``compression``: zstd, lz4 or none.
-    ``raw_encoding`` and ``raw_dtype`` are obsolete and ignored (the raw
-    channel is always ``rig.columns.v2``; older encodings are read, no longer
-    written). ``exclusive``: create the file with ``O_EXCL`` (``FileExistsError``
-    when it exists: a trial log is never overwritten).
+    ``raw_format``: ``"protobuf"`` (default: ``rig.LoopBlock``, :mod:`rig.log.loopblock`, which any MCAP
+    tool decodes) or ``"v2"`` (``rig.columns.v2``, kept to compare with older logs). ``raw_encoding`` and
+    ``raw_dtype`` are obsolete and ignored (older encodings are read, no longer written).
+    ``exclusive``: create the file with ``O_EXCL`` (``FileExistsError`` when it exists: a trial log is
+    never overwritten).
     """
 
     def __init__(self, path: str | os.PathLike, *, loop_rate_hz: float = 1000.0,
@@ -247,13 +250,15 @@ class TrialLogWriter:
                  raw_encoding: str = "binary", raw_dtype: str | None = None, flush_interval_s: float = 1.0,
                  chunk_size: int = 1 << 18, fsync: bool = True, threaded: bool = True,
                  compression: str = "zstd", start_time_ns: int | None = None, raw_columns: str = "device",
-                 exclusive: bool = False):
+                 raw_format: str = "protobuf", exclusive: bool = False):
         if raw_encoding not in ("binary", "base64", "json"):
             raise ValueError(f"raw_encoding must be 'binary', not {raw_encoding!r}")
         if compression not in _COMPRESSION:
             raise ValueError(f"compression must be 'zstd', 'lz4' or 'none', not {compression!r}")
         if raw_columns not in ("device", "exact"):
             raise ValueError(f"raw_columns must be 'device' or 'exact', not {raw_columns!r}")
+        if raw_format not in ("protobuf", "v2"):
+            raise ValueError(f"raw_format must be 'protobuf' or 'v2', not {raw_format!r}")
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.loop_rate_hz = float(loop_rate_hz)
@@ -276,6 +281,10 @@ class TrialLogWriter:
         self._dec_fmt: dict[str, str] = {}
         if raw_columns == "exact":
             self._enc.column = lambda key: EXACT  # every column exact
+        self._raw_format = raw_format
+        # the /raw codec: rig.LoopBlock in protobuf (default), or rig.columns.v2 (comparisons, benchmarks)
+        self._raw_enc = LoopBlockEncoder(self._enc.column, self.raw_rate_hz) if raw_format == "protobuf" \
+            else self._enc
         self.flush_interval_s = float(flush_interval_s)
         self._fh = open(self.path, "xb" if exclusive else "wb")
         sink = _Sink(self._fh, fsync, compression, int(chunk_size))
@@ -335,6 +344,7 @@ class TrialLogWriter:
         real-time loop starts."""
         acc = np.zeros_like(self._stats_acc)
         _block_stats(_EMPTY, _EMPTY, _EMPTY, _EMPTY, _EMPTY, _EMPTY, acc)
+        _loopblock.warm_up()
 
     # -- listeners (live view hook) --------------------------------------------
     def add_listener(self, fn: Callable[[str, dict], None]) -> None:
@@ -402,14 +412,21 @@ class TrialLogWriter:
             raise
 
     def _raw_channel(self, keys: tuple) -> None:
-        """Register /raw on the first block: its schema lists the columns with scale, offset, unit."""
-        schema = dumps(self._enc.schema(keys))
-        meta = {"layout": RAW_V2_LAYOUT, "columns": json.dumps(list(keys)),
-                "json_twin": LOG25_TOPIC}
+        """Register /raw on the first block: protobuf ``rig.LoopBlock`` with its FileDescriptorSet (units in
+        the field names, the field map in the metadata), or the v2 schema (scale, offset, unit per column)."""
+        if self._raw_format == "protobuf":
+            self._raw_enc.plan(keys)
+            schema_name, schema_enc, msg_enc = LOOP_BLOCK_SCHEMA, "protobuf", PROTO_ENCODING
+            schema = self._raw_enc.schema()
+            meta = {**self._raw_enc.metadata(), "json_twin": LOG25_TOPIC}
+        else:
+            schema_name, schema_enc, msg_enc = RAW_V2_ENCODING, "jsonschema+rig.columns.v2", RAW_V2_ENCODING
+            schema = dumps(self._enc.schema(keys))
+            meta = {"layout": RAW_V2_LAYOUT, "columns": json.dumps(list(keys)), "json_twin": LOG25_TOPIC}
 
         def register(w):
-            sid = w.register_schema(RAW_V2_ENCODING, "jsonschema+rig.columns.v2", schema)
-            self._chan[RAW_TOPIC] = w.register_channel(RAW_TOPIC, RAW_V2_ENCODING, sid, meta)
+            sid = w.register_schema(schema_name, schema_enc, schema)
+            self._chan[RAW_TOPIC] = w.register_channel(RAW_TOPIC, msg_enc, sid, meta)
 
         if isinstance(self._sink, _ThreadedSink):
             # the id is needed now: register synchronously, in order, through the queue
@@ -453,9 +470,9 @@ class TrialLogWriter:
             t0 = float(tr[0])
             if self._threaded:  # encode in the writer thread, from a copy (the loop may reuse its arrays)
                 copy = {k: v.copy() for k, v in raw.items()}
-                self._add(RAW_TOPIC, t0, lambda: self._enc.encode(copy, t0))
+                self._add(RAW_TOPIC, t0, lambda: self._raw_enc.encode(copy, t0))
             else:
-                self._add(RAW_TOPIC, t0, self._enc.encode(raw, t0))
+                self._add(RAW_TOPIC, t0, self._raw_enc.encode(raw, t0))
         # decimated per-sample channel: block means of the device values over each interval of
         # _dec_every ticks counted from the trial's first (rig.log.decimate: the anti-aliased 25 Hz log)
         names = [nm for nm in SAMPLE_FIELDS[:-1] if nm in arrays]
