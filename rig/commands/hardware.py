@@ -122,15 +122,21 @@ def emulate(
     seconds: Optional[float] = typer.Option(None, "--seconds", min=0.0, help="Stop after this long (s; default: Ctrl-C)."),
 ):
     """Serve the emulated devices of PROFILE (Modbus, LVDT pty, CAN valve) until Ctrl-C."""
-    from rig.hardware.emulated import EmulatorError, start_emulator_process
+    from rig.hardware.emulated import EmulatorError, EmulatorService, control_socket_path, start_emulator_process
 
     profile, hw = _load(profile_path)
-    try:
-        emu = start_emulator_process(hw, profile, lubricant=lubricant.value)
+    try:  # the profile's own channel and ports: `rig run` and `rig devices check` in other processes reach them
+        emu = start_emulator_process(hw, profile, lubricant=lubricant.value, private=False)
     except EmulatorError as exc:
         _fail(str(exc), 1)
-    console.print(f"emulators up: {hw.loadcells.address_text}; {hw.lvdt.address_text}; "
-                  f"{hw.valve.address_text}. Ctrl-C stops.", highlight=False)
+    try:
+        service = EmulatorService(emu, control_socket_path(hw))
+    except (EmulatorError, OSError) as exc:
+        emu.stop()
+        _fail(f"cannot serve the emulators' control socket: {exc}", 1)
+    console.print(f"emulators up: {emu.hw.loadcells.address_text}; {emu.hw.lvdt.address_text}; "
+                  f"{emu.hw.valve.address_text}; `rig run --hardware {profile_path}` and `rig devices check "
+                  f"--hardware {profile_path}` in another terminal use them. Ctrl-C stops.", highlight=False)
     t0 = time.monotonic()
     try:
         while seconds is None or time.monotonic() - t0 < seconds:
@@ -140,6 +146,7 @@ def emulate(
     except KeyboardInterrupt:
         pass
     finally:
+        service.close()
         st = emu.stats() if emu.proc.is_alive() else {}
         emu.stop()
     console.print(f"stopped; plant steps {st.get('steps')}, Modbus requests {st.get('modbus_requests')}, "

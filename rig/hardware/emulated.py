@@ -16,7 +16,11 @@ with the valve's spool as it is (held, then nulled by the valve's set-point
 watchdog), so the sensors keep streaming.
 
 Each emulated rig gets a CAN channel of its own (:func:`private_channel`), so
-two runs on one machine never share a bus.
+two runs on one machine never share a bus; except the one `rig emulate` serves
+(``private=False``: the profile's channel and ports), which other processes
+(`rig run`, `rig devices check`) reach with the same profile; `rig run` finds it
+by its control socket (:class:`EmulatorService`, :class:`RemoteEmulator`) and
+homes its plant through it instead of starting emulators of its own.
 
 :func:`start_emulator_process` runs it in its own process (the GIL) and
 returns an :class:`EmulatorHandle` (``inject(device, fault, value)``,
@@ -458,8 +462,111 @@ def start_emulator_process(hw: HardwareConfig | dict, profile=None, lubricant: s
     return handle
 
 
-__all__ = ["EmulatedRig", "IntegratorPlant", "start_emulator_process", "EmulatorHandle",
-           "EmulatorError", "sim_plant", "emulated_hardware", "free_tcp_port"]
+# -- serving other processes (`rig emulate`) ------------------------------------------------------------
+
+def control_socket_path(hw: HardwareConfig) -> Path:
+    """Where `rig emulate` listens for the plant's reset by a `rig run` in another process."""
+    return Path(hw.emulators.run_dir) / "emulate.sock"
+
+
+class EmulatorService:
+    """Serves ``handle``'s ``reset_plant`` on a Unix socket owned by this user (mode 0600), one JSON line
+    per request: ``{"op": "reset", "x0_um": .., "v_init_um_s": ..}`` or ``{"op": "hello"}``."""
+
+    def __init__(self, handle: EmulatorHandle, path: Path):
+        import socket
+        import threading
+
+        self.handle, self.path = handle, Path(path)
+        if self.path.exists():
+            if RemoteEmulator.connect(handle.hw, self.path) is not None:
+                raise EmulatorError(f"another `rig emulate` already serves {self.path}")
+            self.path.unlink()
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        old = os.umask(0o177)
+        try:
+            self.sock.bind(str(self.path))
+        finally:
+            os.umask(old)
+        self.sock.listen(4)
+        self._lock = threading.Lock()
+        self._th = threading.Thread(target=self._serve, name="rig-emulate-control", daemon=True)
+        self._th.start()
+
+    def _serve(self) -> None:
+        import json
+
+        while True:
+            try:
+                conn, _ = self.sock.accept()
+            except OSError:
+                return
+            with conn:
+                try:
+                    conn.settimeout(2.0)
+                    req = json.loads(conn.makefile("r").readline() or "{}")
+                    with self._lock:
+                        if req.get("op") == "reset":
+                            self.handle.reset_plant(float(req["x0_um"]), req.get("v_init_um_s"))
+                    conn.sendall(b'{"ok": true}\n')
+                except (OSError, ValueError, KeyError, EmulatorError) as exc:
+                    try:
+                        conn.sendall((json.dumps({"ok": False, "error": str(exc)}) + "\n").encode())
+                    except OSError:
+                        pass
+
+    def close(self) -> None:
+        try:
+            self.sock.close()
+        finally:
+            self.path.unlink(missing_ok=True)
+
+
+class RemoteEmulator:
+    """The emulated rig a `rig emulate` in another process serves (the profile's own channel and ports):
+    what :class:`rig.session.hardware.HardwareBackend` drives instead of starting its own."""
+
+    def __init__(self, hw: HardwareConfig, path: Path):
+        self.hw, self.path = hw, Path(path)
+
+    @classmethod
+    def connect(cls, hw: HardwareConfig, path: Path | None = None) -> "RemoteEmulator | None":
+        """The one serving ``hw`` (its run_dir's socket answers), else None."""
+        em = cls(hw, path or control_socket_path(hw))
+        if not em.path.exists():
+            return None
+        try:
+            em._call({"op": "hello"})
+        except EmulatorError:
+            return None
+        return em
+
+    def _call(self, req: dict) -> dict:
+        import json
+        import socket
+
+        try:
+            with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
+                s.settimeout(3.0)
+                s.connect(str(self.path))
+                s.sendall((json.dumps(req) + "\n").encode())
+                ans = json.loads(s.makefile("r").readline() or "{}")
+        except (OSError, ValueError) as exc:
+            raise EmulatorError(f"the emulators at {self.path} did not answer: {exc}") from None
+        if not ans.get("ok"):
+            raise EmulatorError(f"the emulators at {self.path}: {ans.get('error', 'no answer')}")
+        return ans
+
+    def reset_plant(self, x0_um: float, v_init_um_s: float | None = None):
+        return self._call({"op": "reset", "x0_um": float(x0_um), "v_init_um_s": v_init_um_s})
+
+    def stop(self, timeout: float = 0.0) -> None:
+        """Not ours to stop (the `rig emulate` that serves it is)."""
+
+
+__all__ = ["EmulatedRig", "IntegratorPlant", "start_emulator_process", "EmulatorHandle", "EmulatorService",
+           "EmulatorError", "RemoteEmulator", "control_socket_path", "sim_plant", "emulated_hardware",
+           "free_tcp_port"]
 
 
 def emulated_hardware(run_dir: str | os.PathLike, transport: str = "tcp",

@@ -67,16 +67,20 @@ def setup_realtime(sched_fifo: bool = True, priority: int = 80, cpu: int | None 
 class Pacer:
     """Absolute-deadline pacing with skip-on-overrun."""
 
-    def __init__(self, period_s: float, fifo: bool, spin_s: float = 50e-6):
+    def __init__(self, period_s: float, fifo: bool, spin_s: float = 50e-6, clock=time.monotonic,
+                 sleep=time.sleep):
+        """``clock`` / ``sleep``: CLOCK_MONOTONIC and time.sleep; a simulated clock in tests
+        (:class:`rig.hardware.fake.FakeClock`)."""
         self.period_s = period_s
         self.fifo = fifo
         self.spin_s = 0.0 if fifo else spin_s
+        self.clock, self.sleep = clock, sleep
         self.t0 = 0.0
         self.k = 0
         self.skipped = 0
 
     def start(self, t0: float | None = None) -> None:
-        self.t0 = time.monotonic() + 0.002 if t0 is None else t0
+        self.t0 = self.clock() + 0.002 if t0 is None else t0
         self.k = 0
 
     def deadline(self, k: int | None = None) -> float:
@@ -84,12 +88,12 @@ class Pacer:
 
     def wait(self) -> tuple[int, float, float]:
         """Wait for the deadline of tick ``k``; returns (k, deadline, wake time)."""
-        mono = time.monotonic
+        mono = self.clock
         dl = self.t0 + self.k * self.period_s
         now = mono()
         rem = dl - now - self.spin_s
         if rem > 0:
-            time.sleep(rem)
+            self.sleep(rem)
         if self.spin_s:
             while mono() < dl:
                 pass
@@ -104,7 +108,7 @@ class Pacer:
 
     def advance(self, now: float | None = None) -> int:
         """Move to the next tick, skipping deadlines already past; returns ticks skipped."""
-        now = time.monotonic() if now is None else now
+        now = self.clock() if now is None else now
         self.k += 1
         nxt = self.t0 + self.k * self.period_s
         skip = 0

@@ -577,8 +577,9 @@ class TrialSession:
         if ending.report:
             self.echo(ending.report)
         if ending.safe:
-            sm.safe(ending.summary.get("safe_state", ""))
-            w.event(t_last, "stop_state", state=Phase.SAFE.value)
+            detail = ending.summary.get("safe_state", "")
+            sm.safe(detail)
+            w.event(t_last, "stop_state", state=Phase.SAFE.value, **({"detail": detail} if detail else {}))
         status = sm.status
         if status == "interrupted":
             sig = self._signals[0] if self._signals else "abort"

@@ -88,6 +88,10 @@ class HardwareBackend:
         self.stats = TimingStats(1.0 / self.rate_hz)
         x_ref = np.asarray(plan.x_ref_um, dtype=float)
         if self.emulator is None and self.hw.emulators.autostart:
+            from rig.hardware.emulated import RemoteEmulator
+
+            self.emulator = RemoteEmulator.connect(self.hw)  # a `rig emulate` serving this profile
+        if self.emulator is None and self.hw.emulators.autostart:
             try:
                 self._own_emulator = self.emulator = start_emulator_process(
                     self.hw, self.profile, lubricant=self.lubricant, normal_force_N=self.normal_force_N,
@@ -96,8 +100,11 @@ class HardwareBackend:
                 raise BackendError(str(exc)) from None
             self.hw = self.emulator.hw
         if self.emulator is not None:
-            self.emulator.reset_plant(float(x_ref[0]), initial_velocity_um_s(
-                x_ref, self.rate_hz, self.profile.sim.initial_creep_um_s))
+            try:
+                self.emulator.reset_plant(float(x_ref[0]), initial_velocity_um_s(
+                    x_ref, self.rate_hz, self.profile.sim.initial_creep_um_s))
+            except EmulatorError as exc:
+                raise BackendError(str(exc)) from None
         switches = dict(getattr(plan, "controller", None) or {})
         ff_N = np.empty(0)
         if switches.get("friction_ff", False):
@@ -214,8 +221,8 @@ class HardwareBackend:
         if "devices_failed" in s:
             safe = True  # the devices did not answer before the start: nothing was ever enabled
         s["safe_state"] = (f"valve status word 0x{vf.get('status_bits', 0):04x}, enabled {vf.get('enabled')}, "
-                           f"spool {vf.get('output')}, NMT {vf.get('nmt')}, confirmed {vf.get('confirmed')}"
-                           ) if vf else ""
+                           f"spool {vf.get('output')}, NMT {vf.get('nmt')}, confirmed {vf.get('confirmed')} "
+                           f"(from its {vf.get('source', 'status PDO')})") if vf else ""
         msg = s.get("message") or ("" if status == "completed" else str(status))
         return Ending(outcome, msg, safe=safe, summary=s, final_stats=dict(final) if final.get("n") else None,
                       report=format_stats(final, "loop timing (whole trial)") if final.get("n") else "")
