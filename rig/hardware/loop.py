@@ -78,14 +78,17 @@ class _Block:
         self.read = np.empty(n)
         self.i = 0
         self.skipped = 0
+        self.skips: list[tuple[float, int]] = []  # (CLOCK_MONOTONIC at the late tick's end, cycles skipped)
 
     def take(self):
         i = self.i
         blk = {k: self.rows[r, :i].copy() for r, k in enumerate(BLOCK_KEYS)}
         tim = {"late_s": self.late[:i].copy(), "period_s": self.period[:i].copy(),
-               "exec_s": self.exec[:i].copy(), "read_s": self.read[:i].copy(), "skipped": self.skipped}
+               "exec_s": self.exec[:i].copy(), "read_s": self.read[:i].copy(), "skipped": self.skipped,
+               "skips": self.skips}
         self.i = 0
         self.skipped = 0
+        self.skips = []
         return blk, tim
 
 
@@ -420,6 +423,7 @@ class RtLoop:
         self.prev_skipped = self.pacer.advance(now)
         if self.prev_skipped:
             self.blk.skipped += self.prev_skipped
+            self.blk.skips.append((now, self.prev_skipped))
         # the cycles a stall cost: those the previous tick's overrun skipped (they made this gap) and,
         # for a late wake, those already due when this tick woke (skipped by this tick's advance)
         if self.stall_gap is not None:

@@ -65,6 +65,7 @@ class HardwareBackend:
         self.stats = TimingStats(1e-3)
         self.read_max_s = 0.0  # the devices' read phase of a tick
         self.read_slow = 0
+        self.skips: list = []  # (CLOCK_MONOTONIC, cycles skipped) of every late tick: attributed by loop-bench
         self._devices: dict = {}
         self._done: dict | None = None
         self._realtime: dict | None = None
@@ -159,6 +160,7 @@ class HardwareBackend:
                 self.read_max_s = max(self.read_max_s, float(rd.max()))
                 self.read_slow += int((rd > 1e-3).sum())
             self._devices = tim.get("devices", self._devices)
+            self.skips.extend(tim.get("skips", ()))
             self._t_last = float(blk["t_s"][-1])
             return Block(blk)
         if kind == "event":
@@ -211,6 +213,7 @@ class HardwareBackend:
         final["read_over_1ms"] = self.read_slow
         s["timing"] = final
         s["realtime"] = self._realtime
+        s["skips"] = list(self.skips)
         status = s.get("status")
         outcome = {"completed": "completed", "aborted": "stopped", "tripped": "tripped"}.get(status, "failed")
         vf = s.get("valve_final") or {}
