@@ -129,6 +129,7 @@ class SafetyIO:
         self._pending: dict[int, int] = {}  # tid -> function code in flight
         self._t_sent = 0.0
         self._t_new = 0.0
+        self._writing = False  # the loop's writes ask for the inputs; before them, read() does
         self._in0, self._in_n = span(cfg.estop_input, cfg.pressure_ok_input)
         self._out0, self._out_n = span(cfg.enable_output, cfg.watchdog_output)
 
@@ -181,6 +182,7 @@ class SafetyIO:
     def write(self, now: float | None = None) -> None:
         """The outputs (enable, the watchdog toggled) and the request for the inputs, in one send."""
         now = time.monotonic() if now is None else now
+        self._writing = True
         if self._pending:
             return  # the last tick's answers are not all in yet: never queue behind a slow module
         self.watchdog = not self.watchdog
@@ -246,6 +248,10 @@ class SafetyIO:
                 h.errors += 1
                 h.consecutive_errors += 1
                 raise DeviceError(DEVICE, self.address, f"no answer within {self.cfg.timeout_s * 1e3:g} ms")
+            if not self._pending and not self._writing:  # before the loop writes (connect, wait for data)
+                c = self.cfg
+                self._t_sent = now
+                self._send(encode_read_inputs(self._next_tid(FC_READ_INPUTS), c.device_id, self._in0, self._in_n))
 
     def health(self, now: float | None = None) -> DeviceHealth:
         now = time.monotonic() if now is None else now

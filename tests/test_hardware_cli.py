@@ -19,8 +19,9 @@ def test_devices_check_with_and_without_emulators(tmp_path):
     r = _rig("devices", "check", "--hardware", prof, "--start-emulators", "--json", "-")
     assert r.returncode == 0, r.stdout + r.stderr
     rows = json.loads(r.stdout)
-    assert [x["device"] for x in rows] == ["load cells", "LVDT", "servovalve"]
+    assert [x["device"] for x in rows] == ["load cells", "LVDT", "servovalve", "safety chain"]
     assert all(x["ok"] for x in rows)
+    assert "e-stop closed (healthy), pressure OK, enable output off; not latched" in rows[3]["reading"]
     assert "normal 1 " in rows[0]["reading"] and "position" in rows[1]["reading"]
     # nothing listening: each device named with its address, exit 1
     r = _rig("devices", "check", "--hardware", prof, "--json", "-")
@@ -48,7 +49,7 @@ def test_rig_emulate_serves_devices_check_and_run_in_other_processes(tmp_path):
         assert "emulators up" in line, line + p.stdout.read()
         r = _rig("devices", "check", "--hardware", prof, "--json", "-")
         assert r.returncode == 0, r.stdout + r.stderr
-        assert [x["ok"] for x in json.loads(r.stdout)] == [True, True, True]
+        assert [x["ok"] for x in json.loads(r.stdout)] == [True, True, True, True]
         remote = RemoteEmulator.connect(hardware_of_profile(load_profile(prof)))
         assert remote is not None and remote.reset_plant(500.0)["ok"]
     finally:

@@ -15,6 +15,7 @@ from rig.config.profile import load_profile
 from rig.hardware.fake import FakeClock, fake_rig
 from rig.hardware.interlocks import ABORT_FAIL, ABORT_OPERATOR
 from rig.hardware.loop import RtLoop
+from rig.hardware.safety import latch_path
 
 from hw_helpers import REPO
 
@@ -34,12 +35,12 @@ class ListQueue:
         pass
 
 
-def run(n_ticks=400, at=100, act=None, x_ref=None, ack=None, abort=None):
+def run(n_ticks=400, at=100, act=None, x_ref=None, ack=None, abort=None, hw=HW, safety=False):
     """Run the loop over the fake rig; ``act(loop, rig, clock)`` once before tick ``at``."""
-    rig, clock, q = fake_rig(500.0), FakeClock(), ListQueue()
+    rig, clock, q = fake_rig(500.0, safety), FakeClock(), ListQueue()
     x = np.full(n_ticks, 500.0) if x_ref is None else np.asarray(x_ref, float)
     flag = abort or SimpleNamespace(value=0)
-    loop = RtLoop(HW, PROFILE, x, q, flag, {"why": None}, {"period_s": 1e-3}, logger_ack=ack, devices=rig,
+    loop = RtLoop(hw, PROFILE, x, q, flag, {"why": None}, {"period_s": 1e-3}, logger_ack=ack, devices=rig,
                   clock=clock)
     assert loop.connect()
     loop.start()
@@ -144,3 +145,19 @@ def test_operator_abort_holds_then_goes_safe():
     writes = r.rig.valve.writes
     assert all(w[1] for w in writes[100:100 + HOLD_TICKS])  # held under control ...
     assert writes[100 + HOLD_TICKS] == (0.0, False)       # ... then nulled and disabled
+
+
+@pytest.mark.parametrize("name", ["estop", "hydraulic_pressure"])
+def test_the_safety_chain_trips_within_the_tick_and_latches(tmp_path, name):
+    hw = HW.model_copy(update={"safety": HW.safety.model_copy(update={"latch_dir": str(tmp_path)})})
+    r = run(act=lambda lp, rig, c: rig.safety.health_.problems.append((name, "pressed")), hw=hw, safety=True)
+    _safe_after_trip(r, name, HOLD_TICKS)
+    k = round(r.trips[0]["t_s"] * 1000)
+    assert r.rig.safety.writes[k - 1] is True and not any(r.rig.safety.writes[k:])  # the amplifier's enable too
+    assert latch_path(hw.safety).exists() and r.done["safety_final"]["enable_output_off"]
+    # latched: the next run does not start, naming the chain
+    q = ListQueue()
+    loop = RtLoop(hw, PROFILE, np.full(10, 500.0), q, SimpleNamespace(value=0), {"why": None}, {}, devices=fake_rig(
+        500.0, True), clock=FakeClock())
+    assert not loop.connect()
+    assert "safety chain" in q.items[-1][1]["message"] and name in q.items[-1][1]["message"]

@@ -1,8 +1,10 @@
-"""Hardware commands: ``rig devices check``, ``rig emulate``, ``rig loop-bench``.
+"""Hardware commands: ``rig devices check``, ``rig emulate``, ``rig reset``, ``rig loop-bench``.
 
 ``rig devices check --hardware PROFILE [--start-emulators]`` connects to every
 device of the profile's ``hardware`` section, reads each once and says what
-answered (and where). ``rig emulate --hardware PROFILE`` serves the emulated devices in
+answered (and where), the safety chain's inputs, outputs and latch included.
+``rig reset --hardware PROFILE`` clears the safety chain's latch once its inputs
+read healthy. ``rig emulate --hardware PROFILE`` serves the emulated devices in
 the foreground until Ctrl-C. ``rig loop-bench`` runs the 1 kHz loop against
 the emulators holding position and prints a LinuxCNC-style latency report.
 """
@@ -44,7 +46,7 @@ def _load(profile_path: Path):
     return profile, hw
 
 
-DEVICE_LABELS = {"loadcells": "load cells", "lvdt": "LVDT", "valve": "servovalve"}
+DEVICE_LABELS = {"loadcells": "load cells", "lvdt": "LVDT", "valve": "servovalve", "safety": "safety chain"}
 
 
 def _reading(rig, name: str) -> str:
@@ -55,6 +57,11 @@ def _reading(rig, name: str) -> str:
     if name == "lvdt":
         lv = rig.position
         return f"position {lv.position_um:.3f} µm, seq {lv.seq}, status 0x{lv.status:02x}"
+    if name == "safety":
+        from rig.hardware.safety import latched_message
+
+        latched = latched_message(rig.safety.cfg)
+        return rig.safety.describe() + (f"; LATCHED: {latched}" if latched else "; not latched")
     va = rig.valve.final_state()
     return f"status 0x{va['status_bits']:02x} (enabled {va['enabled']}), output {va['output']:+.4f}"
 
@@ -65,13 +72,16 @@ def check_devices(hw) -> list[dict]:
     from rig.hardware.devices import build_devices, wait_for_data
 
     rig = build_devices(hw)
-    order = (rig.forces, rig.position, rig.valve)
+    order = (rig.forces, rig.position, rig.valve) + ((rig.safety,) if rig.safety is not None else ())
     rows = []
     for dev in order:
         row = {"device": DEVICE_LABELS[dev.name], "address": dev.address}
         try:
             dev.connect()
-            wait_for_data([dev], max(0.5, 4 * hw.valve.heartbeat_timeout_s), time.monotonic)
+            if dev is rig.safety:
+                dev.poll(max(0.5, 4 * hw.valve.heartbeat_timeout_s))  # the inputs and the outputs read back
+            else:
+                wait_for_data([dev], max(0.5, 4 * hw.valve.heartbeat_timeout_s), time.monotonic)
             row.update(ok=True, reading=_reading(rig, dev.name))
         except DeviceError as exc:
             row.update(ok=False, reading=exc.message)
@@ -151,6 +161,23 @@ def emulate(
         emu.stop()
     console.print(f"stopped; plant steps {st.get('steps')}, Modbus requests {st.get('modbus_requests')}, "
                   f"LVDT frames {st.get('lvdt_sent')}", highlight=False)
+
+
+def reset_command(
+    hardware: Path = typer.Option(..., "--hardware", metavar="PROFILE", help="Rig profile with a hardware.safety "
+                                                                           "section."),
+):
+    """Clear the safety chain's latch (after an e-stop or a pressure loss) once both inputs read healthy.
+    Exit 1 (and the latch kept) while the e-stop is open or the pressure is lost."""
+    from rig.hardware.safety import reset
+
+    _profile, hw = _load(hardware)
+    if hw.safety is None:
+        _fail(f"{hardware}: the profile has no safety chain (hardware.safety); nothing to reset")
+    ok, text = reset(hw.safety)
+    if not ok:
+        _fail(f"safety chain {hw.safety.address_text}: {text}", 1)
+    console.print(f"safety chain {hw.safety.address_text}: {text}", highlight=False)
 
 
 def loop_bench(seconds: float = 60.0, profile_path: Path = DEFAULT_EMULATED, out_json: Path | None = None) -> dict:
@@ -264,4 +291,5 @@ def register(app: typer.Typer) -> None:
     devices_app.command("check")(devices_check)
     app.add_typer(devices_app, name="devices")
     app.command("emulate")(emulate)
+    app.command("reset")(reset_command)
     app.command("loop-bench")(loop_bench_command)

@@ -18,13 +18,14 @@ the valve confirmed it.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from drivers.config import HardwareConfig
 from drivers.device import Device
 from drivers.errors import DeviceError
 from drivers.loadcells import LoadCellReader
 from drivers.lvdt import LvdtReader
+from drivers.safety_io import SafetyIO
 from drivers.valve import CanopenValve
 
 
@@ -33,16 +34,19 @@ class RigDevices:
     position: LvdtReader
     forces: LoadCellReader
     valve: CanopenValve
+    safety: SafetyIO | None = field(default=None)
 
     @property
     def all(self) -> list[Device]:
-        """Every device, in read order (position first: the control error; then forces; the valve)."""
-        return [self.position, self.forces, self.valve]
+        """Every device, in read and write order (position first: the control error; then forces; the
+        valve; the safety chain's I/O last, so that a nulled set-point goes out before the enable drops)."""
+        return [self.position, self.forces, self.valve] + ([self.safety] if self.safety is not None else [])
 
 
 def build_devices(hw: HardwareConfig) -> RigDevices:
     return RigDevices(position=LvdtReader(hw.lvdt), forces=LoadCellReader(hw.loadcells, pipelined=True),
-                      valve=CanopenValve(hw.valve))
+                      valve=CanopenValve(hw.valve),
+                      safety=SafetyIO(hw.safety) if hw.safety is not None else None)
 
 
 def wait_for_data(devices: list[Device], timeout_s: float, clock) -> None:

@@ -37,6 +37,7 @@ from pathlib import Path
 
 from drivers.config import HardwareConfig, parse_hardware
 from drivers.emulators.lvdt_streamer import LvdtStreamer
+from drivers.emulators.modbus_io import IoState, io_server_main
 from drivers.emulators.modbus_conditioner import (
     ModbusConditionerEmulator, SharedSample, free_tcp_port, modbus_server_main,
 )
@@ -126,6 +127,9 @@ class EmulatedRig:
             self.modbus = ModbusConditionerEmulator(hw.loadcells, rtu_server_port=rtu_server_port)
         self.lvdt = LvdtStreamer(hw.lvdt)
         self.valve = ValveControllerEmulator(hw.valve, on_sync=self._on_sync)
+        # the safety chain's I/O module (its own process): its relay gates the valve amplifier
+        self.io = IoState(mp.get_context("spawn"), hw.safety.watchdog_s) if hw.safety is not None else None
+        self._io_proc = self._io_conn = None
         self.last = {k: 0.0 for k in SENSOR_KEYS}
         self.steps = 0
         self.free_steps = 0
@@ -159,6 +163,19 @@ class EmulatedRig:
                 raise EmulatorError(str(payload))
         else:
             self.modbus.start()
+        if self.io is not None:
+            ctx = mp.get_context("spawn")
+            self._io_conn, child = ctx.Pipe()
+            em = self.hw.emulators
+            self._io_proc = ctx.Process(target=io_server_main, name="rig-emulator-io", daemon=True,
+                                        args=(self.hw.safety.model_dump(), self.io,
+                                              em.priority if em.sched_fifo else 0, child))
+            self._io_proc.start()
+            if not self._io_conn.poll(30):
+                raise RuntimeError("the I/O module emulator process did not start")
+            kind, payload = self._io_conn.recv()
+            if kind != "ready":
+                raise EmulatorError(str(payload))
         self.step(0.0)
 
     def stop(self) -> None:
@@ -173,6 +190,14 @@ class EmulatedRig:
                 self._mb_proc.kill()
         else:
             self.modbus.stop()
+        if self._io_proc is not None:
+            try:
+                self._io_conn.send(("stop",))
+            except OSError:
+                pass
+            self._io_proc.join(3)
+            if self._io_proc.is_alive():
+                self._io_proc.kill()
         self.valve.stop()
         self.lvdt.stop()
         if self.bridge is not None:
@@ -187,6 +212,8 @@ class EmulatedRig:
             if gap > 0.005:
                 self.gaps_over_5ms += 1
         self._last_step_t = now
+        if self.io is not None and not self.io.amplifier_enabled(now):
+            cmd = 0.0  # the amplifier is off (e-stop, enable output off, watchdog): the spool centres
         out = self.plant.plant_step(float(cmd))
         vals = {k: float(out[k]) for k in SENSOR_KEYS}
         self.last = vals
@@ -218,7 +245,14 @@ class EmulatedRig:
         return float(st[Z_XSP]) if st is not None else None
 
     def inject(self, device: str, fault: str, value=True) -> None:
-        """Set (value) or clear (None/False) a fault on 'loadcells', 'lvdt' or 'valve'."""
+        """Set (value) or clear (None/False) a fault on 'loadcells', 'lvdt', 'valve' or 'safety'
+        (``estop``: the e-stop pressed; ``pressure_lost``: the hydraulic pressure gone)."""
+        if device == "safety":
+            if self.io is None:
+                raise EmulatorError("the profile has no safety chain (hardware.safety)")
+            on = value not in (None, False)
+            {"estop": self.io.press_estop, "pressure_lost": self.io.lose_pressure}[fault](on)
+            return
         if device == "lvdt" and fault == "vanish":
             if value:
                 self.lvdt.vanish()
@@ -340,7 +374,8 @@ def _emulator_main(hw_dict, profile, lubricant, normal_force_N, seed, conn, plan
                                      "modbus_requests": rig.modbus_requests(),
                                      "lvdt_sent": rig.lvdt.sent, "max_gap_s": rig.max_gap_s,
                                      "gaps_over_5ms": rig.gaps_over_5ms,
-                                     "lvdt_overflow": rig.lvdt.overflow}))
+                                     "lvdt_overflow": rig.lvdt.overflow,
+                                     "safety": rig.io.snapshot() if rig.io is not None else None}))
             elif op == "reset":
                 x0, v0 = req[1], req[2]
                 rig.plant.reset(x0, v0)

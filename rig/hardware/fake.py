@@ -84,12 +84,34 @@ class FakeValve(FakeDevice):
                 "nmt": "OPERATIONAL", "nulled": not on, "source": "fake"}
 
 
-def fake_rig(x_um: float = 500.0) -> RigDevices:
-    """An LVDT at ``x_um``, load cells at 0 N friction and 100 N per rider, a valve; all healthy."""
+class FakeSafety(FakeDevice):
+    """The safety chain's I/O: ``enable`` (the amplifier's, set by the loop each tick) kept in ``writes``;
+    a test opens the e-stop by putting ``("estop", ...)`` in ``health_.problems``."""
+
+    def __init__(self):
+        super().__init__("safety", "safety I/O module", "fake-modbus:io")
+        self.enable = False
+        self.writes: list[bool] = []
+
+    def write(self, now: float | None = None) -> None:
+        self.writes.append(self.enable)
+        super().write(now)
+
+    def safe_stop(self) -> bool:
+        self.enable = False
+        return True
+
+    def describe(self) -> str:
+        return "fake chain"
+
+
+def fake_rig(x_um: float = 500.0, safety: bool = False) -> RigDevices:
+    """An LVDT at ``x_um``, load cells at 0 N friction and 100 N per rider, a valve (and the safety chain's
+    I/O); all healthy."""
     lvdt = FakeDevice("lvdt", "LVDT conditioner", "fake-serial:lvdt")
     lvdt.position_um = x_um
     cells = FakeDevice("loadcells", "load-cell conditioner", "fake-modbus:1")
-    return RigDevices(position=lvdt, forces=cells, valve=FakeValve())
+    return RigDevices(position=lvdt, forces=cells, valve=FakeValve(), safety=FakeSafety() if safety else None)
 
 
 class FakeClock:

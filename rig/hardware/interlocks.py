@@ -41,14 +41,17 @@ from drivers.device import DeviceHealth
 from drivers.errors import DeviceError
 
 # per device: the names of its trips
-STALE_TRIP = {"lvdt": "stale_position", "loadcells": "stale_forces", "valve": "valve_heartbeat"}
+STALE_TRIP = {"lvdt": "stale_position", "loadcells": "stale_forces", "valve": "valve_heartbeat",
+              "safety": "stale_safety_io"}
 FAULT_TRIP = {"lvdt": "lvdt_fault", "loadcells": "loadcell_fault", "valve": "valve_fault"}
-ERRORS_TRIP = {"loadcells": "modbus_errors", "valve": "can_bus_errors"}
+ERRORS_TRIP = {"loadcells": "modbus_errors", "valve": "can_bus_errors", "safety": "safety_io_errors"}
+# the safety chain's trips (its I/O module's problems): they latch until `rig reset` (rig.hardware.safety)
+SAFETY_TRIPS = frozenset({"estop", "hydraulic_pressure"})
 # trips after which nothing from the device (or the loop's timing) can be trusted: stop at once (no hold)
 DEVICE_TRIPS = frozenset({"device_lost", "modbus_errors", "can_bus_errors", "stale_forces", "stale_position",
                           "valve_heartbeat", "non_finite", "frame_loss", "serial_checksum_errors",
                           "stream_garbage", "loop_stall", "skipped_cycles", "logger_failed", "logger_stalled", "logger_died",
-                          "valve_enable", "missed_deadlines"})
+                          "valve_enable", "missed_deadlines", "stale_safety_io", "safety_io_errors"})
 # what the per-second counters of a device's health are called in a trip
 WINDOW_COUNTERS = (("frames_bad", "max_checksum_errors", "serial_checksum_errors", "frames with a bad checksum"),
                    ("frames_lost", "max_lost_frames", "frame_loss", "lost frames or missed answers"),
@@ -215,7 +218,8 @@ class Interlocks:
         kind = exc.kind
         if kind == "lost":  # the connection itself is gone: nothing to count, no next answer to wait for
             return Trip("device_lost", str(exc), t_s, {"device": exc.device, "address": exc.address})
-        limit = {"loadcells": c.max_modbus_errors, "valve": c.max_can_errors if kind == "bus" else None}.get(name)
+        limit = {"loadcells": c.max_modbus_errors, "safety": c.max_modbus_errors,
+                 "valve": c.max_can_errors if kind == "bus" else None}.get(name)
         if limit is not None:
             n = health.consecutive_errors
             if n < limit:

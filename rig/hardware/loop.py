@@ -49,8 +49,10 @@ from drivers.errors import DeviceError
 from rig.control import apply_switches, controller_params_from_profile, controller_step_v, new_controller_state
 from rig.hardware.devices import build_devices, wait_for_data
 from rig.hardware.interlocks import (
-    ABORT_FAIL, ABORT_NONE, ABORT_OPERATOR, DEVICE_TRIPS, Interlocks, LoggerWatch, TimingWatch, Trip, session_trip,
+    ABORT_FAIL, ABORT_NONE, ABORT_OPERATOR, DEVICE_TRIPS, SAFETY_TRIPS, Interlocks, LoggerWatch, TimingWatch, Trip,
+    session_trip,
 )
+from rig.hardware.safety import latched_message, write_latch
 from rig.hardware.timing import Pacer, set_pdeathsig, set_process_name, setup_realtime
 
 BLOCK_KEYS = ("t_s", "position_ref_um", "position_um", "friction_N", "normal_1_N", "normal_2_N",
@@ -186,6 +188,7 @@ class RtLoop:
         self.clock = clock if clock is not None else time.monotonic
         self.devices = self.rig.all
         self.pos, self.forces, self.valve = self.rig.position, self.rig.forces, self.rig.valve
+        self.safety = self.rig.safety  # the safety chain's I/O (None: the profile has none)
         self.il = Interlocks(ilc, float(profile.stroke.min_um), float(profile.stroke.max_um),
                              hw.valve.heartbeat_timeout_s, self.period)
         self.timing = TimingWatch(ilc, self.period)
@@ -219,6 +222,10 @@ class RtLoop:
         """Connect every device and wait for its first data; False (and a ``done`` message naming every
         device that did not answer) when any failed."""
         mono = self.clock
+        latched = latched_message(self.hw.safety) if self.safety is not None else None
+        if latched:
+            self.out_q.put(("done", {"status": "error", "message": latched, "safety_latched": True}))
+            return False
         failed: list[DeviceError] = []
         for dev in self.devices:
             try:
@@ -380,6 +387,8 @@ class RtLoop:
         valve = self.valve
         valve.command = self.cmd
         valve.enable = self.mode is not Mode.SAFE
+        if self.safety is not None:
+            self.safety.enable = valve.enable  # the amplifier's enable follows the valve's
         for dev in self.devices:
             try:
                 dev.write(wake)
@@ -475,6 +484,12 @@ class RtLoop:
             confirmed = valve.safe_stop()
         except DeviceError:
             pass
+        safety_final = None
+        if self.safety is not None:
+            off = self.safety.safe_stop()
+            safety_final = {"enable_output_off": off, "state": self.safety.describe()}
+            if trip is not None and trip.name in SAFETY_TRIPS:
+                safety_final["latch"] = str(write_latch(self.hw.safety, trip.as_dict()))
         if self.blk.i:
             self.send_block()
         summary = {"status": self.status, "ticks": int(self.kr), "skipped": int(self.pacer.skipped),
@@ -489,6 +504,8 @@ class RtLoop:
         except DeviceError:
             pass
         summary["valve_final"] = {**valve.final_state(), "confirmed": confirmed}
+        if safety_final is not None:
+            summary["safety_final"] = safety_final
         for dev in self.devices:
             dev.close()
         gc.enable()  # (the loop process ends here; an in-process test goes on)

@@ -85,6 +85,11 @@ class HardwareBackend:
 
     # -- start -----------------------------------------------------------------
     def start(self, plan) -> None:
+        from rig.hardware.safety import latched_message
+
+        latched = latched_message(self.hw.safety, str(getattr(self.profile, "source_path", None) or "PROFILE"))
+        if latched:  # an e-stop or a pressure loss latched the chain: nothing starts until `rig reset`
+            raise BackendError(latched)
         self.rate_hz = float(plan.loop_rate_hz)
         self.stats = TimingStats(1.0 / self.rate_hz)
         x_ref = np.asarray(plan.x_ref_um, dtype=float)
@@ -226,6 +231,10 @@ class HardwareBackend:
         s["safe_state"] = (f"valve status word 0x{vf.get('status_bits', 0):04x}, enabled {vf.get('enabled')}, "
                            f"spool {vf.get('output')}, NMT {vf.get('nmt')}, confirmed {vf.get('confirmed')} "
                            f"(from its {vf.get('source', 'status PDO')})") if vf else ""
+        sf = s.get("safety_final")
+        if sf:
+            s["safe_state"] += f"; safety chain: {sf['state']}, amplifier enable output off {sf['enable_output_off']}"
+            safe = safe and sf["enable_output_off"]
         msg = s.get("message") or ("" if status == "completed" else str(status))
         return Ending(outcome, msg, safe=safe, summary=s, final_stats=dict(final) if final.get("n") else None,
                       report=format_stats(final, "loop timing (whole trial)") if final.get("n") else "")
