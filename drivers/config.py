@@ -209,6 +209,8 @@ class InterlockConfig(StrictModel):
                                                   "process exiting: trip (a killed logger's teardown delays "
                                                   "PDEATHSIG by ~80 ms)")
     stop_hold_s: float = Field(default=0.2, ge=0, description="time logged in the safe state")
+    max_pause_s: float = Field(default=600.0, gt=0, description="an operator's pause held longer than this "
+                                                                "trips to the safe state")
 
 
 class RealtimeConfig(StrictModel):

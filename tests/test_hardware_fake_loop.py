@@ -161,3 +161,45 @@ def test_the_safety_chain_trips_within_the_tick_and_latches(tmp_path, name):
         500.0, True), clock=FakeClock())
     assert not loop.connect()
     assert "safety chain" in q.items[-1][1]["message"] and name in q.items[-1][1]["message"]
+
+
+def test_a_pause_holds_at_the_safe_point_resumes_with_a_run_up_and_times_out():
+    x = 500.0 + np.arange(3000) * 0.01  # 10 µm/s; safe point at tick 1000
+    pause = SimpleNamespace(value=0)
+    rig, clock, q = fake_rig(500.0), FakeClock(), ListQueue()
+    loop = RtLoop(HW, PROFILE, x, q, SimpleNamespace(value=0), {"why": None},
+                  {"period_s": 1e-3, "safe_ticks": [1000], "runup_um": 20.0}, devices=rig, clock=clock,
+                  pause_req=pause)
+    assert loop.connect()
+    loop.start()
+    refs = []
+    while True:
+        if loop.kr == 500:
+            pause.value = 1
+        if loop.kr == 1500:
+            pause.value = 0
+        rig.position.position_um = loop.xr  # a perfect actuator
+        if not loop.tick():
+            break
+        refs.append(loop.xr)
+    loop.finish()
+    kinds = [(m[2], round(m[1] * 1000)) for m in q.items if m[0] == "event" and m[2] in ("pause", "resume", "runup_done")]
+    assert kinds == [("pause", 1000), ("resume", 1500), ("runup_done", 3500)]
+    refs = np.array(refs)
+    assert np.all(refs[1000:1500] == x[999]) and np.allclose(np.diff(refs[1500:3500]), 0.01)
+    done = next(m[1] for m in q.items if m[0] == "done")
+    assert done["status"] == "completed" and done["ticks"] == 3000 + 500 + 2000
+    # a pause held longer than max_pause_s trips to the safe state
+    hw = HW.model_copy(update={"interlocks": HW.interlocks.model_copy(update={"max_pause_s": 0.2})})
+    rig, q = fake_rig(500.0), ListQueue()
+    loop = RtLoop(hw, PROFILE, x, q, SimpleNamespace(value=0), {"why": None},
+                  {"period_s": 1e-3, "safe_ticks": [1000], "runup_um": 20.0}, devices=rig, clock=FakeClock(),
+                  pause_req=SimpleNamespace(value=1))
+    assert loop.connect()
+    loop.start()
+    while loop.tick():
+        rig.position.position_um = loop.xr
+    loop.finish()
+    trips = [m[3] for m in q.items if m[0] == "event" and m[2] == "interlock"]
+    assert trips[0]["name"] == "pause_timeout" and round(trips[0]["t_s"] * 1000) == 1000 + 200
+    assert rig.valve.writes[-1] == (0.0, False)

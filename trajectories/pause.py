@@ -23,6 +23,24 @@ import numpy as np
 RUN, PENDING, HOLD, RUNUP = "run", "pending", "hold", "runup"
 
 
+# the plan's event fields that are times (s) and positions (µm): after a pause they move with the plan
+EVENT_TIME_KEYS = ("t_s", "ramp_end_s", "t_start_s", "t_end_s", "window_t_start_s", "window_t_end_s")
+EVENT_POSITION_KEYS = ("x_um", "x_start_um", "x_end_um", "x_min_um", "x_max_um", "window_x_start_um",
+                       "window_x_end_um")
+
+
+def shift_event(event: dict, dt_s: float, dx_um: float) -> dict:
+    """A plan event as it happens after pauses that delayed the plan by ``dt_s`` and moved it by ``dx_um``."""
+    out = dict(event)
+    for k in EVENT_TIME_KEYS:
+        if isinstance(out.get(k), (int, float)):
+            out[k] = out[k] + dt_s
+    for k in EVENT_POSITION_KEYS:
+        if isinstance(out.get(k), (int, float)):
+            out[k] = out[k] + dx_um
+    return out
+
+
 def safe_ticks_of(events: list[dict], rate_hz: float) -> list[int]:
     """The plan's safe points (ticks) from its events: segment starts and velocity steps."""
     ks = {int(round(e["t_s"] * rate_hz)) for e in events if e.get("kind") in ("segment_start", "velocity_step")}
@@ -41,6 +59,7 @@ class PausableReference:
         self.stroke = (float(stroke_um[0]), float(stroke_um[1]))
         self.n = int(self.x.size)
         self.k_plan = 0          # the plan's next tick
+        self.plan_k = 0          # the plan's tick of the last value handed out (held through a pause)
         self.k_trial = 0         # ticks handed out
         self.shift_um = 0.0      # added to the plan after run-ups
         self.state = RUN
@@ -78,7 +97,8 @@ class PausableReference:
 
     @property
     def done(self) -> bool:
-        return self.k_plan >= self.n and self.state == RUN
+        """The plan's last tick is out (a pause still pending at the end never came to a safe point)."""
+        return self.k_plan >= self.n and self.state in (RUN, PENDING)
 
     @property
     def hold_s(self) -> float:
@@ -122,6 +142,7 @@ class PausableReference:
             if not self.resume_asked:
                 self.hold_ticks += 1
                 self.k_trial += 1
+                self.plan_k = max(0, self.k_plan - 1)
                 return self.hold_um
             self.events.append((self.k_trial, "resume", {"held_s": self.hold_ticks * self.dt_s,
                                                         "runup_um": self._ru_left}))
@@ -133,21 +154,26 @@ class PausableReference:
                 self._ru_left -= step
                 self._ru_x += step if self._ru_v > 0 else -step
                 self.k_trial += 1
+                self.plan_k = max(0, self.k_plan - 1)
                 return self._ru_x
             self.shift_um += self._ru_x - self.hold_um  # the plan goes on from where the run-up ended
             self.state = RUN
             self.events.append((self.k_trial, "runup_done", {"plan_t_s": self.k_plan * self.dt_s,
                                                             "shift_um": self.shift_um}))
         xr = self._plan_value(self.k_plan)
+        self.plan_k = min(self.k_plan, self.n - 1)
         self.k_plan += 1
         self.k_trial += 1
         return xr
 
-    def take(self, n: int) -> np.ndarray:
-        """The next ``n`` ticks (fewer at the plan's end)."""
+    def take(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """The next ``n`` ticks (fewer at the plan's end): the reference and, per tick, the plan's tick it
+        stands for (a plan's per-tick inputs, e.g. the friction feed-forward, are held through a pause)."""
         out = np.empty(n)
+        kp = np.empty(n, dtype=np.int64)
         i = 0
         while i < n and not self.done:
             out[i] = self.next()
+            kp[i] = self.plan_k
             i += 1
-        return out[:i]
+        return out[:i], kp[:i]

@@ -290,6 +290,14 @@ class LoggerWatch:
 ABORT_NONE, ABORT_OPERATOR, ABORT_FAIL = 0, 1, 2
 
 
+def pause_trip(t_s: float, held_s: float, limit_s: float) -> Trip | None:
+    """An operator's pause held longer than ``max_pause_s``: to the safe state."""
+    if held_s <= limit_s:
+        return None
+    return Trip("pause_timeout", f"paused for {held_s:.1f} s (limit {limit_s:g} s)", t_s,
+                {"held_s": held_s, "limit_s": limit_s})
+
+
 def session_trip(t_s: float, abort_flag: int, signal_name: str | None, parent_gone: bool) -> Trip | None:
     """The session asked for a stop at once (its log failed), or the loop was signalled with its parent
     (the logger) gone."""

@@ -50,10 +50,11 @@ from rig.control import apply_switches, controller_params_from_profile, controll
 from rig.hardware.devices import build_devices, wait_for_data
 from rig.hardware.interlocks import (
     ABORT_FAIL, ABORT_NONE, ABORT_OPERATOR, DEVICE_TRIPS, SAFETY_TRIPS, Interlocks, LoggerWatch, TimingWatch, Trip,
-    session_trip,
+    pause_trip, session_trip,
 )
 from rig.hardware.safety import latched_message, write_latch
 from rig.hardware.timing import Pacer, set_pdeathsig, set_process_name, setup_realtime
+from trajectories.pause import PausableReference
 
 BLOCK_KEYS = ("t_s", "position_ref_um", "position_um", "friction_N", "normal_1_N", "normal_2_N",
               "valve_cmd", "pid_p", "pid_i", "pid_d", "dither")
@@ -94,12 +95,13 @@ class _Block:
         return blk, tim
 
 
-def loop_main(hw_dict, profile, x_ref_um, out_q, abort_flag, options=None, logger_ack=None, logger_alive=None):
+def loop_main(hw_dict, profile, x_ref_um, out_q, abort_flag, options=None, logger_ack=None, logger_alive=None,
+              pause_req=None):
     """Entry point of the loop process. ``abort_flag``: a shared ``multiprocessing.Value('i')``
     (1: operator abort, hold then safe; 2: the session failed, e.g. its log: safe at once);
     ``logger_ack``: a shared ``Value('q')``, the number of blocks the session has logged;
     ``logger_alive``: a shared ``Value('d')``, the ``time.monotonic()`` of the logger's last heartbeat
-    (0: not started)."""
+    (0: not started); ``pause_req``: a shared ``Value('i')``, 1 while the operator asks for a pause."""
     options = options or {}
     set_process_name("rig-rt-loop")
     set_pdeathsig(signal.SIGTERM)
@@ -112,7 +114,7 @@ def loop_main(hw_dict, profile, x_ref_um, out_q, abort_flag, options=None, logge
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's: it sets abort_flag
     try:
         _run(hw_dict, profile, np.asarray(x_ref_um, dtype=float), out_q, abort_flag, stop_req, options,
-             logger_ack, logger_alive)
+             logger_ack, logger_alive, pause_req)
     except BaseException as exc:  # noqa: BLE001 - report, never die silently
         out_q.put(("done", {"status": "error", "message": f"{type(exc).__name__}: {exc}",
                             "traceback": traceback.format_exc()}))
@@ -144,7 +146,8 @@ def _device_counters(devices) -> dict:
     return out
 
 
-def _run(hw_dict, profile, x_ref, out_q, abort_flag, stop_req, options, logger_ack=None, logger_alive=None):
+def _run(hw_dict, profile, x_ref, out_q, abort_flag, stop_req, options, logger_ack=None, logger_alive=None,
+         pause_req=None):
     """Connect, run every tick, end in the safe state; everything it has to say goes to ``out_q``."""
     import logging
     import sys
@@ -152,7 +155,7 @@ def _run(hw_dict, profile, x_ref, out_q, abort_flag, stop_req, options, logger_a
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)  # errors are reported as DeviceError
     sys.setswitchinterval(1e-4)
     loop = RtLoop(parse_hardware(hw_dict), profile, x_ref, out_q, abort_flag, stop_req, options,
-                  logger_ack, logger_alive)
+                  logger_ack, logger_alive, pause_req=pause_req)
     if not loop.connect():
         return
     loop.start()
@@ -168,7 +171,7 @@ class RtLoop:
     Every trip goes through :meth:`trip`."""
 
     def __init__(self, hw, profile, x_ref, out_q, abort_flag, stop_req, options, logger_ack=None,
-                 logger_alive=None, devices=None, clock=None):
+                 logger_alive=None, devices=None, clock=None, pause_req=None):
         """``devices``: a :class:`rig.hardware.devices.RigDevices` (default: the profile's); ``clock``: a
         simulated clock (:class:`rig.hardware.fake.FakeClock`: no real-time setup, no sleeping)."""
         self.hw, self.out_q, self.abort_flag, self.stop_req = hw, out_q, abort_flag, stop_req
@@ -196,6 +199,13 @@ class RtLoop:
         self.parent = os.getppid()
         self.x_ref = x_ref
         self.n_ticks = len(x_ref)
+        # the reference tick by tick, with the operator's pauses (held at the plan's next safe point, a
+        # run-up of runup_um at the segment's velocity on resume)
+        self.ref = PausableReference(x_ref, self.period, options.get("safe_ticks", ()), options.get("runup_um", 0.0),
+                                     (self.il.x_min, self.il.x_max))
+        self.pause_req = pause_req
+        self._pause_seen = 0
+        self.max_pause_s = ilc.max_pause_s
         self.hold_ticks = max(1, int(round(ilc.stop_hold_s / self.period)))
         self.blk = _Block(hw.realtime.block_ticks)
         self.status = "completed"
@@ -203,7 +213,7 @@ class RtLoop:
         self.mode = Mode.RUN
         self.hold_ref = 0.0
         self.hold_ff_k = self.hold_end_k = 0
-        self.stop_k = self.n_ticks
+        self.stop_k = 1 << 62  # the plan's end (or a trip, a stop) sets it
         self.kr = 0  # the reference index: +1 per executed tick (a stall holds the reference; t_s = kr * period)
         self.sent_t: list[float] = []  # when each block went to the logger
         self.read_max = [0.0] * len(self.devices)  # the longest read of each device (s)
@@ -327,7 +337,7 @@ class RtLoop:
         if self.mode is Mode.HOLD:
             xr = self.hold_ref
         else:
-            xr = float(self.x_ref[kr]) if kr < self.n_ticks else float(self.x_ref[-1])
+            xr = self.reference(t_s)
         v_ref = (xr - self.xr_prev) * self.inv_dt if kr else 0.0
         self.xr = self.xr_prev = xr
         self.gap = wake - self.last_wake
@@ -338,7 +348,7 @@ class RtLoop:
                 self.trip(tr)
             elif self.mode is Mode.RUN and (self.abort_flag.value or self.stop_req["why"]):
                 self.status, self.mode, self.hold_ref = "aborted", Mode.HOLD, xr
-                self.hold_ff_k = kr  # the feed-forward holds with the reference
+                self.hold_ff_k = max(0, self.ref.k_plan - 1)  # the feed-forward holds with the reference
                 self.hold_end_k = kr + self.hold_ticks
                 self.stop_k = self.hold_end_k + 1
                 self.out_q.put(("event", t_s, "abort", {"reason": "operator abort" if self.abort_flag.value
@@ -346,6 +356,23 @@ class RtLoop:
             elif self.mode is Mode.HOLD and kr >= self.hold_end_k:
                 self.mode = Mode.SAFE
         self.control(t_s)
+
+    def reference(self, t_s: float) -> float:
+        """This tick's reference from the pausable plan; the operator's pause requests; their events."""
+        ref = self.ref
+        pr = self.pause_req
+        if pr is not None and pr.value != self._pause_seen:
+            self._pause_seen = pr.value
+            if self._pause_seen:
+                ref.request_pause()
+            else:
+                ref.request_resume()
+        xr = ref.next()
+        if ref.events:
+            for k, kind, data in ref.events:
+                self.out_q.put(("event", k * self.period, kind, data))
+            ref.events.clear()
+        return xr
 
     def check(self, t_s: float, wake: float, deadline: float, v_ref: float) -> Trip | None:
         """Every interlock of this tick (:mod:`rig.hardware.interlocks`), first trip wins."""
@@ -362,6 +389,8 @@ class RtLoop:
             ack = self.logger_ack.value if self.logger_ack is not None else None
             hb = self.logger_alive.value if self.logger_alive is not None else None
             tr = self.logger.check(t_s, wake, self.sent_t, ack, hb, lambda: _process_exiting(self.parent))
+        if tr is None and self.ref.hold_ticks:
+            tr = pause_trip(t_s, self.ref.hold_s, self.max_pause_s)
         if tr is None:
             why = self.stop_req["why"]
             tr = session_trip(t_s, self.abort_flag.value, why, bool(why) and os.getppid() != self.parent)
@@ -372,8 +401,8 @@ class RtLoop:
             self.cmd = self.p = self.i_ = self.d_ = self.dz = 0.0
             return
         ffk = 0.0
-        if self.n_ff:  # held with the reference (hold, stall): the force of the tick the reference is at
-            kf = self.hold_ff_k if self.mode is Mode.HOLD else self.kr
+        if self.n_ff:  # held with the reference (hold, stall, pause): the force of the plan's tick
+            kf = self.hold_ff_k if self.mode is Mode.HOLD else max(0, self.ref.k_plan - 1)
             ffk = float(self.ff_N[kf if kf < self.n_ff else self.n_ff - 1])
         cmd, p, i_, d_, dz = controller_step_v(self.cpar, self.cst, self.xr, self.x, math.nan, ffk)
         s_ = cmd + p + i_ + d_ + dz
@@ -446,7 +475,7 @@ class RtLoop:
         tr = self.timing.skipped(t_s, now, self.pacer.skipped)
         if tr is not None and self.mode is not Mode.SAFE:
             self.trip(tr)
-        if self.kr == self.n_ticks and self.mode is Mode.RUN:
+        if self.mode is Mode.RUN and self.ref.done:
             self.mode, self.stop_k = Mode.SAFE, self.kr  # end of the plan
 
     # -- the one trip path ----------------------------------------------------------------------------

@@ -30,6 +30,7 @@ from rig.hardware.emulated import EmulatorError, start_emulator_process
 from rig.hardware.loop import ABORT_FAIL, ABORT_OPERATOR, loop_main
 from rig.hardware.timing import TimingStats, format_stats
 from rig.session.core import BackendError, Block, Ending, Event
+from rig.session.pausing import pause_options
 from rig.model.feedforward import friction_feedforward_for_plan, initial_velocity_um_s
 
 
@@ -61,6 +62,7 @@ class HardwareBackend:
         self.proc = None
         self.q = None
         self.abort = None
+        self.pause_req = None
         self.rate_hz = 1000.0
         self.stats = TimingStats(1e-3)
         self.read_max_s = 0.0  # the devices' read phase of a tick
@@ -131,11 +133,14 @@ class HardwareBackend:
         self.abort = ctx.Value("i", 0, lock=False)
         self.logger_ack = ctx.Value("q", 0, lock=False)
         self.logger_alive = ctx.Value("d", 0.0, lock=False)
+        self.pause_req = ctx.Value("i", 0, lock=False)
+        popt = pause_options(plan, self._friction_model())
         self.proc = ctx.Process(target=loop_main, name="rig-rt-loop", daemon=True,
                                 args=(self.hw.model_dump(), self.profile, x_ref, self.q, self.abort,
                                       {"period_s": 1.0 / self.rate_hz, "controller": self.controller,
-                                       "switches": switches, "ff_N": ff_N},
-                                      self.logger_ack, self.logger_alive))
+                                       "switches": switches, "ff_N": ff_N, "safe_ticks": popt["safe_ticks"],
+                                       "runup_um": popt["runup_um"]},
+                                      self.logger_ack, self.logger_alive, self.pause_req))
         self.proc.start()
 
     # -- run -------------------------------------------------------------------
@@ -178,6 +183,23 @@ class HardwareBackend:
             self._done = msg[1]
             return None
         raise RuntimeError(f"unknown message from the loop process: {kind!r}")
+
+    def _friction_model(self):
+        """The profile's model of the trial's lubricant (its L sets the run-up after a pause), or None."""
+        try:
+            return self.profile.friction_model(self.lubricant) if self.lubricant else None
+        except (ValueError, KeyError, AttributeError):
+            return None
+
+    def pause(self, realtime: bool = True) -> None:
+        """Hold at the plan's next safe point (the loop's :class:`trajectories.pause.PausableReference`)."""
+        if self.pause_req is not None:
+            self.pause_req.value = 1
+
+    def resume(self) -> None:
+        """Run up at the segment's velocity, then the plan goes on."""
+        if self.pause_req is not None:
+            self.pause_req.value = 0
 
     def block_logged(self) -> None:
         """The session has logged one more block (the loop trips if the logger stops taking them)."""
