@@ -71,14 +71,13 @@ def main():
                 r["k_cr_table2_per_rider_kN_per_m"] = TABLE2[name]["k_cr_kN_per_m"][0]
                 scans.append(r)
                 dt = time.perf_counter() - t0
-                ks = r["k_sim_N_per_um"]
                 lo, hi = r["bracket_N_per_um"]
+                rb = r["rel_bracket"] or (float("nan"), float("nan"))
                 print(f"{name:9s} {'PID' if ki else 'PD ':3s} ki={ki:g} {'noisy' if noise else 'noise-free'}: Table 2 (per rider) "
                       f"{TABLE2[name]['k_cr_kN_per_m'][0]:6.1f}  eq.8 fixture {k8 * 1e3:7.2f}  "
                       f"loop analysis {k_lin * 1e3 if k_lin else float('nan'):7.2f}  "
-                      f"simulated {ks * 1e3 if ks else float('nan'):7.2f} kN/m "
-                      f"[{lo * 1e3 if lo else float('nan'):.2f}, {hi * 1e3 if hi else float('nan'):.2f}]  "
-                      f"sim/analysis-1 {100 * r['rel_diff'] if r['rel_diff'] is not None else float('nan'):+.1f} %  "
+                      f"simulated in [{lo * 1e3 if lo else float('nan'):.2f}, {hi * 1e3 if hi else float('nan'):.2f}] "
+                      f"kN/m, [{100 * rb[0]:+.1f}, {100 * rb[1]:+.1f}] % of the analysis  "
                       f"({len(r['runs'])} runs x {r['duration_s']:.0f} s, {dt:.1f} s)")
                 if r.get("k_onset_N_per_um"):
                     print(f"      onset of a sustained oscillation (spread > {S.ONSET_SPREAD:g} V0): "

@@ -58,11 +58,11 @@ def main() -> int:
             t0 = time.perf_counter_ns()
             st = v.read()
             t1 = time.perf_counter_ns()
-            v.write(cmd)
+            v.send(cmd)
             t2 = time.perf_counter_ns()
             t_read[i] = (t1 - t0) / 1e3
             t_write[i] = (t2 - t1) / 1e3
-        probs = v.health()
+        probs = v.problem_messages()
         ok = v.safe_stop()
         load1 = os.getloadavg()
     finally:
@@ -115,7 +115,7 @@ def emulator_cost(cfg0: CanopenValveConfig, n: int) -> None:
         t_poll = np.empty(n)
         for i in range(n):
             v.read()
-            v.write(0.2)
+            v.send(0.2)
             time.sleep(0.0002)  # let the frames land
             t0 = time.perf_counter_ns()
             em.poll(0.0)

@@ -267,6 +267,8 @@ class InterlockConfig(StrictModel):
                                                   "process exiting: trip (a killed logger's teardown delays "
                                                   "PDEATHSIG by ~80 ms)")
     stop_hold_s: float = Field(default=0.2, ge=0, description="time logged in the safe state")
+    max_pause_s: float = Field(default=600.0, gt=0, description="an operator's pause held longer than this "
+                                                                "trips to the safe state")
 
 
 class RealtimeConfig(StrictModel):
@@ -294,10 +296,47 @@ class EmulatorConfig(StrictModel):
                                           "{drift: 0.01}} (drivers.emulators.modbus_conditioner.FAULT_KEYS)")
 
 
+class SafetyConfig(StrictModel):
+    """The lab's safety chain on a digital I/O module (Modbus TCP; :mod:`drivers.safety_io`).
+
+    Inputs are Modbus discrete inputs, outputs coils, by address. The e-stop input is
+    normally closed: 1 = circuit closed (healthy); 0 = pressed, or a broken wire. The
+    pressure-OK input is 1 while the hydraulic power unit holds pressure. The loop drives the
+    valve amplifier's enable output (on only while it controls) and toggles the watchdog output
+    every tick (the module's relay drops the enable when it stops toggling). A trip on either input
+    latches (``latch_dir``) until ``rig reset --hardware PROFILE`` sees both inputs healthy."""
+
+    host: str = "127.0.0.1"
+    port: int = Field(default=502, ge=1, le=65535)
+    device_id: int = Field(default=1, ge=0, le=247)
+    timeout_s: float = Field(default=0.005, gt=0, description="an answer later than this is missed")
+    estop_input: int = Field(default=0, ge=0, le=65535, description="discrete input, normally closed")
+    pressure_ok_input: int = Field(default=1, ge=0, le=65535, description="discrete input, 1 = pressure OK")
+    enable_output: int = Field(default=0, ge=0, le=65535, description="coil: the valve amplifier's enable")
+    watchdog_output: int = Field(default=1, ge=0, le=65535, description="coil toggled every tick")
+    watchdog_s: float = Field(default=0.05, gt=0, description="the module drops the enable output when the "
+                                                               "watchdog output has not toggled for this long")
+    latch_dir: str = Field(default="~/.local/state/rig", description="where a safety trip's latch is kept "
+                                                                     "(one file per module address)")
+
+    @model_validator(mode="after")
+    def _check(self):
+        if self.estop_input == self.pressure_ok_input:
+            raise ValueError("estop_input and pressure_ok_input must be different inputs")
+        if self.enable_output == self.watchdog_output:
+            raise ValueError("enable_output and watchdog_output must be different coils")
+        return self
+
+    @property
+    def address_text(self) -> str:
+        return f"modbus-tcp://{self.host}:{self.port} unit {self.device_id}"
+
+
 class HardwareConfig(StrictModel):
     loadcells: LoadCellConfig
     lvdt: LvdtConfig
     valve: CanopenValveConfig
+    safety: SafetyConfig | None = None
     interlocks: InterlockConfig = InterlockConfig()
     realtime: RealtimeConfig = RealtimeConfig()
     emulators: EmulatorConfig = EmulatorConfig()

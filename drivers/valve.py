@@ -42,23 +42,26 @@ bit clears the latch, then enable must go low and high again.
 
 Host API (what the real-time loop calls)
 ----------------------------------------
-``v = CanopenValve(cfg)``; ``v.connect()`` (bus, valve heartbeat, SDO checks and
-configuration); ``v.start()`` (NMT start, fault reset, enable, verified by TPDO);
-each tick ``st = v.read()`` then ``v.write(setpoint)`` (RPDO + SYNC, + host heartbeat
-when due; setpoint in [-1, 1], saturated, NaN -> 0 and counted); ``v.health()`` ->
-list of problems (empty = healthy; any entry should trip); ``v.safe_stop()`` nulls
+``v = CanopenValve(cfg)`` is a :class:`drivers.device.Device`: ``v.connect()`` (bus, valve
+heartbeat, SDO checks and configuration); ``v.start()`` (NMT start, fault reset, enable, verified by
+TPDO); each tick ``v.read(now)``, then ``v.command``/``v.enable`` and ``v.write(now)`` (RPDO + SYNC,
++ host heartbeat when due; ``v.send(setpoint, enable, reset)`` underneath: setpoint in [-1, 1],
+saturated, NaN -> 0 and counted); ``v.health(now)`` -> :class:`DeviceHealth` whose ``problems``
+each trip; ``v.safe_stop()`` nulls
 and disables and returns True only when a TPDO (or the valve leaving OPERATIONAL)
-confirms it; ``v.close()``. Nothing here blocks inside ``read``/``write``: frames are
+confirms it; ``v.close()``. Frames are packed and unpacked by the pure codec
+(:func:`encode_setpoint`, :func:`encode_sync`, :func:`decode_status`, :class:`StatusFrame`'s bits),
+tested frame by frame without a bus. Nothing here blocks inside ``read``/``write``: frames are
 drained without waiting (on ``rig_unix`` its ``drain_frames()``, elsewhere ``recv(0)``) and
 dispatched on the caller's thread (the status PDO here, the rest to canopen); on ``rig_unix`` the
 set-point PDO and the SYNC go out as one message (``send_frames``).
 
-For the loop integrator: per tick ``st = v.read()``; ``probs = v.health()``; trip on
+For the loop integrator: per tick ``st = v.read()``; ``probs = v.problems()``; trip on
 any entry of ``probs`` (it covers foreign/malformed frames, EMCY/fault, watchdog,
 lost heartbeat, not OPERATIONAL/not enabled, stale TPDO, a spool that does not
 follow its command for ``follow_time_s``, a spool without the command's 500 Hz dither
 (:class:`DitherCheck`), non-finite set-points); else
-``v.write(cmd)``. On a trip: ``v.safe_stop()`` (returns whether the valve confirmed)
+``v.send(cmd)``. On a trip: ``v.safe_stop()`` (returns whether the valve confirmed)
 and never ``start()`` again by itself: ``start()`` is the explicit reset (operator
 action). ``st.spool_actual`` vs ``st.spool_command_echoed`` is the valve's own
 following; ``st.enabled``, ``st.watchdog_tripped``, ``st.nulled``, ``st.fault``,
@@ -85,6 +88,7 @@ from typing import Literal
 
 from drivers.canopen_bus import F_ERR, F_EXT, F_RTR
 from drivers.config import CanopenValveConfig
+from drivers.device import DeviceHealth
 from drivers.errors import DeviceError
 
 DEVICE = "servovalve controller"
@@ -129,6 +133,69 @@ def open_bus(cfg: CanopenValveConfig):
 def to_counts(x: float) -> int:
     """Spool fraction [-1, 1] -> int16 counts (saturated)."""
     return int(round(max(-1.0, min(1.0, x)) * FULL_SCALE))
+
+
+# -- the codec: frames <-> values, pure (no bus, no clock); tested frame by frame ---------------------
+
+@dataclass(frozen=True, slots=True)
+class StatusFrame:
+    """One decoded TPDO1: the spool's actual position (fraction of full scale), the status word and its
+    bits, the accepted set-point counter (0x2001) and the valve's rejected-frame counter (0x2002)."""
+
+    spool_actual: float
+    status_word: int
+    accepted_counter: int
+    rejected: int
+
+    @property
+    def enabled(self) -> bool:
+        return bool(self.status_word & SW_ENABLED)
+
+    @property
+    def fault(self) -> bool:
+        """A fault the valve latched: its own, a protocol error, a lost host heartbeat."""
+        return bool(self.status_word & (SW_FAULT | SW_PROTOCOL | SW_HEARTBEAT_LOST))
+
+    @property
+    def watchdog_tripped(self) -> bool:
+        return bool(self.status_word & SW_WATCHDOG)
+
+    @property
+    def nulled(self) -> bool:
+        return bool(self.status_word & SW_NULL)
+
+    @property
+    def reset_required(self) -> bool:
+        return bool(self.status_word & SW_RESET_REQUIRED)
+
+
+def control_word(enable: bool, reset: bool = False) -> int:
+    """Control word 0x6040: bit0 enable, bit3 fault reset."""
+    return (CW_ENABLE if enable else 0) | (CW_FAULT_RESET if reset else 0)
+
+
+def encode_setpoint(setpoint: float, enable: bool, reset: bool, counter: int) -> bytes:
+    """RPDO1 (5 bytes): set-point in counts (saturated; nulled when not enabled), control word, counter."""
+    cmd = max(-1.0, min(1.0, setpoint)) if enable else 0.0
+    return RPDO_FMT.pack(to_counts(cmd), control_word(enable, reset), counter & 0xFF)
+
+
+def encode_sync(count: int) -> bytes:
+    """SYNC with its counter (1..240)."""
+    return bytes((count,))
+
+
+def next_sync_count(count: int) -> int:
+    """The SYNC counter after ``count``: 1..SYNC_OVERFLOW, then 1 again."""
+    return count % SYNC_OVERFLOW + 1
+
+
+def decode_status(data: bytes) -> StatusFrame:
+    """TPDO1 (6 bytes) -> :class:`StatusFrame`; ValueError for a frame of another length."""
+    if len(data) != TPDO_FMT.size:
+        raise ValueError(f"status PDO of {len(data)} bytes, not {TPDO_FMT.size}")
+    actual, sw, acc, rej = TPDO_FMT.unpack(data)
+    return StatusFrame(actual / FULL_SCALE, sw, acc, rej)
 
 
 @dataclass
@@ -230,12 +297,22 @@ class DitherCheck:
 
 
 class CanopenValve:
-    """Host side (NMT master, SYNC producer) of the CANopen servovalve controller."""
+    """Host side (NMT master, SYNC producer) of the CANopen servovalve controller, a
+    :class:`drivers.device.Device` (``name`` "valve"): set ``command`` (spool fraction in [-1, 1]) and
+    ``enable`` before ``write(now)``; with ``enable`` false the set-point goes out nulled with the
+    enable bit cleared. ``start()`` (NMT start, fault reset, enable, verified by the valve's status) is
+    the explicit operator action the loop calls once, before the first tick, never after a trip;
+    ``safe_stop()`` nulls and disables and says whether the valve confirmed it."""
+
+    name = "valve"
 
     def __init__(self, cfg: CanopenValveConfig, eds: str | Path = EDS_PATH):
         self.cfg = cfg
         self.eds = str(eds)
         self.address = cfg.address_text
+        self.command = 0.0
+        self.enable = False
+        self._health = DeviceHealth(DEVICE, self.address)
         self.bus = None
         self.network = None
         self.node = None
@@ -332,13 +409,14 @@ class CanopenValve:
             self._heartbeat_if_due(time.monotonic())
             self._pump(0.002)
 
-    def start(self, timeout_s: float = 1.0) -> None:
+    def start(self, timeout_s: float | None = None) -> None:
         """NMT start, fault reset, enable; returns once a TPDO shows the valve enabled.
 
         The host's heartbeat goes out first: between connect and start the host may have been
         silent for longer than the valve's consumer time (a loaded machine), and a valve that then
         left OPERATIONAL gets the NMT start again while this explicit start sequence lasts (at
         most every 50 ms); it never does so outside it."""
+        timeout_s = self.cfg.start_timeout_s if timeout_s is None else timeout_s
         self._next_hb = 0.0
         self._heartbeat_if_due(time.monotonic())
         self.node.nmt.state = "OPERATIONAL"
@@ -363,13 +441,62 @@ class CanopenValve:
                                   f"did not enable within {timeout_s:g} s (NMT {st.nmt_state}, status word "
                                   f"0x{st.status_word:04x}, EMCY {st.emcy})")
             if phase == 0:
-                self.write(0.0, enable=False, reset=st.reset_required or st.n_tpdo < n0 + 3)
+                self.send(0.0, enable=False, reset=st.reset_required or st.n_tpdo < n0 + 3)
             else:
-                self.write(0.0, enable=True)
+                self.send(0.0, enable=True)
             time.sleep(0.001)
 
+    # -- the Device protocol (drivers.device): what the real-time loop calls ---------------------
+    def write(self, now: float | None = None) -> None:
+        """This tick's ``command`` (spool fraction) as set-point, or a nulled, disabled set-point when
+        ``enable`` is false."""
+        if self.enable:
+            self.send(self.command)
+        else:
+            self.send(0.0, enable=False)
+
+    def health(self, now: float | None = None) -> DeviceHealth:
+        """The valve's :class:`DeviceHealth` (after :meth:`read`); ``problems`` each trip the loop."""
+        st, h = self._st, self._health
+        h.frames_ok = st.n_tpdo or (1 if st.heartbeat_age_s < math.inf else 0)  # heartbeats before start
+        h.frames_bad = st.malformed_frames + st.bus_malformed + st.foreign_frames
+        h.errors = self.send_errors
+        h.age_s = st.heartbeat_age_s
+        h.status, h.fault_code = st.status_word, st.emcy[0][0] if st.emcy else 0
+        h.fault = st.fault
+        h.problems = self.problems()
+        return h
+
+    @property
+    def status(self) -> ValveStatus:
+        """What the valve last reported (after :meth:`read`)."""
+        return self._st
+
+    @property
+    def enabled(self) -> bool:
+        """The controller reports itself enabled (last status PDO)."""
+        return self._st.enabled
+
+    @property
+    def dither_gain_min(self) -> float | None:
+        """The lowest spool/command 500 Hz gain the dither check judged this run (None: never judged)."""
+        g = self.dither.min_gain_seen
+        return round(g, 4) if g != math.inf else None
+
+    def final_state(self) -> dict:
+        """The valve's state for the log. A valve that left OPERATIONAL (its heartbeat says so) is nulled
+        and disabled by its own rules and sends no status PDO any more: its last PDO (from before, e.g. a
+        stall) is not what it is now, so the state is the heartbeat's (``source``)."""
+        st = self._st
+        fresh_hb = st.heartbeat_age_s < self.cfg.heartbeat_timeout_s
+        if fresh_hb and not st.operational and st.nmt_state != "UNKNOWN":
+            return {"status_bits": st.status_word, "enabled": False, "output": 0.0, "nmt": st.nmt_state,
+                    "nulled": True, "source": f"heartbeat: {st.nmt_state} (no PDO moves the valve)"}
+        return {"status_bits": st.status_word, "enabled": st.enabled, "output": st.spool_actual,
+                "nmt": st.nmt_state, "nulled": st.nulled, "source": "status PDO"}
+
     # -- per tick ----------------------------------------------------------------------------
-    def write(self, setpoint: float, enable: bool = True, reset: bool = False) -> None:
+    def send(self, setpoint: float, enable: bool = True, reset: bool = False) -> None:
         """This tick's set-point (fraction of full spool, saturated) as RPDO1, then SYNC."""
         if self.bus is None:
             raise DeviceError(DEVICE, self.address, "CAN bus not open")
@@ -377,17 +504,17 @@ class CanopenValve:
             self.nan_setpoints += 1
             setpoint, enable = 0.0, False
         self._counter = (self._counter + 1) & 0xFF
-        self._cw = (CW_ENABLE if enable else 0) | (CW_FAULT_RESET if reset else 0)
+        self._cw = control_word(enable, reset)
         cmd = max(-1.0, min(1.0, setpoint)) if enable else 0.0
         self._recent[self._counter] = cmd
         self._recent.pop((self._counter - RECENT) & 0xFF, None)
         self._st.spool_command = cmd
-        self._sync_count = self._sync_count % SYNC_OVERFLOW + 1
-        rpdo = RPDO_FMT.pack(to_counts(cmd), self._cw, self._counter)
+        self._sync_count = next_sync_count(self._sync_count)
+        rpdo = encode_setpoint(cmd, enable, reset, self._counter)
         try:
             with self.network.send_lock:
                 if self._send_frames is not None:  # one socket operation, split back into frames
-                    self._send_frames(((self._rpdo_cob, rpdo), (self._sync_cob, bytes((self._sync_count,)))))
+                    self._send_frames(((self._rpdo_cob, rpdo), (self._sync_cob, encode_sync(self._sync_count))))
                 else:
                     rp, sy = self._rpdo_msg, self._sync_msg
                     rp.data[:] = rpdo
@@ -405,7 +532,7 @@ class CanopenValve:
             self._next_hb = now + self.cfg.heartbeat_period_s
             self.network.send_message(0x700 + self.cfg.host_node_id, b"\x05")
 
-    def read(self) -> ValveStatus:
+    def read(self, now: float | None = None) -> ValveStatus:
         """Drain the received frames (non-blocking) and return the valve's status."""
         if self.bus is None:
             raise DeviceError(DEVICE, self.address, "CAN bus not open")
@@ -497,15 +624,16 @@ class CanopenValve:
 
     def _on_tpdo_data(self, data: bytes) -> None:
         st = self._st
-        actual, sw, acc, rej = TPDO_FMT.unpack(data)
+        fr = decode_status(data)
+        actual, rej, acc = int(round(fr.spool_actual * FULL_SCALE)), fr.rejected, fr.accepted_counter
         st.n_tpdo += 1
-        st.spool_actual = actual / FULL_SCALE
-        st.status_word = sw
-        st.enabled = bool(sw & SW_ENABLED)
-        st.fault = bool(sw & (SW_FAULT | SW_PROTOCOL | SW_HEARTBEAT_LOST))
-        st.watchdog_tripped = bool(sw & SW_WATCHDOG)
-        st.nulled = bool(sw & SW_NULL)
-        st.reset_required = bool(sw & SW_RESET_REQUIRED)
+        st.spool_actual = fr.spool_actual
+        st.status_word = fr.status_word
+        st.enabled = fr.enabled
+        st.fault = fr.fault
+        st.watchdog_tripped = fr.watchdog_tripped
+        st.nulled = fr.nulled
+        st.reset_required = fr.reset_required
         if self._rej_last is None:
             self._rej_last = rej  # what the valve rejected before this host connected is not this run's
         st.valve_rejected += (rej - self._rej_last) & 0xFF  # 0x2002 is a wrapping u8: keep the total
@@ -530,14 +658,14 @@ class CanopenValve:
             self._t_follow_bad = None
 
     # -- health and shutdown -------------------------------------------------------------------
-    def health(self) -> list[str]:
+    def problem_messages(self) -> list[str]:
         """Problems that must trip the loop, each naming the valve (empty list = healthy).
 
         Call after :meth:`read` (it uses that status)."""
         return [msg for _, msg in self.problems()]
 
     def problems(self) -> list[tuple[str, str]]:
-        """:meth:`health` with a trip name for each problem: ``can_foreign_frames``,
+        """:meth:`problem_messages` with a trip name for each problem: ``can_foreign_frames``,
         ``can_malformed_frames``, ``valve_rejected_frames``, ``valve_counter``, ``valve_fault``,
         ``valve_watchdog``, ``valve_heartbeat``, ``valve_nmt_state``, ``valve_status_stale``,
         ``valve_disabled``, ``valve_following``, ``valve_dither``, ``non_finite_setpoint``."""
@@ -590,7 +718,7 @@ class CanopenValve:
         n0 = self._st.n_tpdo
         try:
             while time.monotonic() < t_end:
-                self.write(0.0, enable=False)
+                self.send(0.0, enable=False)
                 time.sleep(0.001)
                 st = self.read()
                 if st.n_tpdo > n0 and not st.enabled and st.nulled:
@@ -613,4 +741,5 @@ class CanopenValve:
             self.bus = None
 
 
-__all__ = ["CanopenValve", "CanopenValveConfig", "ValveStatus", "open_bus", "EDS_PATH", "to_counts"]
+__all__ = ["CanopenValve", "CanopenValveConfig", "StatusFrame", "ValveStatus", "decode_status", "encode_setpoint",
+           "encode_sync", "open_bus", "EDS_PATH", "to_counts"]

@@ -77,6 +77,13 @@ class TrialData:
     source: str = ""
     warnings: list[str] = field(default_factory=list)
 
+    @property
+    def pause_intervals(self) -> list[tuple[float, float]]:
+        """The operator's pauses, ``(t_pause_s, t_resume_s)`` (:func:`rig.kinematics.pause_intervals`)."""
+        from rig.kinematics import pause_intervals
+
+        return pause_intervals(self.events)
+
     def __len__(self) -> int:
         return int(self.time_s.size)
 

@@ -440,6 +440,44 @@ def _steps_from_events(trial, min_ratio: float) -> list[tuple[float, dict]]:
     return kept
 
 
+def pause_intervals(events) -> list[tuple[float, float]]:
+    """The operator's pauses of a trial from its log's events: ``(t_pause_s, t_resume_s)`` of each hold
+    (``pause`` ... ``resume``; a pause never resumed lasts to infinity). The rig held the position then:
+    an unplanned hold, which heals the contact (rig.session.pausing)."""
+    out, t0 = [], None
+    for ev in sorted((e for e in events or [] if e.get("kind") in ("pause", "resume")), key=lambda e: e["t_s"]):
+        if ev["kind"] == "pause" and t0 is None:
+            t0 = float(ev["t_s"])
+        elif ev["kind"] == "resume" and t0 is not None:
+            out.append((t0, float(ev["t_s"])))
+            t0 = None
+    if t0 is not None:
+        out.append((t0, math.inf))
+    return out
+
+
+def clip_steps_to_pauses(steps: list["Step"], t_s: np.ndarray, intervals) -> list["Step"]:
+    """Leave the paused samples out of the steps' segments: a segment that reaches into a pause ends
+    where it began (before the step) or starts where it ended (after); a step inside a pause is dropped."""
+    if not intervals:
+        return steps
+    t = np.asarray(t_s, dtype=float)
+    out = []
+    for s in steps:
+        if any(a <= s.t_s <= b for a, b in intervals):
+            continue
+        lo, hi = s.pre[0], s.post[1]
+        for a, b in intervals:
+            ia, ib = int(np.searchsorted(t, a)), int(np.searchsorted(t, b, side="right"))
+            if ib <= s.i and ib > lo:  # a pause before the step, within its segment
+                lo = ib
+            if ia >= s.i and ia < hi:  # after it
+                hi = ia
+        s.pre, s.post = (lo, s.pre[1]), (s.post[0], hi)
+        out.append(s)
+    return out
+
+
 def detect_steps(trial, *, use_events: bool = True, min_ratio: float = 1.25, slip_window_um: float = 8.0,
                  min_points: int = 8, max_window_s: float = 30.0, guard_s: float = 0.6,
                  fit_span_s: float = 300.0) -> list[Step]:
@@ -501,7 +539,7 @@ def detect_steps(trial, *, use_events: bool = True, min_ratio: float = 1.25, sli
             s.i = int(np.searchsorted(tf, s.t_s))
             s.pre = (full(s.pre[0]), s.i)
             s.post = (s.i, full(s.post[1]))
-    return steps
+    return clip_steps_to_pauses(steps, tf, pause_intervals(getattr(trial, "events", None)))
 
 
 def _detect_times(t, x, *, min_ratio, slip_window_um, min_points, max_window_s) -> list[float]:

@@ -27,6 +27,7 @@ def private_profile(tmp_path: Path, autostart: bool = True, **hw_overrides) -> P
     rnd = random.Random(os.getpid() ^ hash(str(tmp_path)))
     hw = {"loadcells": {"port": free_tcp_port()}, "lvdt": {"port": str(tmp_path / "lvdt")},
           "valve": {"channel": f"t{os.getpid()}-{rnd.randrange(1 << 30)}"},
+          "safety": {"port": free_tcp_port(), "latch_dir": str(tmp_path)},
           "emulators": {"run_dir": str(tmp_path), "autostart": autostart}}
     _deep_update(hw, hw_overrides)
     path = tmp_path / "rig.yaml"

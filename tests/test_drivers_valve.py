@@ -123,14 +123,14 @@ def xproc():
 
 def _drive(v, cmd, pred, timeout_s=5.0):
     """Tick (read + write ``cmd``) until ``pred()`` is true or ``timeout_s``; returns its value."""
-    return _until(pred, timeout_s, every=lambda: (v.read(), v.write(cmd)))
+    return _until(pred, timeout_s, every=lambda: (v.read(), v.send(cmd)))
 
 
 def _ticks(v, n, cmd=0.3, **kw):
     st = None
     for _ in range(n):
         st = v.read()
-        v.write(cmd, **kw)
+        v.send(cmd, **kw)
         time.sleep(0.001)
     return v.read() if st is None else st
 
@@ -256,8 +256,8 @@ def test_nmt_start_required_then_follows(inproc):
     assert em.spool == 0.0 and em.n_setpoints == 0 and st.n_tpdo == 0
     v.start()
     assert em.nmt_state == "OPERATIONAL" and em.enabled
-    st = _until(lambda: abs(v.read().spool_actual - 0.5) < 1e-3, every=lambda: v.write(0.5))
-    assert st and v.health() == []
+    st = _until(lambda: abs(v.read().spool_actual - 0.5) < 1e-3, every=lambda: v.send(0.5))
+    assert st and v.problem_messages() == []
     st = v.read()
     assert st.operational and st.enabled and not st.nulled and st.counter_errors == 0
     assert v.safe_stop() is True
@@ -278,7 +278,7 @@ def test_heartbeat_loss_nulls_and_leaves_operational(inproc):
     assert em.latched & SW_HEARTBEAT_LOST and EMCY_HEARTBEAT in em.emcy_sent
     st = _until(lambda: (s := v.read()).nmt_state == "PRE-OPERATIONAL" and s, 3.0)
     assert st and (EMCY_HEARTBEAT, 1) in st.emcy
-    assert any("not OPERATIONAL" in p for p in v.health())
+    assert any("not OPERATIONAL" in p for p in v.problem_messages())
     # set-points alone do not bring it back; an explicit start (NMT + fault reset + enable) does
     _ticks(v, 20, 0.4)
     assert em.spool == 0.0
@@ -296,7 +296,7 @@ def test_host_heartbeat_alone_is_consumed():
         v.start()
         _ticks(v, 10, 0.3)
         v._next_hb = float("inf")   # heartbeat producer stalls, the tick goes on
-        _until(lambda: emu.em.nmt_state == "PRE-OPERATIONAL", 3.0, every=lambda: (v.read(), v.write(0.3)))
+        _until(lambda: emu.em.nmt_state == "PRE-OPERATIONAL", 3.0, every=lambda: (v.read(), v.send(0.3)))
         assert emu.em.nmt_state == "PRE-OPERATIONAL" and emu.em.spool == 0.0
         assert EMCY_HEARTBEAT in emu.em.emcy_sent and EMCY_RPDO_TIMEOUT not in emu.em.emcy_sent
     finally:
@@ -309,14 +309,14 @@ def test_silent_valve_is_unhealthy(inproc):
     v.connect()
     v.start()
     _ticks(v, 5, 0.1)
-    assert v.health() == []
+    assert v.problem_messages() == []
     em.inject("silent")
     def both():
         v.read()
-        h = v.health()
+        h = v.problem_messages()
         return any("no heartbeat" in p for p in h) and any("no status PDO" in p for p in h)
 
-    assert _until(both, 5.0, every=lambda: v.write(0.1))
+    assert _until(both, 5.0, every=lambda: v.send(0.1))
 
 
 def test_emcy_on_fault_and_reset_required(inproc):
@@ -325,15 +325,15 @@ def test_emcy_on_fault_and_reset_required(inproc):
     v.start()
     _ticks(v, 10, 0.3)
     em.inject("fault")
-    st = _until(lambda: (s := v.read()).fault and s.emcy and s, 3.0, every=lambda: v.write(0.3))
+    st = _until(lambda: (s := v.read()).fault and s.emcy and s, 3.0, every=lambda: v.send(0.3))
     assert st and (EMCY_DEVICE_HW, 1) in st.emcy and st.spool_actual == 0.0 and not st.enabled
-    assert any("reports a fault" in p and "0x5000" in p for p in v.health())
+    assert any("reports a fault" in p and "0x5000" in p for p in v.problem_messages())
     em.inject("fault", None)
     st = _ticks(v, 30, 0.3)          # the cause is gone, enable is still set: stays off
     assert not st.enabled and st.reset_required and em.spool == 0.0
     v.start()                        # fault reset, enable low, enable high
     st = _until(lambda: (s := v.read()).enabled and abs(s.spool_actual - 0.3) < 1e-3 and s, 3.0,
-                every=lambda: v.write(0.3))
+                every=lambda: v.send(0.3))
     assert st and st.emcy == [] and not st.reset_required
 
 
@@ -376,9 +376,9 @@ def test_valve_not_following_is_unhealthy_within_100_ticks(fault):
         ticks = 0
         while ticks < 1000:
             v.read()
-            if any("does not follow" in p for p in v.health()):
+            if any("does not follow" in p for p in v.problem_messages()):
                 break
-            v.write(-0.3)
+            v.send(-0.3)
             ticks += 1
             time.sleep(0.001)
         assert 0 < ticks <= 100, ticks
@@ -409,8 +409,8 @@ def test_valve_ignoring_small_setpoints_is_caught_by_its_dither_within_100_ticks
         emu.em.inject("spool_noise", 2.0)
         for k in range(400):
             v.read()
-            assert v.health() == [], (k, v.health())
-            v.write(_dithered(k))
+            assert v.problem_messages() == [], (k, v.problem_messages())
+            v.send(_dithered(k))
             time.sleep(0.001)
         assert 0.1 < v.dither.min_gain_seen < 1.0 and v.dither.command_amp > 15   # it was judged
         emu.em.inject(fault)
@@ -420,7 +420,7 @@ def test_valve_ignoring_small_setpoints_is_caught_by_its_dither_within_100_ticks
             probs = v.problems()
             if probs:
                 break
-            v.write(_dithered(400 + ticks))
+            v.send(_dithered(400 + ticks))
             ticks += 1
             time.sleep(0.001)
         assert [n for n, _ in probs] == ["valve_dither"], probs
@@ -456,7 +456,7 @@ def test_nan_setpoint_is_sent_as_null_and_reported(inproc):
     _ticks(v, 5, 0.3)
     _ticks(v, 5, float("nan"))
     assert em.spool == 0.0 and not em.enabled
-    assert any("non-finite" in p for p in v.health())
+    assert any("non-finite" in p for p in v.problem_messages())
 
 
 # -- foreign and malformed frames --------------------------------------------------------------
@@ -471,7 +471,7 @@ def _while_ticking(v, cmd, fn, *args, **kw):
     th.start()
     while th.is_alive():
         v.read()
-        v.write(cmd)
+        v.send(cmd)
         time.sleep(0.001)
 
 
@@ -485,13 +485,13 @@ def test_foreign_frame_detected(inproc, kind):
     v.connect()
     v.start()
     _ticks(v, 10, 0.1)
-    assert v.health() == []
+    assert v.problem_messages() == []
     _while_ticking(v, 0.1, send_foreign, cfg.channel, kind, NODE, counter=v._counter + 2,
                    sync_count=v._sync_count % 240 + 2)
-    probs = _until(lambda: (v.read(), v.health())[1], 3.0, every=lambda: v.write(0.1))
+    probs = _until(lambda: (v.read(), v.problem_messages())[1], 3.0, every=lambda: v.send(0.1))
     assert any("foreign CAN frames" in p for p in probs), probs
     if kind == "rpdo":   # the valve saw two set-points in one SYNC period or a broken sequence
-        assert _until(lambda: em.latched & SW_PROTOCOL, 3.0, every=lambda: v.write(0.1))
+        assert _until(lambda: em.latched & SW_PROTOCOL, 3.0, every=lambda: v.send(0.1))
         assert em.spool == 0.0 and not em.enabled
         assert em.n_setpoints > 0
 
@@ -521,8 +521,8 @@ def test_foreign_sdo_cannot_disable_the_heartbeat_consumer(inproc):
         with pytest.raises(canopen.SdoAbortedError):
             node.sdo[0x1016][1].raw = 0
         assert em._consumer_s == consumer
-        assert _until(lambda: 0x603 in (v.read(), v.foreign_ids)[1], 3.0, every=lambda: v.write(0.1))
-        assert any("foreign CAN frames" in p and "0x603" in p for p in v.health())
+        assert _until(lambda: 0x603 in (v.read(), v.foreign_ids)[1], 3.0, every=lambda: v.send(0.1))
+        assert any("foreign CAN frames" in p and "0x603" in p for p in v.problem_messages())
     finally:
         stop.set()
         th.join(2)
@@ -540,7 +540,7 @@ def test_two_rigs_on_one_channel_detected():
         _ticks(v1, 5)
         v2.connect()
         _ticks(v2, 5)
-        probs = _until(lambda: (v1.read(), v1.health())[1], 3.0, every=lambda: v1.write(0.1))
+        probs = _until(lambda: (v1.read(), v1.problem_messages())[1], 3.0, every=lambda: v1.send(0.1))
         assert any("foreign CAN frames" in p for p in probs)
     finally:
         for x in (v1, v2, e1, e2):
@@ -558,7 +558,7 @@ def test_two_rigs_on_one_host_do_not_see_each_other():
         for k in range(100):
             for i, (_, v) in enumerate(rigs):
                 v.read()
-                v.write(0.1 * (i + 1))
+                v.send(0.1 * (i + 1))
             time.sleep(0.001)
         for i, (e, v) in enumerate(rigs):
             assert _drive(v, 0.1 * (i + 1), lambda: abs(e.em.spool - 0.1 * (i + 1)) < 1e-3)
@@ -576,15 +576,15 @@ def test_malformed_frames_never_crash(xproc):
     v.start()
     _ticks(v, 10, 0.2)
     _while_ticking(v, 0.2, send_malformed, cfg.channel, NODE, cfg.host_node_id)
-    probs = _until(lambda: (v.read(), v.health())[1], 3.0, every=lambda: v.write(0.2))
+    probs = _until(lambda: (v.read(), v.problem_messages())[1], 3.0, every=lambda: v.send(0.2))
     assert probs
     st = emu.stats()                                # the emulator process is alive and answers
     assert emu.p.poll() is None and st["bus_malformed"] >= 5 and st["rejected"] >= 4
     assert st["latched"] & SW_PROTOCOL and st["spool"] == 0.0   # wrong-length set-point nulls
     st_h = v.read()
-    assert st_h.malformed_frames >= 1 and any("malformed" in p for p in v.health())
-    assert _until(lambda: any("rejected" in p for p in (v.read(), v.health())[1]), 3.0,
-                  every=lambda: v.write(0.2))
+    assert st_h.malformed_frames >= 1 and any("malformed" in p for p in v.problem_messages())
+    assert _until(lambda: any("rejected" in p for p in (v.read(), v.problem_messages())[1]), 3.0,
+                  every=lambda: v.send(0.2))
     v.start()                                       # and it recovers by the explicit reset
     assert _drive(v, 0.2, lambda: v.read().enabled and abs(emu.stats()["spool"] - 0.2) < 1e-3)
 
@@ -595,14 +595,14 @@ def test_cross_process_follow_fault_and_heartbeat_loss(xproc):
     cfg, emu, v = xproc
     v.connect()
     v.start()
-    assert _until(lambda: abs(v.read().spool_actual - 0.25) < 1e-3, 5.0, every=lambda: v.write(0.25))
-    assert v.health() == []
+    assert _until(lambda: abs(v.read().spool_actual - 0.25) < 1e-3, 5.0, every=lambda: v.send(0.25))
+    assert v.problem_messages() == []
     emu.cmd("inject fault")
-    st = _until(lambda: (s := v.read()).fault and s.emcy and s, 5.0, every=lambda: v.write(0.25))
+    st = _until(lambda: (s := v.read()).fault and s.emcy and s, 5.0, every=lambda: v.send(0.25))
     assert st and (EMCY_DEVICE_HW, 1) in st.emcy and st.spool_actual == 0.0
     emu.cmd("clear fault")
     v.start()
-    assert _until(lambda: abs(v.read().spool_actual - 0.1) < 1e-3, 5.0, every=lambda: v.write(0.1))
+    assert _until(lambda: abs(v.read().spool_actual - 0.1) < 1e-3, 5.0, every=lambda: v.send(0.1))
     # host stops: the valve process nulls and leaves OPERATIONAL
     assert _until(lambda: emu.stats()["nmt"] == "PRE-OPERATIONAL", 5.0)
     s = emu.stats()
@@ -617,8 +617,8 @@ def test_cross_process_intruder_detected(xproc):
     _ticks(v, 10, 0.2)
     _while_ticking_proc(v, 0.2, [sys.executable, "-m", "drivers.emulators.valve_controller", "--channel",
                                  cfg.channel, "--node-id", str(NODE), "--send-foreign", "rpdo"])
-    probs = _until(lambda: any("foreign" in p for p in (v.read(), v.health())[1]), 5.0, every=lambda: v.write(0.2))
-    assert probs, v.health()
+    probs = _until(lambda: any("foreign" in p for p in (v.read(), v.problem_messages())[1]), 5.0, every=lambda: v.send(0.2))
+    assert probs, v.problem_messages()
     assert _until(lambda: emu.stats()["latched"] & SW_PROTOCOL, 5.0)
     assert emu.stats()["spool"] == 0.0
 
@@ -627,7 +627,7 @@ def _while_ticking_proc(v, cmd, argv):
     p = subprocess.Popen(argv, cwd=REPO)
     while p.poll() is None:
         v.read()
-        v.write(cmd)
+        v.send(cmd)
         time.sleep(0.001)
     assert p.returncode == 0
 
@@ -697,7 +697,7 @@ def test_a_host_stall_inside_start_is_recovered_by_start(inproc):
     sends the NMT start again and finishes enabled within its time."""
     cfg, em, v = inproc
     v.connect()
-    write, calls = v.write, []
+    write, calls = v.send, []
 
     def stalling_write(*a, **kw):
         calls.append(1)
@@ -705,9 +705,9 @@ def test_a_host_stall_inside_start_is_recovered_by_start(inproc):
             time.sleep(2 * cfg.heartbeat_timeout_s)
         return write(*a, **kw)
 
-    v.write = stalling_write
+    v.send = stalling_write
     v.start(timeout_s=5.0)
-    v.write = write
+    v.send = write
     assert EMCY_HEARTBEAT in em.emcy_sent  # the stall was seen by the valve
     st = v.read()
     assert st.operational and st.enabled and not st.reset_required

@@ -29,6 +29,7 @@ from drivers.emulators.valve_controller import send_foreign, send_malformed
 from rig.config.profile import load_profile
 from rig.config.recipe import compile_recipe, load_recipe
 from rig.hardware.emulated import start_emulator_process
+from rig.hardware.safety import latch_path
 from rig.log import read_trial
 
 pytestmark = pytest.mark.slow
@@ -73,11 +74,13 @@ def env(tmp_path_factory):
 FAULTS = (("valve", "fault"), ("valve", "silent"), ("valve", "ignore_setpoints"), ("valve", "stuck"),
           ("loadcells", "slow_s"), ("loadcells", "nan_friction"), ("loadcells", "inf_normal_1"),
           ("lvdt", "drop_every"), ("lvdt", "garbage_every"), ("lvdt", "corrupt_every"))
+SAFETY_FAULTS = (("safety", "estop"), ("safety", "pressure_lost"))
 
 
 def _start(env, out: Path, preexec_fn=None) -> subprocess.Popen:
-    for dev, fault in FAULTS:
+    for dev, fault in FAULTS + SAFETY_FAULTS:
         env.emu.inject(dev, fault, None)
+    latch_path(env.emu.hw.safety).unlink(missing_ok=True)  # a failed test's latch must not refuse the next
     env.emu.reset_plant(env.x0)
     return subprocess.Popen([sys.executable, "-m", "rig.cli", "run", str(env.recipe), "--hardware", str(env.prof),
                              "--out", str(out), "-q"], cwd=REPO, stdout=subprocess.PIPE,
@@ -179,6 +182,34 @@ def test_foreign_and_malformed_can_frames(env, kind):
                                                           "valve_rejected_frames", "valve_fault",
                                                           "valve_counter"})
     assert "canopen-rig_unix:" in trip["message"]
+
+
+def _rig(*args) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "rig.cli", *map(str, args)], cwd=REPO, capture_output=True,
+                          text=True, timeout=90)
+
+
+@pytest.mark.parametrize("fault,name", [("estop", "estop"), ("pressure_lost", "hydraulic_pressure")])
+def test_the_safety_chain_trips_latches_and_resets(env, fault, name):
+    """An e-stop (or a loss of hydraulic pressure) mid-trial: the valve nulled and disabled from the trip's
+    tick, the amplifier's enable off, a readable log, exit 1; the next `rig run` refuses, naming the chain,
+    and `rig reset` clears the latch only once the input is healthy again."""
+    trip, tr, text = _run_fault(env, f"safety-{fault}", lambda: env.emu.inject("safety", fault, True), {name})
+    k = round(trip["t_s"] * 1000)
+    assert np.all(tr.valve_cmd[k:] == 0.0)  # nulled from the trip's own tick on
+    assert not env.emu.stats()["safety"]["amplifier_enabled"]
+    events = [e for e in tr.events if e["kind"] == "stop_state" and e.get("state") == "safe"]
+    assert events and "enable output off True" in events[0]["detail"], tr.events[-4:]
+    # latched: the next run refuses, naming the chain; a reset with the input still unhealthy too
+    r = _rig("run", env.recipe, "--hardware", env.prof, "--out", env.tmp / f"refused-{fault}.mcap", "-q")
+    assert r.returncode == 1 and "safety chain" in r.stdout + r.stderr and "latched" in r.stdout + r.stderr, \
+        r.stdout + r.stderr
+    r = _rig("reset", "--hardware", env.prof)
+    assert r.returncode == 1 and "not reset" in r.stderr, r.stdout + r.stderr
+    env.emu.inject("safety", fault, None)
+    r = _rig("reset", "--hardware", env.prof)
+    assert r.returncode == 0 and "latch cleared" in r.stdout, r.stdout + r.stderr
+    assert not latch_path(env.emu.hw.safety).exists()
 
 
 def test_sigstop_of_the_loop(env):

@@ -19,8 +19,9 @@ def test_devices_check_with_and_without_emulators(tmp_path):
     r = _rig("devices", "check", "--hardware", prof, "--start-emulators", "--json", "-")
     assert r.returncode == 0, r.stdout + r.stderr
     rows = json.loads(r.stdout)
-    assert [x["device"] for x in rows] == ["load cells", "LVDT", "servovalve"]
+    assert [x["device"] for x in rows] == ["load cells", "LVDT", "servovalve", "safety chain"]
     assert all(x["ok"] for x in rows)
+    assert "e-stop closed (healthy), pressure OK, enable output off; not latched" in rows[3]["reading"]
     assert "normal 1 " in rows[0]["reading"] and "position" in rows[1]["reading"]
     # nothing listening: each device named with its address, exit 1
     r = _rig("devices", "check", "--hardware", prof, "--json", "-")
@@ -29,6 +30,43 @@ def test_devices_check_with_and_without_emulators(tmp_path):
     assert not any(x["ok"] for x in rows)
     assert "modbus-tcp://127.0.0.1:" in rows[0]["address"] and "refused" in rows[0]["reading"]
     assert str(tmp_path / "lvdt") in rows[1]["reading"]
+
+
+def test_rig_emulate_serves_devices_check_and_run_in_other_processes(tmp_path):
+    """`rig emulate` in one terminal: `rig devices check` in another finds all three devices (the valve
+    too: the profile's own CAN channel), and a `rig run` there homes the plant through its socket."""
+    import signal
+
+    from drivers.config import hardware_of_profile
+    from rig.config.profile import load_profile
+    from rig.hardware.emulated import RemoteEmulator
+
+    prof = private_profile(tmp_path)
+    p = subprocess.Popen([sys.executable, "-m", "rig.cli", "emulate", "--hardware", str(prof), "--seconds", "120"],
+                         cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        line = p.stdout.readline()
+        assert "emulators up" in line, line + p.stdout.read()
+        r = _rig("devices", "check", "--hardware", prof, "--json", "-")
+        assert r.returncode == 0, r.stdout + r.stderr
+        assert [x["ok"] for x in json.loads(r.stdout)] == [True, True, True, True]
+        remote = RemoteEmulator.connect(hardware_of_profile(load_profile(prof)))
+        assert remote is not None and remote.reset_plant(500.0)["ok"]
+    finally:
+        p.send_signal(signal.SIGINT)
+        out = p.communicate(timeout=30)[0]
+    assert p.returncode == 0, out
+    assert not (tmp_path / "emulate.sock").exists()
+
+
+def test_skipped_cycles_are_attributed_to_the_vm_or_the_loop():
+    from rig.hardware.timing import attribute_skips
+
+    gaps = [(10.0, 10.03)]  # the probe slept 30 ms over there
+    skips = [(10.031, 25), (20.004, 3)]  # one late tick inside the probe's stall, one on its own
+    a = attribute_skips(skips, gaps, 1e-3)
+    assert (a["vm_cycles"], a["loop_cycles"], a["vm_episodes"], a["loop_episodes"]) == (25, 3, 1, 1)
+    assert a["loop_at"] == [(20.004, 3)]
 
 
 def test_devices_check_bad_profile(tmp_path):
@@ -48,6 +86,8 @@ def test_loop_bench_short(tmp_path):
     res = json.loads(out.read_text())
     assert res["n"] + res["skipped"] >= 995 and res["late_p50_us"] < 1000
     assert res["realtime"]["sched"] in ("SCHED_FIFO", "SCHED_OTHER")
+    at = res["skipped_attribution"]
+    assert at["vm_cycles"] + at["loop_cycles"] == res["skipped"] and "skipped cycles:" in r.stdout
 
 
 def test_loop_bench_when_the_emulators_cannot_start(tmp_path):

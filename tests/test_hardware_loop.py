@@ -105,7 +105,7 @@ def test_clean_run_blocks_stats_and_tracking(rig_env):
     s = res.summary
     assert res.status == "completed" and w.status == "completed" and s["status"] == "completed", res.reason
     assert [h[0] for h in res.history] == [Phase.RUNNING, Phase.STOPPING, Phase.SAFE, Phase.DONE]
-    assert set(s["devices"]) == {"lvdt", "loadcells", "valve"} and s["devices"]["lvdt"]["frames_ok"] > 1000
+    assert set(s["devices"]) == {"lvdt", "loadcells", "valve", "safety"} and s["devices"]["lvdt"]["frames_ok"] > 1000
     assert set(BLOCK_KEYS) <= set(w.blocks[0])
     ts = w.col("t_s")
     assert np.all(np.diff(ts) > 0) and ts[-1] == pytest.approx(1.499)

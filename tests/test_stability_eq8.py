@@ -137,3 +137,28 @@ def test_cli_bad_input(tmp_path):
     bad.write_text("{}")
     res = CliRunner().invoke(app, ["stability", "--params", str(bad)])
     assert res.exit_code != 0 and "bad.json" in res.output
+
+
+def test_the_simulated_boundary_is_reported_as_its_bracket_not_a_point():
+    """A scan resolves the boundary only to [the highest kp that stick-slips, the next that slides]: the
+    result is that bracket against the analysis, whatever the true boundary inside it (no "+0.0 %")."""
+    true_k = {}
+
+    def run(ppath, lub, kp, ki, kd, dur, v0, seed, bump, noise):
+        return {"kp_N_per_um": kp, "stick_slip": kp < true_k["k"], "spread": 1.0 if kp < true_k["k"] else 0.01}
+
+    lm = S.LoopModel.from_profile(*_profile_and_model("boundary"), V0_um_s=1.0)
+    k_lin = S.k_cr_loop(lm)
+    for true in (0.97 * k_lin, 1.03 * k_lin):  # either side of the analysis: the same bracket
+        true_k["k"] = true
+        r = S.scan_boundary("boundary", run=run, factors=(0.8, 0.9, 0.95, 1.05, 1.1, 1.25), duration_s=1.0)
+        assert "k_sim_N_per_um" not in r
+        assert r["bracket_N_per_um"] == pytest.approx([0.95 * k_lin, 1.05 * k_lin])
+        assert r["rel_bracket"] == pytest.approx([-0.05, 0.05]) and r["analysis_in_bracket"] is True
+
+
+def _profile_and_model(lub):
+    from rig.config.profile import default_profile_path, load_profile
+
+    prof = load_profile(default_profile_path())
+    return prof, prof.friction_model(lub)

@@ -543,7 +543,9 @@ def scan_boundary(lubricant: str, *, profile=None, ki_N_per_um_s: float | None =
                   map_fn=None) -> dict:
     """Scan kp = factor x k_ref (default k_ref: the discrete-time analysis of the rig's loop,
     :func:`k_cr_loop`) with :func:`sliding_run`; the simulated boundary lies between the
-    highest kp that stick-slips and the next one above that slides steadily.
+    highest kp that stick-slips and the next one above that slides steadily: reported as that
+    bracket (``bracket_N_per_um``, ``rel_bracket`` against the analysis, ``analysis_in_bracket``),
+    never as a point, which the scan does not resolve.
 
     ``run``: a callable with :func:`sliding_run`'s signature; default: in process.
     ``map_fn(fn, items)`` (e.g. :func:`rig.catalog.batch.mapper`) runs the scan's runs on a
@@ -569,13 +571,12 @@ def scan_boundary(lubricant: str, *, profile=None, ki_N_per_um_s: float | None =
         runs = [run(*a) for a in args]
     runs.sort(key=lambda r: r["kp_N_per_um"])
     unstable = [r["kp_N_per_um"] for r in runs if r["stick_slip"]]
-    k_sim = lo = hi = None
+    lo = hi = None  # the boundary is resolved to a bracket, never to a point inside it
     if unstable:
         lo = max(unstable)
         above = [r["kp_N_per_um"] for r in runs if r["kp_N_per_um"] > lo]
         if above:
             hi = min(above)
-            k_sim = 0.5 * (lo + hi)
     # noise-free: the onset of any sustained oscillation (for a gradual, supercritical onset
     # the stick-slip amplitude is reached below k_cr, the linear boundary is where it starts)
     k_onset = None
@@ -588,8 +589,9 @@ def scan_boundary(lubricant: str, *, profile=None, ki_N_per_um_s: float | None =
             "k_onset_N_per_um": k_onset,
             "onset_rel_diff": (k_onset / k_lin - 1) if (k_onset and k_lin) else None,
             "k_cr_loop_N_per_um": k_lin, "k_ref_N_per_um": k_ref, "duration_s": dur,
-            "k_sim_N_per_um": k_sim, "bracket_N_per_um": [lo, hi], "runs": runs,
-            "rel_diff": (k_sim / k_lin - 1) if (k_sim and k_lin) else None,
+            "bracket_N_per_um": [lo, hi], "runs": runs,
+            "rel_bracket": [lo / k_lin - 1, hi / k_lin - 1] if (lo and hi and k_lin) else None,
+            "analysis_in_bracket": (lo <= k_lin <= hi) if (lo and hi and k_lin) else None,
             "steady_at_every_kp": not unstable, "bump_L": bump_L, "sensor_noise": sensor_noise,
             "criterion": f"stick-slip if > {STUCK_FRACTION_MAX:.0%} of {BLOCK_S:g} s blocks have mean slip velocity "
                          f"< {STUCK_BELOW_FRAC:g} V0, or their sd > {SPREAD_MAX:g} V0 (second half of the run)"}

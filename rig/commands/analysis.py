@@ -443,10 +443,13 @@ def stability_cmd(
                 r["k_cr_eq8_N_per_um"] = analyses[nm]["k_cr_eq8_N_per_um"]
                 checks.append(r)
                 lo, hi = r["bracket_N_per_um"]
-                con.print(f"{nm} ({'PID' if k_i else 'PD'}): simulated boundary "
-                              f"{_fmt(r['k_sim_N_per_um'] * 1e3 if r['k_sim_N_per_um'] else None)} kN/m "
-                              f"(stick-slip at {_fmt(lo * 1e3 if lo else None)}, steady at "
-                              f"{_fmt(hi * 1e3 if hi else None)}) vs the rig loop's {_fmt(k_lin * 1e3)} kN/m")
+                inside = r["analysis_in_bracket"]
+                con.print(f"{nm} ({'PID' if k_i else 'PD'}): simulated boundary in "
+                          f"[{_fmt(lo * 1e3 if lo else None)}, {_fmt(hi * 1e3 if hi else None)}] kN/m "
+                          f"(stick-slip at the low end, steady at the high end) vs the rig loop's "
+                          f"{_fmt(k_lin * 1e3)} kN/m"
+                          + ("" if inside is None else " (inside the bracket)" if inside else
+                             " (OUTSIDE the bracket)"))
         stack.close()
         con.print(f"[dim]criterion: {S.STUCK_FRACTION_MAX:.0%} stuck / spread {S.SPREAD_MAX:g} V0 "
                       f"({checks[0]['criterion'] if checks else ''})[/dim]")

@@ -1,8 +1,10 @@
-"""Hardware commands: ``rig devices check``, ``rig emulate``, ``rig loop-bench``.
+"""Hardware commands: ``rig devices check``, ``rig emulate``, ``rig reset``, ``rig loop-bench``.
 
 ``rig devices check --hardware PROFILE [--start-emulators]`` connects to every
 device of the profile's ``hardware`` section, reads each once and says what
-answered (and where). ``rig emulate --hardware PROFILE`` serves the emulated devices in
+answered (and where), the safety chain's inputs, outputs and latch included.
+``rig reset --hardware PROFILE`` clears the safety chain's latch once its inputs
+read healthy. ``rig emulate --hardware PROFILE`` serves the emulated devices in
 the foreground until Ctrl-C. ``rig loop-bench`` runs the 1 kHz loop against
 the emulators holding position and prints a LinuxCNC-style latency report.
 """
@@ -44,7 +46,7 @@ def _load(profile_path: Path):
     return profile, hw
 
 
-DEVICE_LABELS = {"loadcells": "load cells", "lvdt": "LVDT", "valve": "servovalve"}
+DEVICE_LABELS = {"loadcells": "load cells", "lvdt": "LVDT", "valve": "servovalve", "safety": "safety chain"}
 
 
 def _reading(rig, name: str) -> str:
@@ -55,6 +57,11 @@ def _reading(rig, name: str) -> str:
     if name == "lvdt":
         lv = rig.position
         return f"position {lv.position_um:.3f} µm, seq {lv.seq}, status 0x{lv.status:02x}"
+    if name == "safety":
+        from rig.hardware.safety import latched_message
+
+        latched = latched_message(rig.safety.cfg)
+        return rig.safety.describe() + (f"; LATCHED: {latched}" if latched else "; not latched")
     va = rig.valve.final_state()
     return f"status 0x{va['status_bits']:02x} (enabled {va['enabled']}), output {va['output']:+.4f}"
 
@@ -65,13 +72,16 @@ def check_devices(hw) -> list[dict]:
     from rig.hardware.devices import build_devices, wait_for_data
 
     rig = build_devices(hw)
-    order = (rig.forces, rig.position, rig.valve)
+    order = (rig.forces, rig.position, rig.valve) + ((rig.safety,) if rig.safety is not None else ())
     rows = []
     for dev in order:
         row = {"device": DEVICE_LABELS[dev.name], "address": dev.address}
         try:
             dev.connect()
-            wait_for_data([dev], max(0.5, 4 * hw.valve.heartbeat_timeout_s), time.monotonic)
+            if dev is rig.safety:
+                dev.poll(max(0.5, 4 * hw.valve.heartbeat_timeout_s))  # the inputs and the outputs read back
+            else:
+                wait_for_data([dev], max(0.5, 4 * hw.valve.heartbeat_timeout_s), time.monotonic)
             row.update(ok=True, reading=_reading(rig, dev.name))
         except DeviceError as exc:
             row.update(ok=False, reading=exc.message)
@@ -122,15 +132,21 @@ def emulate(
     seconds: Optional[float] = typer.Option(None, "--seconds", min=0.0, help="Stop after this long (s; default: Ctrl-C)."),
 ):
     """Serve the emulated devices of PROFILE (Modbus, LVDT pty, CAN valve) until Ctrl-C."""
-    from rig.hardware.emulated import EmulatorError, start_emulator_process
+    from rig.hardware.emulated import EmulatorError, EmulatorService, control_socket_path, start_emulator_process
 
     profile, hw = _load(profile_path)
-    try:
-        emu = start_emulator_process(hw, profile, lubricant=lubricant.value)
+    try:  # the profile's own channel and ports: `rig run` and `rig devices check` in other processes reach them
+        emu = start_emulator_process(hw, profile, lubricant=lubricant.value, private=False)
     except EmulatorError as exc:
         _fail(str(exc), 1)
-    console.print(f"emulators up: {hw.loadcells.address_text}; {hw.lvdt.address_text}; "
-                  f"{hw.valve.address_text}. Ctrl-C stops.", highlight=False)
+    try:
+        service = EmulatorService(emu, control_socket_path(hw))
+    except (EmulatorError, OSError) as exc:
+        emu.stop()
+        _fail(f"cannot serve the emulators' control socket: {exc}", 1)
+    console.print(f"emulators up: {emu.hw.loadcells.address_text}; {emu.hw.lvdt.address_text}; "
+                  f"{emu.hw.valve.address_text}; `rig run --hardware {profile_path}` and `rig devices check "
+                  f"--hardware {profile_path}` in another terminal use them. Ctrl-C stops.", highlight=False)
     t0 = time.monotonic()
     try:
         while seconds is None or time.monotonic() - t0 < seconds:
@@ -140,10 +156,28 @@ def emulate(
     except KeyboardInterrupt:
         pass
     finally:
+        service.close()
         st = emu.stats() if emu.proc.is_alive() else {}
         emu.stop()
     console.print(f"stopped; plant steps {st.get('steps')}, Modbus requests {st.get('modbus_requests')}, "
                   f"LVDT frames {st.get('lvdt_sent')}", highlight=False)
+
+
+def reset_command(
+    hardware: Path = typer.Option(..., "--hardware", metavar="PROFILE", help="Rig profile with a hardware.safety "
+                                                                           "section."),
+):
+    """Clear the safety chain's latch (after an e-stop or a pressure loss) once both inputs read healthy.
+    Exit 1 (and the latch kept) while the e-stop is open or the pressure is lost."""
+    from rig.hardware.safety import reset
+
+    _profile, hw = _load(hardware)
+    if hw.safety is None:
+        _fail(f"{hardware}: the profile has no safety chain (hardware.safety); nothing to reset")
+    ok, text = reset(hw.safety)
+    if not ok:
+        _fail(f"safety chain {hw.safety.address_text}: {text}", 1)
+    console.print(f"safety chain {hw.safety.address_text}: {text}", highlight=False)
 
 
 def loop_bench(seconds: float = 60.0, profile_path: Path = DEFAULT_EMULATED, out_json: Path | None = None) -> dict:
@@ -174,19 +208,27 @@ def loop_bench(seconds: float = 60.0, profile_path: Path = DEFAULT_EMULATED, out
             emu = start_emulator_process(hw, profile, lubricant="boundary")
         except EmulatorError as exc:
             raise LoopBenchFailed(f"the emulated devices of {profile_path} did not start: {exc}") from None
+    from rig.hardware.timing import StallProbe, attribute_skips
+
     load_before = os.getloadavg()
     t0 = time.time()
     log = MemoryLog(keep_blocks=False, rate_hz=rate)
+    # a bare sleeper beside the loop: a skipped cycle while it stalled too is the VM's, else the loop's
+    probe = StallProbe(1.0 / rate, 2.0 / rate, hw.realtime.priority if hw.realtime.sched_fifo else 0,
+                       hw.realtime.cpu).start()
     try:
         result = run_trial(plan, HardwareBackend(hw, profile, emulator=emu), log)
         emu_stats = emu.stats() if emu is not None else {}
     finally:
+        gaps = probe.stop()
         if emu is not None:
             emu.stop()
     if result.status != "completed":
         raise LoopBenchFailed(f"the loop stopped: {result.reason}")
     summary = result.summary
     res = dict(summary["timing"])
+    res["skipped_attribution"] = {**attribute_skips(summary.get("skips", []), gaps, 1.0 / rate),
+                                  "probe_stalls": len(gaps)}
     res["emulator"] = {k: emu_stats.get(k) for k in ("steps", "lock_steps", "free_steps", "max_gap_s",
                                                      "gaps_over_5ms", "modbus_requests")}
     res.update(seconds=seconds, loadavg_before=load_before, loadavg_after=os.getloadavg(),
@@ -229,11 +271,16 @@ def loop_bench_command(
     targets = {"execution p50 < 150 µs": res.get("exec_p50_us", 1e9) < 150,
                "execution p99 < 500 µs": res.get("exec_p99_us", 1e9) < 500,
                "lateness p99 < 100 µs": res.get("late_p99_us", 1e9) < 100,
-               "0 skipped cycles": res.get("skipped", 1) == 0}
+               "0 skipped cycles of the loop's own": (res.get("skipped_attribution") or {}).get("loop_cycles", 1) == 0}
     em = res.get("emulator") or {}
     if em.get("steps"):
         out.print(f"  emulator: {em['steps']} plant steps ({em['lock_steps']} on setpoints), longest gap "
                       f"{1e3 * (em['max_gap_s'] or 0):.1f} ms, {em['gaps_over_5ms']} gaps over 5 ms", highlight=False)
+    at = res.get("skipped_attribution") or {}
+    if at:
+        out.print(f"  skipped cycles: {at['vm_cycles']} the VM's (the probe stalled too, {at['vm_episodes']} "
+                  f"episodes), {at['loop_cycles']} the loop's ({at['loop_episodes']} episodes); the probe "
+                  f"stalled {at['probe_stalls']} times over 2 ms", highlight=False)
     out.print("  targets: " + "; ".join(f"{k} {'[green]met[/]' if ok else '[yellow]not met[/]'}"
                                         for k, ok in targets.items()))
     sys.stdout.flush()
@@ -244,4 +291,5 @@ def register(app: typer.Typer) -> None:
     devices_app.command("check")(devices_check)
     app.add_typer(devices_app, name="devices")
     app.command("emulate")(emulate)
+    app.command("reset")(reset_command)
     app.command("loop-bench")(loop_bench_command)

@@ -16,7 +16,11 @@ with the valve's spool as it is (held, then nulled by the valve's set-point
 watchdog), so the sensors keep streaming.
 
 Each emulated rig gets a CAN channel of its own (:func:`private_channel`), so
-two runs on one machine never share a bus.
+two runs on one machine never share a bus; except the one `rig emulate` serves
+(``private=False``: the profile's channel and ports), which other processes
+(`rig run`, `rig devices check`) reach with the same profile; `rig run` finds it
+by its control socket (:class:`EmulatorService`, :class:`RemoteEmulator`) and
+homes its plant through it instead of starting emulators of its own.
 
 :func:`start_emulator_process` runs it in its own process (the GIL) and
 returns an :class:`EmulatorHandle` (``inject(device, fault, value)``,
@@ -33,6 +37,7 @@ from pathlib import Path
 
 from drivers.config import HardwareConfig, parse_hardware
 from drivers.emulators.lvdt_streamer import LvdtStreamer
+from drivers.emulators.modbus_io import IoState, io_server_main
 from drivers.emulators.modbus_conditioner import (
     ModbusConditionerEmulator, SharedSample, free_tcp_port, modbus_server_main,
 )
@@ -122,6 +127,9 @@ class EmulatedRig:
             self.modbus = ModbusConditionerEmulator(hw.loadcells, rtu_server_port=rtu_server_port)
         self.lvdt = LvdtStreamer(hw.lvdt)
         self.valve = ValveControllerEmulator(hw.valve, on_sync=self._on_sync)
+        # the safety chain's I/O module (its own process): its relay gates the valve amplifier
+        self.io = IoState(mp.get_context("spawn"), hw.safety.watchdog_s) if hw.safety is not None else None
+        self._io_proc = self._io_conn = None
         self.last = {k: 0.0 for k in SENSOR_KEYS}
         self.steps = 0
         self.free_steps = 0
@@ -155,6 +163,19 @@ class EmulatedRig:
                 raise EmulatorError(str(payload))
         else:
             self.modbus.start()
+        if self.io is not None:
+            ctx = mp.get_context("spawn")
+            self._io_conn, child = ctx.Pipe()
+            em = self.hw.emulators
+            self._io_proc = ctx.Process(target=io_server_main, name="rig-emulator-io", daemon=True,
+                                        args=(self.hw.safety.model_dump(), self.io,
+                                              em.priority if em.sched_fifo else 0, child))
+            self._io_proc.start()
+            if not self._io_conn.poll(30):
+                raise RuntimeError("the I/O module emulator process did not start")
+            kind, payload = self._io_conn.recv()
+            if kind != "ready":
+                raise EmulatorError(str(payload))
         self.step(0.0)
 
     def stop(self) -> None:
@@ -169,6 +190,14 @@ class EmulatedRig:
                 self._mb_proc.kill()
         else:
             self.modbus.stop()
+        if self._io_proc is not None:
+            try:
+                self._io_conn.send(("stop",))
+            except OSError:
+                pass
+            self._io_proc.join(3)
+            if self._io_proc.is_alive():
+                self._io_proc.kill()
         self.valve.stop()
         self.lvdt.stop()
         if self.bridge is not None:
@@ -183,6 +212,8 @@ class EmulatedRig:
             if gap > 0.005:
                 self.gaps_over_5ms += 1
         self._last_step_t = now
+        if self.io is not None and not self.io.amplifier_enabled(now):
+            cmd = 0.0  # the amplifier is off (e-stop, enable output off, watchdog): the spool centres
         out = self.plant.plant_step(float(cmd))
         vals = {k: float(out[k]) for k in SENSOR_KEYS}
         self.last = vals
@@ -214,7 +245,14 @@ class EmulatedRig:
         return float(st[Z_XSP]) if st is not None else None
 
     def inject(self, device: str, fault: str, value=True) -> None:
-        """Set (value) or clear (None/False) a fault on 'loadcells', 'lvdt' or 'valve'."""
+        """Set (value) or clear (None/False) a fault on 'loadcells', 'lvdt', 'valve' or 'safety'
+        (``estop``: the e-stop pressed; ``pressure_lost``: the hydraulic pressure gone)."""
+        if device == "safety":
+            if self.io is None:
+                raise EmulatorError("the profile has no safety chain (hardware.safety)")
+            on = value not in (None, False)
+            {"estop": self.io.press_estop, "pressure_lost": self.io.lose_pressure}[fault](on)
+            return
         if device == "lvdt" and fault == "vanish":
             if value:
                 self.lvdt.vanish()
@@ -336,7 +374,8 @@ def _emulator_main(hw_dict, profile, lubricant, normal_force_N, seed, conn, plan
                                      "modbus_requests": rig.modbus_requests(),
                                      "lvdt_sent": rig.lvdt.sent, "max_gap_s": rig.max_gap_s,
                                      "gaps_over_5ms": rig.gaps_over_5ms,
-                                     "lvdt_overflow": rig.lvdt.overflow}))
+                                     "lvdt_overflow": rig.lvdt.overflow,
+                                     "safety": rig.io.snapshot() if rig.io is not None else None}))
             elif op == "reset":
                 x0, v0 = req[1], req[2]
                 rig.plant.reset(x0, v0)
@@ -461,8 +500,111 @@ def start_emulator_process(hw: HardwareConfig | dict, profile=None, lubricant: s
     return handle
 
 
-__all__ = ["EmulatedRig", "IntegratorPlant", "start_emulator_process", "EmulatorHandle",
-           "EmulatorError", "sim_plant", "emulated_hardware", "free_tcp_port"]
+# -- serving other processes (`rig emulate`) ------------------------------------------------------------
+
+def control_socket_path(hw: HardwareConfig) -> Path:
+    """Where `rig emulate` listens for the plant's reset by a `rig run` in another process."""
+    return Path(hw.emulators.run_dir) / "emulate.sock"
+
+
+class EmulatorService:
+    """Serves ``handle``'s ``reset_plant`` on a Unix socket owned by this user (mode 0600), one JSON line
+    per request: ``{"op": "reset", "x0_um": .., "v_init_um_s": ..}`` or ``{"op": "hello"}``."""
+
+    def __init__(self, handle: EmulatorHandle, path: Path):
+        import socket
+        import threading
+
+        self.handle, self.path = handle, Path(path)
+        if self.path.exists():
+            if RemoteEmulator.connect(handle.hw, self.path) is not None:
+                raise EmulatorError(f"another `rig emulate` already serves {self.path}")
+            self.path.unlink()
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        old = os.umask(0o177)
+        try:
+            self.sock.bind(str(self.path))
+        finally:
+            os.umask(old)
+        self.sock.listen(4)
+        self._lock = threading.Lock()
+        self._th = threading.Thread(target=self._serve, name="rig-emulate-control", daemon=True)
+        self._th.start()
+
+    def _serve(self) -> None:
+        import json
+
+        while True:
+            try:
+                conn, _ = self.sock.accept()
+            except OSError:
+                return
+            with conn:
+                try:
+                    conn.settimeout(2.0)
+                    req = json.loads(conn.makefile("r").readline() or "{}")
+                    with self._lock:
+                        if req.get("op") == "reset":
+                            self.handle.reset_plant(float(req["x0_um"]), req.get("v_init_um_s"))
+                    conn.sendall(b'{"ok": true}\n')
+                except (OSError, ValueError, KeyError, EmulatorError) as exc:
+                    try:
+                        conn.sendall((json.dumps({"ok": False, "error": str(exc)}) + "\n").encode())
+                    except OSError:
+                        pass
+
+    def close(self) -> None:
+        try:
+            self.sock.close()
+        finally:
+            self.path.unlink(missing_ok=True)
+
+
+class RemoteEmulator:
+    """The emulated rig a `rig emulate` in another process serves (the profile's own channel and ports):
+    what :class:`rig.session.hardware.HardwareBackend` drives instead of starting its own."""
+
+    def __init__(self, hw: HardwareConfig, path: Path):
+        self.hw, self.path = hw, Path(path)
+
+    @classmethod
+    def connect(cls, hw: HardwareConfig, path: Path | None = None) -> "RemoteEmulator | None":
+        """The one serving ``hw`` (its run_dir's socket answers), else None."""
+        em = cls(hw, path or control_socket_path(hw))
+        if not em.path.exists():
+            return None
+        try:
+            em._call({"op": "hello"})
+        except EmulatorError:
+            return None
+        return em
+
+    def _call(self, req: dict) -> dict:
+        import json
+        import socket
+
+        try:
+            with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
+                s.settimeout(3.0)
+                s.connect(str(self.path))
+                s.sendall((json.dumps(req) + "\n").encode())
+                ans = json.loads(s.makefile("r").readline() or "{}")
+        except (OSError, ValueError) as exc:
+            raise EmulatorError(f"the emulators at {self.path} did not answer: {exc}") from None
+        if not ans.get("ok"):
+            raise EmulatorError(f"the emulators at {self.path}: {ans.get('error', 'no answer')}")
+        return ans
+
+    def reset_plant(self, x0_um: float, v_init_um_s: float | None = None):
+        return self._call({"op": "reset", "x0_um": float(x0_um), "v_init_um_s": v_init_um_s})
+
+    def stop(self, timeout: float = 0.0) -> None:
+        """Not ours to stop (the `rig emulate` that serves it is)."""
+
+
+__all__ = ["EmulatedRig", "IntegratorPlant", "start_emulator_process", "EmulatorHandle", "EmulatorService",
+           "EmulatorError", "RemoteEmulator", "control_socket_path", "sim_plant", "emulated_hardware",
+           "free_tcp_port"]
 
 
 def emulated_hardware(run_dir: str | os.PathLike, transport: str = "tcp",

@@ -21,6 +21,13 @@ per second, a run of late cycles, following error scaled with the reference
 velocity (LinuxCNC's FERROR / MIN_FERROR), non-finite values (any sensor, the
 reference, the controller's output: a ``non_finite`` trip naming the channel).
 Every limit is written ``not (value within limit)``, so NaN trips.
+
+The loop's own watches live here too: :class:`TimingWatch` (a stall between two
+ticks: ``loop_stall``; skipped cycles per second: ``skipped_cycles``),
+:class:`LoggerWatch` (blocks not taken: ``logger_stalled``; no heartbeat from a
+dying logger: ``logger_died``) and :func:`session_trip` (the session failed:
+``logger_failed``; the parent gone: ``logger_died``). The loop (:mod:`rig.hardware.loop`)
+asks them in one place and sends every trip down one path.
 """
 
 from __future__ import annotations
@@ -34,14 +41,17 @@ from drivers.device import DeviceHealth
 from drivers.errors import DeviceError
 
 # per device: the names of its trips
-STALE_TRIP = {"lvdt": "stale_position", "loadcells": "stale_forces", "valve": "valve_heartbeat"}
+STALE_TRIP = {"lvdt": "stale_position", "loadcells": "stale_forces", "valve": "valve_heartbeat",
+              "safety": "stale_safety_io"}
 FAULT_TRIP = {"lvdt": "lvdt_fault", "loadcells": "loadcell_fault", "valve": "valve_fault"}
-ERRORS_TRIP = {"loadcells": "modbus_errors", "valve": "can_bus_errors"}
+ERRORS_TRIP = {"loadcells": "modbus_errors", "valve": "can_bus_errors", "safety": "safety_io_errors"}
+# the safety chain's trips (its I/O module's problems): they latch until `rig reset` (rig.hardware.safety)
+SAFETY_TRIPS = frozenset({"estop", "hydraulic_pressure"})
 # trips after which nothing from the device (or the loop's timing) can be trusted: stop at once (no hold)
 DEVICE_TRIPS = frozenset({"device_lost", "modbus_errors", "can_bus_errors", "stale_forces", "stale_position",
                           "valve_heartbeat", "non_finite", "frame_loss", "serial_checksum_errors",
                           "stream_garbage", "loop_stall", "skipped_cycles", "logger_failed", "logger_stalled", "logger_died",
-                          "valve_enable", "missed_deadlines"})
+                          "valve_enable", "missed_deadlines", "stale_safety_io", "safety_io_errors"})
 # what the per-second counters of a device's health are called in a trip
 WINDOW_COUNTERS = (("frames_bad", "max_checksum_errors", "serial_checksum_errors", "frames with a bad checksum"),
                    ("frames_lost", "max_lost_frames", "frame_loss", "lost frames or missed answers"),
@@ -208,7 +218,8 @@ class Interlocks:
         kind = exc.kind
         if kind == "lost":  # the connection itself is gone: nothing to count, no next answer to wait for
             return Trip("device_lost", str(exc), t_s, {"device": exc.device, "address": exc.address})
-        limit = {"loadcells": c.max_modbus_errors, "valve": c.max_can_errors if kind == "bus" else None}.get(name)
+        limit = {"loadcells": c.max_modbus_errors, "safety": c.max_modbus_errors,
+                 "valve": c.max_can_errors if kind == "bus" else None}.get(name)
         if limit is not None:
             n = health.consecutive_errors
             if n < limit:
@@ -216,3 +227,82 @@ class Interlocks:
             return Trip(ERRORS_TRIP[name], f"{exc} ({n} consecutive failures)", t_s,
                         {"consecutive": n, "limit": limit})
         return Trip("device_lost", str(exc), t_s, {"device": exc.device, "address": exc.address})
+
+
+class TimingWatch:
+    """The loop's timing. A gap between two ticks over ``stall_event_s`` is a stall (an event), over
+    ``stall_trip_s`` a ``loop_stall`` trip; more skipped cycles within one second than
+    ``max_skipped_fraction`` of the ticks of a second, a ``skipped_cycles`` trip."""
+
+    def __init__(self, cfg: InterlockConfig, period_s: float):
+        self.event_s, self.trip_s = cfg.stall_event_s, cfg.stall_trip_s
+        self.max_skip_per_s = cfg.max_skipped_fraction / period_s
+        self._win_t: float | None = None
+        self._win_skip0 = 0
+
+    def is_stall(self, gap_s: float) -> bool:
+        """A gap worth an event (NaN, the first tick: no)."""
+        return gap_s > self.event_s
+
+    def stall(self, t_s: float, gap_s: float, skipped: int) -> Trip | None:
+        if gap_s <= self.trip_s:
+            return None
+        return Trip("loop_stall", f"no tick for {gap_s * 1e3:.0f} ms (limit {self.trip_s * 1e3:g} ms)", t_s,
+                    {"gap_s": gap_s, "skipped": skipped})
+
+    def skipped(self, t_s: float, now: float, skipped_total: int) -> Trip | None:
+        """Called once per tick with the pacer's running count of skipped cycles."""
+        if self._win_t is None or not (now - self._win_t < 1.0):
+            self._win_t, self._win_skip0 = now, skipped_total
+            return None
+        ds = skipped_total - self._win_skip0
+        if ds <= self.max_skip_per_s:
+            return None
+        return Trip("skipped_cycles", f"{ds} cycles skipped within {now - self._win_t:.2f} s (limit "
+                    f"{self.max_skip_per_s:.0f} per second)", t_s, {"skipped": ds, "limit": self.max_skip_per_s})
+
+
+class LoggerWatch:
+    """The logger (the session, in the parent process): it must take every block within
+    ``logger_timeout_s`` of its sending (``logger_stalled``) and beat its heartbeat; a heartbeat older
+    than ``logger_heartbeat_s`` while the logger's process is exiting is ``logger_died``."""
+
+    def __init__(self, cfg: InterlockConfig):
+        self.timeout_s, self.heartbeat_s = cfg.logger_timeout_s, cfg.logger_heartbeat_s
+
+    def check(self, t_s: float, now: float, sent_t: list, acked: int | None, heartbeat: float | None,
+              exiting) -> Trip | None:
+        """``sent_t``: when each block was sent; ``acked``: blocks logged (None: not watched);
+        ``heartbeat``: the logger's last beat (None: not watched, 0: not started); ``exiting()``: is the
+        logger's process exiting (asked only when the heartbeat is late)."""
+        if sent_t and acked is not None and acked < len(sent_t) and not (now - sent_t[acked] <= self.timeout_s):
+            return Trip("logger_stalled", f"the logger has not taken block {acked + 1} for "
+                        f"{(now - sent_t[acked]) * 1e3:.0f} ms", t_s,
+                        {"blocks_sent": len(sent_t), "blocks_logged": acked, "timeout_s": self.timeout_s})
+        if heartbeat is not None and heartbeat > 0.0 and not (now - heartbeat <= self.heartbeat_s) and exiting():
+            return Trip("logger_died", f"no heartbeat from the logger for {(now - heartbeat) * 1e3:.0f} ms "
+                        f"(limit {self.heartbeat_s * 1e3:g} ms)", t_s,
+                        {"age_s": now - heartbeat, "limit_s": self.heartbeat_s})
+        return None
+
+
+# values of the loop's shared ``abort_flag``: what the session asks for
+ABORT_NONE, ABORT_OPERATOR, ABORT_FAIL = 0, 1, 2
+
+
+def pause_trip(t_s: float, held_s: float, limit_s: float) -> Trip | None:
+    """An operator's pause held longer than ``max_pause_s``: to the safe state."""
+    if held_s <= limit_s:
+        return None
+    return Trip("pause_timeout", f"paused for {held_s:.1f} s (limit {limit_s:g} s)", t_s,
+                {"held_s": held_s, "limit_s": limit_s})
+
+
+def session_trip(t_s: float, abort_flag: int, signal_name: str | None, parent_gone: bool) -> Trip | None:
+    """The session asked for a stop at once (its log failed), or the loop was signalled with its parent
+    (the logger) gone."""
+    if abort_flag == ABORT_FAIL:
+        return Trip("logger_failed", "the session failed (its log): stop at once", t_s, {"abort_flag": ABORT_FAIL})
+    if signal_name and parent_gone:
+        return Trip("logger_died", "the logger (the parent process) died", t_s, {"signal": signal_name})
+    return None

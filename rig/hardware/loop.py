@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import gc
 import math
+import os
 import signal
 import time
 import traceback
@@ -47,12 +48,19 @@ from drivers.config import parse_hardware
 from drivers.errors import DeviceError
 from rig.control import apply_switches, controller_params_from_profile, controller_step_v, new_controller_state
 from rig.hardware.devices import build_devices, wait_for_data
-from rig.hardware.interlocks import DEVICE_TRIPS, Interlocks, Trip
+from rig.hardware.interlocks import (
+    ABORT_FAIL, ABORT_NONE, ABORT_OPERATOR, DEVICE_TRIPS, SAFETY_TRIPS, Interlocks, LoggerWatch, TimingWatch, Trip,
+    pause_trip, session_trip,
+)
+from rig.hardware.safety import latched_message, write_latch
 from rig.hardware.timing import Pacer, set_pdeathsig, set_process_name, setup_realtime
+from trajectories.pause import PausableReference
 
 BLOCK_KEYS = ("t_s", "position_ref_um", "position_um", "friction_N", "normal_1_N", "normal_2_N",
               "valve_cmd", "pid_p", "pid_i", "pid_d", "dither")
 N_KEYS = len(BLOCK_KEYS)
+
+__all__ = ["ABORT_FAIL", "ABORT_NONE", "ABORT_OPERATOR", "BLOCK_KEYS", "Mode", "RtLoop", "loop_main"]
 
 
 class Mode(Enum):
@@ -73,27 +81,27 @@ class _Block:
         self.read = np.empty(n)
         self.i = 0
         self.skipped = 0
+        self.skips: list[tuple[float, int]] = []  # (CLOCK_MONOTONIC at the late tick's end, cycles skipped)
 
     def take(self):
         i = self.i
         blk = {k: self.rows[r, :i].copy() for r, k in enumerate(BLOCK_KEYS)}
         tim = {"late_s": self.late[:i].copy(), "period_s": self.period[:i].copy(),
-               "exec_s": self.exec[:i].copy(), "read_s": self.read[:i].copy(), "skipped": self.skipped}
+               "exec_s": self.exec[:i].copy(), "read_s": self.read[:i].copy(), "skipped": self.skipped,
+               "skips": self.skips}
         self.i = 0
         self.skipped = 0
+        self.skips = []
         return blk, tim
 
 
-# values of the shared ``abort_flag``: what the session asks for
-ABORT_NONE, ABORT_OPERATOR, ABORT_FAIL = 0, 1, 2
-
-
-def loop_main(hw_dict, profile, x_ref_um, out_q, abort_flag, options=None, logger_ack=None, logger_alive=None):
+def loop_main(hw_dict, profile, x_ref_um, out_q, abort_flag, options=None, logger_ack=None, logger_alive=None,
+              pause_req=None):
     """Entry point of the loop process. ``abort_flag``: a shared ``multiprocessing.Value('i')``
     (1: operator abort, hold then safe; 2: the session failed, e.g. its log: safe at once);
     ``logger_ack``: a shared ``Value('q')``, the number of blocks the session has logged;
     ``logger_alive``: a shared ``Value('d')``, the ``time.monotonic()`` of the logger's last heartbeat
-    (0: not started)."""
+    (0: not started); ``pause_req``: a shared ``Value('i')``, 1 while the operator asks for a pause."""
     options = options or {}
     set_process_name("rig-rt-loop")
     set_pdeathsig(signal.SIGTERM)
@@ -106,7 +114,7 @@ def loop_main(hw_dict, profile, x_ref_um, out_q, abort_flag, options=None, logge
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's: it sets abort_flag
     try:
         _run(hw_dict, profile, np.asarray(x_ref_um, dtype=float), out_q, abort_flag, stop_req, options,
-             logger_ack, logger_alive)
+             logger_ack, logger_alive, pause_req)
     except BaseException as exc:  # noqa: BLE001 - report, never die silently
         out_q.put(("done", {"status": "error", "message": f"{type(exc).__name__}: {exc}",
                             "traceback": traceback.format_exc()}))
@@ -138,295 +146,400 @@ def _device_counters(devices) -> dict:
     return out
 
 
-def _run(hw_dict, profile, x_ref, out_q, abort_flag, stop_req, options, logger_ack=None, logger_alive=None):
+def _run(hw_dict, profile, x_ref, out_q, abort_flag, stop_req, options, logger_ack=None, logger_alive=None,
+         pause_req=None):
+    """Connect, run every tick, end in the safe state; everything it has to say goes to ``out_q``."""
     import logging
-    import os
     import sys
 
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)  # errors are reported as DeviceError
     sys.setswitchinterval(1e-4)
-    hw = parse_hardware(hw_dict)
-    rt, ilc = hw.realtime, hw.interlocks
-    period = float(options.get("period_s") or profile.loop.dt_s)
-    use_ctl = options.get("controller", True)
-    cpar = apply_switches(controller_params_from_profile(profile), options.get("switches"))
-    ff_N = np.ascontiguousarray(options.get("ff_N", np.empty(0)), dtype=np.float64)  # friction feed-forward per tick
-    if ff_N.size and ff_N.size != len(x_ref):
-        raise ValueError(f"friction feed-forward has {ff_N.size} ticks, the reference {len(x_ref)}")
-    n_ff = int(ff_N.size)
-    cst = new_controller_state()
-    rig = build_devices(hw)
-    devices = rig.all
-    pos, forces, valve = rig.position, rig.forces, rig.valve
-    il = Interlocks(ilc, float(profile.stroke.min_um), float(profile.stroke.max_um),
-                    hw.valve.heartbeat_timeout_s, period)
-    mono = time.monotonic
-    parent = os.getppid()
-    failed: list[DeviceError] = []
-    for dev in devices:  # every device that does not answer is named, not just the first
-        try:
-            dev.connect()
-        except DeviceError as exc:
-            failed.append(exc)
-    if not failed:
-        try:
-            wait_for_data(devices, max(0.5, 4 * hw.valve.heartbeat_timeout_s), mono)
-        except DeviceError as exc:
-            failed.append(exc)
-    if failed:
-        for d in devices:
-            d.close()
-        out_q.put(("done", {"status": "error", "message": "; ".join(map(str, failed)),
-                            "devices_failed": [{"device": e.device, "address": e.address} for e in failed]}))
+    loop = RtLoop(parse_hardware(hw_dict), profile, x_ref, out_q, abort_flag, stop_req, options,
+                  logger_ack, logger_alive, pause_req=pause_req)
+    if not loop.connect():
         return
-    health = {d.name: d.health(mono()) for d in devices}  # updated in place by d.health(now)
-    rt_info = setup_realtime(rt.sched_fifo, rt.priority, rt.cpu)
-    out_q.put(("info", {"realtime": rt_info, "period_s": period,
-                        "devices": {d.name: d.address for d in devices}}))
-    # everything compiled and imported before the first tick
-    controller_step_v(cpar, cst, float(x_ref[0]), float(x_ref[0]), math.nan, 0.0)
-    cst[:] = new_controller_state()
-    il.command(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    loop.start()
+    while loop.tick():
+        pass
+    loop.finish()
 
-    n_ticks = len(x_ref)
-    hold_ticks = max(1, int(round(ilc.stop_hold_s / period)))
-    blk = _Block(rt.block_ticks)
-    pacer = Pacer(period, rt_info["sched"] == "SCHED_FIFO", rt.spin_s)
-    status = "completed"
-    trip: Trip | None = None
-    mode = Mode.RUN
-    hold_ref = 0.0
-    hold_ff_k = 0
-    hold_end_k = 0
-    stop_k = n_ticks
 
-    # the explicit start (NMT start, fault reset, enable; verified by the valve's status PDO); only here,
-    # never after a trip
-    try:
-        valve.start()
-    except DeviceError as exc:
-        trip = Trip("valve_enable", f"{exc}", 0.0, {"status_bits": valve.final_state()["status_bits"]})
-    out_q.put(("event", 0.0, "loop_start", {"sched": rt_info["sched"], "note": rt_info["note"]}))
-    for d in devices:  # drain what arrived while enabling; staleness counts from here
+class RtLoop:
+    """The real-time loop over the rig's devices (see the module docstring): :meth:`connect`,
+    :meth:`start`, then :meth:`tick` (``read`` -> ``update`` -> ``write`` -> ``record`` -> ``advance``)
+    until it says the run is over, then :meth:`finish` (the safe state, confirmed by the valve).
+    Every trip goes through :meth:`trip`."""
+
+    def __init__(self, hw, profile, x_ref, out_q, abort_flag, stop_req, options, logger_ack=None,
+                 logger_alive=None, devices=None, clock=None, pause_req=None):
+        """``devices``: a :class:`rig.hardware.devices.RigDevices` (default: the profile's); ``clock``: a
+        simulated clock (:class:`rig.hardware.fake.FakeClock`: no real-time setup, no sleeping)."""
+        self.hw, self.out_q, self.abort_flag, self.stop_req = hw, out_q, abort_flag, stop_req
+        self.logger_ack, self.logger_alive = logger_ack, logger_alive
+        ilc = hw.interlocks
+        self.period = float(options.get("period_s") or profile.loop.dt_s)
+        self.inv_dt = 1.0 / self.period
+        self.use_ctl = options.get("controller", True)
+        self.cpar = apply_switches(controller_params_from_profile(profile), options.get("switches"))
+        self.ff_N = np.ascontiguousarray(options.get("ff_N", np.empty(0)), dtype=np.float64)  # per tick
+        if self.ff_N.size and self.ff_N.size != len(x_ref):
+            raise ValueError(f"friction feed-forward has {self.ff_N.size} ticks, the reference {len(x_ref)}")
+        self.n_ff = int(self.ff_N.size)
+        self.cst = new_controller_state()
+        self.rig = devices if devices is not None else build_devices(hw)
+        self.fake_clock = clock
+        self.clock = clock if clock is not None else time.monotonic
+        self.devices = self.rig.all
+        self.pos, self.forces, self.valve = self.rig.position, self.rig.forces, self.rig.valve
+        self.safety = self.rig.safety  # the safety chain's I/O (None: the profile has none)
+        self.il = Interlocks(ilc, float(profile.stroke.min_um), float(profile.stroke.max_um),
+                             hw.valve.heartbeat_timeout_s, self.period)
+        self.timing = TimingWatch(ilc, self.period)
+        self.logger = LoggerWatch(ilc)
+        self.parent = os.getppid()
+        self.x_ref = x_ref
+        self.n_ticks = len(x_ref)
+        # the reference tick by tick, with the operator's pauses (held at the plan's next safe point, a
+        # run-up of runup_um at the segment's velocity on resume)
+        self.ref = PausableReference(x_ref, self.period, options.get("safe_ticks", ()), options.get("runup_um", 0.0),
+                                     (self.il.x_min, self.il.x_max))
+        self.pause_req = pause_req
+        self._pause_seen = 0
+        self.max_pause_s = ilc.max_pause_s
+        self.hold_ticks = max(1, int(round(ilc.stop_hold_s / self.period)))
+        self.blk = _Block(hw.realtime.block_ticks)
+        self.status = "completed"
+        self.trip_: Trip | None = None
+        self.mode = Mode.RUN
+        self.hold_ref = 0.0
+        self.hold_ff_k = self.hold_end_k = 0
+        self.stop_k = 1 << 62  # the plan's end (or a trip, a stop) sets it
+        self.kr = 0  # the reference index: +1 per executed tick (a stall holds the reference; t_s = kr * period)
+        self.sent_t: list[float] = []  # when each block went to the logger
+        self.read_max = [0.0] * len(self.devices)  # the longest read of each device (s)
+        self.x = self.f = self.n1 = self.n2 = 0.0
+        self.cmd = self.p = self.i_ = self.d_ = self.dz = 0.0
+        self.xr = self.xr_prev = float(x_ref[0])
+        self.last_wake = math.nan
+        self.gap = math.nan
+        self.prev_skipped = self.carry_skip = self.stall_due = 0
+        self.stall_gap: float | None = None  # this tick's gap when it is a stall
+        self.dev_trip: Trip | None = None
+        self.wall_ns_tick0: int | None = None  # time.time_ns() at tick 0's deadline (see start())
+
+    # -- before the first tick ----------------------------------------------------------------------
+    def connect(self) -> bool:
+        """Connect every device and wait for its first data; False (and a ``done`` message naming every
+        device that did not answer) when any failed."""
+        mono = self.clock
+        latched = latched_message(self.hw.safety) if self.safety is not None else None
+        if latched:
+            self.out_q.put(("done", {"status": "error", "message": latched, "safety_latched": True}))
+            return False
+        failed: list[DeviceError] = []
+        for dev in self.devices:
+            try:
+                dev.connect()
+            except DeviceError as exc:
+                failed.append(exc)
+        if not failed:
+            try:
+                wait_for_data(self.devices, max(0.5, 4 * self.hw.valve.heartbeat_timeout_s), mono)
+            except DeviceError as exc:
+                failed.append(exc)
+        if failed:
+            for d in self.devices:
+                d.close()
+            self.out_q.put(("done", {"status": "error", "message": "; ".join(map(str, failed)),
+                                     "devices_failed": [{"device": e.device, "address": e.address} for e in failed]}))
+            return False
+        self.health = {d.name: d.health(mono()) for d in self.devices}  # updated in place by d.health(now)
+        return True
+
+    def start(self) -> None:
+        """Real-time setup, everything compiled, the valve's explicit start, then tick 0's deadline."""
+        rt, fake = self.hw.realtime, self.fake_clock
+        self.rt_info = setup_realtime(rt.sched_fifo, rt.priority, rt.cpu) if fake is None else \
+            {"sched": "simulated clock", "priority": 0, "note": ""}
+        self.out_q.put(("info", {"realtime": self.rt_info, "period_s": self.period,
+                                 "devices": {d.name: d.address for d in self.devices}}))
+        controller_step_v(self.cpar, self.cst, self.xr, self.xr, math.nan, 0.0)  # compiled before the first tick
+        self.cst[:] = new_controller_state()
+        self.il.command(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+        self.pacer = Pacer(self.period, self.rt_info["sched"] == "SCHED_FIFO", rt.spin_s) if fake is None else \
+            Pacer(self.period, True, 0.0, clock=fake, sleep=fake.sleep)
+        # the explicit start (NMT start, fault reset, enable; verified by the valve's status PDO): only
+        # here, never after a trip
+        start_trip = None
         try:
-            d.read(mono())
-        except DeviceError:
-            pass
-    # the cyclic GC would scan every object numba/numpy/pydantic created (tens of ms):
-    # freeze what exists and switch it off; the loop makes (almost) no reference cycles
-    gc.collect()
-    gc.freeze()
-    gc.disable()
-    pacer.start()
-    # issue 21 (the log's clock): the wall-clock time of the loop's monotonic clock, taken once at tick 0;
-    # every block carries the wall-clock time of its last tick (tim["wall_ns"])
-    wall0_ns, mono0 = time.time_ns(), mono()
-    perf = time.perf_counter
-    if trip is not None:
-        status, mode, stop_k = "tripped", Mode.SAFE, 0
-        out_q.put(("event", 0.0, "interlock", trip.as_dict()))
-    x = pos.position_um
-    cmd = p = i_ = d_ = dz = 0.0
-    # timing health: a gap between two ticks over stall_event_s is an event, over stall_trip_s a trip;
-    # skipped cycles above max_skipped_fraction of the last second trip. The reference index `kr`
-    # advances by one per executed tick, so after a stall the reference resumes where it was
-    # (no jump): trial time t_s = kr * period is the reference's time.
-    stall_ev, stall_trip = ilc.stall_event_s, ilc.stall_trip_s
-    win_skip0, win_t = 0, None
-    max_skip_per_s = ilc.max_skipped_fraction / period
-    last_wake = float("nan")
-    prev_skipped = carry_skip = stall_due = 0
-    stall_gap = None  # this tick's gap when it is a stall
-    # the logger: blocks sent and when; the session acknowledges each block it has logged
-    sent_t: list[float] = []
-    log_timeout = ilc.logger_timeout_s
-    log_hb = ilc.logger_heartbeat_s
-    kr = 0
-    read_max = [0.0] * len(devices)  # the longest read of each device (s): where a slow tick went
-    xr_prev = float(x_ref[0])
-    inv_dt = 1.0 / period
-    while True:
-        k, dl, wake = pacer.wait()
-        if kr >= stop_k:
-            break
-        c0 = perf()
-        t_s = kr * period
-        # -- read ------------------------------------------------------------------
-        dev_trip = None
-        ca = c0
-        for di, dev in enumerate(devices):
+            self.valve.start()
+        except DeviceError as exc:
+            start_trip = Trip("valve_enable", f"{exc}", 0.0, {"status_bits": self.valve.final_state()["status_bits"]})
+        for d in self.devices:  # drain what arrived while enabling; staleness counts from here
+            try:
+                d.read(self.clock())
+            except DeviceError:
+                pass
+        # the cyclic GC would scan every object numba/numpy/pydantic created (tens of ms):
+        # freeze what exists and switch it off; the loop makes (almost) no reference cycles
+        gc.collect()
+        gc.freeze()
+        gc.disable()
+        self.pacer.start()
+        # THE WALL CLOCK OF TICK 0: tick k's deadline is pacer.t0 + k * period on CLOCK_MONOTONIC; its
+        # wall-clock time is wall_ns_tick0 + k * period (handed to the session in ``loop_start``)
+        self.wall_ns_tick0 = time.time_ns() + int(round((self.pacer.t0 - self.clock()) * 1e9))
+        self.out_q.put(("event", 0.0, "loop_start", {"sched": self.rt_info["sched"], "note": self.rt_info["note"],
+                                                     "wall_ns_tick0": self.wall_ns_tick0}))
+        if start_trip is not None:
+            self.trip(start_trip)
+            self.stop_k = 0
+        self.x = self.pos.position_um
+
+    # -- one tick ----------------------------------------------------------------------------------
+    def tick(self) -> bool:
+        """Wait for the next deadline and run one tick; False once the run is over."""
+        _k, dl, wake = self.pacer.wait()
+        if self.kr >= self.stop_k:
+            return False
+        c0 = time.perf_counter()
+        self.read(wake)
+        c1 = time.perf_counter()
+        self.update(wake, dl)
+        self.write(wake)
+        self.record(wake, dl, c0, c1)
+        self.advance()
+        return True
+
+    def read(self, wake: float) -> None:
+        """Every device's ``read``; a DeviceError is judged by the interlocks in :meth:`update`."""
+        perf = time.perf_counter
+        self.dev_trip = None
+        t_s = self.kr * self.period
+        ca = perf()
+        for di, dev in enumerate(self.devices):
             try:
                 dev.read(wake)
             except DeviceError as exc:
-                dev_trip = dev_trip or il.device_error(t_s, dev.name, exc, dev.health(wake))
+                self.dev_trip = self.dev_trip or self.il.device_error(t_s, dev.name, exc, dev.health(wake))
             cb = perf()
-            if cb - ca > read_max[di]:
-                read_max[di] = cb - ca
+            if cb - ca > self.read_max[di]:
+                self.read_max[di] = cb - ca
             ca = cb
-        c1 = ca
-        x = pos.position_um
-        f, n1, n2 = forces.forces_N
-        for dev in devices:
+        self.x = self.pos.position_um
+        self.f, self.n1, self.n2 = self.forces.forces_N
+        for dev in self.devices:
             dev.health(wake)
-        # -- update: reference, stop states, interlocks, controller -------------------
-        if mode is Mode.HOLD:
-            xr = hold_ref
+
+    def update(self, wake: float, deadline: float) -> None:
+        """The reference, the stop states, the interlocks, the controller."""
+        kr, t_s = self.kr, self.kr * self.period
+        if self.mode is Mode.HOLD:
+            xr = self.hold_ref
         else:
-            xr = float(x_ref[kr]) if kr < n_ticks else float(x_ref[-1])
-        v_ref = (xr - xr_prev) * inv_dt if kr else 0.0
-        xr_prev = xr
-        gap = wake - last_wake
-        last_wake = wake
-        if mode is not Mode.SAFE:
-            tr = dev_trip
-            if gap > stall_ev:  # a stall (NaN on the first tick: no); its event goes out after advance()
-                stall_due = pacer.due_skips(wake)
-                stall_gap = gap
-                if tr is None and not (gap <= stall_trip):
-                    tr = Trip("loop_stall", f"no tick for {gap * 1e3:.0f} ms (limit {stall_trip * 1e3:g} ms)",
-                              t_s, {"gap_s": gap, "skipped": carry_skip + stall_due})
-            if tr is None:
-                tr = il.check(t_s, wake, xr, x, f, n1, n2, health, wake - dl, v_ref)
-            if tr is None and sent_t and logger_ack is not None:
-                ack = logger_ack.value
-                if ack < len(sent_t) and not (wake - sent_t[ack] <= log_timeout):
-                    tr = Trip("logger_stalled", f"the logger has not taken block {ack + 1} for "
-                              f"{(wake - sent_t[ack]) * 1e3:.0f} ms", t_s,
-                              {"blocks_sent": len(sent_t), "blocks_logged": ack, "timeout_s": log_timeout})
-            if tr is None and logger_alive is not None:
-                hb = logger_alive.value
-                if hb > 0.0 and not (wake - hb <= log_hb) and _process_exiting(parent):
-                    tr = Trip("logger_died", f"no heartbeat from the logger for {(wake - hb) * 1e3:.0f} ms "
-                              f"(limit {log_hb * 1e3:g} ms)", t_s, {"age_s": wake - hb, "limit_s": log_hb})
-            if tr is None:
-                if abort_flag.value == ABORT_FAIL:
-                    tr = Trip("logger_failed", "the session failed (its log): stop at once", t_s,
-                              {"abort_flag": ABORT_FAIL})
-                elif stop_req["why"] and os.getppid() != parent:
-                    tr = Trip("logger_died", "the logger (the parent process) died", t_s,
-                              {"signal": stop_req["why"]})
+            xr = self.reference(t_s)
+        v_ref = (xr - self.xr_prev) * self.inv_dt if kr else 0.0
+        self.xr = self.xr_prev = xr
+        self.gap = wake - self.last_wake
+        self.last_wake = wake
+        if self.mode is not Mode.SAFE:
+            tr = self.check(t_s, wake, deadline, v_ref)
             if tr is not None:
-                trip, status, mode = tr, "tripped", Mode.SAFE
-                stop_k = kr + (1 if tr.name in DEVICE_TRIPS else hold_ticks)
-                out_q.put(("event", t_s, "interlock", tr.as_dict()))
-            elif mode is Mode.RUN and (abort_flag.value or stop_req["why"]):
-                status, mode, hold_ref = "aborted", Mode.HOLD, xr
-                hold_ff_k = kr  # the feed-forward holds with the reference
-                hold_end_k = kr + hold_ticks
-                stop_k = hold_end_k + 1
-                out_q.put(("event", t_s, "abort", {"reason": "operator abort" if abort_flag.value
-                                                   else stop_req["why"], "hold_um": xr}))
-            elif mode is Mode.HOLD and kr >= hold_end_k:
-                mode = Mode.SAFE
-        if mode is Mode.SAFE or not use_ctl:
+                self.trip(tr)
+            elif self.mode is Mode.RUN and (self.abort_flag.value or self.stop_req["why"]):
+                self.status, self.mode, self.hold_ref = "aborted", Mode.HOLD, xr
+                self.hold_ff_k = max(0, self.ref.k_plan - 1)  # the feed-forward holds with the reference
+                self.hold_end_k = kr + self.hold_ticks
+                self.stop_k = self.hold_end_k + 1
+                self.out_q.put(("event", t_s, "abort", {"reason": "operator abort" if self.abort_flag.value
+                                                        else self.stop_req["why"], "hold_um": xr}))
+            elif self.mode is Mode.HOLD and kr >= self.hold_end_k:
+                self.mode = Mode.SAFE
+        self.control(t_s)
+
+    def reference(self, t_s: float) -> float:
+        """This tick's reference from the pausable plan; the operator's pause requests; their events."""
+        ref = self.ref
+        pr = self.pause_req
+        if pr is not None and pr.value != self._pause_seen:
+            self._pause_seen = pr.value
+            if self._pause_seen:
+                ref.request_pause()
+            else:
+                ref.request_resume()
+        xr = ref.next()
+        if ref.events:
+            for k, kind, data in ref.events:
+                self.out_q.put(("event", k * self.period, kind, data))
+            ref.events.clear()
+        return xr
+
+    def check(self, t_s: float, wake: float, deadline: float, v_ref: float) -> Trip | None:
+        """Every interlock of this tick (:mod:`rig.hardware.interlocks`), first trip wins."""
+        tr = self.dev_trip
+        gap = self.gap
+        if self.timing.is_stall(gap):  # its event goes out after advance()
+            self.stall_due = self.pacer.due_skips(wake)
+            self.stall_gap = gap
+            tr = tr or self.timing.stall(t_s, gap, self.carry_skip + self.stall_due)
+        if tr is None:
+            tr = self.il.check(t_s, wake, self.xr, self.x, self.f, self.n1, self.n2, self.health, wake - deadline,
+                               v_ref)
+        if tr is None:
+            ack = self.logger_ack.value if self.logger_ack is not None else None
+            hb = self.logger_alive.value if self.logger_alive is not None else None
+            tr = self.logger.check(t_s, wake, self.sent_t, ack, hb, lambda: _process_exiting(self.parent))
+        if tr is None and self.ref.hold_ticks:
+            tr = pause_trip(t_s, self.ref.hold_s, self.max_pause_s)
+        if tr is None:
+            why = self.stop_req["why"]
+            tr = session_trip(t_s, self.abort_flag.value, why, bool(why) and os.getppid() != self.parent)
+        return tr
+
+    def control(self, t_s: float) -> None:
+        if self.mode is Mode.SAFE or not self.use_ctl:
+            self.cmd = self.p = self.i_ = self.d_ = self.dz = 0.0
+            return
+        ffk = 0.0
+        if self.n_ff:  # held with the reference (hold, stall, pause): the force of the plan's tick
+            kf = self.hold_ff_k if self.mode is Mode.HOLD else max(0, self.ref.k_plan - 1)
+            ffk = float(self.ff_N[kf if kf < self.n_ff else self.n_ff - 1])
+        cmd, p, i_, d_, dz = controller_step_v(self.cpar, self.cst, self.xr, self.x, math.nan, ffk)
+        s_ = cmd + p + i_ + d_ + dz
+        if s_ - s_ != 0.0:  # a non-finite controller output: never sent (the driver would null it)
+            self.trip(self.il.command(t_s, cmd, p, i_, d_, dz))
             cmd = p = i_ = d_ = dz = 0.0
-        else:
-            ffk = 0.0
-            if n_ff:  # held with the reference (hold, stall): the force of the tick the reference is at
-                kf = hold_ff_k if mode is Mode.HOLD else kr
-                ffk = float(ff_N[kf if kf < n_ff else n_ff - 1])
-            cmd, p, i_, d_, dz = controller_step_v(cpar, cst, xr, x, math.nan, ffk)
-            s_ = cmd + p + i_ + d_ + dz
-            if s_ - s_ != 0.0:  # a non-finite controller output: never sent (the driver would null it)
-                tr = il.command(t_s, cmd, p, i_, d_, dz)
-                trip, status, mode, stop_k = tr, "tripped", Mode.SAFE, kr + 1
-                out_q.put(("event", t_s, "interlock", tr.as_dict()))
-                cmd = p = i_ = d_ = dz = 0.0
-        # -- write -------------------------------------------------------------------
-        valve.command = cmd
-        valve.enable = mode is not Mode.SAFE
-        for dev in devices:
+        self.cmd, self.p, self.i_, self.d_, self.dz = cmd, p, i_, d_, dz
+
+    def write(self, wake: float) -> None:
+        """The valve's set-point (nulled and disabled in SAFE); every device's ``write``."""
+        valve = self.valve
+        valve.command = self.cmd
+        valve.enable = self.mode is not Mode.SAFE
+        if self.safety is not None:
+            self.safety.enable = valve.enable  # the amplifier's enable follows the valve's
+        for dev in self.devices:
             try:
                 dev.write(wake)
             except DeviceError as exc:
-                if mode is not Mode.SAFE:
-                    tr = il.device_error(t_s, dev.name, exc, dev.health(wake))
+                if self.mode is not Mode.SAFE:
+                    tr = self.il.device_error(self.kr * self.period, dev.name, exc, dev.health(wake))
                     if tr is not None:
-                        trip, status, mode, stop_k = tr, "tripped", Mode.SAFE, kr + 1
-                        out_q.put(("event", t_s, "interlock", tr.as_dict()))
-        # -- record ------------------------------------------------------------------
+                        self.trip(tr)
+
+    def record(self, wake: float, deadline: float, c0: float, c1: float) -> None:
+        """This tick's row and timing into the block; a full block goes to the logger."""
+        blk = self.blk
         j = blk.i
         r = blk.rows
-        r[0, j] = t_s
-        r[1, j] = xr
-        r[2, j] = x
-        r[3, j] = f
-        r[4, j] = n1
-        r[5, j] = n2
-        r[6, j] = cmd
-        r[7, j] = p
-        r[8, j] = i_
-        r[9, j] = d_
-        r[10, j] = dz
-        blk.late[j] = wake - dl
-        blk.period[j] = gap if prev_skipped == 0 else float("nan")
+        r[0, j] = self.kr * self.period
+        r[1, j] = self.xr
+        r[2, j] = self.x
+        r[3, j] = self.f
+        r[4, j] = self.n1
+        r[5, j] = self.n2
+        r[6, j] = self.cmd
+        r[7, j] = self.p
+        r[8, j] = self.i_
+        r[9, j] = self.d_
+        r[10, j] = self.dz
+        blk.late[j] = wake - deadline
+        blk.period[j] = self.gap if self.prev_skipped == 0 else float("nan")
         blk.read[j] = c1 - c0
         blk.i = j + 1
-        blk.exec[j] = perf() - c0
+        blk.exec[j] = time.perf_counter() - c0
         if blk.i >= blk.n:
-            b, tim = blk.take()
-            tim["wall_ns"] = wall0_ns + int((wake - mono0) * 1e9)  # issue 21: wall clock of its last tick
-            tim["devices"] = _device_counters(devices)
-            out_q.put(("block", b, tim))
-            sent_t.append(mono())
-        kr += 1
-        now = mono()
-        prev_skipped = pacer.advance(now)
-        if prev_skipped:
-            blk.skipped += prev_skipped
+            self.send_block()
+            self.sent_t.append(self.clock())
+
+    def advance(self) -> None:
+        """To the next tick: skipped deadlines, the stall's event, the skipped-cycles watch, the plan's end."""
+        t_s = self.kr * self.period
+        wake = self.last_wake
+        self.kr += 1
+        now = self.clock()
+        self.prev_skipped = self.pacer.advance(now)
+        if self.prev_skipped:
+            self.blk.skipped += self.prev_skipped
+            self.blk.skips.append((now, self.prev_skipped))
         # the cycles a stall cost: those the previous tick's overrun skipped (they made this gap) and,
         # for a late wake, those already due when this tick woke (skipped by this tick's advance)
-        if stall_gap is not None:
-            due = min(prev_skipped, stall_due)
-            out_q.put(("event", t_s, "stall", {"gap_s": stall_gap, "skipped": carry_skip + due,
-                                               "reference_held": True, "wake_monotonic_s": wake}))
-            carry_skip = prev_skipped - due
-            stall_gap = None
+        if self.stall_gap is not None:
+            due = min(self.prev_skipped, self.stall_due)
+            self.out_q.put(("event", t_s, "stall", {"gap_s": self.stall_gap, "skipped": self.carry_skip + due,
+                                                    "reference_held": True, "wake_monotonic_s": wake}))
+            self.carry_skip = self.prev_skipped - due
+            self.stall_gap = None
         else:
-            carry_skip = prev_skipped
-        # skipped cycles within the last second
-        if win_t is None or not (now - win_t < 1.0):
-            win_t, win_skip0 = now, pacer.skipped
-        elif mode is not Mode.SAFE and not (pacer.skipped - win_skip0 <= max_skip_per_s):
-            ds = pacer.skipped - win_skip0
-            trip, status, mode, stop_k = (Trip("skipped_cycles", f"{ds} cycles skipped within "
-                                               f"{now - win_t:.2f} s (limit {max_skip_per_s:.0f} per second)",
-                                               t_s, {"skipped": ds, "limit": max_skip_per_s}),
-                                          "tripped", Mode.SAFE, kr + 1)
-            out_q.put(("event", t_s, "interlock", trip.as_dict()))
-        if kr == n_ticks and mode is Mode.RUN:
-            mode, stop_k = Mode.SAFE, kr  # end of the plan
-    # -- safe state ----------------------------------------------------------------------
-    valve.command, valve.enable = 0.0, False
-    try:
-        valve.write(mono())
-    except DeviceError:
-        pass
-    if trip is not None and trip.name == "logger_died" and os.getppid() != parent:
-        # nobody reads the queue any more: never wait for it at exit (only then: cancelling can leave a
-        # half-written message in the pipe, which would block a reader that is still there)
-        out_q.cancel_join_thread()
-    confirmed = False
-    try:
-        confirmed = valve.safe_stop()
-    except DeviceError:
-        pass
-    if blk.i:
-        b, tim = blk.take()
-        tim["wall_ns"] = wall0_ns + int((wake - mono0) * 1e9)  # issue 21: wall clock of its last tick
-        tim["devices"] = _device_counters(devices)
-        out_q.put(("block", b, tim))
-    summary = {"status": status, "ticks": int(kr), "skipped": int(pacer.skipped),
-               "devices": {d.name: d.health(mono()).as_dict() for d in devices}, "realtime": rt_info,
-               "read_max_us_by_device": {d.name: round(m * 1e6, 1) for d, m in zip(devices, read_max)}}
-    if trip is not None:
-        summary["trip"] = trip.as_dict()
-        summary["message"] = str(trip)
-    try:
-        valve.read(mono())
-    except DeviceError:
-        pass
-    summary["valve_final"] = {**valve.final_state(), "confirmed": confirmed}
-    for dev in devices:
-        dev.close()
-    out_q.put(("done", summary))
+            self.carry_skip = self.prev_skipped
+        tr = self.timing.skipped(t_s, now, self.pacer.skipped)
+        if tr is not None and self.mode is not Mode.SAFE:
+            self.trip(tr)
+        if self.mode is Mode.RUN and self.ref.done:
+            self.mode, self.stop_k = Mode.SAFE, self.kr  # end of the plan
+
+    # -- the one trip path ----------------------------------------------------------------------------
+    def trip(self, tr: Trip) -> None:
+        """Any interlock: to SAFE (valve nulled and disabled from this tick's write on). The sensors are
+        logged for ``stop_hold_s`` after a process-limit trip, for one more tick after a device trip
+        (nothing from the devices or the loop's timing can be trusted then); the first trip is kept."""
+        if self.trip_ is None:
+            self.trip_ = tr
+        self.status, self.mode = "tripped", Mode.SAFE
+        self.stop_k = self.kr + (1 if tr.name in DEVICE_TRIPS else self.hold_ticks)
+        self.out_q.put(("event", tr.t_s, "interlock", tr.as_dict()))
+
+    # -- after the last tick -----------------------------------------------------------------------
+    def send_block(self) -> None:
+        b, tim = self.blk.take()
+        # the log's clock (issue 21): the wall-clock time of the block's LAST tick, from its wake on the
+        # monotonic clock (after a stall this is later than wall_ns_tick0 + t_s: the reference was held)
+        if self.wall_ns_tick0 is not None and self.last_wake == self.last_wake:
+            tim["wall_ns"] = self.wall_ns_tick0 + int(round((self.last_wake - self.pacer.t0) * 1e9))
+        tim["devices"] = _device_counters(self.devices)
+        self.out_q.put(("block", b, tim))
+
+    def finish(self) -> None:
+        """Null and disable the valve and wait for its confirmation; the last block; the summary."""
+        valve, mono = self.valve, self.clock
+        valve.command, valve.enable = 0.0, False
+        try:
+            valve.write(mono())
+        except DeviceError:
+            pass
+        trip = self.trip_
+        if trip is not None and trip.name == "logger_died" and os.getppid() != self.parent:
+            # nobody reads the queue any more: never wait for it at exit (only then: cancelling can leave a
+            # half-written message in the pipe, which would block a reader that is still there)
+            self.out_q.cancel_join_thread()
+        confirmed = False
+        try:
+            confirmed = valve.safe_stop()
+        except DeviceError:
+            pass
+        safety_final = None
+        if self.safety is not None:
+            off = self.safety.safe_stop()
+            safety_final = {"enable_output_off": off, "state": self.safety.describe()}
+            if trip is not None and trip.name in SAFETY_TRIPS:
+                safety_final["latch"] = str(write_latch(self.hw.safety, trip.as_dict()))
+        if self.blk.i:
+            self.send_block()
+        summary = {"status": self.status, "ticks": int(self.kr), "skipped": int(self.pacer.skipped),
+                   "devices": {d.name: d.health(mono()).as_dict() for d in self.devices}, "realtime": self.rt_info,
+                   "read_max_us_by_device": {d.name: round(m * 1e6, 1) for d, m in zip(self.devices, self.read_max)},
+                   "wall_ns_tick0": self.wall_ns_tick0}
+        if trip is not None:
+            summary["trip"] = trip.as_dict()
+            summary["message"] = str(trip)
+        try:
+            valve.read(mono())
+        except DeviceError:
+            pass
+        summary["valve_final"] = {**valve.final_state(), "confirmed": confirmed}
+        if safety_final is not None:
+            summary["safety_final"] = safety_final
+        for dev in self.devices:
+            dev.close()
+        gc.enable()  # (the loop process ends here; an in-process test goes on)
+        self.out_q.put(("done", summary))

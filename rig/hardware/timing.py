@@ -33,7 +33,8 @@ HIST_EDGES_US = np.array([-1e9, -100, -50, -20, -10, 0, 10, 20, 50, 100, 200, 50
 MISS_THRESHOLDS_US = (100, 500, 1000)
 
 
-__all__ = ["Pacer", "TimingStats", "format_stats", "setup_realtime", "set_pdeathsig", "set_process_name"]
+__all__ = ["Pacer", "StallProbe", "TimingStats", "attribute_skips", "format_stats", "setup_realtime",
+           "set_pdeathsig", "set_process_name"]
 
 
 def setup_realtime(sched_fifo: bool = True, priority: int = 80, cpu: int | None = None) -> dict:
@@ -67,16 +68,20 @@ def setup_realtime(sched_fifo: bool = True, priority: int = 80, cpu: int | None 
 class Pacer:
     """Absolute-deadline pacing with skip-on-overrun."""
 
-    def __init__(self, period_s: float, fifo: bool, spin_s: float = 50e-6):
+    def __init__(self, period_s: float, fifo: bool, spin_s: float = 50e-6, clock=time.monotonic,
+                 sleep=time.sleep):
+        """``clock`` / ``sleep``: CLOCK_MONOTONIC and time.sleep; a simulated clock in tests
+        (:class:`rig.hardware.fake.FakeClock`)."""
         self.period_s = period_s
         self.fifo = fifo
         self.spin_s = 0.0 if fifo else spin_s
+        self.clock, self.sleep = clock, sleep
         self.t0 = 0.0
         self.k = 0
         self.skipped = 0
 
     def start(self, t0: float | None = None) -> None:
-        self.t0 = time.monotonic() + 0.002 if t0 is None else t0
+        self.t0 = self.clock() + 0.002 if t0 is None else t0
         self.k = 0
 
     def deadline(self, k: int | None = None) -> float:
@@ -84,12 +89,12 @@ class Pacer:
 
     def wait(self) -> tuple[int, float, float]:
         """Wait for the deadline of tick ``k``; returns (k, deadline, wake time)."""
-        mono = time.monotonic
+        mono = self.clock
         dl = self.t0 + self.k * self.period_s
         now = mono()
         rem = dl - now - self.spin_s
         if rem > 0:
-            time.sleep(rem)
+            self.sleep(rem)
         if self.spin_s:
             while mono() < dl:
                 pass
@@ -104,7 +109,7 @@ class Pacer:
 
     def advance(self, now: float | None = None) -> int:
         """Move to the next tick, skipping deadlines already past; returns ticks skipped."""
-        now = time.monotonic() if now is None else now
+        now = self.clock() if now is None else now
         self.k += 1
         nxt = self.t0 + self.k * self.period_s
         skip = 0
@@ -223,3 +228,71 @@ def format_stats(s: dict, title: str = "loop timing") -> str:
         lines.append("  lateness histogram (µs): " + ", ".join(
             f"{lab}: {c}" for lab, c in zip(labels, hist) if c))
     return "\n".join(lines)
+
+
+# -- whose were the skipped cycles: the VM's or the loop's ------------------------------------------------
+
+def _probe_main(conn, period_s: float, threshold_s: float, priority: int, cpu: int | None) -> None:
+    """A bare sleeper: wakes every ``period_s`` and keeps each gap over ``threshold_s`` as (start, end) on
+    CLOCK_MONOTONIC until told to stop; then sends them."""
+    set_process_name("rig-stall-probe")
+    set_pdeathsig()
+    setup_realtime(priority > 0, max(1, priority), cpu)
+    gaps, mono = [], time.monotonic
+    last = mono()
+    while not conn.poll():
+        time.sleep(period_s)
+        now = mono()
+        if now - last > threshold_s:
+            gaps.append((last, now))
+        last = now
+    conn.send(gaps)
+
+
+class StallProbe:
+    """A second process that does nothing but sleep ``period_s`` at a time (SCHED_FIFO ``priority`` where
+    permitted, on the loop's ``cpu``) and notes when it woke late. When the loop skipped cycles and the
+    probe stalled over the same time, the machine (the VM's vCPU, the host) stalled both: the skip is
+    the VM's; when the probe ran on time, the loop itself was late."""
+
+    def __init__(self, period_s: float = 1e-3, threshold_s: float = 2e-3, priority: int = 0,
+                 cpu: int | None = None):
+        import multiprocessing as mp
+
+        ctx = mp.get_context("spawn")
+        self._conn, child = ctx.Pipe()
+        self.proc = ctx.Process(target=_probe_main, name="rig-stall-probe", daemon=True,
+                                args=(child, period_s, threshold_s, priority, cpu))
+        self.gaps: list[tuple[float, float]] = []
+
+    def start(self) -> "StallProbe":
+        self.proc.start()
+        return self
+
+    def stop(self) -> list[tuple[float, float]]:
+        try:
+            self._conn.send("stop")
+            if self._conn.poll(5.0):
+                self.gaps = [tuple(g) for g in self._conn.recv()]
+        except (OSError, EOFError):
+            pass
+        self.proc.join(2.0)
+        if self.proc.is_alive():
+            self.proc.kill()
+        return self.gaps
+
+
+def attribute_skips(skips, probe_gaps, period_s: float) -> dict:
+    """Each late tick (``(end, cycles skipped)``; it was late over ``[end - (n + 1) period, end]``) to the
+    VM when a gap of the probe overlaps that time, else to the loop. Counts of cycles and of episodes."""
+    out = {"vm_cycles": 0, "loop_cycles": 0, "vm_episodes": 0, "loop_episodes": 0, "loop_at": []}
+    gaps = sorted(probe_gaps)
+    for end, n in skips:
+        start = end - (n + 1) * period_s
+        vm = any(g0 < end and g1 > start for g0, g1 in gaps)
+        key = "vm" if vm else "loop"
+        out[f"{key}_cycles"] += int(n)
+        out[f"{key}_episodes"] += 1
+        if not vm:
+            out["loop_at"].append((round(end, 6), int(n)))
+    return out

@@ -17,7 +17,11 @@ backend (the simulated rig, :class:`rig.session.sim.SimBackend`; the hardware,
   backend still sends (the hardware holds position, then nulls and disables
   the valve) until the backend says it is safe. A third signal insists (the
   hardware loop is terminated; the valve controller's watchdog nulls the valve).
-* closes the log with the status: ``completed``, ``interrupted`` or ``failed``.
+* closes the log with the status: ``completed``, ``interrupted`` or ``failed``;
+* passes the operator's pause and resume (SIGUSR1, `rig pause` / `rig resume`:
+  :class:`rig.session.pausing.PauseControl`) to a backend that can pause, and
+  schedules the plan's events later by the time a pause added (``pause`` ...
+  ``runup_done`` events of the backend), so that each is logged when it happens.
 
 The writer needs only ``schedule_events``, ``event``, ``write_block``,
 ``loop_stats``, ``warm_up()`` (load what the first block needs, before the
@@ -433,7 +437,7 @@ class TrialSession:
 
     def __init__(self, plan, backend: Backend, writer, *, progress: Callable[[float], Any] | None = None,
                  echo: Callable[[str], Any] = _noop, stats_every_s: float = 1.0,
-                 trial_fields: dict | None = None, handle_signals: bool = True):
+                 trial_fields: dict | None = None, handle_signals: bool = True, pause=None):
         self.plan = plan
         self.backend = backend
         self.writer = writer
@@ -449,6 +453,16 @@ class TrialSession:
         self._logged = None
         self.writer_failure: str | None = None
         self.close_timeout_s = 10.0  # finishing the log never hangs longer (a dead disk): rig recover
+        # the operator's pause (rig.session.pausing.PauseControl): by default where signals are handled
+        if pause is None and handle_signals and hasattr(backend, "pause"):
+            from rig.session.pausing import PauseControl
+
+            pause = PauseControl()
+        self.pause = pause if hasattr(backend, "pause") else None
+        self._planned = sorted((dict(e) for e in getattr(plan, "events", []) or []), key=lambda e: e["t_s"])
+        self._plan_shift_s = 0.0       # trial time - plan time of the events after the last pause
+        self._plan_shift_um = 0.0      # and the position the run-ups added
+        self._plan_frozen_s = None     # plan time from which events wait for the run-up to end
 
     # -- stop requests ---------------------------------------------------------
     def request_stop(self, cause: Cause, reason: str) -> None:
@@ -480,7 +494,6 @@ class TrialSession:
         plan, backend, w = self.plan, self.backend, self.writer
         rate = float(plan.loop_rate_hz)
         half_tick = 0.5 / rate
-        w.schedule_events(plan.events)
         w.event(0.0, "trial_start", **{**self.trial_fields, "backend": backend.name,
                                        "duration_s": float(plan.duration_s), "n_ticks": int(plan.n_ticks),
                                        **backend.describe()})
@@ -497,16 +510,21 @@ class TrialSession:
             try:
                 backend.start(plan)
                 monitor.start()
+                if self.pause is not None:
+                    self.pause.start()
                 while True:
                     try:
                         while handled < len(self._signals):
                             name = self._signals[handled]
                             handled += 1
                             self.request_stop(Cause.OPERATOR, f"operator abort ({name})")
+                        if self.pause is not None and self.stop.phase is Phase.RUNNING:
+                            self.pause.apply(backend, self.figures.last_t_s)
                         msg = backend.receive()
                         if msg is None:
                             break
                         if type(msg) is Block:
+                            self._schedule_planned(float(msg.data["t_s"][-1]) + half_tick)
                             self._in_write = time.monotonic()
                             if msg.wall_ns is not None and anchor is not None and len(msg.data["t_s"]):
                                 anchor(float(msg.data["t_s"][-1]), msg.wall_ns)
@@ -525,6 +543,8 @@ class TrialSession:
                                 self.progress(t)
                         else:
                             w.event(msg.t_s, msg.kind, **msg.data)
+                            if msg.kind in ("pause", "resume", "runup_done", "pause_refused"):
+                                self._on_pause_event(msg)
                             if msg.kind == "interlock":
                                 self.echo(f"INTERLOCK {msg.data.get('name')} at t={msg.t_s:.3f} s: "
                                           f"{msg.data.get('message')}")
@@ -539,6 +559,8 @@ class TrialSession:
                 ending = self._fail_stop(f"{type(exc).__name__}: {exc}")
         finally:
             monitor.stop()
+            if self.pause is not None:
+                self.pause.stop()
             for sig, h in old.items():
                 signal.signal(sig, h)
             try:
@@ -547,6 +569,36 @@ class TrialSession:
                 if ending is not None:
                     ending.message += f"; closing the backend failed: {exc}"
         return self._end(ending, time.perf_counter() - t_wall0)
+
+    # -- the plan's events, later by what pauses added -----------------------------------------------------
+    def _schedule_planned(self, until_s: float | None = None) -> None:
+        """Hand the writer the planned events due by trial time ``until_s`` (None: all that are left),
+        at their plan time plus the pauses' shift; none from the plan time a pause holds at until its
+        run-up has ended."""
+        k, shift, frozen = 0, self._plan_shift_s, self._plan_frozen_s
+        ev = self._planned
+        while k < len(ev) and (until_s is None or (
+                (frozen is None or ev[k]["t_s"] < frozen) and ev[k]["t_s"] + shift <= until_s)):
+            k += 1
+        if k:
+            from trajectories.pause import shift_event
+
+            self.writer.schedule_events([shift_event(e, shift, self._plan_shift_um) if shift else e for e in ev[:k]])
+            del ev[:k]
+
+    def _on_pause_event(self, msg: Event) -> None:
+        if msg.kind == "pause":
+            # the events of the safe point's tick (their times are not on the tick grid) wait too
+            self._plan_frozen_s = float(msg.data["plan_t_s"]) - 0.5 / float(self.plan.loop_rate_hz)
+            self.echo(f"paused at t={msg.t_s:.3f} s (holding {msg.data.get('hold_um', float('nan')):.2f} µm)")
+        elif msg.kind == "resume":
+            self.echo(f"resumed at t={msg.t_s:.3f} s: run-up of {msg.data.get('runup_um', 0.0):.1f} µm")
+        elif msg.kind == "runup_done":
+            self._plan_shift_s = msg.t_s - float(msg.data["plan_t_s"])
+            self._plan_shift_um = float(msg.data.get("shift_um", 0.0))
+            self._plan_frozen_s = None
+        if self.pause is not None:
+            self.pause.on_event(msg.kind, msg.t_s)
 
     def _fail_stop(self, reason: str, drain_s: float = 2.0) -> Ending:
         """The session itself failed (its writer, its progress): ask the backend for a stop, let it
@@ -580,13 +632,18 @@ class TrialSession:
         elif ending.outcome in ("tripped", "failed"):
             # a trip or a failure during an operator stop: the trial failed
             sm.cause, sm.reason = (Cause.TRIP if ending.outcome == "tripped" else Cause.FAILURE), ending.message
+        try:
+            self._schedule_planned()  # what is left of the plan (the writer logs those the blocks reached)
+        except Exception as exc:  # noqa: BLE001
+            log_errors.append(f"{type(exc).__name__}: {exc}")
         if ending.final_stats:
             w.loop_stats(t_last, {**ending.final_stats, "final": True})
         if ending.report:
             self.echo(ending.report)
         if ending.safe:
-            sm.safe(ending.summary.get("safe_state", ""))
-            w.event(t_last, "stop_state", state=Phase.SAFE.value)
+            detail = ending.summary.get("safe_state", "")
+            sm.safe(detail)
+            w.event(t_last, "stop_state", state=Phase.SAFE.value, **({"detail": detail} if detail else {}))
         status = sm.status
         if status == "interrupted":
             sig = self._signals[0] if self._signals else "abort"

@@ -30,6 +30,7 @@ from rig.hardware.emulated import EmulatorError, start_emulator_process
 from rig.hardware.loop import ABORT_FAIL, ABORT_OPERATOR, loop_main
 from rig.hardware.timing import TimingStats, format_stats
 from rig.session.core import BackendError, Block, Ending, Event
+from rig.session.pausing import pause_options
 from rig.model.feedforward import friction_feedforward_for_plan, initial_velocity_um_s
 
 
@@ -61,10 +62,12 @@ class HardwareBackend:
         self.proc = None
         self.q = None
         self.abort = None
+        self.pause_req = None
         self.rate_hz = 1000.0
         self.stats = TimingStats(1e-3)
         self.read_max_s = 0.0  # the devices' read phase of a tick
         self.read_slow = 0
+        self.skips: list = []  # (CLOCK_MONOTONIC, cycles skipped) of every late tick: attributed by loop-bench
         self._devices: dict = {}
         self._done: dict | None = None
         self._realtime: dict | None = None
@@ -84,9 +87,18 @@ class HardwareBackend:
 
     # -- start -----------------------------------------------------------------
     def start(self, plan) -> None:
+        from rig.hardware.safety import latched_message
+
+        latched = latched_message(self.hw.safety, str(getattr(self.profile, "source_path", None) or "PROFILE"))
+        if latched:  # an e-stop or a pressure loss latched the chain: nothing starts until `rig reset`
+            raise BackendError(latched)
         self.rate_hz = float(plan.loop_rate_hz)
         self.stats = TimingStats(1.0 / self.rate_hz)
         x_ref = np.asarray(plan.x_ref_um, dtype=float)
+        if self.emulator is None and self.hw.emulators.autostart:
+            from rig.hardware.emulated import RemoteEmulator
+
+            self.emulator = RemoteEmulator.connect(self.hw)  # a `rig emulate` serving this profile
         if self.emulator is None and self.hw.emulators.autostart:
             try:
                 self._own_emulator = self.emulator = start_emulator_process(
@@ -96,8 +108,11 @@ class HardwareBackend:
                 raise BackendError(str(exc)) from None
             self.hw = self.emulator.hw
         if self.emulator is not None:
-            self.emulator.reset_plant(float(x_ref[0]), initial_velocity_um_s(
-                x_ref, self.rate_hz, self.profile.sim.initial_creep_um_s))
+            try:
+                self.emulator.reset_plant(float(x_ref[0]), initial_velocity_um_s(
+                    x_ref, self.rate_hz, self.profile.sim.initial_creep_um_s))
+            except EmulatorError as exc:
+                raise BackendError(str(exc)) from None
         switches = dict(getattr(plan, "controller", None) or {})
         ff_N = np.empty(0)
         if switches.get("friction_ff", False):
@@ -118,11 +133,14 @@ class HardwareBackend:
         self.abort = ctx.Value("i", 0, lock=False)
         self.logger_ack = ctx.Value("q", 0, lock=False)
         self.logger_alive = ctx.Value("d", 0.0, lock=False)
+        self.pause_req = ctx.Value("i", 0, lock=False)
+        popt = pause_options(plan, self._friction_model())
         self.proc = ctx.Process(target=loop_main, name="rig-rt-loop", daemon=True,
                                 args=(self.hw.model_dump(), self.profile, x_ref, self.q, self.abort,
                                       {"period_s": 1.0 / self.rate_hz, "controller": self.controller,
-                                       "switches": switches, "ff_N": ff_N},
-                                      self.logger_ack, self.logger_alive))
+                                       "switches": switches, "ff_N": ff_N, "safe_ticks": popt["safe_ticks"],
+                                       "runup_um": popt["runup_um"]},
+                                      self.logger_ack, self.logger_alive, self.pause_req))
         self.proc.start()
 
     # -- run -------------------------------------------------------------------
@@ -152,6 +170,7 @@ class HardwareBackend:
                 self.read_max_s = max(self.read_max_s, float(rd.max()))
                 self.read_slow += int((rd > 1e-3).sum())
             self._devices = tim.get("devices", self._devices)
+            self.skips.extend(tim.get("skips", ()))
             self._t_last = float(blk["t_s"][-1])
             return Block(blk, tim.get("wall_ns"))  # issue 21: the wall-clock time of its last tick
         if kind == "event":
@@ -164,6 +183,23 @@ class HardwareBackend:
             self._done = msg[1]
             return None
         raise RuntimeError(f"unknown message from the loop process: {kind!r}")
+
+    def _friction_model(self):
+        """The profile's model of the trial's lubricant (its L sets the run-up after a pause), or None."""
+        try:
+            return self.profile.friction_model(self.lubricant) if self.lubricant else None
+        except (ValueError, KeyError, AttributeError):
+            return None
+
+    def pause(self, realtime: bool = True) -> None:
+        """Hold at the plan's next safe point (the loop's :class:`trajectories.pause.PausableReference`)."""
+        if self.pause_req is not None:
+            self.pause_req.value = 1
+
+    def resume(self) -> None:
+        """Run up at the segment's velocity, then the plan goes on."""
+        if self.pause_req is not None:
+            self.pause_req.value = 0
 
     def block_logged(self) -> None:
         """The session has logged one more block (the loop trips if the logger stops taking them)."""
@@ -204,6 +240,7 @@ class HardwareBackend:
         final["read_over_1ms"] = self.read_slow
         s["timing"] = final
         s["realtime"] = self._realtime
+        s["skips"] = list(self.skips)
         status = s.get("status")
         outcome = {"completed": "completed", "aborted": "stopped", "tripped": "tripped"}.get(status, "failed")
         vf = s.get("valve_final") or {}
@@ -214,8 +251,12 @@ class HardwareBackend:
         if "devices_failed" in s:
             safe = True  # the devices did not answer before the start: nothing was ever enabled
         s["safe_state"] = (f"valve status word 0x{vf.get('status_bits', 0):04x}, enabled {vf.get('enabled')}, "
-                           f"spool {vf.get('output')}, NMT {vf.get('nmt')}, confirmed {vf.get('confirmed')}"
-                           ) if vf else ""
+                           f"spool {vf.get('output')}, NMT {vf.get('nmt')}, confirmed {vf.get('confirmed')} "
+                           f"(from its {vf.get('source', 'status PDO')})") if vf else ""
+        sf = s.get("safety_final")
+        if sf:
+            s["safe_state"] += f"; safety chain: {sf['state']}, amplifier enable output off {sf['enable_output_off']}"
+            safe = safe and sf["enable_output_off"]
         msg = s.get("message") or ("" if status == "completed" else str(status))
         return Ending(outcome, msg, safe=safe, summary=s, final_stats=dict(final) if final.get("n") else None,
                       report=format_stats(final, "loop timing (whole trial)") if final.get("n") else "")

@@ -13,9 +13,12 @@ from __future__ import annotations
 import math
 import time
 
-from rig.session.core import Block, Ending, TrialResult, run_trial
+from rig.session.core import Block, Ending, Event, TrialResult, run_trial
 from rig.session.memory import MemoryLog
+from rig.session.pausing import pausable_reference
 from rig.sim import SimRig
+
+MAX_PAUSE_S = 600.0  # as the hardware's interlocks.max_pause_s default: a longer pause trips
 
 
 class SimBackend:
@@ -38,6 +41,14 @@ class SimBackend:
     the wall-clock time the run starts; a paced run re-anchors it on every block
     (the wall-clock time it is handed over), as the hardware's loop does. A paced
     run's log is flushed every 0.5 s (``log_flush_interval_s``), as the hardware's.
+
+    ``pause()`` / ``resume()``: the operator's pause (:mod:`rig.session.pausing`). The
+    simulation runs block by block (nothing simulated ahead), so a pause takes effect at
+    the plan's next safe point after the block in progress; from then on the reference
+    comes from :class:`trajectories.pause.PausableReference` (hold, run-up, the plan
+    shifted), simulated piece by piece from the rig's state. A hold lasts its wall time
+    (``realtime``; a scripted one runs as fast as the rest), at most ``MAX_PAUSE_S``.
+    The recipe's friction feed-forward is the plan's, held through the hold and the run-up.
     """
 
     PACED_BLOCK_WALL_S = 0.1
@@ -56,6 +67,11 @@ class SimBackend:
         self._blocks = None
         self._stop: str | None = None
         self._ended = False
+        self._ref = None          # the pausable reference, from the first pause on
+        self._done_ticks = 0
+        self._out: list = []      # events to hand out before the next block
+        self._realtime_hold = True
+        self._trip: str | None = None
 
     def describe(self) -> dict:
         d = {"normal_force_N": self.rig.normal_force_N, "seed": self.seed}
@@ -69,8 +85,11 @@ class SimBackend:
         ticks = self.block_ticks
         if self.pace > 0:
             ticks = min(ticks, max(1, int(round(self.PACED_BLOCK_WALL_S * self.pace * rate))))
-        self._blocks = self.rig.run_blocks(plan.x_ref_um, block_ticks=ticks,
+        self._plan, self._ticks = plan, ticks
+        # chunk = one block: nothing simulated ahead of what was handed out (a pause can still take it)
+        self._blocks = self.rig.run_blocks(plan.x_ref_um, block_ticks=ticks, chunk_ticks=ticks,
                                            controller=getattr(plan, "controller", None) or None)
+        self._ff_plan = self.rig.ff_N  # the plan's friction feed-forward (empty: none), for the pieces of a pause
         self._wall0 = time.monotonic()
         self._wall0_ns = time.time_ns()
         self._first = True
@@ -90,13 +109,51 @@ class SimBackend:
                 return
             time.sleep(min(left, 0.05))
 
-    def receive(self) -> Block | None:
-        if self._stop is not None or self._ended:
+    # -- pause ------------------------------------------------------------------------------------------
+    def pause(self, realtime: bool = True) -> None:
+        if self._ref is None:
+            self._ref = pausable_reference(self._plan, self.rig.friction_model)
+            self._ref.k_plan = self._ref.k_trial = self._done_ticks  # where the plan is now
+            self._blocks = None
+        self._realtime_hold = realtime
+        self._ref.request_pause()
+
+    def resume(self) -> None:
+        if self._ref is not None:
+            self._ref.request_resume()
+
+    def _next_paused_block(self) -> dict | None:
+        ref = self._ref
+        k0 = ref.k_trial
+        x, kp = ref.take(self._ticks)
+        for k, kind, data in ref.events:
+            self._out.append(Event(k * self._dt_s, kind, data))
+        ref.events.clear()
+        if x.size == 0:
             return None
-        blk = next(self._blocks, None)
+        ff = self._ff_plan[kp] if self._ff_plan.size else self._ff_plan  # the plan's, held through the pause
+        blk = next(self.rig.run_blocks(x, block_ticks=x.size, chunk_ticks=x.size, reset=False,
+                                       controller=getattr(self._plan, "controller", None) or None, ff_N=ff))
+        if ref.hold_s > MAX_PAUSE_S and self._trip is None:
+            self._trip = f"paused for {ref.hold_s:.1f} s (limit {MAX_PAUSE_S:g} s)"
+            self._out.append(Event(k0 * self._dt_s, "interlock", {"name": "pause_timeout", "message": self._trip}))
+        if ref.state == "hold" and self._realtime_hold:  # the hold lasts as long as the operator holds it
+            time.sleep(x.size * self._dt_s)
+        return blk
+
+    def receive(self) -> Block | Event | None:
+        if self._out:
+            return self._out.pop(0)
+        if self._stop is not None or self._ended or self._trip is not None:
+            return None
+        blk = next(self._blocks, None) if self._ref is None else self._next_paused_block()
+        if self._out:  # the pause's events go before the block that holds them
+            self._out.append(Block(blk) if blk is not None else None)
+            return self._out.pop(0)
         if blk is None:
             self._ended = True
             return None
+        self._done_ticks += int(blk["t_s"].size)
         t = blk["t_s"]
         wall_ns = None
         if self.pace > 0 and t.size:
@@ -114,6 +171,8 @@ class SimBackend:
         return {}
 
     def finish(self) -> Ending:
+        if self._trip is not None:
+            return Ending("tripped", f"INTERLOCK pause_timeout: {self._trip}")
         if self._stop is not None:
             return Ending("stopped", self._stop)
         return Ending("completed")
@@ -124,7 +183,7 @@ class SimBackend:
 
 def simulate(recipe_or_plan, profile, friction_model=None, *, recipe=None, seed: int | None = None,
              normal_force_N: float | None = None, keep_blocks: bool = True,
-             block_ticks: int = 20000) -> tuple[MemoryLog, TrialResult]:
+             block_ticks: int = 20000, pause_script=None) -> tuple[MemoryLog, TrialResult]:
     """Run a recipe (or a compiled plan with its ``recipe``) on the simulated rig, in memory.
 
     ``friction_model``: a :class:`rig.model.spec.FrictionModel`, or None for the
@@ -132,7 +191,10 @@ def simulate(recipe_or_plan, profile, friction_model=None, *, recipe=None, seed:
     default to the recipe's. Returns ``(log, result)``: ``log.blocks`` (with
     ``keep_blocks``), ``log.events`` (planned events reached, session events),
     ``log.trial_data(rate_hz)``; ``result`` the session's :class:`TrialResult`.
+    ``pause_script``: ``[(t_s, hold_s), ...]``, operator pauses to simulate (:class:`PauseControl`).
     """
+    from rig.session.pausing import PauseControl
+
     from rig.config.recipe import compile_recipe
     from trajectories import Plan
 
@@ -151,6 +213,7 @@ def simulate(recipe_or_plan, profile, friction_model=None, *, recipe=None, seed:
     log = MemoryLog(keep_blocks=keep_blocks, rate_hz=plan.loop_rate_hz,
                     metadata={"normal_force_N": f"{nf:g}", "lubricant": recipe.lubricant, "seed": str(sd),
                               "recipe": recipe.name, "generator": "rig.session.simulate"})
-    result = run_trial(plan, backend, log, handle_signals=False,
+    pause = PauseControl(pause_script, listen=False, signals=False) if pause_script else None
+    result = run_trial(plan, backend, log, handle_signals=False, pause=pause,
                        trial_fields={"recipe": recipe.name, "lubricant": recipe.lubricant})
     return log, result

@@ -217,7 +217,8 @@ class SimRig:
 
     # ------------------------------------------------------------------ closed loop
     def run_blocks(self, x_ref_um, block_ticks: int = 100, reset: bool = True,
-                   chunk_ticks: int = 20000, controller: dict | None = None) -> Iterator[dict]:
+                   chunk_ticks: int = 20000, controller: dict | None = None,
+                   ff_N: np.ndarray | None = None) -> Iterator[dict]:
         """Run the closed loop over the reference (µm, one value per tick); yield block dicts.
 
         Each block is a dict of numpy arrays (keys BLOCK_KEYS) covering ``block_ticks`` ticks
@@ -229,7 +230,9 @@ class SimRig:
         ``controller``, rig.config.recipe.ControllerSwitches): ``ff1`` False sets the
         profile's FF1 gain to 0; ``friction_ff`` True feeds :func:`friction_feedforward_N` of
         :attr:`ff_model` (default: :func:`feedforward_model` of the simulated friction model:
-        its single-state law, exact for the profile's lubricants) at the nominal 2 N. None: the profile's FF1, no friction feed-forward."""
+        its single-state law, exact for the profile's lubricants) at the nominal 2 N. None: the profile's FF1, no friction feed-forward.
+        ``ff_N``: the friction feed-forward per tick as given (a paused plan's pieces: the plan's, held
+        through the pause), instead of computing it along this reference."""
         xref = np.ascontiguousarray(x_ref_um, dtype=np.float64)
         if xref.ndim != 1 or xref.size == 0:
             raise ValueError("x_ref_um must be a non-empty 1-D array")
@@ -244,7 +247,9 @@ class SimRig:
                              f"{lv.min_um:g}..{lv.max_um:g} µm of profile '{self.profile.name}'")
         self.c = apply_switches(controller_params_from_profile(self.profile), controller)
         v_init = initial_velocity_um_s(xref, self.rate_hz, self.profile.sim.initial_creep_um_s)
-        if self.ff_model is not None and (controller or {}).get("friction_ff", False):
+        if ff_N is not None:
+            ff = np.ascontiguousarray(ff_N, dtype=np.float64)
+        elif self.ff_model is not None and (controller or {}).get("friction_ff", False):
             ff = friction_feedforward_N(xref, self.dt_s, self.ff_model, 2.0 * self.normal_force_N, v_init)
         else:
             ff = friction_feedforward_for_plan(controller, xref, self.dt_s, self.friction_model,

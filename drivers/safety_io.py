@@ -1,0 +1,312 @@
+"""The safety chain's digital I/O module on Modbus TCP: e-stop and pressure-OK inputs, enable and watchdog outputs.
+
+:class:`SafetyIO` is a :class:`drivers.device.Device` (``name`` "safety"). Each
+tick the loop sets ``enable`` (the valve amplifier's enable: on only while the
+loop controls the valve) and calls ``write(now)``, which sends, in one TCP
+write, the outputs (function 15, write multiple coils: the enable and the
+watchdog, toggled every tick) and a request for the inputs (function 2, read
+discrete inputs); ``read(now)`` at the next tick takes the answers in
+(pipelined: the module answers while the loop works). ``estop_ok`` is the
+normally closed e-stop input (1: closed, healthy; 0: pressed or a broken wire),
+``pressure_ok`` the hydraulic power unit's pressure-OK input. ``health(now)``
+names an open e-stop (``estop``) or a lost pressure (``hydraulic_pressure``) in
+its ``problems``, each of which trips the loop (:mod:`rig.hardware.interlocks`);
+a module that stops answering goes stale and trips too (fail safe).
+
+The frames are packed and unpacked by the pure codec below (:func:`encode_read_inputs`,
+:func:`encode_write_coils`, :func:`decode_answer`), tested frame by frame with no
+I/O; the emulator (:mod:`drivers.emulators.modbus_io`) uses the same codec.
+"""
+
+from __future__ import annotations
+
+import errno
+import socket
+import struct
+import time
+from dataclasses import dataclass
+
+from drivers.config import SafetyConfig
+from drivers.device import DeviceHealth
+from drivers.errors import DeviceError
+
+DEVICE = "safety I/O module"
+FC_READ_COILS, FC_READ_INPUTS, FC_WRITE_COILS = 0x01, 0x02, 0x0F
+MBAP = struct.Struct(">HHHB")  # transaction id, protocol id (0), length (unit id + PDU), unit id
+
+
+# -- the codec: frames <-> values, pure ----------------------------------------------------------------
+
+def pack_bits(bits) -> bytes:
+    """Bits (LSB of the first byte first), as Modbus packs coils and inputs."""
+    out = bytearray((len(bits) + 7) // 8)
+    for i, b in enumerate(bits):
+        if b:
+            out[i // 8] |= 1 << (i % 8)
+    return bytes(out)
+
+
+def unpack_bits(data: bytes, n: int) -> list[bool]:
+    return [bool(data[i // 8] >> (i % 8) & 1) for i in range(n)]
+
+
+def frame(tid: int, unit: int, pdu: bytes) -> bytes:
+    """One Modbus TCP frame: MBAP header + PDU."""
+    return MBAP.pack(tid & 0xFFFF, 0, len(pdu) + 1, unit) + pdu
+
+
+def encode_read(tid: int, unit: int, fc: int, first: int, count: int) -> bytes:
+    """Read coils (1) or discrete inputs (2): ``count`` bits from ``first``."""
+    return frame(tid, unit, struct.pack(">BHH", fc, first, count))
+
+
+def encode_read_inputs(tid: int, unit: int, first: int, count: int) -> bytes:
+    return encode_read(tid, unit, FC_READ_INPUTS, first, count)
+
+
+def encode_write_coils(tid: int, unit: int, first: int, bits) -> bytes:
+    """Write multiple coils (15) from ``first``."""
+    data = pack_bits(bits)
+    return frame(tid, unit, struct.pack(">BHHB", FC_WRITE_COILS, first, len(bits), len(data)) + data)
+
+
+@dataclass(frozen=True, slots=True)
+class Answer:
+    tid: int
+    unit: int
+    fc: int
+    bits: bytes = b""        # read answers: the packed bits
+    exception: int = 0       # an exception response's code (fc has 0x80 set)
+
+
+def decode_answer(buf: bytes | bytearray) -> tuple[Answer | None, int]:
+    """The first whole answer in ``buf`` and the bytes it took (None, 0: not whole yet). ValueError for
+    what is not Modbus TCP."""
+    if len(buf) < 8:
+        return None, 0
+    tid, pid, ln, unit = MBAP.unpack_from(buf)
+    if pid != 0 or not 2 <= ln <= 254:
+        raise ValueError(f"not a Modbus TCP frame (protocol id {pid}, length {ln})")
+    if len(buf) < 6 + ln:
+        return None, 0
+    pdu = bytes(buf[7:6 + ln])
+    fc = pdu[0]
+    if fc & 0x80:
+        return Answer(tid, unit, fc, exception=pdu[1] if len(pdu) > 1 else 0), 6 + ln
+    if fc in (FC_READ_COILS, FC_READ_INPUTS):
+        if len(pdu) < 2 or pdu[1] != len(pdu) - 2:
+            raise ValueError(f"read answer of {len(pdu)} bytes with byte count {pdu[1] if len(pdu) > 1 else '?'}")
+        return Answer(tid, unit, fc, bits=pdu[2:]), 6 + ln
+    if fc == FC_WRITE_COILS and len(pdu) == 5:
+        return Answer(tid, unit, fc), 6 + ln
+    raise ValueError(f"unexpected answer: function {fc}, {len(pdu)} bytes")
+
+
+def span(a: int, b: int) -> tuple[int, int]:
+    """(first, count) covering addresses a and b."""
+    return min(a, b), abs(a - b) + 1
+
+
+# -- the device ----------------------------------------------------------------------------------------
+
+class SafetyIO:
+    """The safety chain's I/O module as a Device (see the module docstring)."""
+
+    name = "safety"
+
+    def __init__(self, cfg: SafetyConfig):
+        self.cfg = cfg
+        self.address = cfg.address_text
+        self._health = DeviceHealth(DEVICE, self.address)
+        self.enable = False
+        self.watchdog = False
+        self.estop_ok = False        # unknown until the first answer: not healthy
+        self.pressure_ok = False
+        self.outputs: list[bool] | None = None  # the coils as last read back (safe_stop, check)
+        self._sock: socket.socket | None = None
+        self._rx = bytearray()
+        self._tid = 0
+        self._pending: dict[int, int] = {}  # tid -> function code in flight
+        self._t_sent = 0.0
+        self._t_new = 0.0
+        self._writing = False  # the loop's writes ask for the inputs; before them, read() does
+        self._in0, self._in_n = span(cfg.estop_input, cfg.pressure_ok_input)
+        self._out0, self._out_n = span(cfg.enable_output, cfg.watchdog_output)
+
+    # -- connection ------------------------------------------------------------------------------------
+    def connect(self) -> None:
+        c = self.cfg
+        try:
+            sk = socket.create_connection((c.host, c.port), timeout=max(0.5, c.timeout_s))
+        except OSError as exc:
+            raise DeviceError(DEVICE, self.address, f"cannot connect: {exc}") from exc
+        sk.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        sk.setblocking(False)
+        self._sock = sk
+        self._rx.clear()
+        self._pending.clear()
+        self._t_new = time.monotonic()
+
+    def close(self) -> None:
+        if self._sock is not None:
+            try:
+                self._sock.close()
+            except OSError:
+                pass
+            self._sock = None
+
+    def _lost(self, msg: str) -> DeviceError:
+        self.close()
+        return DeviceError(DEVICE, self.address, msg, kind="lost")
+
+    def _send(self, data: bytes) -> None:
+        if self._sock is None:
+            raise DeviceError(DEVICE, self.address, "not connected", kind="lost")
+        try:
+            self._sock.send(data)
+        except OSError as exc:
+            raise self._lost(f"connection lost: {exc}") from exc
+
+    def _next_tid(self, fc: int) -> int:
+        self._tid = (self._tid + 1) & 0xFFFF
+        self._pending[self._tid] = fc
+        return self._tid
+
+    def _outputs_frame(self, enable: bool, watchdog: bool) -> bytes:
+        bits = [False] * self._out_n
+        bits[self.cfg.enable_output - self._out0] = enable
+        bits[self.cfg.watchdog_output - self._out0] = watchdog
+        return encode_write_coils(self._next_tid(FC_WRITE_COILS), self.cfg.device_id, self._out0, bits)
+
+    # -- per tick --------------------------------------------------------------------------------------
+    def write(self, now: float | None = None) -> None:
+        """The outputs (enable, the watchdog toggled) and the request for the inputs, in one send."""
+        now = time.monotonic() if now is None else now
+        self._writing = True
+        if self._pending:
+            return  # the last tick's answers are not all in yet: never queue behind a slow module
+        self.watchdog = not self.watchdog
+        c = self.cfg
+        data = self._outputs_frame(self.enable, self.watchdog) + \
+            encode_read_inputs(self._next_tid(FC_READ_INPUTS), c.device_id, self._in0, self._in_n)
+        self._t_sent = now
+        self._send(data)
+
+    def read(self, now: float | None = None) -> None:
+        """Take in the answers that have arrived (the inputs of the last request)."""
+        now = time.monotonic() if now is None else now
+        h = self._health
+        if self._sock is None:
+            raise DeviceError(DEVICE, self.address, "not connected", kind="lost")
+        try:
+            while True:
+                chunk = self._sock.recv(4096)
+                if not chunk:
+                    raise self._lost("connection lost (closed by the module)")
+                self._rx += chunk
+        except BlockingIOError:
+            pass
+        except OSError as exc:
+            if exc.errno not in (errno.EAGAIN, errno.EWOULDBLOCK):
+                raise self._lost(f"connection lost: {exc}") from exc
+        new = False
+        while True:
+            try:
+                ans, used = decode_answer(self._rx)
+            except ValueError as exc:
+                self._rx.clear()
+                h.frames_bad += 1
+                raise DeviceError(DEVICE, self.address, str(exc), kind="protocol") from None
+            if ans is None:
+                break
+            del self._rx[:used]
+            fc = self._pending.pop(ans.tid, None)
+            if fc is None:
+                continue  # an answer to a request given up on
+            if ans.exception:
+                h.errors += 1
+                h.consecutive_errors += 1
+                raise DeviceError(DEVICE, self.address, f"Modbus exception {ans.exception} to function {fc}",
+                                  kind="protocol")
+            if fc == FC_READ_INPUTS:
+                bits = unpack_bits(ans.bits, self._in_n)
+                self.estop_ok = bits[self.cfg.estop_input - self._in0]
+                self.pressure_ok = bits[self.cfg.pressure_ok_input - self._in0]
+                new = True
+            elif fc == FC_READ_COILS:
+                self.outputs = unpack_bits(ans.bits, self._out_n)
+        if new:
+            h.frames_ok += 1
+            h.polls_since_new = 0
+            h.consecutive_errors = 0
+            self._t_new = now
+        else:
+            h.polls_since_new += 1
+            if self._pending and now - self._t_sent > self.cfg.timeout_s:
+                self._pending.clear()  # given up: the next write asks again
+                h.frames_lost += 1
+                h.errors += 1
+                h.consecutive_errors += 1
+                raise DeviceError(DEVICE, self.address, f"no answer within {self.cfg.timeout_s * 1e3:g} ms")
+            if not self._pending and not self._writing:  # before the loop writes (connect, wait for data)
+                c = self.cfg
+                self._t_sent = now
+                self._send(encode_read_inputs(self._next_tid(FC_READ_INPUTS), c.device_id, self._in0, self._in_n))
+
+    def health(self, now: float | None = None) -> DeviceHealth:
+        now = time.monotonic() if now is None else now
+        h, c = self._health, self.cfg
+        h.age_s = now - self._t_new
+        h.status = (1 if self.estop_ok else 0) | (2 if self.pressure_ok else 0) | (4 if self.enable else 0)
+        probs = []
+        if h.frames_ok:
+            if not self.estop_ok:
+                probs.append(("estop", f"e-stop pressed or its circuit open (input {c.estop_input} of {self.address})"))
+            if not self.pressure_ok:
+                probs.append(("hydraulic_pressure", f"hydraulic pressure lost (input {c.pressure_ok_input} of "
+                              f"{self.address})"))
+        h.problems = probs
+        return h
+
+    # -- outside the loop ------------------------------------------------------------------------------
+    def poll(self, timeout_s: float = 1.0) -> None:
+        """Blocking: the inputs and the outputs read back once (check, reset)."""
+        t_end = time.monotonic() + timeout_s
+        c = self.cfg
+        self._pending.clear()
+        n0 = self._health.frames_ok
+        self._send(encode_read(self._next_tid(FC_READ_COILS), c.device_id, FC_READ_COILS, self._out0, self._out_n)
+                   + encode_read_inputs(self._next_tid(FC_READ_INPUTS), c.device_id, self._in0, self._in_n))
+        self._t_sent = time.monotonic()
+        while self._pending:
+            if time.monotonic() > t_end:
+                raise DeviceError(DEVICE, self.address, f"no answer within {timeout_s:g} s")
+            time.sleep(0.001)
+            try:
+                self.read(time.monotonic())
+            except DeviceError as exc:
+                if exc.kind != "io":
+                    raise
+        if self._health.frames_ok == n0:
+            raise DeviceError(DEVICE, self.address, "no inputs in the answer")
+
+    def safe_stop(self, timeout_s: float = 0.1) -> bool:
+        """The enable output off; True once the module's coils read back off."""
+        self.enable = False
+        try:
+            self._pending.clear()
+            self._send(self._outputs_frame(False, self.watchdog))
+            self.poll(timeout_s)
+        except DeviceError:
+            return False
+        return self.outputs is not None and not self.outputs[self.cfg.enable_output - self._out0]
+
+    def describe(self) -> str:
+        """The chain's state in words (devices check, reset)."""
+        out = "unknown" if self.outputs is None else \
+            ("on" if self.outputs[self.cfg.enable_output - self._out0] else "off")
+        return (f"e-stop {'closed (healthy)' if self.estop_ok else 'OPEN (pressed or wire broken)'}, "
+                f"pressure {'OK' if self.pressure_ok else 'LOST'}, enable output {out}")
+
+
+__all__ = ["SafetyIO", "decode_answer", "encode_read_inputs", "encode_write_coils", "pack_bits", "unpack_bits"]
