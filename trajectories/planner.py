@@ -70,8 +70,9 @@ class Plan:
     ``window_x_end_um``, ``direction`` up/down), ``hold`` (a slide-hold-slide rest: ``hold``,
     ``hold_s`` at rest, ``v_um_s`` before and after, ``x_um``, ``t_end_s``, ``reslide_um``),
     ``square`` (``amplitude_um``, ``frequency_hz``, ``cycles``, ``x_um`` centre, ``edge_s``,
-    ``edges_t_s``, ``t_end_s``), ``sine_sweep`` (``f0_hz``, ``f1_hz``, ``amplitude_um``,
-    ``duration_s``, ``taper_s``, ``x_um`` centre, ``t_end_s``).
+    ``edges_t_s``, ``velocity_um_s``, ``t_end_s``), ``sine_sweep`` (``f0_hz``, ``f1_hz``,
+    ``amplitude_um``, ``duration_s``, ``taper_s``, ``x_um`` centre at the start,
+    ``velocity_um_s`` of the slide beneath, ``t_end_s``).
     ``segments`` rows: ``index, kind, label, t_start_s, t_end_s, x_start_um, x_end_um,
     x_min_um, x_max_um, v_max_um_s, i_start, i_end`` (tick indices, end exclusive).
     """
@@ -368,9 +369,9 @@ def compile_plan(spec: PlanSpec, limits: RigLimits | None = None) -> Plan:
             x_min = x_max = b.x
             v_max = 0.0
         for ov in overlays[ov0:]:
-            amp = ov[2].amplitude_um
-            x_min, x_max = min(x_min, b.x - amp), max(x_max, b.x + amp)
-            v_max = max(v_max, _overlay_peak_speed(ov))
+            amp, base = ov[2].amplitude_um, ov[2].velocity_um_s
+            x_min, x_max = x_min - amp, x_max + amp
+            v_max = max(v_max, base + _overlay_peak_speed(ov))
         if x_max > lim.stroke_max_um + 1e-6 or x_min < lim.stroke_min_um - 1e-6:
             bad = x_max if x_max > lim.stroke_max_um + 1e-6 else x_min
             fail(f"reference reaches {bad:.1f} µm, outside the stroke [{lim.stroke_min_um:g}, "
@@ -419,9 +420,9 @@ def _segment_speeds(seg, lim: RigLimits) -> float:
     if isinstance(seg, SlideHoldSlide):
         return seg.velocity_um_s
     if isinstance(seg, Square):
-        return seg.edge_speed_um_s or lim.max_speed_um_s
+        return seg.velocity_um_s + (seg.edge_speed_um_s or lim.max_speed_um_s)
     if isinstance(seg, SineSweep):
-        return _overlay_peak_speed((0.0, seg.duration_s, seg, None))
+        return seg.velocity_um_s + _overlay_peak_speed((0.0, seg.duration_s, seg, None))
     if isinstance(seg, VelocitySteps):
         vs = [max(s.v1_um_s, s.v2_um_s) for s in seg.steps]
         if seg.return_speed_um_s:
@@ -548,11 +549,11 @@ def _waveform(b: _Builder, seg, accel: float, index: int, events: list, overlays
     if raw is not None and raw < lim.loop_rate_hz:
         fail(f"a {seg.kind} segment is a loop-tuning test and is logged at the loop rate: log.raw_rate_hz "
              f"{raw:g} Hz must be {lim.loop_rate_hz:g} Hz")
-    if b.v != 0:
-        b.ramp(0.0, accel)
+    if b.v != seg.velocity_um_s:
+        b.ramp(seg.velocity_um_s, accel)
     t0, xc = b.t, b.x
     if isinstance(seg, Square):
-        edge = seg.edge_speed_um_s or lim.max_speed_um_s
+        edge = seg.edge_speed_um_s or (lim.max_speed_um_s - seg.velocity_um_s)
         half = 0.5 / seg.frequency_hz
         if 2.0 * seg.amplitude_um / edge > 0.5 * half:
             fail(f"an edge of {2 * seg.amplitude_um:g} µm at {edge:g} µm/s takes {2e3 * seg.amplitude_um / edge:.1f}"
@@ -566,7 +567,8 @@ def _waveform(b: _Builder, seg, accel: float, index: int, events: list, overlays
         e = 2.0 * seg.amplitude_um / edge
         edges = [t0] + [t0 + k * half for k in range(1, 2 * int(seg.cycles) + 1)]
         events.append({"t_s": t0, "kind": "square", "segment": index, "amplitude_um": seg.amplitude_um,
-                       "frequency_hz": seg.frequency_hz, "cycles": int(seg.cycles), "x_um": xc, "edge_s": e,
+                       "frequency_hz": seg.frequency_hz, "cycles": int(seg.cycles), "x_um": xc,
+                       "velocity_um_s": seg.velocity_um_s, "edge_s": e,
                        "edge_speed_um_s": edge, "edges_t_s": edges, "t_end_s": t0 + T})
     else:
         if seg.f1_hz <= seg.f0_hz:
@@ -583,9 +585,11 @@ def _waveform(b: _Builder, seg, accel: float, index: int, events: list, overlays
         edge = None
         events.append({"t_s": t0, "kind": "sine_sweep", "segment": index, "f0_hz": seg.f0_hz, "f1_hz": seg.f1_hz,
                        "amplitude_um": seg.amplitude_um, "duration_s": T, "taper_s": seg.taper(), "x_um": xc,
-                       "t_end_s": t0 + T})
+                       "velocity_um_s": seg.velocity_um_s, "t_end_s": t0 + T})
     overlays.append((t0, T, seg, edge))
     b.cruise_time(T)
+    if b.v != 0:
+        b.ramp(0.0, accel)
 
 
 __all__ = ["Plan", "PlanError", "compile_plan", "MAX_PLAN_DURATION_S"]

@@ -203,7 +203,9 @@ class Square(_SegmentBase):
     frequency_hz: Annotated[float, Field(gt=0, le=500.0)]
     cycles: Annotated[int, Field(ge=1, le=100_000)] = 5
     edge_speed_um_s: Speed | None = Field(None, description="Speed of each edge (µm/s); default: the rig's "
-                                                            "maximum speed.")
+                                                            "maximum speed (less velocity_um_s).")
+    velocity_um_s: Annotated[float, Field(ge=0, le=MAX_SPEED_UM_S)] = Field(
+        0.0, description="Slide beneath the wave (µm/s); 0: about the current position.")
 
 
 class SineSweep(_SegmentBase):
@@ -216,6 +218,9 @@ class SineSweep(_SegmentBase):
     duration_s: Duration
     taper_s: Annotated[float, Field(ge=0, le=MAX_DURATION_S)] | None = Field(
         None, description="Raised-cosine fade at both ends (s); default: one period of f0, at most 10 %.")
+    velocity_um_s: Annotated[float, Field(ge=0, le=MAX_SPEED_UM_S)] = Field(
+        0.0, description="Slide beneath the sweep (µm/s); above 2 pi f1 amplitude_um the velocity never "
+                         "reverses and friction stays linear about steady sliding. 0: about the current position.")
 
     @model_validator(mode="after")
     def _rising(self):
@@ -368,10 +373,11 @@ def _plain(seg) -> "tj.Segment":
                                  reslide_um=seg.reslide_um, run_up_um=seg.run_up_um, **common)
     if isinstance(seg, Square):
         return tj.Square(amplitude_um=seg.amplitude_um, frequency_hz=seg.frequency_hz, cycles=seg.cycles,
-                         edge_speed_um_s=seg.edge_speed_um_s, **common)
+                         edge_speed_um_s=seg.edge_speed_um_s, velocity_um_s=seg.velocity_um_s, **common)
     if isinstance(seg, SineSweep):
         return tj.SineSweep(f0_hz=seg.f0_hz, f1_hz=seg.f1_hz, amplitude_um=seg.amplitude_um,
-                            duration_s=seg.duration_s, taper_s=seg.taper_s, **common)
+                            duration_s=seg.duration_s, taper_s=seg.taper_s, velocity_um_s=seg.velocity_um_s,
+                            **common)
     raise TypeError(f"not a recipe segment: {seg!r}")  # pragma: no cover - the union is closed
 
 
