@@ -6,7 +6,8 @@ export, import, recover),
 ``rig.commands.analysis`` (identify, stribeck, stability, reproduce),
 ``rig.commands.diagnose`` (diagnose), ``rig.commands.hardware`` (devices,
 emulate, loop-bench), ``rig.commands.catalog`` (catalog build, catalog query),
-``rig.commands.warmup`` (warmup). A module that is
+``rig.commands.warmup`` (warmup), ``rig.commands.heal`` (heal), ``rig.commands.tune``
+(tune step, frf, autotune). A module that is
 missing is simply not registered. The conventions (exit codes, ``-o/--out``,
 ``--json PATH``) and the safety net against tracebacks are in
 :mod:`rig.commands.common`.
@@ -44,6 +45,8 @@ COMMAND_MODULES = (
     "rig.commands.warmup",
     "rig.commands.catalog",
     "rig.commands.calibrate",
+    "rig.commands.heal",
+    "rig.commands.tune",
 )
 
 

@@ -8,8 +8,9 @@ a velocity step out of steady state. Imports nothing from ``rig``: a recipe beco
 
 from trajectories.planner import MAX_PLAN_DURATION_S, Plan, PlanError, compile_plan
 from trajectories.segments import (DEFAULT_MAX_SPEED_UM_S, DEFAULT_RUN_UP_L, MIN_RUN_UP_L, Hold, Move, PlanSpec,
-                                   RigLimits, RunIn, SteppedPass, VelocityStep, VelocitySteps)
+                                   RigLimits, RunIn, SineSweep, SlideHoldSlide, Square, SteppedPass, VelocityStep,
+                                   VelocitySteps)
 
 __all__ = ["Plan", "PlanError", "compile_plan", "PlanSpec", "RigLimits", "RunIn", "Hold", "Move", "SteppedPass",
-           "VelocityStep", "VelocitySteps", "MIN_RUN_UP_L", "DEFAULT_RUN_UP_L", "DEFAULT_MAX_SPEED_UM_S",
+           "VelocityStep", "VelocitySteps", "SlideHoldSlide", "Square", "SineSweep", "MIN_RUN_UP_L", "DEFAULT_RUN_UP_L", "DEFAULT_MAX_SPEED_UM_S",
            "MAX_PLAN_DURATION_S"]

@@ -33,7 +33,7 @@ from functools import cached_property
 import numpy as np
 
 from trajectories.segments import (DEFAULT_RUN_UP_L, MIN_RUN_UP_L, Hold, Move, PlanSpec, RigLimits, RunIn,
-                                   SteppedPass, VelocitySteps)
+                                   SineSweep, SlideHoldSlide, Square, SteppedPass, VelocitySteps)
 
 MAX_PLAN_DURATION_S = 8 * 3600.0
 _EPS_UM = 1e-9
@@ -67,7 +67,12 @@ class Plan:
     (``v1_um_s``, ``v2_um_s``, ``x_um``, ``ramp_end_s``, ``step``), ``level`` (a
     stepped-pass level: ``level``, ``v_um_s``, ``x_start_um``, ``x_end_um``,
     ``t_end_s``, ``window_t_start_s``, ``window_t_end_s``, ``window_x_start_um``,
-    ``window_x_end_um``, ``direction`` up/down).
+    ``window_x_end_um``, ``direction`` up/down), ``hold`` (a slide-hold-slide rest: ``hold``,
+    ``hold_s`` at rest, ``v_um_s`` before and after, ``x_um``, ``t_end_s``, ``reslide_um``),
+    ``square`` (``amplitude_um``, ``frequency_hz``, ``cycles``, ``x_um`` centre, ``edge_s``,
+    ``edges_t_s``, ``velocity_um_s``, ``t_end_s``), ``sine_sweep`` (``f0_hz``, ``f1_hz``,
+    ``amplitude_um``, ``duration_s``, ``taper_s``, ``x_um`` centre at the start,
+    ``velocity_um_s`` of the slide beneath, ``t_end_s``).
     ``segments`` rows: ``index, kind, label, t_start_s, t_end_s, x_start_um, x_end_um,
     x_min_um, x_max_um, v_max_um_s, i_start, i_end`` (tick indices, end exclusive).
     """
@@ -81,6 +86,8 @@ class Plan:
     # the recipe's controller switches for this trial ({"ff1": bool, "friction_ff": bool}; empty:
     # the rig profile's settings); plain data, applied by the backend that runs the plan
     controller: dict = field(default_factory=dict)
+    # waveforms added to the phases' reference (square, sine sweep): (t0_s, T_s, segment, edge_speed_um_s)
+    overlays: list = field(default_factory=list, repr=False)
 
     @property
     def n_ticks(self) -> int:
@@ -101,7 +108,8 @@ class Plan:
     @cached_property
     def v_ref_um_s(self) -> np.ndarray:
         """Reference velocity at every tick (closed form, not a finite difference)."""
-        _, v = _sample(self.phases, self.t_s)
+        x, v = _sample(self.phases, self.t_s)
+        _apply_overlays(self.overlays, self.t_s, x, v)
         return v
 
     def segment_at(self, t_s: float) -> dict:
@@ -221,6 +229,56 @@ def _sample(phases: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return x, v
 
 
+def _square_points(seg: Square, edge_speed_um_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Breakpoints (time from the segment's start, offset) of the speed-limited square wave:
+    +a for the first half cycle, -a for the second, ..., straight edges at ``edge_speed_um_s``
+    starting at each nominal edge, back to 0 after the last cycle."""
+    a, h, c = seg.amplitude_um, 0.5 / seg.frequency_hz, int(seg.cycles)
+    e1, e2 = a / edge_speed_um_s, 2.0 * a / edge_speed_um_s
+    pts = [(0.0, 0.0), (e1, a)]
+    level = a
+    for k in range(1, 2 * c):
+        pts += [(k * h, level), (k * h + e2, -level)]
+        level = -level
+    pts += [(2 * c * h, level), (2 * c * h + e1, 0.0)]
+    tt, xx = np.array(pts).T
+    return tt, xx
+
+
+def _overlay_values(ov, tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Offset (µm) and its velocity (µm/s) of an overlay waveform at times ``tau`` from its start."""
+    _, T, seg, edge = ov
+    if isinstance(seg, Square):
+        tt, xx = _square_points(seg, edge)
+        slopes = np.diff(xx) / np.maximum(np.diff(tt), 1e-300)
+        k = np.clip(np.searchsorted(tt, tau, side="right") - 1, 0, tt.size - 2)
+        return np.interp(tau, tt, xx), np.where(tau < T, slopes[k], 0.0)
+    a, f0 = seg.amplitude_um, seg.f0_hz
+    D, Tt = seg.duration_s, seg.taper()
+    kk = math.log(seg.f1_hz / f0) / D
+    phi = 2.0 * math.pi * f0 * np.expm1(kk * tau) / kk
+    dphi = 2.0 * math.pi * f0 * np.exp(kk * tau)
+    w, dw = np.ones_like(tau), np.zeros_like(tau)
+    for edge_tau, sgn in ((tau, 1.0), (D - tau, -1.0)):
+        m = edge_tau < Tt
+        w[m] *= 0.5 * (1.0 - np.cos(math.pi * edge_tau[m] / Tt))
+        dw[m] = sgn * 0.5 * math.pi / Tt * np.sin(math.pi * edge_tau[m] / Tt)
+    return a * w * np.sin(phi), a * (dw * np.sin(phi) + w * np.cos(phi) * dphi)
+
+
+def _apply_overlays(overlays: list, t: np.ndarray, x: np.ndarray, v: np.ndarray | None = None) -> None:
+    """Add the overlay waveforms to the sampled reference ``x`` (and velocity ``v``) in place."""
+    for ov in overlays:
+        t0, T = ov[0], ov[1]
+        i0, i1 = np.searchsorted(t, [t0, t0 + T], side="left")
+        if i1 <= i0:
+            continue
+        dx, dv = _overlay_values(ov, t[i0:i1] - t0)
+        x[i0:i1] += dx
+        if v is not None:
+            v[i0:i1] += dv
+
+
 def _check_rate(limits: RigLimits, rate_hz: float, what: str) -> int:
     ratio = limits.loop_rate_hz / rate_hz
     n = int(round(ratio))
@@ -245,6 +303,7 @@ def compile_plan(spec: PlanSpec, limits: RigLimits | None = None) -> Plan:
                         f"[{lim.stroke_min_um:g}, {lim.stroke_max_um:g}] µm")
 
     b = _Builder(lim.initial_position_um)
+    overlays: list = []
     events: list[dict] = []
     segments: list[dict] = []
 
@@ -268,12 +327,12 @@ def compile_plan(spec: PlanSpec, limits: RigLimits | None = None) -> Plan:
         if accel > lim.max_accel_um_s2:
             fail(f"acceleration {accel:g} µm/s² exceeds the actuator's maximum {lim.max_accel_um_s2:g} µm/s²")
         # speed check before building (what the segment asks for)
-        asked = _segment_speeds(seg)
+        asked = _segment_speeds(seg, lim)
         if asked > lim.max_speed_um_s:
             fail(f"speed {asked:g} µm/s exceeds the actuator's maximum {lim.max_speed_um_s:g} µm/s "
                  f"(profile {lim.source}{lim.max_speed_note})")
 
-        row0 = len(b.rows)
+        row0, ov0 = len(b.rows), len(overlays)
         t_start, x_start = b.t, b.x
         events.append({"t_s": t_start, "kind": "segment_start", "segment": index, "segment_kind": kind,
                        "label": label, "x_um": x_start})
@@ -291,6 +350,10 @@ def compile_plan(spec: PlanSpec, limits: RigLimits | None = None) -> Plan:
                 _stepped_pass(b, seg, accel, index, events, fail)
             elif isinstance(seg, VelocitySteps):
                 _velocity_steps(b, seg, accel, index, events, fail, spec)
+            elif isinstance(seg, SlideHoldSlide):
+                _slide_hold_slide(b, seg, accel, index, events, fail, spec)
+            elif isinstance(seg, (Square, SineSweep)):
+                _waveform(b, seg, accel, index, events, overlays, fail, spec, lim)
             else:  # pragma: no cover - the segment union is closed
                 fail("unknown segment kind")
         except PlanError:
@@ -305,6 +368,10 @@ def compile_plan(spec: PlanSpec, limits: RigLimits | None = None) -> Plan:
         else:
             x_min = x_max = b.x
             v_max = 0.0
+        for ov in overlays[ov0:]:
+            amp, base = ov[2].amplitude_um, ov[2].velocity_um_s
+            x_min, x_max = x_min - amp, x_max + amp
+            v_max = max(v_max, base + _overlay_peak_speed(ov))
         if x_max > lim.stroke_max_um + 1e-6 or x_min < lim.stroke_min_um - 1e-6:
             bad = x_max if x_max > lim.stroke_max_um + 1e-6 else x_min
             fail(f"reference reaches {bad:.1f} µm, outside the stroke [{lim.stroke_min_um:g}, "
@@ -326,22 +393,36 @@ def compile_plan(spec: PlanSpec, limits: RigLimits | None = None) -> Plan:
         n += 1
     t = np.arange(n) / lim.loop_rate_hz
     x, _ = _sample(phases, t)
+    _apply_overlays(overlays, t, x)
     for s in segments:
         s["i_start"] = int(math.ceil(s["t_start_s"] * lim.loop_rate_hz - 1e-9))
         s["i_end"] = min(n, int(math.ceil(s["t_end_s"] * lim.loop_rate_hz - 1e-9)))
     segments[-1]["i_end"] = n
     events.sort(key=lambda e: (e["t_s"], 0 if e["kind"] == "segment_end" else 1))
     return Plan(loop_rate_hz=lim.loop_rate_hz, x_ref_um=x, events=events, segments=segments, limits=lim,
-                phases=phases)
+                phases=phases, overlays=overlays)
 
 
-def _segment_speeds(seg) -> float:
+def _overlay_peak_speed(ov) -> float:
+    seg = ov[2]
+    if isinstance(seg, Square):
+        return float(ov[3])
+    return 2.0 * math.pi * seg.f1_hz * seg.amplitude_um * (1.0 + 1.0 / (seg.f1_hz * seg.taper()))
+
+
+def _segment_speeds(seg, lim: RigLimits) -> float:
     if isinstance(seg, RunIn):
         return seg.speed_um_s
     if isinstance(seg, Move):
         return seg.speed_um_s
     if isinstance(seg, SteppedPass):
         return max(seg.velocities_um_s)
+    if isinstance(seg, SlideHoldSlide):
+        return seg.velocity_um_s
+    if isinstance(seg, Square):
+        return seg.velocity_um_s + (seg.edge_speed_um_s or lim.max_speed_um_s)
+    if isinstance(seg, SineSweep):
+        return seg.velocity_um_s + _overlay_peak_speed((0.0, seg.duration_s, seg, None))
     if isinstance(seg, VelocitySteps):
         vs = [max(s.v1_um_s, s.v2_um_s) for s in seg.steps]
         if seg.return_speed_um_s:
@@ -377,24 +458,9 @@ def _stepped_pass(b: _Builder, seg: SteppedPass, accel: float, index: int, event
 
 def _run_up_um(b: _Builder, st, seg: VelocitySteps, accel: float, j: int, spec: PlanSpec, fail) -> float:
     """Slip from rest to the step (ramp to v1 included), checked against L of the model in use."""
-    d_ramp = math.pi * st.v1_um_s ** 2 / (4.0 * accel)  # raised cosine 0 -> v1: v1 T / 2
-    L = spec.state_length_um
-    what = f"step {j + 1} ({st.v1_um_s:g} -> {st.v2_um_s:g} µm/s)"
-    if st.slip_before_um is None:
-        if L is None:
-            fail(f"{what}: slip_before_um is needed (no slip length L of a friction model was given)")
-        return d_ramp + DEFAULT_RUN_UP_L * L
-    before = st.slip_before_um
-    if before < d_ramp:
-        fail(f"{what}: slip_before_um {before:g} is shorter than the run-up to v1 ({d_ramp:.2f} µm)")
-    if L is not None and seg.require_steady_state and before - d_ramp < MIN_RUN_UP_L * L * (1 - 1e-9):
-        src = f" ({spec.state_length_source})" if spec.state_length_source else ""
-        fail(f"{what} would start out of steady state: {before - d_ramp:.1f} µm of slip at v1 is "
-             f"{(before - d_ramp) / L:.2f} L, with L = {L:g} µm{src}; a step needs at least "
-             f"{MIN_RUN_UP_L:g} L = {MIN_RUN_UP_L * L:.1f} µm at v1 (the state relaxes as exp(-slip/L), eq. 6). "
-             f"Set slip_before_um >= {math.ceil(d_ramp + MIN_RUN_UP_L * L):g}, or leave it out "
-             f"({DEFAULT_RUN_UP_L:g} L), or set require_steady_state: false")
-    return before
+    return _run_up_check(b, st.v1_um_s, st.slip_before_um, accel, spec,
+                         f"step {j + 1} ({st.v1_um_s:g} -> {st.v2_um_s:g} µm/s)", fail, "slip_before_um",
+                         steady=seg.require_steady_state, hint=", or set require_steady_state: false", vname="v1")
 
 
 def _velocity_steps(b: _Builder, seg: VelocitySteps, accel: float, index: int, events: list, fail,
@@ -425,6 +491,105 @@ def _velocity_steps(b: _Builder, seg: VelocitySteps, accel: float, index: int, e
         if seg.return_speed_um_s:
             b.move_to(x_home, seg.return_speed_um_s, accel)
             b.cruise_time(seg.hold_s)
+
+
+def _run_up_check(b: _Builder, v: float, given: float | None, accel: float, spec: PlanSpec, what: str, fail,
+                  field_name: str, steady: bool = True, hint: str = "", vname: str = "v") -> float:
+    """Slip from rest (ramp to ``v`` included) before a hold or a step: ``given``, or the ramp
+    plus DEFAULT_RUN_UP_L x L; refused below MIN_RUN_UP_L x L at ``v`` (exp(-5): the state
+    within 0.7 % of steady state, eq. 6)."""
+    d_ramp = math.pi * v * v / (4.0 * accel)
+    L = spec.state_length_um
+    if given is None:
+        if L is None:
+            fail(f"{what}: {field_name} is needed (no slip length L of a friction model was given)")
+        return d_ramp + DEFAULT_RUN_UP_L * L
+    if given < d_ramp:
+        fail(f"{what}: {field_name} {given:g} is shorter than the run-up to {vname} ({d_ramp:.2f} µm)")
+    if L is not None and steady and given - d_ramp < MIN_RUN_UP_L * L * (1 - 1e-9):
+        src = f" ({spec.state_length_source})" if spec.state_length_source else ""
+        fail(f"{what} would start out of steady state: {given - d_ramp:.1f} µm of slip at {vname} is "
+             f"{(given - d_ramp) / L:.2f} L, with L = {L:g} µm{src}; at least {MIN_RUN_UP_L:g} L = "
+             f"{MIN_RUN_UP_L * L:.1f} µm is needed (the state relaxes as exp(-slip/L), eq. 6). Set {field_name} "
+             f">= {math.ceil(d_ramp + MIN_RUN_UP_L * L):g}, or leave it out ({DEFAULT_RUN_UP_L:g} L){hint}")
+    return given
+
+
+def _slide_hold_slide(b: _Builder, seg: SlideHoldSlide, accel: float, index: int, events: list, fail,
+                      spec: PlanSpec) -> None:
+    """Slide (run-up >= 5 L), then per hold: stop, rest ``t_hold``, re-slide ``reslide_um`` at v."""
+    if b.v != 0:
+        b.ramp(0.0, accel)
+    v = seg.velocity_um_s
+    vname = f"v = {v:g} µm/s"
+    run_up = _run_up_check(b, v, seg.run_up_um, accel, spec, "the run-up", fail, "run_up_um", vname=vname)
+    reslide = _run_up_check(b, v, seg.reslide_um, accel, spec, "the re-slide (the next hold's run-up)", fail,
+                            "reslide_um", vname=vname)
+    x0 = b.x
+    b.ramp(v, accel)
+    b.cruise_to(x0 + run_up)
+    for j, t_hold in enumerate(seg.hold_times_s):
+        t_stop = b.t
+        b.ramp(0.0, accel)
+        t_rest, x_hold = b.t, b.x
+        b.cruise_time(t_hold)
+        t_end = b.t
+        b.ramp(v, accel)
+        b.cruise_to(x_hold + reslide)
+        events.append({"t_s": t_rest, "kind": "hold", "segment": index, "hold": j, "hold_s": float(t_hold),
+                       "v_um_s": v, "x_um": x_hold, "t_stop_s": t_stop, "t_end_s": t_end, "reslide_um": reslide,
+                       "t_reslide_end_s": b.t})
+    b.ramp(0.0, accel)
+
+
+def _waveform(b: _Builder, seg, accel: float, index: int, events: list, overlays: list, fail, spec: PlanSpec,
+              lim: RigLimits) -> None:
+    """A square wave or a sine sweep about the current position (the reference at rest beneath)."""
+    raw = dict(spec.log_rates_hz).get("log.raw_rate_hz")
+    if raw is not None and raw < lim.loop_rate_hz:
+        fail(f"a {seg.kind} segment is a loop-tuning test and is logged at the loop rate: log.raw_rate_hz "
+             f"{raw:g} Hz must be {lim.loop_rate_hz:g} Hz")
+    if b.v != seg.velocity_um_s:
+        b.ramp(seg.velocity_um_s, accel)
+    t0, xc = b.t, b.x
+    if isinstance(seg, Square):
+        edge = seg.edge_speed_um_s or (lim.max_speed_um_s - seg.velocity_um_s)
+        half = 0.5 / seg.frequency_hz
+        if 2.0 * seg.amplitude_um / edge > 0.5 * half:
+            fail(f"an edge of {2 * seg.amplitude_um:g} µm at {edge:g} µm/s takes {2e3 * seg.amplitude_um / edge:.1f}"
+                 f" ms, more than half of the half period ({500.0 * half:.1f} ms at {seg.frequency_hz:g} Hz): "
+                 f"lower frequency_hz or amplitude_um")
+        if math.isfinite(lim.max_accel_um_s2):
+            fail(f"a square wave's edges are straight ramps (no acceleration bound) and the rig limits the "
+                 f"acceleration to {lim.max_accel_um_s2:g} µm/s²; use a sine_sweep")
+        tt, _ = _square_points(seg, edge)
+        T = float(tt[-1])
+        e = 2.0 * seg.amplitude_um / edge
+        edges = [t0] + [t0 + k * half for k in range(1, 2 * int(seg.cycles) + 1)]
+        events.append({"t_s": t0, "kind": "square", "segment": index, "amplitude_um": seg.amplitude_um,
+                       "frequency_hz": seg.frequency_hz, "cycles": int(seg.cycles), "x_um": xc,
+                       "velocity_um_s": seg.velocity_um_s, "edge_s": e,
+                       "edge_speed_um_s": edge, "edges_t_s": edges, "t_end_s": t0 + T})
+    else:
+        if seg.f1_hz <= seg.f0_hz:
+            fail(f"f1_hz ({seg.f1_hz:g}) must exceed f0_hz ({seg.f0_hz:g})")
+        if seg.f1_hz > 0.5 * lim.loop_rate_hz:
+            fail(f"f1_hz {seg.f1_hz:g} Hz is above the loop's Nyquist frequency {0.5 * lim.loop_rate_hz:g} Hz")
+        if 2.0 * seg.taper() > seg.duration_s:
+            fail(f"taper_s {seg.taper():g} s at both ends is longer than the sweep ({seg.duration_s:g} s)")
+        a_pk = (2.0 * math.pi * seg.f1_hz) ** 2 * seg.amplitude_um
+        if a_pk > lim.max_accel_um_s2:
+            fail(f"the sweep's peak acceleration (2 pi f1)^2 a = {a_pk:.4g} µm/s² exceeds the actuator's maximum "
+                 f"{lim.max_accel_um_s2:g} µm/s²")
+        T = seg.duration_s
+        edge = None
+        events.append({"t_s": t0, "kind": "sine_sweep", "segment": index, "f0_hz": seg.f0_hz, "f1_hz": seg.f1_hz,
+                       "amplitude_um": seg.amplitude_um, "duration_s": T, "taper_s": seg.taper(), "x_um": xc,
+                       "velocity_um_s": seg.velocity_um_s, "t_end_s": t0 + T})
+    overlays.append((t0, T, seg, edge))
+    b.cruise_time(T)
+    if b.v != 0:
+        b.ramp(0.0, accel)
 
 
 __all__ = ["Plan", "PlanError", "compile_plan", "MAX_PLAN_DURATION_S"]

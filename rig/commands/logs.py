@@ -114,6 +114,10 @@ def export_command(
                                                                 "true_*) after the standard ones."),
     strict: bool = typer.Option(False, "--strict", help="A corrupt chunk is an error (exit 2), not a warning."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing output file (exit 2 otherwise)."),
+    elastic: Optional[str] = typer.Option(None, "--elastic-correction", metavar="K_kN_per_m|fit", show_default=False,
+                                          help="Add interface_slip_um = position_um - friction_N / k: k in kN/m, "
+                                               "or 'fit' (the file's machine_stiffness_kN_per_m, else the "
+                                               "whole-record fit with stiffness)."),
 ):
     """Export a trial log to the measured-data CSV and/or Parquet, atomically.
 
@@ -139,6 +143,13 @@ def export_command(
         if p is not None:
             check_output_path(p, opt)
             check_new_output(p, opt, overwrite)
+    if elastic is not None:
+        from rig.analysis.elastic import parse_correction
+
+        try:
+            k_given = parse_correction(elastic)
+        except ValueError as exc:
+            _fail(str(exc))
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", LogDamageWarning)  # shown below from trial.warnings
@@ -149,6 +160,15 @@ def export_command(
         _warn(w)
     if not extra:
         trial.extra = {}
+    if elastic is not None:
+        from rig.analysis.elastic import correct
+
+        try:
+            ec = correct(trial, k_given)
+        except ValueError as exc:
+            _fail(str(exc))
+        err = f" ± {ec['k_err_kN_per_m']:.3g}" if ec["k_err_kN_per_m"] is not None else ""
+        console.print(f"elastic correction: k = {ec['k_kN_per_m']:.4g}{err} kN/m ({ec['source']})", highlight=False)
     for target, write in ((csv, write_csv), (parquet, write_parquet)):
         if target is None:
             continue

@@ -18,6 +18,15 @@ list of segments the reference trajectory goes through:
     250 µm after it plus 200 points at 25 Hz (eqs. 10-12). The run-up at v1 is
     6 L of the friction model in use unless given; the planner refuses one
     shorter than 5 L (:data:`trajectories.MIN_RUN_UP_L`).
+``slide_hold_slide``
+    the healing protocol: slide at ``velocity_um_s`` (run-up >= 5 L), then for each of
+    ``hold_times_s`` stop, rest, and re-slide ``reslide_um`` (>= 5 L, the next hold's
+    run-up); ``rig heal`` reduces it (docs/identification.md).
+``square``, ``sine_sweep``
+    loop-tuning tests about the current position: a square wave (``amplitude_um``,
+    ``frequency_hz``, ``cycles``) and a logarithmic chirp (``f0_hz``, ``f1_hz``,
+    ``amplitude_um``, ``duration_s``), logged at the loop rate; ``rig tune`` reduces them
+    (docs/hardware.md).
 ``hold``
     stand still for a duration.
 ``move``
@@ -180,6 +189,56 @@ class VelocitySteps(_SegmentBase):
                                                          "it (false: short tests, transient-start experiments).")
 
 
+class SlideHoldSlide(_SegmentBase):
+    """Slide-hold-slide (healing): slide ``run_up_um`` at ``velocity_um_s``, then for each hold
+    time stop, rest, re-slide ``reslide_um``. Defaults: the ramp + 6 L of the friction model in
+    use; the planner refuses less than 5 L at v for either (each re-slide is the next hold's
+    run-up, so every hold starts from steady sliding)."""
+
+    kind: Literal["slide_hold_slide"]
+    velocity_um_s: Speed = 10.0
+    hold_times_s: list[Duration] = Field(default_factory=lambda: [1.0, 3.0, 10.0, 30.0, 100.0], min_length=1,
+                                         max_length=1000, description="Rest of each hold (s), ramps excluded.")
+    reslide_um: Distance | None = Field(None, description="Slip after each hold (µm), the ramp included; "
+                                                          "default: the ramp + 6 L.")
+    run_up_um: Distance | None = Field(None, description="Slip before the first hold (µm), the ramp included; "
+                                                         "default: the ramp + 6 L.")
+
+
+class Square(_SegmentBase):
+    """Square wave about the current position (loop tuning, ``rig tune step``)."""
+
+    kind: Literal["square"]
+    amplitude_um: Annotated[float, Field(gt=0, le=1000.0)]
+    frequency_hz: Annotated[float, Field(gt=0, le=500.0)]
+    cycles: Annotated[int, Field(ge=1, le=100_000)] = 5
+    edge_speed_um_s: Speed | None = Field(None, description="Speed of each edge (µm/s); default: the rig's "
+                                                            "maximum speed (less velocity_um_s).")
+    velocity_um_s: Annotated[float, Field(ge=0, le=MAX_SPEED_UM_S)] = Field(
+        0.0, description="Slide beneath the wave (µm/s); 0: about the current position.")
+
+
+class SineSweep(_SegmentBase):
+    """Logarithmic chirp about the current position (loop tuning, ``rig tune frf``)."""
+
+    kind: Literal["sine_sweep"]
+    f0_hz: Annotated[float, Field(gt=0, le=500.0)]
+    f1_hz: Annotated[float, Field(gt=0, le=500.0)]
+    amplitude_um: Annotated[float, Field(gt=0, le=1000.0)]
+    duration_s: Duration
+    taper_s: Annotated[float, Field(ge=0, le=MAX_DURATION_S)] | None = Field(
+        None, description="Raised-cosine fade at both ends (s); default: one period of f0, at most 10 %.")
+    velocity_um_s: Annotated[float, Field(ge=0, le=MAX_SPEED_UM_S)] = Field(
+        0.0, description="Slide beneath the sweep (µm/s); above 2 pi f1 amplitude_um the velocity never "
+                         "reverses and friction stays linear about steady sliding. 0: about the current position.")
+
+    @model_validator(mode="after")
+    def _rising(self):
+        if self.f1_hz <= self.f0_hz:
+            raise ValueError(f"f1_hz ({self.f1_hz:g}) must exceed f0_hz ({self.f0_hz:g}): the sweep rises")
+        return self
+
+
 class Hold(_SegmentBase):
     kind: Literal["hold"]
     duration_s: Duration
@@ -191,7 +250,8 @@ class Move(_SegmentBase):
     speed_um_s: Speed
 
 
-Segment = Annotated[Union[RunIn, SteppedPass, VelocitySteps, Hold, Move], Field(discriminator="kind")]
+Segment = Annotated[Union[RunIn, SteppedPass, VelocitySteps, SlideHoldSlide, Square, SineSweep, Hold, Move],
+                    Field(discriminator="kind")]
 
 
 class LogRates(StrictModel):
@@ -332,6 +392,16 @@ def _plain(seg) -> "tj.Segment":
                                       slip_after_um=st.slip_after_um or seg.slip_after_um) for st in seg.steps)
         return tj.VelocitySteps(steps=steps, return_speed_um_s=seg.return_speed_um_s, hold_s=seg.hold_s,
                                 require_steady_state=seg.require_steady_state, **common)
+    if isinstance(seg, SlideHoldSlide):
+        return tj.SlideHoldSlide(velocity_um_s=seg.velocity_um_s, hold_times_s=tuple(seg.hold_times_s),
+                                 reslide_um=seg.reslide_um, run_up_um=seg.run_up_um, **common)
+    if isinstance(seg, Square):
+        return tj.Square(amplitude_um=seg.amplitude_um, frequency_hz=seg.frequency_hz, cycles=seg.cycles,
+                         edge_speed_um_s=seg.edge_speed_um_s, velocity_um_s=seg.velocity_um_s, **common)
+    if isinstance(seg, SineSweep):
+        return tj.SineSweep(f0_hz=seg.f0_hz, f1_hz=seg.f1_hz, amplitude_um=seg.amplitude_um,
+                            duration_s=seg.duration_s, taper_s=seg.taper_s, velocity_um_s=seg.velocity_um_s,
+                            **common)
     raise TypeError(f"not a recipe segment: {seg!r}")  # pragma: no cover - the union is closed
 
 
@@ -378,6 +448,7 @@ def compile_recipe(recipe: Recipe, profile=None, friction_model=None, limits: tj
 
 __all__ = [
     "Recipe", "RecipeError", "ControllerSwitches", "RunIn", "SteppedPass", "VelocitySteps", "VelocityStep", "Hold", "Move",
+    "SlideHoldSlide", "Square", "SineSweep",
     "LogRates", "load_recipe", "parse_recipe", "compile_recipe", "plan_spec", "state_length", "LUBRICANTS",
     "DEFAULT_PASS_VELOCITIES_UM_S",
 ]

@@ -1,0 +1,76 @@
+"""Elastic correction of a record: the slip at the interface (``rig export --elastic-correction``).
+
+A load-point record (measured-data.md, ``position_source: load_point``: the position at the
+actuator, as on rock and gouge machines) has the machine's compliance between the measured
+position and the interface. With a stiffness ``k`` the interface slip is
+
+    interface_slip_um = position_um - friction_N / k          (k in N/µm = kN/m x 1e-3)
+
+the elastic correction of the friction lab (e.g. Marone 1998; xlook's ``ec`` command), the
+``interface_slip_um`` column of measured-data.md. ``k`` is given, or ``fit``: the file's
+``machine_stiffness_kN_per_m`` metadata when present (a calibration), else the whole-record
+rate-and-state fit with a finite stiffness (:func:`rig.analysis.identify.fit_whole_record`,
+the same fit as ``rig identify``'s).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from rig.data import TrialData, parse_number
+
+KN_PER_M_TO_N_PER_UM = 1e-3
+
+
+def parse_correction(text: str) -> float | None:
+    """``fit`` -> None; a positive stiffness in kN/m -> its value. ValueError otherwise."""
+    if text.strip().lower() == "fit":
+        return None
+    v = parse_number(text.strip())
+    if v is None or not math.isfinite(v) or v <= 0:
+        raise ValueError(f"--elastic-correction {text!r}: expected a positive stiffness in kN/m or 'fit'")
+    return v
+
+
+def stiffness_kN_per_m(trial: TrialData, given: float | None) -> tuple[float, str, float | None]:
+    """The stiffness to correct with (kN/m), where it came from, and its standard error (fit).
+    ValueError when the metadata value is not a positive number or the fit fails."""
+    if given is not None:
+        return float(given), "given", None
+    meta = trial.metadata.get("machine_stiffness_kN_per_m")
+    if meta is not None:
+        v = parse_number(str(meta))
+        if v is None or not math.isfinite(v) or v <= 0:
+            raise ValueError(f"{trial.source or 'trial'}: machine_stiffness_kN_per_m metadata {meta!r} is not a "
+                             "positive number of kN/m")
+        return v, "machine_stiffness_kN_per_m metadata", None
+    from rig.analysis.identify import fit_whole_record
+
+    fit = fit_whole_record(trial, stiffness=True)
+    k = (fit.get("params") or {}).get("stiffness_kN_per_m")
+    if not fit.get("ok") or k is None or not math.isfinite(k) or k <= 0:
+        raise ValueError(f"{trial.source or 'trial'}: the whole-record fit with a machine stiffness did not "
+                         f"converge ({fit.get('reason', 'no finite positive stiffness')}); give the stiffness "
+                         "in kN/m instead of 'fit'")
+    return float(k), "whole-record fit (rig identify's, with stiffness)", \
+        (fit.get("err_corr") or {}).get("stiffness_kN_per_m")
+
+
+def interface_slip_um(position_um, friction_N, k_kN_per_m: float) -> np.ndarray:
+    """Position minus friction over the stiffness (µm)."""
+    return np.asarray(position_um, float) - np.asarray(friction_N, float) / (k_kN_per_m * KN_PER_M_TO_N_PER_UM)
+
+
+def correct(trial: TrialData, given: float | None) -> dict:
+    """Add ``interface_slip_um`` to ``trial`` (its extra columns) and the stiffness used to its
+    metadata; returns ``{k_kN_per_m, source, k_err_kN_per_m}``."""
+    k, src, err = stiffness_kN_per_m(trial, given)
+    trial.extra = {"interface_slip_um": interface_slip_um(trial.position_um, trial.friction_N, k), **trial.extra}
+    trial.metadata["elastic_correction_kN_per_m"] = f"{k:.6g}"
+    trial.metadata["elastic_correction_source"] = src
+    return {"k_kN_per_m": k, "source": src, "k_err_kN_per_m": err}
+
+
+__all__ = ["parse_correction", "stiffness_kN_per_m", "interface_slip_um", "correct"]
