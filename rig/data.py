@@ -192,11 +192,17 @@ def _plain_ascii(text: str) -> bool:
     return text.isascii() and "_" not in text
 
 
-def read_csv(path: str | os.PathLike) -> TrialData:
+def read_csv(path: str | os.PathLike, column_map: dict[str, str] | None = None,
+             scale: dict[str, float] | None = None) -> TrialData:
     """Read a measured-data CSV (version 1). Raises :class:`DataFormatError` on bad input.
 
     A trailing partial row is dropped with a :class:`PartialLineWarning` (also
     recorded in ``TrialData.warnings``).
+
+    ``column_map`` ({our name: the file's column}, ``rig import --map``) reads a lab's other
+    acquisition file: its columns are renamed, and its first line need not be the format's
+    ``# rig-trial-csv: 1``; ``scale`` ({our name: factor}, ``--scale``) multiplies a column
+    (units: mm -> µm is 1000) after reading.
     """
     path = Path(path)
     try:
@@ -213,6 +219,10 @@ def read_csv(path: str | os.PathLike) -> TrialData:
     if not lines:
         raise DataFormatError(path, 1, "empty file (expected '# rig-trial-csv: 1' on the first line)")
     first = lines[0].strip()
+    magic = first.startswith("#") and first.lstrip("#").strip().replace(" ", "") == f"{CSV_MAGIC}:{CSV_VERSION}"
+    if column_map is not None and not magic:
+        lines = [f"# {CSV_MAGIC}: {CSV_VERSION}"] + lines  # a lab's own file: line numbers below shift by one
+        first = lines[0]
     if not first.startswith("#") or first.lstrip("#").strip().replace(" ", "") != f"{CSV_MAGIC}:{CSV_VERSION}":
         raise DataFormatError(path, 1, f"first line must be '# {CSV_MAGIC}: {CSV_VERSION}', found {lines[0][:60]!r}")
 
@@ -243,6 +253,13 @@ def read_csv(path: str | os.PathLike) -> TrialData:
         raise DataFormatError(path, i + 1, "missing header row (column names) after the metadata lines")
     header_lineno = i + 1
     names = [c.strip() for c in lines[i].split(",")]
+    if column_map:
+        missing_src = [f"{ours}={theirs}" for ours, theirs in column_map.items() if theirs not in names]
+        if missing_src:
+            raise DataFormatError(path, header_lineno - (0 if magic else 1),
+                                  f"--map {', '.join(missing_src)}: no such column (header has: {', '.join(names)})")
+        back = {theirs: ours for ours, theirs in column_map.items()}
+        names = [back.get(n, n) for n in names]
     if len(set(names)) != len(names):
         dup = sorted({n for n in names if names.count(n) > 1})
         raise DataFormatError(path, header_lineno, f"duplicate column name(s): {', '.join(dup)}")
@@ -326,6 +343,17 @@ def read_csv(path: str | os.PathLike) -> TrialData:
         j = bad[0] + 1
         raise DataFormatError(path, row_lines[j],
                               f"time_s not strictly increasing ({float(t[j - 1])!r} then {float(t[j])!r})")
+
+    for name, factor in (scale or {}).items():
+        if name in cols:
+            cols[name] = cols[name] * float(factor)
+        elif name in extra and extra[name].dtype.kind == "f":
+            extra[name] = extra[name] * float(factor)
+        else:
+            raise DataFormatError(path, header_lineno, f"--scale {name}={factor:g}: no numeric column {name!r} "
+                                                       f"(columns: {', '.join(names)})")
+    if scale and "time_s" in scale and not float(scale["time_s"]) > 0:
+        raise DataFormatError(path, header_lineno, "--scale time_s must be positive (time must increase)")
 
     def opt(name):
         return cols.get(name)

@@ -46,20 +46,19 @@ import numpy as np
 from scipy.optimize import minimize_scalar
 
 from rig.kinematics import Step, detect_steps, estimate_velocity, line_fit
-from rig.data import TrialData, atomic_write_text
+from rig.data import TrialData, atomic_write_text, parse_number
 from rig.log import load_trial
 from rig.fitting import Param, ParamSet, least_squares_fit
+from rig.fitting.stats import effective_n
 from rig.model.forward import predict_force
 from rig.model.friction import V0_UM_S
 from rig.model.paper import k_cr_eq13_N_per_um
-from rig.model.spec import PARAMS, PLAUSIBLE, FrictionModel
+from rig.model.spec import PARAMS, PLAUSIBLE, RSF_NAMES, FrictionModel, rsf_vocabulary
 
 SCHEMA = "rig.identify/1"
 WINDOW_STARTS_UM = (50.0, 100.0, 250.0)
 WINDOW_POINTS = 200
 LN9 = math.log(9.0)
-# nuisance of the whole-record fit with ``trend``: a linear drift of mu
-TREND = Param("drift_mu_per_s", "1/s", -1.0, 1.0, scale=1e-5)
 
 
 # ---------------------------------------------------------------------------
@@ -351,34 +350,156 @@ def _segment_velocity(t: np.ndarray, x: np.ndarray, steps: list[Step], fallback:
     return v, mask
 
 
-def _block_mean(a: np.ndarray, k: int) -> np.ndarray:
-    m = (a.size // k) * k
-    return a[:m].reshape(-1, k).mean(axis=1)
+def _time_weights(t: np.ndarray) -> tuple[np.ndarray, float]:
+    """Each sample's share of the record's time: half the span to its neighbours, at most three
+    typical spacings (a gap adds no weight), over the typical spacing (the spacing that covers
+    half the duration: 0.1 s for a record at 10 Hz for half its time, whatever its rows at
+    100 Hz). A part logged ten times faster then counts as long as it lasts, not ten times more;
+    evenly sampled records have every weight 1. Returns (weights, typical spacing in s)."""
+    dt = np.diff(t)
+    if dt.size == 0:
+        return np.ones(t.size), 1.0
+    order = np.argsort(dt)
+    cum = np.cumsum(dt[order])
+    typical = float(dt[order][min(int(np.searchsorted(cum, 0.5 * cum[-1])), dt.size - 1)])
+    d = np.minimum(dt, 3.0 * typical)
+    span = 0.5 * (np.concatenate([[d[0]], d]) + np.concatenate([d, [d[-1]]]))
+    return span / max(typical, 1e-12), typical
+
+
+def _time_bins(t: np.ndarray, max_points: int) -> tuple[np.ndarray, float]:
+    """Uniform bins in time for a record of more than ``max_points`` samples (each sample's bin,
+    empty bins dropped) and their width (s): duration / ``max_points``, a whole number of typical
+    spacings; shorter records keep every sample (bin i = sample i)."""
+    if t.size <= max_points:
+        return np.arange(t.size), float(np.median(np.diff(t))) if t.size > 1 else 1.0
+    _, typical = _time_weights(t)
+    dur = float(t[-1] - t[0])
+    width = typical * max(1.0, math.ceil(dur / max(max_points, 1) / max(typical, 1e-12) - 1e-9)) * 0.999
+    raw = np.floor((t - t[0]) / width + 1e-9).astype(np.int64)
+    used = np.zeros(int(raw[-1]) + 1, bool)
+    used[raw] = True
+    comp = np.cumsum(used) - 1
+    return comp[raw], width
+
+
+def _bin_mean(a: np.ndarray, idx: np.ndarray, cnt: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
+    """Means per bin (weighted by ``w`` when given; ``cnt`` the bins' total weight)."""
+    a = np.asarray(a, dtype=float)
+    return np.bincount(idx, a if w is None else a * w, minlength=cnt.size) / cnt
+
+
+def _binned_steps(steps: list[Step], idx: np.ndarray, nb: int) -> list[Step]:
+    """The steps' sample indices moved to the time bins."""
+    def at(i):
+        return int(idx[min(max(i, 0), idx.size - 1)]) if i < idx.size else nb
+
+    def end(i):
+        return int(idx[i - 1]) + 1 if i > 0 else 0
+
+    return [Step(s.t_s, s.t_nominal_s, min(at(s.i), nb - 1), s.v1_um_s, s.v2_um_s, s.x_um,
+                 (at(s.pre[0]), at(s.i)), (at(s.i), min(end(s.post[1]), nb)), s.source) for s in steps]
+
+
+def _runs(steps: list[Step], n: int) -> list[tuple[int, int]]:
+    """Sample ranges [lo, hi) of the record's sliding runs: steps whose stretches join (a step's
+    stretch after it is the next one's before it) form one run; each run starts after a rest, a
+    return or the record's start, where the state is unknown (fitted per run). No steps: one run."""
+    if not steps:
+        return [(0, n)]
+    out: list[list[int]] = []
+    for s in sorted(steps, key=lambda s: s.pre[0]):
+        lo, hi = s.pre[0], max(s.post[1], s.i + 1)
+        if out and lo <= out[-1][1] + 2:
+            out[-1][1] = max(out[-1][1], hi)
+        else:
+            out.append([lo, hi])
+    return [(a, b) for a, b in out if b - a >= 5]
+
+
+DETRENDS = ("none", "linear", "auto")
+LAWS = ("slip", "aging")
+#: the trend's slip is in mm (the field's unit: friction per mm of slip)
+TREND = Param("rate_mu_per_mm", "1/mm", -1.0, 1.0, scale=1e-4)
+
+
+def steady_windows(t: np.ndarray, x: np.ndarray, mu: np.ndarray, v: np.ndarray, steps: list[Step],
+                   runs: list[tuple[int, int]], L_um: float, min_slip_um: float = 20.0) -> list[tuple[int, int]]:
+    """Steady-state windows in the manner of Giacomel et al. (2024): the parts of each
+    constant-velocity stretch more than 3 L of slip after its start (the transient has decayed to
+    e^-3 = 5 %), holding at least ``min_slip_um`` of slip."""
+    bounds = sorted({lo for lo, _ in runs} | {hi for _, hi in runs} | {s.i for s in steps})
+    out = []
+    for a, b in zip(bounds[:-1], bounds[1:]):
+        if b - a < 10 or not any(lo <= a < hi for lo, hi in runs):
+            continue
+        x0 = x[a]
+        j = a + int(np.searchsorted(np.maximum.accumulate(x[a:b] - x0), 3.0 * L_um))
+        if j < b - 5 and x[b - 1] - x[j] >= min_slip_um:
+            out.append((j, b))
+    return out
+
+
+def trend_from_windows(s_mm: np.ndarray, mu: np.ndarray, windows: list[tuple[int, int]]) -> tuple[float, float]:
+    """Common slope of mu against slip (per mm) within the steady-state windows, each window with
+    its own level (the velocity's steady state): pooled within-window regression, (slope, s.e.)."""
+    sxx = sxy = 0.0
+    res = []
+    for a, b in windows:
+        s, m = s_mm[a:b] - s_mm[a:b].mean(), mu[a:b] - mu[a:b].mean()
+        sxx += float(np.dot(s, s))
+        sxy += float(np.dot(s, m))
+        res.append((s, m))
+    if not sxx > 0:
+        return math.nan, math.nan
+    slope = sxy / sxx
+    r = np.concatenate([m - slope * s for s, m in res])
+    n_eff = effective_n(r)
+    dof = max(n_eff - len(windows) - 1, 1.0)
+    se = math.sqrt(float(np.dot(r, r)) / r.size * n_eff / dof / sxx * r.size / n_eff)
+    return slope, se
 
 
 def fit_whole_record(trial: TrialData, steps: list[Step] | None = None, *, stiffness: bool = False,
                      velocity_method: str = "segments", max_points: int = 15000, trend: bool = False,
-                     init: dict | None = None, k_fixed: float | None = None) -> dict:
-    """Fit mu0, A, B, L (and the machine stiffness ``k``, and a linear drift) to the
-    whole record by least squares (``scipy.optimize.least_squares``, trust region).
+                     init: dict | None = None, k_fixed: float | None = None, law: str = "slip",
+                     detrend: str = "none", uncertainty: str = "jacobian", seed: int = 0,
+                     progress=None) -> dict:
+    """Fit mu0, A, B, L (and the machine stiffness ``k``, and a linear trend in slip) to the
+    whole record by least squares (:mod:`rig.fitting`, trust region), with honest errors.
 
-    Without stiffness, the interface slips with the LVDT (diagnosis.md); its velocity is
-    ``velocity_method``: ``segments`` (default: piecewise constant, the line-fit slopes
-    between the effective steps: an ideal step protocol, and free of the noise that an
-    estimator passes into ``A ln v``, which biases A low as an errors-in-variables
-    problem), ``local_poly`` or ``paper`` (the estimators); ``mu`` from
-    the forward model (:func:`rig.model.forward.predict_force`), fitted with rig.fitting.
-    With stiffness, the position is the load point, its velocity piecewise constant
-    between the detected steps, and the interface velocity follows from the spring
-    (the forward model's loading system, :func:`rig.model.loading.stiff_series`).
-
-    ``k_fixed`` (friction units per µm) holds the stiffness at a known value.
-
-    Errors: ``err`` from the Jacobian, ``cov = (J^T J)^-1 s^2`` with ``s^2`` the residual
-    variance (SSR / (n - p)); ``err_corr`` inflates them by ``sqrt((1+rho)/(1-rho))``,
-    ``rho`` the lag-1 autocorrelation of the residuals (correlated residuals carry
-    fewer independent samples than ``n``; the formal errors are then too small).
+    * **Time, not rows.** The record is first reduced to means over uniform bins in time
+      (:func:`_time_bins`), so a part logged ten times faster counts as long as it lasts.
+    * **Runs.** The steps' constant-velocity stretches that join form runs (:func:`_runs`); each
+      run starts after a rest, a return or the record's start, where the state is not known: the
+      model starts each run in the steady state of a fitted speed ``v_init_um_s`` (a nuisance per
+      run), rather than guessing the history (the simulated rig's trials start after holds and
+      returns at 100 µm/s: guessing it biased A by -19 % and L by +13 %).
+    * **Law.** ``slip`` (Ruina, eq. 6) or ``aging`` (Dieterich): :mod:`rig.model.friction`.
+    * **Velocity.** ``segments`` (default: piecewise constant, the line-fit slopes between the
+      effective steps: free of the noise an estimator passes into ``A ln v``, which biases A low
+      as an errors-in-variables problem), ``local_poly`` or ``paper`` (the estimators). With
+      stiffness, the position is the load point, its velocity the segments', and the interface's
+      follows from the spring (:func:`rig.model.loading.stiff_series`); ``k_fixed`` (friction
+      units per µm) holds it at a known value.
+    * **Detrend.** ``none``; ``linear``: ``mu += rate_mu_per_mm * s`` with ``s`` the slip since
+      the first compared sample, fitted; ``auto``: the rate from the steady-state windows
+      (:func:`steady_windows`, :func:`trend_from_windows`), then held.
+    * **Uncertainty** (:mod:`rig.fitting.stats`): ``jacobian`` (default), ``bootstrap:N`` (block
+      bootstrap of the residuals in time), ``mcmc:N`` (emcee). ``params_sd``, ``intervals``
+      (68 %) and ``correlation``; ``err_corr`` is ``params_sd`` (kept for older readers) and
+      ``err`` the plain Jacobian's.
     """
+    from rig.fitting.stats import block_bootstrap, effective_n, information_criterion, jacobian_summary, mcmc, \
+        parse_uncertainty
+
+    if law not in LAWS:
+        raise ValueError(f"unknown state law {law!r} (slip, aging)")
+    if trend and detrend == "none":
+        detrend = "linear"
+    if detrend not in DETRENDS:
+        raise ValueError(f"unknown detrend {detrend!r} (none, linear, auto)")
+    method, n_draws = parse_uncertainty(uncertainty)
     t = np.asarray(trial.time_s, dtype=float)
     x = np.asarray(trial.position_um, dtype=float)
     mu = np.asarray(trial.mu, dtype=float)
@@ -386,49 +507,85 @@ def fit_whole_record(trial: TrialData, steps: list[Step] | None = None, *, stiff
         steps = detect_steps(trial)
     if stiffness:
         max_points = min(max_points, 8000)
-    # decimate long records by block means first (the state's time scale L/v is >> 0.1 s)
-    k = int(math.ceil(t.size / max_points))
-    if k > 1:
-        t, x, mu = (_block_mean(a, k) for a in (t, x, mu))
-        steps = [Step(s.t_s, s.t_nominal_s, min(s.i // k, t.size - 1), s.v1_um_s, s.v2_um_s, s.x_um,
-                      (s.pre[0] // k, s.i // k), (s.i // k, min(s.post[1] // k, t.size)), s.source) for s in steps]
+    w_raw, _ = _time_weights(t)
+    idx, width = _time_bins(t, max_points)
+    wsum = np.bincount(idx, w_raw).astype(float)
+    nb = wsum.size
+    t, x, mu = (_bin_mean(a, idx, wsum, w_raw) for a in (t, x, mu))
+    steps = _binned_steps(steps, idx, nb)
     v_est = estimate_velocity(t, x, "local_poly" if velocity_method == "segments" else velocity_method)
-    L_guess = float((init or {}).get("L_um", 20.0))
-    skip = 3.0 * (L_guess if math.isfinite(L_guess) and L_guess > 0 else 20.0)
     if stiffness or (velocity_method == "segments" and steps):
-        v, in_steps = _segment_velocity(t, x, steps, v_est, skip_um=skip)
+        v, in_steps = _segment_velocity(t, x, steps, v_est)
         velocity_method = "segments"
     else:
         v = v_est
-        _, in_steps = _segment_velocity(t, x, steps, v_est, skip_um=skip)
-    # compare model and data on the steps' constant-velocity stretches (not on rests,
-    # returns or starts from rest, where the LVDT velocity is not the interface's)
-    sliding = in_steps & (v > 0.05 * max(float(np.median(np.abs(v))), 1e-6))
+        _, in_steps = _segment_velocity(t, x, steps, v_est)
+    runs = _runs(steps, t.size)
+    vmed = max(float(np.median(np.abs(v))), 1e-6)
+    # compare model and data on the runs' sliding stretches (not on rests or returns)
+    sliding = np.zeros(t.size, bool)
+    for lo, hi in runs:
+        sliding[lo:hi] = in_steps[lo:hi] & (v[lo:hi] > 0.05 * vmed)
     if sliding.sum() < 20:
-        sliding = v > 0.05 * max(float(np.median(np.abs(v))), 1e-6)
-    v_init = max(abs(float(np.median(v[: max(5, min(50, v.size // 20))]))), 0.01)
-    t_rel = t - t[0]
-
+        runs = [(0, t.size)]
+        sliding = v > 0.05 * vmed
     N_N = trial.normal_force_N
     F_per_mu = 2.0 * N_N  # the fixture's total friction force per unit mu (two interfaces)
+    # a known machine stiffness (measured-data.md: machine_stiffness_kN_per_m) is held
+    k_meta = parse_number(str(trial.metadata.get("machine_stiffness_kN_per_m", ""))) if stiffness else None
+    if stiffness and k_fixed is None and k_meta is not None and k_meta > 0:
+        k_fixed = k_meta * 1e-3 / F_per_mu
+    k_source = None if not stiffness else ("fitted" if k_fixed is None else
+                                           ("metadata" if k_meta is not None and k_meta > 0 else "given"))
+    # slip since the first compared sample (mm), for the trend: |dx| summed (returns count as slip)
+    s_mm = np.concatenate([[0.0], np.cumsum(np.abs(np.diff(x)))]) * 1e-3
+    s_mm = s_mm - s_mm[int(np.argmax(sliding))]
+    L0 = float((init or {}).get("L_um", 20.0))
+    L0 = L0 if math.isfinite(L0) and L0 > 0 else 20.0
+    trend_fixed = 0.0
+    detrend_info: dict = {"method": detrend}
+    if detrend == "auto":
+        wins = steady_windows(t, x, mu, v, steps, runs, L0)
+        slope, se = trend_from_windows(s_mm, mu, wins)
+        if math.isfinite(slope):
+            trend_fixed = slope
+            detrend_info.update(rate_mu_per_mm=_r(slope), rate_sd_mu_per_mm=_r(se),
+                                windows_s=[[_r(t[a], 5), _r(t[b - 1], 5)] for a, b in wins])
+        else:
+            detrend_info.update(rate_mu_per_mm=0.0, note="no steady-state window of 20 µm beyond 3 L: not detrended")
+    t_rel = t - t[0]
+    ext = (["finite_stiffness"] if stiffness else []) + (["aging_law"] if law == "aging" else [])
+    # a run that starts after a rest, a return or a stretch the fit does not compare has an unknown
+    # state: fitted; a run from the record's first samples starts in the steady state of its first
+    # speed (xlook's and RSFit's convention before a step)
+    run_names = [f"v_init_um_s.{j}" for j in range(len(runs))]
+    v_first = {nm: max(abs(float(np.median(v[lo:min(hi, lo + 5)]))), 0.01) for nm, (lo, hi) in zip(run_names, runs)}
+    held_init = {nm: v_first[nm] for nm, (lo, _) in zip(run_names, runs) if lo < 3}
     names = ["mu0", "A_mu", "B_mu", "L_um"] + (["stiffness_kN_per_m"] if stiffness and k_fixed is None else []) + \
-        (["drift_mu_per_s"] if trend else [])
-    pset = ParamSet([TREND if nm == "drift_mu_per_s" else Param.of(nm, PARAMS[nm]) for nm in names])
+        (["rate_mu_per_mm"] if detrend == "linear" else []) + [nm for nm in run_names if nm not in held_init]
+    V_INIT = Param.of("v_init_um_s", PARAMS["v_init_um_s"])
+    pset = ParamSet([TREND if nm == "rate_mu_per_mm" else
+                     (Param(nm, V_INIT.unit, V_INIT.lo, V_INIT.hi, True) if nm.startswith("v_init") else
+                      Param.of(nm, PARAMS[nm])) for nm in names])
     fixed = {"stiffness_kN_per_m": float(k_fixed) * F_per_mu * 1e3} if stiffness and k_fixed is not None else {}
+    fixed.update(held_init)
     # the load point (stiffness) moves with the segment velocity, piecewise constant per interval
     x_lp = np.concatenate([[x[0]], x[0] + np.cumsum(v[:-1] * np.diff(t))]) if stiffness else x
-    ext = ["finite_stiffness"] if stiffness else []
 
     def model(q: dict) -> np.ndarray:
         fm = FrictionModel(extensions=ext, params={k_: q[k_] for k_ in ("mu0", "A_mu", "B_mu", "L_um",
                                                                         "stiffness_kN_per_m") if k_ in q})
-        out = predict_force(fm, t, x_lp, v, None, N_N, v_init) / F_per_mu
-        if trend:
-            out = out + q["drift_mu_per_s"] * t_rel
-        return out
+        out = np.full(t.size, np.nan)
+        for j, (lo, hi) in enumerate(runs):
+            out[lo:hi] = predict_force(fm, t_rel[lo:hi], x_lp[lo:hi], v[lo:hi], None, N_N,
+                                       q[run_names[j]]) / F_per_mu
+        return out + q.get("rate_mu_per_mm", trend_fixed) * s_mm
+
+    # statistics weigh time, not rows: each compared bin by its share of the time (mean 1)
+    sw = np.sqrt(wsum[sliding] / np.mean(wsum[sliding]))
 
     def resid(free: dict) -> np.ndarray:
-        r = (model({**fixed, **free}) - mu)[sliding]
+        r = (model({**fixed, **free}) - mu)[sliding] * sw
         return np.where(np.isfinite(r), r, 1.0)
 
     # starting values: steady state from a semi-log regression, per-step results if given
@@ -440,18 +597,16 @@ def fit_whole_record(trial: TrialData, steps: list[Step] | None = None, *, stiff
     B0 = float(init.get("B_mu", A0 - c[0]))
     B0 = B0 if math.isfinite(B0) else A0
     k0 = float(init.get("k_mu_per_um", 0.005)) * F_per_mu * 1e3
-
-    def start(L0: float) -> dict:
-        return {"mu0": float(c[1]), "A_mu": A0, "B_mu": B0, "L_um": max(L0, 0.5), "stiffness_kN_per_m": k0,
-                "drift_mu_per_s": 0.0}
+    def start(L_: float) -> dict:
+        return {"mu0": float(c[1]), "A_mu": A0, "B_mu": B0, "L_um": max(L_, 0.5), "stiffness_kN_per_m": k0,
+                "rate_mu_per_mm": 0.0, **v_first}
 
     Ls = [float(init["L_um"])] if "L_um" in init and math.isfinite(init["L_um"]) else []
     t0 = time.perf_counter()
-    fit = least_squares_fit(resid, pset, [start(L0) for L0 in (Ls or [5.0, 20.0, 80.0])], max_nfev=200,
-                            diff_step=None, xtol=1e-8, ftol=1e-8, x_scale="jac")
+    opts = dict(max_nfev=200, diff_step=None, xtol=1e-8, ftol=1e-8, x_scale="jac")
+    fit = least_squares_fit(resid, pset, [start(L_) for L_ in (Ls or [5.0, 20.0, 80.0])], **opts)
     if Ls and (fit is None or not fit.success):
-        more = least_squares_fit(resid, pset, [start(Ls[0] / 3.0), start(Ls[0] * 3.0)], max_nfev=200,
-                                 diff_step=None, xtol=1e-8, ftol=1e-8, x_scale="jac")
+        more = least_squares_fit(resid, pset, [start(Ls[0] / 3.0), start(Ls[0] * 3.0)], **opts)
         if more is not None and (fit is None or more.cost < fit.cost):
             fit = more
     if fit is None:
@@ -459,37 +614,104 @@ def fit_whole_record(trial: TrialData, steps: list[Step] | None = None, *, stiff
     q = {**fixed, **fit.params}
     r = fit.residuals
     n = r.size
-    err_of = {nm: fit.stderr.get(nm, 0.0) for nm in q}
-    rho = float(np.corrcoef(r[:-1], r[1:])[0, 1]) if n > 3 else 0.0
-    rho = min(max(rho, 0.0), 0.999)
-    infl = math.sqrt((1 + rho) / (1 - rho))
+    # effective sample size: Kish's for the weights, over the residuals' correlation time
+    n_eff = effective_n(r) * float(np.sum(sw ** 2) ** 2 / np.sum(sw ** 4)) / n
+    unc = jacobian_summary(pset, fit, n_eff)
+    if method == "bootstrap":
+        m_hat = model(q)[sliding]
+
+        def residual_for(e):
+            return lambda free: np.where(np.isfinite(rr := ((model({**fixed, **free})[sliding] - m_hat) * sw + e)),
+                                         rr, 1.0)
+
+        unc = block_bootstrap(residual_for, pset, fit, n_draws, seed=seed, progress=progress)
+    elif method == "mcmc":
+        z_cov = np.linalg.pinv(fit.jac.T @ fit.jac) * float(np.dot(r, r)) / max(n - len(names), 1)
+        unc = mcmc(resid, pset, fit, n_draws, n_eff, seed=seed, cov_z=z_cov, progress=progress)
+    sd = dict(unc["params_sd"])
+    iv = {k_: list(v_) for k_, v_ in unc["intervals"].items()}
+    if "stiffness_kN_per_m" in fixed:
+        sd["stiffness_kN_per_m"] = 0.0
+        iv["stiffness_kN_per_m"] = [fixed["stiffness_kN_per_m"]] * 2
     # report: the paper's friction units (k in mu per µm) and the stiffness in kN/m
-    order = ["mu0", "A_mu", "B_mu", "L_um"] + (["k_mu_per_um"] if stiffness else []) + \
-        (["drift_mu_per_s"] if trend else [])
+    order = ["mu0", "A_mu", "B_mu", "L_um"] + (["k_mu_per_um", "stiffness_kN_per_m"] if stiffness else []) + \
+        (["rate_mu_per_mm"] if detrend == "linear" else [])
     val = dict(q)
+    jac_sd = {nm: fit.stderr.get(nm, 0.0) for nm in q}
     if stiffness:
         val["k_mu_per_um"] = q["stiffness_kN_per_m"] * 1e-3 / F_per_mu
-        err_of["k_mu_per_um"] = err_of.get("stiffness_kN_per_m", 0.0) * 1e-3 / F_per_mu
+        for d in (sd, jac_sd):
+            d["k_mu_per_um"] = d.get("stiffness_kN_per_m", 0.0) * 1e-3 / F_per_mu
+        iv["k_mu_per_um"] = [b_ * 1e-3 / F_per_mu for b_ in iv["stiffness_kN_per_m"]]
     params = {nm: _r(val[nm]) for nm in order}
-    errors = {nm: _r(err_of[nm]) for nm in order}
-    errors_corr = {nm: _r(err_of[nm] * infl) for nm in order}
+    params_sd = {nm: _r(sd.get(nm, 0.0)) for nm in order}
     ssr = float(np.dot(r, r))
-    out = {"ok": fit.success, "model": "rate_state" + ("+finite_stiffness" if stiffness else ""),
-           "params": params, "err": errors, "err_corr": errors_corr, "rho1": _r(rho),
+    corr = unc["correlation"]
+    keep = [i for i, nm in enumerate(corr["names"]) if not nm.startswith("v_init")]
+    correlation = {"names": [corr["names"][i] for i in keep],
+                   "matrix": [[corr["matrix"][i][j] for j in keep] for i in keep]}
+    # the field's vocabulary (a, b, Dc_um, a_minus_b, k_per_um): rig.model.spec.rsf_vocabulary
+    rsf = rsf_vocabulary(val, F_per_mu)
+    names_c = corr["names"]
+    cov = unc["cov"]
+    ia, ib = names_c.index("A_mu"), names_c.index("B_mu")
+    amb_sd = math.sqrt(max(cov[ia, ia] + cov[ib, ib] - 2 * cov[ia, ib], 0.0))
+    rsf_sd = {**rsf_vocabulary(sd, F_per_mu), "a_minus_b": amb_sd}
+    rsf_iv = {RSF_NAMES[k_]: iv[k_] for k_ in RSF_NAMES if k_ in iv}
+    if "k_mu_per_um" in iv:
+        rsf_iv["k_per_um"] = iv["k_mu_per_um"]
+    params.update({k_: _r(v_) for k_, v_ in rsf.items()})
+    params_sd.update({k_: _r(v_) for k_, v_ in rsf_sd.items() if k_ in rsf})
+    intervals = {nm: [_r(iv[nm][0]), _r(iv[nm][1])] for nm in order if nm in iv}
+    intervals.update({k_: [_r(v_[0]), _r(v_[1])] for k_, v_ in rsf_iv.items()})
+    rho = float(np.corrcoef(r[:-1], r[1:])[0, 1]) if n > 3 else 0.0
+    n_par = len(names)
+    out = {"ok": fit.success, "model": "rate_state" + ("+finite_stiffness" if stiffness else "")
+           + ("+aging_law" if law == "aging" else ""),
+           "law": law, "params": params, "params_sd": params_sd, "intervals": intervals, "correlation": correlation,
+           "uncertainty": {k_: v_ for k_, v_ in unc.items() if k_ not in ("params_sd", "intervals", "correlation", "cov")},
+           "err": {nm: _r(jac_sd.get(nm, 0.0)) for nm in order}, "err_corr": {nm: params_sd[nm] for nm in order},
+           "rho1": _r(rho), "n_eff": _r(n_eff, 4), "bin_s": _r(width, 4),
+           "information_criterion": _r(information_criterion(ssr, n, n_eff, n_par)),
+           "n_params": n_par, "runs": len(runs),
+           "v_init_um_s": [_r(q[nm], 4) for nm in run_names],
            "rms_mu": _r(math.sqrt(ssr / n)), "rms_N": _r(math.sqrt(ssr / n) * F_per_mu),
-           "n_points": int(n), "decimation": int(k), "nfev": int(fit.nfev),
-           "fit_time_s": _r(time.perf_counter() - t0, 3),
-           "velocity": "segments (load point)" if stiffness else velocity_method}
+           "n_points": int(n), "decimation": int(max(1, round(idx.size / nb))), "nfev": int(fit.nfev), "fit_time_s": _r(time.perf_counter() - t0, 3),
+           "velocity": "segments (load point)" if stiffness else velocity_method, "detrend": detrend_info}
     if stiffness:
-        out["params"]["stiffness_kN_per_m"] = _r(q["stiffness_kN_per_m"])
-        out["err"]["stiffness_kN_per_m"] = _r(err_of.get("stiffness_kN_per_m", 0.0))
-        out["err_corr"]["stiffness_kN_per_m"] = _r(err_of.get("stiffness_kN_per_m", 0.0) * infl)
+        out["stiffness_source"] = k_source
+    if detrend == "linear":
+        detrend_info.update(rate_mu_per_mm=params["rate_mu_per_mm"], rate_sd_mu_per_mm=params_sd["rate_mu_per_mm"])
     A, B, L = q["A_mu"], q["B_mu"], q["L_um"]
-    kcr, skcr = k_cr_table2(A, err_of["A_mu"] * infl, B, err_of["B_mu"] * infl, L, err_of["L_um"] * infl, N_N)
+    kcr, skcr = k_cr_table2(A, sd["A_mu"], B, sd["B_mu"], L, sd["L_um"], N_N)
     out["k_cr_kN_per_m"] = _r(kcr)
     out["k_cr_err_kN_per_m"] = _r(skcr)
-    out["_curve"] = (t, model(q), mu, sliding)
+    tr_line = q.get("rate_mu_per_mm", trend_fixed) * s_mm
+    out["_curve"] = (t, model(q), mu, sliding, tr_line)
+    out["_resid"] = (t[sliding], r)
     return out
+
+
+def compare_laws(fits: dict[str, dict], margin: float = 6.0) -> dict:
+    """Both laws side by side (xlook's qi.r and qi.d): the information criterion of each on one
+    effective sample size (the better fit's: its residual is the closest to noise), and the law
+    the record prefers: the one lower by more than ``margin`` (Kass & Raftery 1995: 6 is strong
+    evidence), else ``undecided``."""
+    ok = {k: w for k, w in fits.items() if w.get("params")}
+    if len(ok) < 2:
+        return {"preferred_law": "undecided", "reason": "a fit failed"}
+    from rig.fitting.stats import information_criterion
+
+    best = min(ok, key=lambda k: ok[k]["rms_mu"])
+    n_eff = float(ok[best]["n_eff"])
+    ic = {k: information_criterion(w["rms_mu"] ** 2 * w["n_points"], w["n_points"], n_eff, w["n_params"])
+          for k, w in ok.items()}
+    lo = min(ic, key=ic.get)
+    other = [k for k in ic if k != lo][0]
+    d = ic[other] - ic[lo]
+    return {"criterion": "BIC on the effective sample size", "n_eff": _r(n_eff, 4),
+            "bic": {k: _r(v) for k, v in ic.items()}, "delta_bic": _r(d),
+            "preferred_law": lo if d > margin else "undecided"}
 
 
 # ---------------------------------------------------------------------------
@@ -555,14 +777,29 @@ class Identification:
     results: list[list[StepResult]]
     trials: list[TrialData]
     whole: list[dict]
+    laws: list[dict] = field(default_factory=list)   # per trial {law: whole-record fit} with --law both
 
 
 def identify_trials(trials: list[TrialData], *, use_events: bool = True, velocity_method: str = "local_poly",
                     whole_velocity: str = "segments",
                     whole_record: bool = True, stiffness: bool | None = None, min_ratio: float = 1.25,
                     directions: str = "both", rise_guard_s: float = 0.5, window_points: int = WINDOW_POINTS,
-                    names: list[str] | None = None) -> Identification:
-    """Identify every trial; mean and SEM over steps (one trial) or trials (several)."""
+                    names: list[str] | None = None, law: str = "slip", detrend: str = "none",
+                    uncertainty: str = "jacobian", seed: int = 0, progress=None) -> Identification:
+    """Identify every trial; mean and SEM over steps (one trial) or trials (several).
+
+    The whole-record fit (:func:`fit_whole_record`) with the state ``law`` (``slip``, ``aging``
+    or ``both``: both fits side by side, :func:`compare_laws`), ``detrend`` and ``uncertainty``."""
+    if law not in LAWS + ("both",):
+        raise ValueError(f"--law {law}: expected slip, aging or both")
+    if detrend not in DETRENDS:
+        raise ValueError(f"--detrend {detrend}: expected none, linear or auto")
+    from rig.fitting.stats import parse_uncertainty
+
+    parse_uncertainty(uncertainty)
+    laws = LAWS if law == "both" else (law,)
+    comparisons: list[dict] = []
+    per_law: list[dict] = []
     groups: list[list[StepResult]] = []
     wholes: list[dict] = []
     trials = [decimated(tr) for tr in trials]
@@ -587,11 +824,21 @@ def identify_trials(trials: list[TrialData], *, use_events: bool = True, velocit
                 init = {"A_mu": float(np.median([r.A_mu for r in good])),
                         "B_mu": float(np.median([r.B_mu for r in good])),
                         "L_um": float(np.median([r.L_um for r in good]))}
-            stiff = _looks_like_load_point(tr) if stiffness is None else stiffness
-            w = fit_whole_record(tr, steps, stiffness=stiff, velocity_method=whole_velocity, init=init)
-            wholes.append(w)
+            stiff = (_looks_like_load_point(tr) or _known_stiffness(tr)) if stiffness is None else stiffness
+            fits = {lw: fit_whole_record(tr, steps, stiffness=stiff, velocity_method=whole_velocity, init=init,
+                                         law=lw, detrend=detrend, uncertainty=uncertainty, seed=seed,
+                                         progress=progress) for lw in laws}
+            if law == "both":
+                comparisons.append(compare_laws(fits))
+                per_law.append(fits)
+                wholes.append(fits["slip"])
+            else:
+                wholes.append(fits[law])
     N_N = trials[0].normal_force_N
     mean, sem, over, per_trial = summarize(groups, N_N)
+    # the field's vocabulary beside the spec's names (rig.model.spec.rsf_vocabulary)
+    mean.update({k_: _r(v_) for k_, v_ in rsf_vocabulary(mean).items()})
+    sem.update({k_: v_ for k_, v_ in ((RSF_NAMES[k], sem.get(k)) for k in RSF_NAMES)})
     report = {
         "schema": SCHEMA,
         "data": names if names and len(names) > 1 else (names[0] if names else trials[0].source),
@@ -623,8 +870,15 @@ def identify_trials(trials: list[TrialData], *, use_events: bool = True, velocit
     if whole_record:
         wr = [{k: v for k, v in w.items() if not k.startswith("_")} for w in wholes]
         report["whole_record"] = wr[0] if len(wr) == 1 else wr
+        report["law"] = law
+        if law == "both":
+            both = [{**{lw: {k: v for k, v in f.items() if not k.startswith("_")} for lw, f in fits.items()},
+                     "comparison": c} for fits, c in zip(per_law, comparisons)]
+            report["laws"] = both[0] if len(both) == 1 else both
+            prefs = {c["preferred_law"] for c in comparisons}
+            report["preferred_law"] = prefs.pop() if len(prefs) == 1 else "undecided"
     report["warnings"] = result_warnings(report)
-    return Identification(report, groups, trials, wholes)
+    return Identification(report, groups, trials, wholes, per_law)
 
 
 def step_where(step_json: dict, n_trials: int) -> str:
@@ -650,6 +904,13 @@ def result_warnings(report: dict) -> list[dict]:
             where = "whole-record fit" + (f" (trial {i})" if len(wrs) > 1 else "")
             out += check_params({**w["params"], "k_cr_kN_per_m": w.get("k_cr_kN_per_m")}, w.get("err_corr"), where)
     return out
+
+
+def _known_stiffness(trial: TrialData) -> bool:
+    """The file gives ``machine_stiffness_kN_per_m`` (measured-data.md): a known stiffness between
+    the measured position and the interface, held in the whole-record fit."""
+    v = parse_number(str(trial.metadata.get("machine_stiffness_kN_per_m", "")))
+    return v is not None and v > 0
 
 
 def _looks_like_load_point(trial: TrialData) -> bool:

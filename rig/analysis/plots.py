@@ -184,9 +184,17 @@ def build_identification(idn, max_steps: int = 9):
     step = max(1, tr.time_s.size // 50000)
     t = tr.time_s[::step]
     ax.plot(t, tr.mu[::step], ".", ms=1.0, color="0.55", label="measured μ", rasterized=True)
-    if idn.whole and idn.whole[0].get("_curve") is not None:
-        tc, mc, _, _ = idn.whole[0]["_curve"]
-        ax.plot(tc, mc, "-", color="C3", lw=0.9, label=f"whole-record fit ({idn.whole[0]['model']})")
+    fits0 = idn.laws[0] if getattr(idn, "laws", None) else ({"": idn.whole[0]} if idn.whole else {})
+    for (lw, w0), col in zip(fits0.items(), ("C3", "C4")):
+        if w0.get("_curve") is None:
+            continue
+        tc, mc, _, _, trend = w0["_curve"]
+        ax.plot(tc, mc, "-", color=col, lw=0.9, label=f"whole-record fit ({w0['model']})")
+        d = w0.get("detrend", {})
+        if d.get("method", "none") != "none" and col == "C3":
+            # the trend (mu per mm of slip), drawn about the fit's mean level
+            ax.plot(tc, float(np.nanmean(mc)) + trend - float(np.nanmean(trend)), "--", color="C1", lw=0.8,
+                    label=f"trend ({d['method']}): {g3(d.get('rate_mu_per_mm'), 2)} μ/mm")
     for k, r in enumerate(idn.results[0]):
         for a in (ax, axv):
             a.axvline(r.step.t_s, color="C0", lw=0.6, ls=":", label="velocity step" if (k == 0 and a is ax) else None)
@@ -210,8 +218,13 @@ def build_identification(idn, max_steps: int = 9):
         head = f"{name}: no accepted step ({len(rep.get('rejected_steps', []))} rejected)"
     wr = rep.get("whole_record")
     if isinstance(wr, dict) and "params" in wr:
-        head += "\nwhole-record fit: " + _title_params({**wr["params"], "k_cr_kN_per_m": wr.get("k_cr_kN_per_m")},
+        spec = {k: v for k, v in wr["params"].items() if k not in ("a", "b", "Dc_um", "a_minus_b", "k_per_um")}
+        head += "\nwhole-record fit: " + _title_params({**spec, "k_cr_kN_per_m": wr.get("k_cr_kN_per_m")},
                                                         wr.get("err_corr"), flagged(warns, "whole-record fit"))
+        head += "\n" + _uncertainty_line(wr)
+        if isinstance(rep.get("laws"), dict):
+            c = rep["laws"]["comparison"]
+            head += f"\npreferred law: {c['preferred_law']} (ΔBIC {g3(c.get('delta_bic'), 3)}; 6 or more decides)"
     ax.set_title(head)
     # the steps
     for k, r in enumerate(results):
@@ -256,6 +269,20 @@ def build_identification(idn, max_steps: int = 9):
     if foot:
         footnote_axes(fig, gs[len(heights) - 1, :], foot)
     return fig
+
+
+def _uncertainty_line(w: dict) -> str:
+    """The whole-record fit's 68 % interval of L and the correlations of A, B, L (the figure's title)."""
+    iv = w.get("intervals", {}).get("L_um")
+    c = w.get("correlation", {})
+    nm = c.get("names", [])
+    parts = []
+    if iv and None not in iv:
+        parts.append(f"L 68 % interval [{g3(iv[0], 3)}, {g3(iv[1], 3)}] µm ({w.get('uncertainty', {}).get('method', '')})")
+    for a, b in (("A_mu", "B_mu"), ("A_mu", "L_um"), ("B_mu", "L_um")):
+        if a in nm and b in nm:
+            parts.append(f"corr({a[0]},{b[0]}) {c['matrix'][nm.index(a)][nm.index(b)]:+.2f}")
+    return ", ".join(parts)
 
 
 def plot_identification(idn, path: str | Path, max_steps: int = 9) -> None:

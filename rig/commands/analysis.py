@@ -42,6 +42,32 @@ class Direction(str, Enum):
     down = "down"
 
 
+class Law(str, Enum):
+    slip = "slip"
+    aging = "aging"
+    both = "both"
+
+
+class Detrend(str, Enum):
+    none = "none"
+    linear = "linear"
+    auto = "auto"
+
+
+class Names(str, Enum):
+    spec = "spec"
+    rsf = "rsf"
+
+
+#: --names rsf: the friction lab's names of the spec's (rig.model.spec.RSF_NAMES)
+def _rsf_label(k: str, names: str) -> str:
+    from rig.model.spec import RSF_NAMES
+
+    if names != "rsf":
+        return k
+    return {**RSF_NAMES, "k_mu_per_um": "k_per_um", "L": "Dc"}.get(k, k)
+
+
 class Engine(str, Enum):
     sim = "sim"
     synth = "synth"
@@ -105,6 +131,17 @@ def identify_cmd(
                                                   "file says its position is the load point)."),
     direction: Direction = typer.Option(Direction.both, "--direction", help="Steps to use."),
     min_ratio: float = typer.Option(1.25, "--min-ratio", help="Smallest velocity ratio counted as a step."),
+    law: Law = typer.Option(Law.slip, "--law", help="State law of the whole-record fit: slip (Ruina), aging "
+                                                    "(Dieterich) or both side by side with the law the record "
+                                                    "prefers."),
+    detrend: Detrend = typer.Option(Detrend.none, "--detrend", help="Trend of mu with slip in the whole-record "
+                                                                    "fit: none, linear (fitted) or auto (from the "
+                                                                    "steady-state windows)."),
+    uncertainty: str = typer.Option("jacobian", "--uncertainty", help="Whole-record errors: jacobian, "
+                                                                      "bootstrap:N (block bootstrap in time) or "
+                                                                      "mcmc:N (emcee)."),
+    names: Names = typer.Option(Names.spec, "--names", help="Table names: spec (A_mu, B_mu, L_um) or rsf "
+                                                            "(a, b, Dc_um, k_per_um)."),
     jobs: Optional[int] = typer.Option(None, "--jobs", help="Batch: N worker processes (default: all cores)."),
     scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Batch: an existing Dask cluster, "
                                                                       "tcp://HOST:PORT."),
@@ -121,6 +158,18 @@ def identify_cmd(
         _fail(f"--min-ratio must be more than 1 (got {min_ratio:g})")
     _outputs(json=json_out, plot=plot)
     velocity, whole_velocity, direction = velocity.value, whole_velocity.value, direction.value
+    law, detrend, names = law.value, detrend.value, names.value
+    from rig.fitting.stats import parse_uncertainty
+
+    try:
+        unc_method, unc_n = parse_uncertainty(uncertainty)
+    except ValueError as exc:
+        _fail(str(exc))
+    if unc_method == "mcmc":
+        try:
+            import emcee  # noqa: F401
+        except ImportError:
+            _fail(f"--uncertainty {uncertainty}: needs emcee, an optional extra: pip install 'rig[mcmc]'")
     from rig.commands.catalog import identify_summary, is_batch, run_batch
 
     if is_batch([str(p) for p in data], jobs, scheduler, db):
@@ -129,15 +178,21 @@ def identify_cmd(
         run_batch("identify", [str(p) for p in data],
                   {"use_events": events, "velocity_method": velocity, "whole_record": whole,
                    "whole_velocity": whole_velocity, "stiffness": stiffness, "directions": direction,
-                   "min_ratio": min_ratio}, jobs=jobs, scheduler=scheduler, db=db, summarize=identify_summary)
+                   "min_ratio": min_ratio, "law": law, "detrend": detrend, "uncertainty": uncertainty},
+                  jobs=jobs, scheduler=scheduler, db=db, summarize=identify_summary)
         return
     trials = _load(data)
-    try:
-        idn = identify_trials(trials, use_events=events, velocity_method=velocity, whole_record=whole,
-                              whole_velocity=whole_velocity, stiffness=stiffness, directions=direction,
-                              min_ratio=min_ratio, names=[str(p) for p in data])
-    except ValueError as exc:
-        _fail(_named(str(exc), data))
+    n_fits = len(trials) * (2 if law == "both" else 1)
+    with progress_bar(json_out, f"{unc_method} ({uncertainty})", total=n_fits * unc_n,
+                      unit="refits" if unc_method == "bootstrap" else "steps") if unc_n and whole \
+            else _no_bar() as bar:
+        try:
+            idn = identify_trials(trials, use_events=events, velocity_method=velocity, whole_record=whole,
+                                  whole_velocity=whole_velocity, stiffness=stiffness, directions=direction,
+                                  min_ratio=min_ratio, names=[str(p) for p in data], law=law, detrend=detrend,
+                                  uncertainty=uncertainty, progress=bar.advance)
+        except ValueError as exc:
+            _fail(_named(str(exc), data))
     rep = idn.report
     if not rep["steps"]:
         _fail(f"{', '.join(map(str, data))}: no velocity steps found (ratio >= {min_ratio:g})")
@@ -147,7 +202,8 @@ def identify_cmd(
     rep.setdefault("warnings", []).extend(_calibration_warnings(trials, rep))  # issue 21
     warns = rep.get("warnings", [])
     table = Table(title="velocity steps (eqs. 10-12)")
-    for c in ("trial", "t (s)", "v1 (µm/s)", "v2 (µm/s)", "A_mu", "B_mu", "L (µm)", "r2", "window (µm)", "t_r (s)"):
+    for c in ("trial", "t (s)", "v1 (µm/s)", "v2 (µm/s)", _rsf_label("A_mu", names), _rsf_label("B_mu", names),
+              f"{_rsf_label('L', names)} (µm)", "r2", "window (µm)", "t_r (s)"):
         table.add_column(c, justify="right")
     table.add_column("accepted", justify="left", overflow="fold")
     for s in rep["steps"]:
@@ -169,22 +225,25 @@ def identify_cmd(
     n_rej = len(rep.get("rejected_steps", []))
     con.print(f"mean ± s.e. over {rep['sem_over']} (n={rep['n_steps'] if rep['sem_over'] == 'steps' else rep['n_trials']}"
               + (f"; {n_rej} step(s) rejected" if n_rej else "") + "): "
-              f"A_mu = {_fmt(m['A_mu'], 3)} ± {_fmt(e['A_mu'], 2)}{mk('A_mu')}, B_mu = {_fmt(m['B_mu'], 3)} ± "
-              f"{_fmt(e['B_mu'], 2)}{mk('B_mu')}, L = {_fmt(m['L_um'], 3)} ± {_fmt(e['L_um'], 2)} µm{mk('L_um')}, "
+              f"{_rsf_label('A_mu', names)} = {_fmt(m['A_mu'], 3)} ± {_fmt(e['A_mu'], 2)}{mk('A_mu')}, "
+              f"{_rsf_label('B_mu', names)} = {_fmt(m['B_mu'], 3)} ± {_fmt(e['B_mu'], 2)}{mk('B_mu')}, "
+              f"{_rsf_label('L', names)} = {_fmt(m['L_um'], 3)} ± {_fmt(e['L_um'], 2)} µm{mk('L_um')}, "
               f"k_cr (eq. 13) = {_fmt(m['k_cr_kN_per_m'], 3)} ± {_fmt(e['k_cr_kN_per_m'], 2)} kN/m{mk('k_cr_kN_per_m')}, "
               f"t_r (eq. 14) = {_fmt(m['t_r_s'], 3)} s")
     wr = rep.get("whole_record")
     wrs = [wr] if isinstance(wr, dict) else (wr or [])
-    for i, w in enumerate(wrs):
-        if not w.get("ok", True) and "params" not in w:
-            con.print(f"whole-record fit failed: {w.get('reason')}")
-            continue
-        fl = flagged(warns, "whole-record fit" + (f" (trial {i})" if len(wrs) > 1 else ""))
-        parts = ", ".join(f"{k} = {_fmt(v, 4)} ± {_fmt(w['err_corr'].get(k), 2)}"
-                          + (f" [yellow]{MARK}[/yellow]" if k in fl else "") for k, v in w["params"].items())
-        con.print(f"whole-record fit ({w['model']}, velocity {w['velocity']}): {parts}; k_cr (eq. 13) = "
-                  f"{_fmt(w.get('k_cr_kN_per_m'), 3)} kN/m{' [yellow]' + MARK + '[/yellow]' if 'k_cr_kN_per_m' in fl else ''}"
-                  f"; rms {_fmt(w['rms_N'], 3)} N")
+    if law == "both":
+        lw = rep.get("laws")
+        lws = [lw] if isinstance(lw, dict) else (lw or [])
+        for i, both in enumerate(lws):
+            _print_laws(con, both, names, i if len(lws) > 1 else None)
+    else:
+        for i, w in enumerate(wrs):
+            if not w.get("ok", True) and "params" not in w:
+                con.print(f"whole-record fit failed: {w.get('reason')}")
+                continue
+            fl = flagged(warns, "whole-record fit" + (f" (trial {i})" if len(wrs) > 1 else ""))
+            _print_whole(con, w, names, fl, MARK)
     for r in rep.get("rejected_steps", []):
         con.print(f"rejected step at t = {_fmt(r['t_s'], 6)} s: {r['reason']}", markup=False, highlight=False)
     for w in warns:
@@ -221,6 +280,68 @@ def _calibration_warnings(trials, rep: dict) -> list[dict]:
                    if m.get("A_mu") is not None and m.get("B_mu") is not None else None}
         out += calibration_warnings(tr, effects)
     return out
+class _no_bar:
+    """No progress bar (a plain Jacobian fit is quick)."""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+    def advance(self, *a, **k):
+        pass
+
+
+_SPEC_KEYS = ("mu0", "A_mu", "B_mu", "L_um", "k_mu_per_um", "stiffness_kN_per_m", "rate_mu_per_mm")
+_RSF_KEYS = ("mu0", "a", "b", "Dc_um", "a_minus_b", "k_per_um", "stiffness_kN_per_m", "rate_mu_per_mm")
+
+
+def _print_whole(con, w: dict, names: str, fl=(), mark: str = "") -> None:
+    """One whole-record fit: each parameter with its s.e. and its 68 % interval where that is
+    asymmetric (L), the correlation of A, B, L, the trend and the information criterion."""
+    keys = _RSF_KEYS if names == "rsf" else _SPEC_KEYS
+    p, sd, iv = w["params"], w.get("params_sd", w.get("err_corr", {})), w.get("intervals", {})
+    parts = []
+    for k in keys:
+        if p.get(k) is None:
+            continue
+        txt = f"{k} = {_fmt(p[k], 4)} ± {_fmt(sd.get(k), 2)}"
+        lo_hi = iv.get(k)
+        if lo_hi and None not in lo_hi and sd.get(k):
+            asym = abs((lo_hi[1] - p[k]) - (p[k] - lo_hi[0])) > 0.05 * sd[k]
+            if asym:
+                txt += f" [{_fmt(lo_hi[0], 4)}, {_fmt(lo_hi[1], 4)}]"
+        src = k if names != "rsf" else {"a": "A_mu", "b": "B_mu", "Dc_um": "L_um"}.get(k, k)
+        parts.append(txt + (f" [yellow]{mark}[/yellow]" if src in fl else ""))
+    unc = w.get("uncertainty", {}).get("method", "jacobian")
+    con.print(f"whole-record fit ({w['model']}, velocity {w['velocity']}, {unc} errors, n_eff {_fmt(w.get('n_eff'), 4)} "
+              f"of {w.get('n_points')}): {', '.join(parts)}; k_cr (eq. 13) = {_fmt(w.get('k_cr_kN_per_m'), 3)} kN/m; "
+              f"rms {_fmt(w['rms_N'], 3)} N", highlight=False)
+    c = w.get("correlation")
+    if c:
+        lab = {k: _rsf_label(k, names) for k in c["names"]}
+        pairs = [(a, b) for a, b in (("A_mu", "B_mu"), ("A_mu", "L_um"), ("B_mu", "L_um")) if a in c["names"] and b in c["names"]]
+        txt = ", ".join(f"{lab[a]}-{lab[b]} {c['matrix'][c['names'].index(a)][c['names'].index(b)]:+.2f}" for a, b in pairs)
+        con.print(f"  correlation: {txt}", highlight=False)
+    d = w.get("detrend", {})
+    if d.get("method", "none") != "none":
+        con.print(f"  trend ({d['method']}): {_fmt(d.get('rate_mu_per_mm'), 3)} ± {_fmt(d.get('rate_sd_mu_per_mm'), 2)} "
+                  f"mu per mm of slip" + (f"; {d['note']}" if d.get("note") else ""), highlight=False)
+    if w.get("stiffness_source") == "metadata":
+        con.print("  stiffness held at the file's machine_stiffness_kN_per_m", highlight=False)
+
+
+def _print_laws(con, both: dict, names: str, trial: int | None) -> None:
+    """--law both: the slip- and aging-law fits side by side and the law the record prefers."""
+    c = both["comparison"]
+    for lw in ("slip", "aging"):
+        con.print(f"[bold]{lw} law[/bold]" + (f" (trial {trial})" if trial is not None else "") + ":", highlight=False)
+        _print_whole(con, both[lw], names)
+    bic = c.get("bic", {})
+    con.print(f"preferred law: {c['preferred_law']} (BIC on n_eff {_fmt(c.get('n_eff'), 4)}: slip "
+              f"{_fmt(bic.get('slip'), 6)}, aging {_fmt(bic.get('aging'), 6)}; difference {_fmt(c.get('delta_bic'), 3)}, "
+              "6 or more decides)", highlight=False)
 
 
 def register(app: typer.Typer) -> None:

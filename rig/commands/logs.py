@@ -185,6 +185,11 @@ def import_command(
     path: Path = typer.Argument(..., help="Measured-data CSV (version 1).", show_default=False, metavar="IN.csv"),
     out: Path = typer.Option(..., "--out", "-o", help="Trial log to write (.mcap).", show_default=False),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --out file (exit 2 otherwise)."),
+    column_map: Optional[list[str]] = typer.Option(None, "--map", help="OUR=THEIRS column names of a lab's own "
+                                                   "CSV, comma-separated or repeated: time_s=Time,position_um="
+                                                   "LP_disp,friction_N=Shear (the format line is then optional)."),
+    scale: Optional[list[str]] = typer.Option(None, "--scale", help="COLUMN=FACTOR (our name), repeated: e.g. "
+                                              "position_um=1000 for mm."),
 ):
     """Import a measured-data CSV into a trial log (MCAP), atomically.
 
@@ -200,10 +205,12 @@ def import_command(
 
     check_output_path(out, "--out", (".mcap",))
     check_new_output(out, "--out", overwrite)
+    cmap = _pairs(column_map, "--map", str) if column_map else None
+    factors = _pairs(scale, "--scale", float) if scale else None
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
-            trial = read_csv(path)
+            trial = read_csv(path, column_map=cmap, scale=factors)
         except DataFormatError as exc:
             _fail(str(exc))
     for w in caught:
@@ -217,6 +224,28 @@ def import_command(
     except OSError as exc:
         _fail(f"cannot write {out}: {exc.strerror or exc}", EXIT_FAILED)
     console.print(f"wrote {out}: {len(trial)} samples, columns {', '.join(trial.columns())}", highlight=False)
+
+
+def _pairs(values: list[str], option: str, conv) -> dict:
+    """``A=B`` items (comma-separated or repeated) of ``--map`` / ``--scale``; exit 2 naming the bad one."""
+    from rig.data import STANDARD_COLUMNS
+
+    out = {}
+    for item in (p.strip() for v in values for p in v.split(",")):
+        if not item:
+            continue
+        key, sep, val = (s.strip() for s in item.partition("="))
+        if not sep or not key or not val:
+            _fail(f"{option} {item!r}: expected NAME=VALUE, e.g. {'time_s=Time' if option == '--map' else 'position_um=1000'}")
+        if option == "--map" and key not in STANDARD_COLUMNS:
+            _fail(f"{option} {item!r}: {key!r} is not a column of the format ({', '.join(STANDARD_COLUMNS)})")
+        try:
+            out[key] = conv(val)
+        except ValueError:
+            _fail(f"{option} {item!r}: {val!r} is not a number")
+        if conv is float and not (out[key] == out[key] and abs(out[key]) < float("inf") and out[key] != 0):
+            _fail(f"{option} {item!r}: the factor must be a finite, non-zero number")
+    return out
 
 
 def recover_command(

@@ -249,3 +249,38 @@ class FrictionModel(BaseModel):
         if isinstance(doc, dict) and "friction_model" in doc:
             doc = doc["friction_model"]
         return cls.model_validate(doc)
+
+
+#: the rock-mechanics community's names (xlook, RSFit3000, rsfmodel) of the spec's parameters:
+#: a = A_mu, b = B_mu, Dc = L, and the stiffness normalised by the friction force per unit mu
+RSF_NAMES = {"A_mu": "a", "B_mu": "b", "L_um": "Dc_um"}
+
+
+def rsf_vocabulary(params: dict, friction_per_mu_N: float | None = None) -> dict:
+    """Additive keys in the friction-lab vocabulary, the same values as the spec's names:
+    ``a`` (= A_mu), ``b`` (= B_mu), ``Dc_um`` (= L_um), ``a_minus_b`` and, with a
+    ``stiffness_kN_per_m``, ``k_per_um``: the stiffness over the normal force that carries the
+    friction (``friction_per_mu_N``, 2 N for the double-shear fixture), in 1/µm, the normalised
+    k of xlook and RSFit (k_per_um = stiffness_N_per_um / friction_per_mu_N).
+
+    One helper for identify's and diagnose's JSON (both import rig.model). Keys whose source is
+    absent or not a number are left out."""
+    def num(v):
+        try:
+            v = float(v)
+        except (TypeError, ValueError):
+            return None
+        return v if np.isfinite(v) else None
+
+    out = {}
+    for src, dst in RSF_NAMES.items():
+        v = num(params.get(src))
+        if v is not None:
+            out[dst] = v
+    a, b = num(params.get("A_mu")), num(params.get("B_mu"))
+    if a is not None and b is not None:
+        out["a_minus_b"] = a - b
+    k = num(params.get("stiffness_kN_per_m"))
+    if k is not None and friction_per_mu_N and friction_per_mu_N > 0:
+        out["k_per_um"] = k * 1e-3 / float(friction_per_mu_N)
+    return out

@@ -1,0 +1,113 @@
+"""Coverage of the 68 % intervals: over simulated trials with known truth, how often each
+parameter's reported interval contains the truth (issue 20, Deliver 6: 55-80 % is honest).
+
+    nice -n 10 .venv/bin/python benchmarks/bench_coverage.py [--trials 20] [--engine sim|synth|both]
+                                                              [--estimators whole_record]
+
+Trials: the paper's step protocol (rig.analysis.reproduce.step_recipe on the simulated rig, or
+the kinematic generator's paper_step_protocol), boundary lubricant, truth drawn per trial around
+Table 2 (A, B, L within +-15 %), fixed seeds. Each trial's record goes to every estimator of
+:data:`ESTIMATORS`; an estimator returns ``{name: (value, lo, hi)}`` for A_mu, B_mu, L_um.
+To add one (e.g. diagnose's final model): write ``def est(trial) -> dict`` and register it in
+ESTIMATORS; the table gains its rows. Prints the table (markdown) beside os.getloadavg().
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from rich.progress import Progress  # noqa: E402
+
+PARAMS = ("A_mu", "B_mu", "L_um")
+TRUTH = {"A_mu": 1.1e-3, "B_mu": 4.0e-3, "L_um": 19.2}
+
+
+def whole_record(trial) -> dict:
+    """identify's whole-record fit (slip law, Jacobian errors with the effective sample size)."""
+    from rig.analysis.identify import identify_trials
+
+    w = identify_trials([trial], directions="up").report["whole_record"]
+    return {k: (w["params"][k], *w["intervals"][k]) for k in PARAMS}
+
+
+def whole_record_bootstrap(trial) -> dict:
+    """identify's whole-record fit with --uncertainty bootstrap:30."""
+    from rig.analysis.identify import identify_trials
+
+    w = identify_trials([trial], directions="up", uncertainty="bootstrap:30").report["whole_record"]
+    return {k: (w["params"][k], *w["intervals"][k]) for k in PARAMS}
+
+
+#: name -> estimator(trial) -> {param: (value, lo, hi)}; add diagnose's final model here
+ESTIMATORS = {"identify whole-record (jacobian)": whole_record,
+              "identify whole-record (bootstrap:30)": whole_record_bootstrap}
+
+
+def make_trial(engine: str, k: int):
+    """Trial k: truth drawn with a fixed seed, the record from the simulated rig or the generator."""
+    from rig.analysis.reproduce import step_recipe
+    from rig.model.spec import FrictionModel
+
+    rng = np.random.default_rng(1000 + k)
+    truth = {p: TRUTH[p] * float(rng.uniform(0.85, 1.15)) for p in PARAMS}
+    model = FrictionModel(params={"mu0": 0.1, **truth})
+    if engine == "sim":
+        from rig.config.profile import default_profile_path, load_profile
+        from rig.session.sim import simulate
+
+        prof = load_profile(default_profile_path())
+        log, _ = simulate(step_recipe("boundary", seed=k, slip_before_um=max(120.0, 6.0 * truth["L_um"])),
+                          prof, model, seed=k)
+        return truth, log.trial_data(25.0, source=f"sim:{k}")
+    from rig.sim import synth
+
+    return truth, synth.generate(model, synth.paper_step_protocol(), seed=k).trial
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--trials", type=int, default=20)
+    ap.add_argument("--engine", choices=("sim", "synth", "both"), default="both")
+    ap.add_argument("--estimators", default=",".join(ESTIMATORS),
+                    help="comma-separated names of ESTIMATORS (default: all)")
+    a = ap.parse_args(argv)
+    names = [n.strip() for n in a.estimators.split(",") if n.strip()]
+    engines = ("sim", "synth") if a.engine == "both" else (a.engine,)
+    hits = {(e, n): {p: [] for p in PARAMS} for e in engines for n in names}
+    bias = {(e, n): {p: [] for p in PARAMS} for e in engines for n in names}
+    t0 = time.perf_counter()
+    with Progress() as prog:
+        task = prog.add_task("trials", total=a.trials * len(engines))
+        for e in engines:
+            for k in range(a.trials):
+                truth, tr = make_trial(e, k)
+                for n in names:
+                    res = ESTIMATORS[n](tr)
+                    for p in PARAMS:
+                        v, lo, hi = res[p]
+                        hits[(e, n)][p].append(lo <= truth[p] <= hi)
+                        bias[(e, n)][p].append((v - truth[p]) / truth[p])
+                prog.advance(task)
+    print(f"\n{a.trials} trials per engine, {time.perf_counter() - t0:.0f} s, load average "
+          f"{', '.join(f'{x:.2f}' for x in os.getloadavg())}\n")
+    print("| records | estimator | " + " | ".join(f"{p}: covered (68 %)" for p in PARAMS) + " | " +
+          " | ".join(f"{p}: mean bias" for p in PARAMS) + " |")
+    print("|---|---|" + "---|" * (2 * len(PARAMS)))
+    for (e, n), h in hits.items():
+        cov = " | ".join(f"{100 * np.mean(h[p]):.0f} % ({sum(h[p])}/{len(h[p])})" for p in PARAMS)
+        b = " | ".join(f"{100 * np.mean(bias[(e, n)][p]):+.1f} %" for p in PARAMS)
+        label = "simulated rig (closed loop, 25 Hz)" if e == "sim" else "generated (open loop, 25 Hz)"
+        print(f"| {label} | {n} | {cov} | {b} |")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,229 @@
+"""Honest uncertainty of a least-squares fit: effective sample size, information criterion,
+correlation, intervals, a block bootstrap in time and an MCMC sampler (emcee, optional).
+
+Every function here works on a fit of :mod:`rig.fitting` (named parameters with bounds and ln
+scaling) and a residual series on a **uniform time grid** (the caller bins the record in time
+first, so that a record that logs ten times faster after a step does not count that part ten
+times: statistics weigh time, not rows).
+
+* :func:`effective_n`: ``n_eff = n / (1 + 2 sum rho_k)``, the sum over the initial positive
+  sequence of the residuals' autocorrelation (Geyer 1992), so a residual that is correlated over
+  ``tau`` samples holds ``n / tau`` independent ones (the lag-1 correction alone misses a slow
+  structure).
+* :func:`information_criterion`: Gaussian BIC on the effective sample size,
+  ``n_eff ln(SSR / n) + p ln(n_eff)`` (Schwarz 1978; Kass & Raftery 1995: a difference above
+  6 is strong evidence).
+* :func:`jacobian_summary`: ``cov = (J^T J)^-1 s^2 n / n_eff`` in the internal variables, mapped
+  to each parameter's unit; a ln-scaled parameter's 68 % interval is ``exp(ln v +- sd_ln)``
+  (asymmetric, as xlook reports Dc).
+* :func:`block_bootstrap`: the residuals resampled in blocks of about twice their correlation
+  time (moving-block bootstrap, Kuensch 1989), added to the fitted curve and refitted N times.
+* :func:`mcmc`: emcee's affine-invariant ensemble sampler (Foreman-Mackey et al. 2013) on the
+  Gaussian likelihood tempered by ``n_eff / n`` (the same correlated-noise correction), flat
+  priors within the fit bounds.
+
+All three give ``params_sd`` (one standard error per parameter), ``intervals`` (the 68 %
+interval, ``[lo, hi]`` in the parameter's unit) and ``correlation`` (``{"names", "matrix"}``).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Callable
+
+import numpy as np
+
+from rig.fitting import FitOutcome, ParamSet, least_squares_fit
+
+#: the central 68 % of a distribution (one sigma of a normal)
+Q_LO, Q_HI = 15.865, 84.135
+
+
+def autocorr(r: np.ndarray, max_lag: int | None = None) -> np.ndarray:
+    """Autocorrelation of a series at lags 0..max_lag (FFT; the mean removed)."""
+    r = np.asarray(r, dtype=float)
+    r = r - r.mean()
+    n = r.size
+    if n < 3 or not np.any(r):
+        return np.ones(1)
+    m = 1 << int(math.ceil(math.log2(2 * n)))
+    f = np.fft.rfft(r, m)
+    ac = np.fft.irfft(f * np.conj(f), m)[:n]
+    ac /= ac[0]
+    return ac[: (n // 2 if max_lag is None else min(max_lag + 1, n))]
+
+
+def correlation_time(r: np.ndarray) -> float:
+    """Integrated correlation time in samples, ``1 + 2 sum rho_k`` over the initial positive
+    sequence of pair sums (Geyer 1992): 1 for white noise."""
+    ac = autocorr(r)
+    tau = 1.0
+    for k in range(1, ac.size - 1, 2):
+        pair = ac[k] + ac[k + 1]
+        if pair <= 0:
+            break
+        tau += 2.0 * pair
+    return max(tau, 1.0)
+
+
+def effective_n(r: np.ndarray) -> float:
+    """Effective number of independent residuals (``n / correlation_time``), at least 1."""
+    r = np.asarray(r, dtype=float)
+    return max(r.size / correlation_time(r), 1.0)
+
+
+def information_criterion(ssr: float, n: int, n_eff: float, n_par: int) -> float:
+    """Gaussian BIC on the effective sample size: ``n_eff ln(SSR/n) + p ln(n_eff)``."""
+    ne = max(float(n_eff), 1.0)
+    return ne * math.log(max(ssr, 1e-300) / max(n, 1)) + n_par * math.log(ne)
+
+
+def correlation_of(cov: np.ndarray, names: list[str]) -> dict:
+    """``{"names": [...], "matrix": [[...]]}`` from a covariance matrix (rounded to 4 digits)."""
+    sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        c = cov / np.outer(sd, sd)
+    c = np.where(np.isfinite(c), c, 0.0)
+    np.fill_diagonal(c, 1.0)
+    return {"names": list(names), "matrix": [[round(float(v), 4) for v in row] for row in np.clip(c, -1, 1)]}
+
+
+def jacobian_summary(pset: ParamSet, fit: FitOutcome, n_eff: float) -> dict:
+    """sd, 68 % intervals and correlation from the fit's Jacobian, the residual variance inflated
+    by ``n / n_eff`` (correlated residuals). Internal variables: ln for log parameters, so their
+    intervals are asymmetric."""
+    z = fit.extra["z"]
+    r = fit.residuals
+    n, p = r.size, z.size
+    s2 = float(np.dot(r, r)) / max(n - p, 1) * max(n / max(n_eff, 1.0), 1.0)
+    try:
+        cov_z = np.linalg.pinv(fit.jac.T @ fit.jac) * s2
+    except (np.linalg.LinAlgError, ValueError):
+        cov_z = np.full((p, p), np.nan)
+    sd_z = np.sqrt(np.maximum(np.diag(cov_z), 0.0))
+    sd, iv = {}, {}
+    for prm, zi, si in zip(pset.params, z, sd_z):
+        val = prm.to_value(float(zi))
+        if prm.log:
+            sd[prm.name] = val * si
+            iv[prm.name] = [math.exp(zi - si), math.exp(zi + si)]
+        else:
+            sd[prm.name] = si * prm.scale
+            iv[prm.name] = [val - si * prm.scale, val + si * prm.scale]
+    # covariance in the parameters' own units (first order) for the correlation
+    d = np.array([prm.to_value(float(zi)) if prm.log else prm.scale for prm, zi in zip(pset.params, z)])
+    cov = cov_z * np.outer(d, d)
+    return {"method": "jacobian", "params_sd": sd, "intervals": iv, "correlation": correlation_of(cov, pset.names),
+            "cov": cov}
+
+
+def _sample_summary(pset: ParamSet, samples: np.ndarray, method: str, **extra) -> dict:
+    """sd, percentile intervals and correlation of parameter samples (rows; parameters' units)."""
+    sd = {nm: float(np.std(samples[:, j], ddof=1)) for j, nm in enumerate(pset.names)}
+    iv = {nm: [float(np.percentile(samples[:, j], Q_LO)), float(np.percentile(samples[:, j], Q_HI))]
+          for j, nm in enumerate(pset.names)}
+    cov = np.cov(samples, rowvar=False).reshape(len(pset.names), len(pset.names))
+    return {"method": method, "params_sd": sd, "intervals": iv, "correlation": correlation_of(cov, pset.names),
+            "cov": cov, "n_samples": int(samples.shape[0]), **extra}
+
+
+def block_bootstrap(residual_for: Callable[[np.ndarray], Callable[[dict], np.ndarray]], pset: ParamSet,
+                    fit: FitOutcome, n_boot: int, *, seed: int = 0, block: int | None = None, max_nfev: int = 60,
+                    progress: Callable[[], None] | None = None) -> dict:
+    """Moving-block bootstrap in time. ``residual_for(y_offset)`` returns the residual function of a
+    pseudo record whose data are the fitted curve plus ``y_offset`` (the resampled residuals, in
+    the residual vector's order, which is time order); each pseudo record is refitted from the
+    best fit. Blocks hold about twice the residuals' correlation time (at least 5 samples)."""
+    r = np.asarray(fit.residuals, dtype=float)
+    n = r.size
+    if block is None:
+        block = int(max(5, math.ceil(2.0 * correlation_time(r))))
+    block = min(block, max(n // 4, 1))
+    rng = np.random.default_rng(seed)
+    n_blocks = int(math.ceil(n / block))
+    rows = []
+    for _ in range(int(n_boot)):
+        starts = rng.integers(0, n - block + 1, size=n_blocks)
+        e = np.concatenate([r[s:s + block] for s in starts])[:n]
+        e = e - e.mean() + r.mean()
+        # residual = model - data; data* = model_hat - e*, so residual* = model - model_hat + e*
+        out = least_squares_fit(residual_for(e), pset, [fit.params], max_nfev=max_nfev, diff_step=None,
+                                xtol=1e-6, ftol=1e-6, x_scale="jac")
+        if out is not None:
+            rows.append([out.params[nm] for nm in pset.names])
+        if progress is not None:
+            progress()
+    if len(rows) < 3:
+        raise ValueError("bootstrap: fewer than 3 refits succeeded")
+    return _sample_summary(pset, np.asarray(rows), "bootstrap", block_samples=int(block))
+
+
+def mcmc(residual: Callable[[dict], np.ndarray], pset: ParamSet, fit: FitOutcome, n_steps: int, n_eff: float, *,
+         seed: int = 0, cov_z: np.ndarray | None = None, progress: Callable[[], None] | None = None) -> dict:
+    """emcee on the internal variables: ``ln p = -SSR / (2 s^2) * n_eff / n`` (flat priors inside
+    the bounds), ``s^2`` the fit's residual variance; walkers 2 p + 2 started in a small ball
+    around the best fit (the Jacobian's covariance / 10); the first third of the chain is burn-in."""
+    try:
+        import emcee
+    except ImportError as exc:  # an optional extra
+        raise ValueError("--uncertainty mcmc needs emcee: pip install 'rig[mcmc]' (or pip install emcee)") from exc
+    z0 = np.asarray(fit.extra["z"], dtype=float)
+    r0 = np.asarray(fit.residuals, dtype=float)
+    n, p = r0.size, z0.size
+    s2 = float(np.dot(r0, r0)) / max(n - p, 1)
+    temper = min(max(n_eff, 1.0) / n, 1.0)
+    lo, hi = pset.bounds()
+
+    def log_prob(z):
+        if np.any(z <= lo) or np.any(z >= hi):
+            return -np.inf
+        try:
+            rr = np.asarray(residual(pset.unpack(z)), dtype=float)
+        except (ValueError, ZeroDivisionError, OverflowError):
+            return -np.inf
+        if rr.size != n or not np.all(np.isfinite(rr)):
+            return -np.inf
+        return -0.5 * float(np.dot(rr, rr)) / s2 * temper
+
+    nw = 2 * p + 2
+    rng = np.random.default_rng(seed)
+    if cov_z is None or not np.all(np.isfinite(cov_z)):
+        cov_z = np.diag(np.full(p, 1e-4))
+    scale = np.sqrt(np.maximum(np.diag(cov_z), 1e-12)) * 0.1
+    p0 = z0 + rng.standard_normal((nw, p)) * scale
+    p0 = np.clip(p0, lo + 1e-9, hi - 1e-9)
+    sampler = emcee.EnsembleSampler(nw, p, log_prob)
+    sampler._random = np.random.mtrand.RandomState(seed)  # reproducible moves
+    state = p0
+    for _ in sampler.sample(state, iterations=int(n_steps)):
+        if progress is not None:
+            progress()
+    chain = sampler.get_chain(discard=int(n_steps) // 3, flat=True)
+    if chain.shape[0] < 3:
+        raise ValueError("mcmc: too few steps (at least 6)")
+    vals = np.array([[prm.to_value(float(zi)) for prm, zi in zip(pset.params, row)] for row in chain])
+    acc = float(np.mean(sampler.acceptance_fraction))
+    return _sample_summary(pset, vals, "mcmc", walkers=nw, steps=int(n_steps), acceptance=round(acc, 3))
+
+
+def parse_uncertainty(text: str) -> tuple[str, int]:
+    """``jacobian`` | ``bootstrap:N`` | ``mcmc:N`` -> (method, N); ValueError naming the option."""
+    t = str(text).strip().lower()
+    if t == "jacobian":
+        return "jacobian", 0
+    meth, _, num = t.partition(":")
+    if meth in ("bootstrap", "mcmc"):
+        try:
+            n = int(num)
+        except ValueError:
+            n = -1
+        least = 10 if meth == "bootstrap" else 30
+        if n < least:
+            raise ValueError(f"--uncertainty {text}: {meth} needs a count of at least {least}, e.g. {meth}:"
+                             f"{200 if meth == 'bootstrap' else 2000}")
+        return meth, n
+    raise ValueError(f"--uncertainty {text}: expected jacobian, bootstrap:N or mcmc:N")
+
+
+__all__ = ["Q_LO", "Q_HI", "autocorr", "block_bootstrap", "correlation_of", "correlation_time", "effective_n",
+           "information_criterion", "jacobian_summary", "mcmc", "parse_uncertainty"]
