@@ -7,7 +7,9 @@ rig (``--hardware``, a private copy of config/rigs/emulated.yaml) or on the simu
 time (``--sim --pace 1``), each in its own process group, and kills the whole group with SIGKILL
 at a random moment between 1 s after the trial's first sample and 1 s before its end. The
 moment of the first sample is read from the growing log itself (its ``trial`` metadata,
-written and flushed at the first block: ``clock: first_sample``).
+written and flushed at the first block: ``clock: first_sample``; a log written before issue 21,
+e.g. ``PYTHONPATH=<an export of an older commit>``, has no such record: its start_time_ns once
+its first raw block is on disk).
 
 The loss of each kill: the wall-clock time of the kill minus the ``log_time`` of the last sample
 ``rig recover`` keeps (log_time is the wall-clock time each sample was taken, docs/hardware.md).
@@ -65,7 +67,15 @@ def _first_sample_ns(path: Path) -> int | None:
     except Exception:  # noqa: BLE001 - a file being written
         return None
     trial = c.metadata_dict().get("trial", {})
-    return int(trial["start_time_ns"]) if trial.get("clock") == "first_sample" else None
+    if trial.get("clock") == "first_sample":
+        return int(trial["start_time_ns"])
+    if "clock" not in trial and "start_time_ns" in trial:  # a log from before issue 21: its first block on disk
+        from rig.log.schemas import RAW_TOPIC
+
+        c = scan(path, topics={RAW_TOPIC})
+        if any(c.topic_of(m) == RAW_TOPIC for m in c.messages):
+            return int(trial["start_time_ns"])
+    return None
 
 
 def _last_sample_ns(path: Path) -> int | None:
