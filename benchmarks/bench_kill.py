@@ -43,10 +43,10 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def _profile(tmp: Path, k: int) -> Path:
+def _profile(tmp: Path, k: int, repo: Path) -> Path:
     """The emulated rig on a free port, its LVDT pty and CAN channel private to this run."""
     p = tmp / f"rig-{k}.yaml"
-    p.write_text(f"""extends: {REPO / 'config/rigs/emulated.yaml'}
+    p.write_text(f"""extends: {repo / 'config/rigs/emulated.yaml'}
 hardware:
   loadcells: {{port: {_free_port()}}}
   lvdt: {{port: {tmp / f'lvdt-{k}'}}}
@@ -101,10 +101,10 @@ def _last_sample_ns(path: Path) -> int | None:
     return last
 
 
-def one_kill(backend: str, tmp: Path, k: int, rnd: random.Random) -> dict:
+def one_kill(backend: str, tmp: Path, k: int, rnd: random.Random, repo: Path = REPO) -> dict:
     out = tmp / f"kill-{k}.mcap"
-    args = [sys.executable, "-m", "rig.cli", "run", str(SMOKE), "--out", str(out), "-q"]
-    args += ["--hardware", str(_profile(tmp, k))] if backend == "hardware" else ["--sim", "--pace", "1"]
+    args = [sys.executable, "-m", "rig.cli", "run", str(repo / SMOKE.relative_to(REPO)), "--out", str(out), "-q"]
+    args += ["--hardware", str(_profile(tmp, k, repo))] if backend == "hardware" else ["--sim", "--pace", "1"]
     proc = subprocess.Popen(args, cwd=tmp, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                             start_new_session=True)
     try:
@@ -141,12 +141,14 @@ def main() -> None:
     ap.add_argument("--kills", type=int, default=10)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--repo", type=Path, default=REPO, help="the checkout whose recipe and emulated profile to run "
+                                                           "(with PYTHONPATH=that checkout: an older commit)")
     a = ap.parse_args()
     rnd = random.Random(a.seed)
     rows = []
     with tempfile.TemporaryDirectory(prefix="bench-kill-") as d:
         for k in range(a.kills):
-            r = one_kill(a.backend, Path(d), k, rnd)
+            r = one_kill(a.backend, Path(d), k, rnd, a.repo.resolve())
             rows.append(r)
             load = " ".join(f"{x:.2f}" for x in r["load"])
             print(f"kill {k + 1:2d}/{a.kills}: at {r['kill_at_s']:6.2f} s of trial, lost "
