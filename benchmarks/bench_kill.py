@@ -7,7 +7,9 @@ rig (``--hardware``, a private copy of config/rigs/emulated.yaml) or on the simu
 time (``--sim --pace 1``), each in its own process group, and kills the whole group with SIGKILL
 at a random moment between 1 s after the trial's first sample and 1 s before its end. The
 moment of the first sample is read from the growing log itself (its ``trial`` metadata,
-written and flushed at the first block: ``clock: first_sample``).
+written and flushed at the first block: ``clock: first_sample``; a log written before issue 21,
+e.g. ``PYTHONPATH=<an export of an older commit>``, has no such record: its start_time_ns once
+its first raw block is on disk).
 
 The loss of each kill: the wall-clock time of the kill minus the ``log_time`` of the last sample
 ``rig recover`` keeps (log_time is the wall-clock time each sample was taken, docs/hardware.md).
@@ -41,10 +43,10 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def _profile(tmp: Path, k: int) -> Path:
+def _profile(tmp: Path, k: int, repo: Path) -> Path:
     """The emulated rig on a free port, its LVDT pty and CAN channel private to this run."""
     p = tmp / f"rig-{k}.yaml"
-    p.write_text(f"""extends: {REPO / 'config/rigs/emulated.yaml'}
+    p.write_text(f"""extends: {repo / 'config/rigs/emulated.yaml'}
 hardware:
   loadcells: {{port: {_free_port()}}}
   lvdt: {{port: {tmp / f'lvdt-{k}'}}}
@@ -65,7 +67,15 @@ def _first_sample_ns(path: Path) -> int | None:
     except Exception:  # noqa: BLE001 - a file being written
         return None
     trial = c.metadata_dict().get("trial", {})
-    return int(trial["start_time_ns"]) if trial.get("clock") == "first_sample" else None
+    if trial.get("clock") == "first_sample":
+        return int(trial["start_time_ns"])
+    if "clock" not in trial and "start_time_ns" in trial:  # a log from before issue 21: its first block on disk
+        from rig.log.schemas import RAW_TOPIC
+
+        c = scan(path, topics={RAW_TOPIC})
+        if any(c.topic_of(m) == RAW_TOPIC for m in c.messages):
+            return int(trial["start_time_ns"])
+    return None
 
 
 def _last_sample_ns(path: Path) -> int | None:
@@ -91,10 +101,10 @@ def _last_sample_ns(path: Path) -> int | None:
     return last
 
 
-def one_kill(backend: str, tmp: Path, k: int, rnd: random.Random) -> dict:
+def one_kill(backend: str, tmp: Path, k: int, rnd: random.Random, repo: Path = REPO) -> dict:
     out = tmp / f"kill-{k}.mcap"
-    args = [sys.executable, "-m", "rig.cli", "run", str(SMOKE), "--out", str(out), "-q"]
-    args += ["--hardware", str(_profile(tmp, k))] if backend == "hardware" else ["--sim", "--pace", "1"]
+    args = [sys.executable, "-m", "rig.cli", "run", str(repo / SMOKE.relative_to(REPO)), "--out", str(out), "-q"]
+    args += ["--hardware", str(_profile(tmp, k, repo))] if backend == "hardware" else ["--sim", "--pace", "1"]
     proc = subprocess.Popen(args, cwd=tmp, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                             start_new_session=True)
     try:
@@ -131,12 +141,14 @@ def main() -> None:
     ap.add_argument("--kills", type=int, default=10)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--repo", type=Path, default=REPO, help="the checkout whose recipe and emulated profile to run "
+                                                           "(with PYTHONPATH=that checkout: an older commit)")
     a = ap.parse_args()
     rnd = random.Random(a.seed)
     rows = []
     with tempfile.TemporaryDirectory(prefix="bench-kill-") as d:
         for k in range(a.kills):
-            r = one_kill(a.backend, Path(d), k, rnd)
+            r = one_kill(a.backend, Path(d), k, rnd, a.repo.resolve())
             rows.append(r)
             load = " ".join(f"{x:.2f}" for x in r["load"])
             print(f"kill {k + 1:2d}/{a.kills}: at {r['kill_at_s']:6.2f} s of trial, lost "

@@ -411,11 +411,6 @@ def run_command(
             uid = str(uuid.uuid4())
             if path is None:
                 path = default_trial_path(recipe.name, uid)
-            elif overwrite and (path.exists() or path.is_symlink()):
-                try:
-                    path.unlink()
-                except OSError as exc:
-                    fail(f"--overwrite: cannot remove {path}: {exc.strerror or exc}", EXIT_FAILURE)
             meta = {"trial_uid": uid, "recipe": recipe.name, "recipe_file": str(recipe_path), "lubricant": recipe.lubricant,
                     "normal_force_N": recipe.normal_force_N, "seed": trial_seed, "trial": k + 1,
                     "trials": len(paths), "profile": str(ppath), "profile_name": profile.name,
@@ -449,6 +444,11 @@ def run_command(
             except ValueError as exc:  # e.g. a seed numpy cannot take: bad input, nothing written yet
                 fail(f"{recipe_path}: trial {k + 1} (seed {trial_seed}): {exc}")
             title = f"trial {k + 1}/{len(paths)} " if len(paths) > 1 else ""
+            if overwrite and (path.exists() or path.is_symlink()):  # only now: every check before has passed
+                try:
+                    path.unlink()
+                except OSError as exc:
+                    fail(f"--overwrite: cannot remove {path}: {exc.strerror or exc}", EXIT_FAILURE)
             try:
                 with TrialProgress(plan, title=title, enabled=not quiet) as prog:
                     result = run_to_log(path, plan, recipe, profile, backend, meta, progress=prog,
