@@ -241,7 +241,7 @@ class TrialLogWriter:
                  metadata: dict[str, Any] | None = None, recipe_yaml: str | None = None,
                  recipe: dict | None = None, profile: dict | None = None,
                  raw_encoding: str = "binary", raw_dtype: str | None = None, flush_interval_s: float = 1.0,
-                 chunk_size: int = 1 << 18, fsync: bool = True, threaded: bool = True,
+                 chunk_size: int = 1 << 20, fsync: bool = True, threaded: bool = True,
                  compression: str = "zstd", start_time_ns: int | None = None, raw_columns: str = "device",
                  raw_format: str = "protobuf"):
         if raw_encoding not in ("binary", "base64", "json"):
