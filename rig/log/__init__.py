@@ -34,13 +34,32 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from typing import TYPE_CHECKING
+
 from rig.data import DataFormatError, TrialData, read_csv
-from rig.log.csv_import import read_parquet, write_parquet, write_trial_data
 from rig.log.reader import LogDamageWarning, read_log, read_metadata, read_trial, scan, trial_info
-from rig.log.recover import recover
 from rig.log.schemas import (BLOCK_KEYS, EVENTS_TOPIC, LOG25_TOPIC, RAW_TOPIC, RAW_V1_ENCODING, RAW_V2_ENCODING,
                              SAMPLE_FIELDS, STATS_TOPIC)
-from rig.log.writer import TrialLogWriter
+
+if TYPE_CHECKING:
+    from rig.log.csv_import import read_parquet, write_parquet, write_trial_data
+    from rig.log.recover import recover
+    from rig.log.writer import TrialLogWriter
+
+#: imported when first used, so that reading a log (rig info, export) does not load the writer's stack
+_LAZY = {"TrialLogWriter": "rig.log.writer", "recover": "rig.log.recover", "read_parquet": "rig.log.csv_import",
+         "write_parquet": "rig.log.csv_import", "write_trial_data": "rig.log.csv_import"}
+
+
+def __getattr__(name: str):
+    mod = _LAZY.get(name)
+    if mod is None:
+        raise AttributeError(f"module 'rig.log' has no attribute {name!r}")
+    import importlib
+
+    value = getattr(importlib.import_module(mod), name)
+    globals()[name] = value
+    return value
 
 
 def load_trial(path: str | os.PathLike, *, strict: bool = False) -> TrialData:
@@ -50,6 +69,8 @@ def load_trial(path: str | os.PathLike, *, strict: bool = False) -> TrialData:
     if suffix == ".csv":
         return read_csv(path)
     if suffix == ".parquet":
+        from rig.log.csv_import import read_parquet
+
         return read_parquet(path)
     if suffix == ".mcap":
         return read_trial(path, strict=strict)
