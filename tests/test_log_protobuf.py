@@ -125,3 +125,21 @@ def test_field_names_carry_units():
     for key, (name, kind, unit) in DISPLAY.items():
         assert re.fullmatch(r"[a-z_0-9]+(_um|_nm|_mN|_uN|_N|_per_32767|_ppm|_nm_per_s)|spool", name), name
         assert unit == pytest.approx(unit_of(name)) or kind != "sint64", name
+
+
+def test_cold_kernels_says_when_a_first_call_compiles(tmp_path, monkeypatch):
+    import os
+
+    from rig.commands import warmup
+
+    monkeypatch.setattr(warmup, "_RIG", tmp_path)
+    src = tmp_path / "mod.py"
+    src.write_text("x = 1\n")
+    assert warmup.cold_kernels(["mod.py"])  # no cache at all
+    (tmp_path / "__pycache__").mkdir()
+    idx = tmp_path / "__pycache__" / "mod.kernel-3.py311.nbi"
+    idx.write_bytes(b"")
+    os.utime(src, (1e9, 1e9))
+    assert not warmup.cold_kernels(["mod.py"])  # cache newer than the source
+    os.utime(src, (2e9, 2e9))
+    assert warmup.cold_kernels(["mod.py"])  # the source changed since

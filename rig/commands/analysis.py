@@ -132,10 +132,16 @@ def identify_cmd(
                    "min_ratio": min_ratio}, jobs=jobs, scheduler=scheduler, db=db, summarize=identify_summary)
         return
     trials = _load(data)
+    from contextlib import nullcontext
+
+    from rig.commands.warmup import IDENTIFY_KERNELS, cold_kernels
+    cold = cold_kernels(IDENTIFY_KERNELS)  # the first identify compiles for seconds: say so
     try:
-        idn = identify_trials(trials, use_events=events, velocity_method=velocity, whole_record=whole,
-                              whole_velocity=whole_velocity, stiffness=stiffness, directions=direction,
-                              min_ratio=min_ratio, names=[str(p) for p in data])
+        with err_console.status("compiling the identification kernels (first run after an install or a change, "
+                                "once; `rig warmup` does it ahead)...") if cold else nullcontext():
+            idn = identify_trials(trials, use_events=events, velocity_method=velocity, whole_record=whole,
+                                  whole_velocity=whole_velocity, stiffness=stiffness, directions=direction,
+                                  min_ratio=min_ratio, names=[str(p) for p in data])
     except ValueError as exc:
         _fail(_named(str(exc), data))
     rep = idn.report
