@@ -184,6 +184,24 @@ def test_local_cluster_workers_and_longest_first_order():
     assert trial_cost_s({"params": {"L_um": 5.0}}) == trial_cost_s({"params": {"L_um": 19.0}})
 
 
+def test_short_batch_runs_in_this_process(files):
+    """A batch whose measured work is below what a cluster's start costs runs as --jobs 1 does: no
+    cluster (so --jobs N is never slower than serial on a short batch); the results are the same."""
+    from rig.catalog.batch import Engine
+
+    root, good, bad = files
+    items = [(str(p), {}) for p in good]
+    eng = Engine(2, start_cost_s=600.0)
+    try:
+        par = eng.run(identify_file, items, cost=lambda it: 1.0)
+    finally:
+        eng.close()
+    assert eng._thread is None and eng._client is None  # never started
+    assert all(r.worker.startswith("local") for r in par) and eng.estimate_s is not None
+    serial = run_tasks(identify_file, items, jobs=1)
+    assert [_canon(a.value) for a in serial] == [_canon(b.value) for b in par]
+
+
 def test_own_cluster_starts_while_this_process_works(files):
     """run_tasks(jobs=2) with no cluster: this process runs the cheapest files while its
     LocalCluster starts, the workers the rest; the results are the serial ones, in order."""
@@ -192,7 +210,7 @@ def test_own_cluster_starts_while_this_process_works(files):
     serial = run_tasks(identify_file, items, jobs=1)
     seen = []
     par = run_tasks(identify_file, items, jobs=2, cost=lambda it: int(it[0][-5]),  # t0..t5: t0 cheapest
-                    progress=lambda d, t, r: seen.append(d))
+                    progress=lambda d, t, r: seen.append(d), start_cost_s=0.0)  # a cluster whatever the work
     assert seen == list(range(1, len(items) + 1))
     where = [r.worker.split(":")[0] for r in par]
     assert "local" in where and "tcp" in where  # both took part

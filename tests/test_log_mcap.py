@@ -452,11 +452,13 @@ def test_listeners_get_samples_events_and_loop_stats(tmp_path):
 
 
 def test_foxglove_layout_plots_only_fields_the_log_has():
-    """config/foxglove/rig-trial.json: every plotted path is a topic and field the writer produces."""
+    """config/foxglove/rig-trial.json: every plotted path is a topic and field the writer produces; the 1 kHz
+    tuning tab plots /raw's protobuf fields against /raw.t_s[:]."""
+    from rig.log.loopblock import DISPLAY
     from rig.log.schemas import SAMPLE_FIELDS
 
     layout = json.loads((Path(__file__).parents[1] / "config" / "foxglove" / "rig-trial.json").read_text())
-    fields = {LOG25_TOPIC: set(SAMPLE_FIELDS),
+    fields = {LOG25_TOPIC: set(SAMPLE_FIELDS), RAW_TOPIC: {name + "[:]" for name, _, _ in DISPLAY.values()},
               # sim: run_sim_trial's statistics; hardware: rig.hardware.timing's window
               STATS_TOPIC: {"realtime_factor", "tracking_error_rms_um", "late_p99_us", "late_max_us", "exec_p99_us"}}
     paths = []
@@ -464,13 +466,22 @@ def test_foxglove_layout_plots_only_fields_the_log_has():
         for p in cfg.get("paths", []):
             topic, field = p["value"].split(".", 1)
             assert field in fields[topic], p["value"]
+            if topic == RAW_TOPIC:  # x: the sample times of the same messages
+                assert cfg["xAxisVal"] == "custom" and cfg["xAxisPath"]["value"] == "/raw.t_s[:]"
             paths.append(p["value"])
         if "topicPath" in cfg:
             assert cfg["topicPath"] == EVENTS_TOPIC
     for want in ("/log25.position_um", "/log25.position_ref_um", "/log25.friction_N", "/log25.normal_1_N",
-                 "/log25.normal_2_N", "/log25.valve_cmd", "/loop_stats.late_p99_us"):
+                 "/log25.normal_2_N", "/log25.valve_cmd", "/loop_stats.late_p99_us", "/raw.position_nm[:]",
+                 "/raw.position_ref_um[:]", "/raw.friction_mN[:]", "/raw.normal_1_mN[:]", "/raw.normal_2_mN[:]",
+                 "/raw.valve_cmd_per_32767[:]", "/raw.pid_p_mN[:]", "/raw.pid_i_uN[:]", "/raw.pid_d_N[:]",
+                 "/raw.dither_uN[:]", "/raw.spool[:]"):
         assert want in paths
 
     def leaves(node):
-        return [node] if isinstance(node, str) else leaves(node["first"]) + leaves(node["second"])
+        if isinstance(node, str):
+            tabs = layout["configById"].get(node, {}).get("tabs") if node.startswith("Tab!") else None
+            return [node] + [x for t in tabs for x in leaves(t["layout"])] if tabs else [node]
+        return leaves(node["first"]) + leaves(node["second"])
     assert sorted(leaves(layout["layout"])) == sorted(layout["configById"])
+    assert [t["title"] for t in layout["configById"]["Tab!main"]["tabs"]] == ["trial (25 Hz)", "tuning (1 kHz)"]

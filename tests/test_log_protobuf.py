@@ -26,11 +26,11 @@ CSV_NAME = {"t_s": "time_s", "position_nm": "position_um", "position_ref_um": "p
             "friction_mN": "friction_N", "normal_1_mN": "normal_1_N", "normal_2_mN": "normal_2_N",
             "valve_cmd_per_32767": "valve_cmd", "pid_p_mN": "pid_p", "pid_i_uN": "pid_i", "pid_d_N": "pid_d",
             "dither_uN": "dither", "true_position_nm": "true_position_um",
-            "true_velocity_nm_per_s": "true_velocity_um_s", "true_mu_ppm": "true_mu"}
+            "true_velocity_nm_per_s": "true_velocity_um_s", "true_mu_ppm": "true_mu", "spool": "spool"}
 #: one quantization step of each stored column (the devices' counts), in the CSV's unit
 STEP = {"position_um": 0.076, "position_ref_um": 1e-3, "friction_N": 1e-3, "normal_1_N": 1e-3, "normal_2_N": 1e-3,
         "valve_cmd": 1 / 32767, "pid_p": 1e-3, "pid_i": 1e-4, "pid_d": 1e-6, "dither": 1e-6,
-        "true_position_um": 1e-3, "true_velocity_um_s": 1e-3, "true_mu": 1e-6, "time_s": 1e-9}
+        "true_position_um": 1e-3, "true_velocity_um_s": 1e-3, "true_mu": 1e-6, "time_s": 1e-9, "spool": 1e-6}
 
 
 def blocks(n_blocks=4, n=500, seed=3):
@@ -125,3 +125,21 @@ def test_field_names_carry_units():
     for key, (name, kind, unit) in DISPLAY.items():
         assert re.fullmatch(r"[a-z_0-9]+(_um|_nm|_mN|_uN|_N|_per_32767|_ppm|_nm_per_s)|spool", name), name
         assert unit == pytest.approx(unit_of(name)) or kind != "sint64", name
+
+
+def test_cold_kernels_says_when_a_first_call_compiles(tmp_path, monkeypatch):
+    import os
+
+    from rig.commands import warmup
+
+    monkeypatch.setattr(warmup, "_RIG", tmp_path)
+    src = tmp_path / "mod.py"
+    src.write_text("x = 1\n")
+    assert warmup.cold_kernels(["mod.py"])  # no cache at all
+    (tmp_path / "__pycache__").mkdir()
+    idx = tmp_path / "__pycache__" / "mod.kernel-3.py311.nbi"
+    idx.write_bytes(b"")
+    os.utime(src, (1e9, 1e9))
+    assert not warmup.cold_kernels(["mod.py"])  # cache newer than the source
+    os.utime(src, (2e9, 2e9))
+    assert warmup.cold_kernels(["mod.py"])  # the source changed since

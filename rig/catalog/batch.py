@@ -188,6 +188,13 @@ def dask_client(jobs: int | None = None, scheduler: str | None = None, preload: 
             cluster.close()
 
 
+#: what starting our LocalCluster costs this process's batch, in seconds of work it could have done instead:
+#: the start (1.5-3 s here), the workers' imports (about 1 s) and their CPU on a machine whose cores the
+#: batch itself needs (docs/scaling.md). Work estimated below ``PAYBACK x`` this runs in this process.
+START_COST_S = 3.0
+PAYBACK = 2.0
+
+
 class Engine:
     """Where a batch's tasks run, for one or more :meth:`run` calls (one cluster for all).
 
@@ -202,10 +209,18 @@ class Engine:
       forkserver that imported everything once, see ``START_METHOD``) remains, which only a
       batch of minutes amortises (docs/scaling.md).
 
+    A batch never pays for a cluster it cannot use: with no cluster yet (and no ``scheduler``),
+    this process runs the batch's cheapest tasks first and, from their measured times and the
+    tasks' ``cost`` (seconds per unit of cost; per task without one), estimates the rest; only
+    when the work left, shared by ``jobs`` workers, would save more than ``PAYBACK`` x
+    ``start_cost_s`` does the cluster start (in the background, this process going on meanwhile).
+    A short batch therefore runs as ``--jobs 1`` does; a long one grows onto the workers.
+
     The results do not depend on where a task ran (pure tasks: ``tests/test_batch.py``).
     """
 
-    def __init__(self, jobs: int | None = None, scheduler: str | None = None, client: Any = None):
+    def __init__(self, jobs: int | None = None, scheduler: str | None = None, client: Any = None,
+                 start_cost_s: float = START_COST_S):
         if jobs is not None and int(jobs) < 1:
             raise BatchError(f"--jobs must be at least 1 (got {jobs})")
         if jobs is None and scheduler is None and client is None and default_jobs() == 1:
@@ -217,6 +232,8 @@ class Engine:
         self._ready = threading.Event()
         self._error: BaseException | None = None
         self.local_tasks = 0  # tasks this process ran while the cluster started (a figure for benchmarks)
+        self.start_cost_s = float(start_cost_s)
+        self.estimate_s: float | None = None  # the last estimate of the work left when the decision was made
 
     @property
     def serial(self) -> bool:
@@ -270,9 +287,12 @@ class Engine:
             for i in range(n):
                 _local(i)
             return out  # type: ignore[return-value]
-        if nothing_started and self.scheduler is None:
-            self._start([fn.__module__] if fn.__module__ not in ("__main__", "__mp_main__") else [])
         rest = order
+        if nothing_started and self.scheduler is None:
+            rest = self._in_process_until_long(items, rest, cost, _local)
+            if not rest:
+                return out  # type: ignore[return-value]
+            self._start([fn.__module__] if fn.__module__ not in ("__main__", "__mp_main__") else [])
         if self._thread is not None:
             # the cheapest tasks here while the cluster starts; the rest (longest first) to it
             while len(rest) > 1 and not self._ready.is_set():
@@ -287,6 +307,31 @@ class Engine:
                 out[i] = r
         return out  # type: ignore[return-value]
 
+    def _in_process_until_long(self, items: list, rest: list[int], cost, run_local) -> list[int]:
+        """Run the cheapest tasks here while the work left is too short for a cluster to pay back its
+        start; return the tasks left for the cluster (empty: all done here)."""
+        workers = self.jobs or default_jobs()
+        gain = 1.0 - 1.0 / max(1, workers)  # the share of the work left that the other workers take
+        costs = {i: max(0.0, float(cost(items[i]))) if cost is not None else 1.0 for i in rest}
+        rates: list[float] = []
+        while rest:
+            if rates:
+                rate = rates[-1] if len(rates) < 3 else sorted(rates[1:])[len(rates[1:]) // 2]  # the first
+                left = sum(costs[i] for i in rest) * rate                                     # may compile
+                self.estimate_s = left
+                if left * gain > PAYBACK * self.start_cost_s:
+                    return rest
+            if self.start_cost_s <= 0 and len(rest) > 1:
+                return rest  # asked to always use the workers
+            i = rest[-1]
+            t0 = time.perf_counter()
+            run_local(i)
+            dt = time.perf_counter() - t0
+            c = costs[i] if costs[i] > 0 else (sum(costs.values()) / len(costs) or 1.0)
+            rates.append(dt / c)
+            rest = rest[:-1]
+        return rest
+
     def close(self) -> None:
         if self._thread is not None:
             self._thread.join()
@@ -294,10 +339,11 @@ class Engine:
 
 
 @contextmanager
-def engine(jobs: int | None = None, scheduler: str | None = None) -> Iterator[Engine]:
+def engine(jobs: int | None = None, scheduler: str | None = None,
+           start_cost_s: float = START_COST_S) -> Iterator[Engine]:
     """An :class:`Engine` for several runs (one cluster), closed on exit; pass it as
     ``run_tasks(..., client=engine)``."""
-    eng = Engine(jobs, scheduler)
+    eng = Engine(jobs, scheduler, start_cost_s=start_cost_s)
     try:
         yield eng
     finally:
@@ -306,7 +352,8 @@ def engine(jobs: int | None = None, scheduler: str | None = None) -> Iterator[En
 
 def run_tasks(fn: Callable[[Any], Any], items: Iterable[Any], *, jobs: int | None = None,
               scheduler: str | None = None, progress: Callable[[int, int, TaskResult], None] | None = None,
-              client: Any = None, cost: Callable[[Any], float] | None = None) -> list[TaskResult]:
+              client: Any = None, cost: Callable[[Any], float] | None = None,
+              start_cost_s: float = START_COST_S) -> list[TaskResult]:
     """Map ``fn`` (a top-level function of one plain argument) over ``items``.
 
     ``jobs=1`` and no ``scheduler``/``client``: serial, in this process. Otherwise on Dask
@@ -317,7 +364,9 @@ def run_tasks(fn: Callable[[Any], Any], items: Iterable[Any], *, jobs: int | Non
 
     ``cost(item)``, an estimate of a task's run time in any unit, orders the work on Dask:
     longest first (LPT), so that the batch does not end with one worker finishing a long task
-    while the others are idle. It changes no result, only the order of completion.
+    while the others are idle. It changes no result, only the order of completion. With an
+    engine of its own, the work is estimated from it and measured times, and a batch too short to
+    pay back ``start_cost_s`` runs in this process (:class:`Engine`).
     """
     items = list(items)
     if not items:
@@ -326,7 +375,7 @@ def run_tasks(fn: Callable[[Any], Any], items: Iterable[Any], *, jobs: int | Non
         return client.run(fn, items, progress=progress, cost=cost)
     if client is not None:
         return _run_on(client, fn, items, progress, cost)
-    with engine(jobs, scheduler) as eng:
+    with engine(jobs, scheduler, start_cost_s) as eng:
         return eng.run(fn, items, progress=progress, cost=cost)
 
 

@@ -1,6 +1,6 @@
 """Building the catalogue (incrementally) and writing analysis results into it.
 
-:func:`build` walks a directory for trial files (``*.mcap``, ``*.csv``), and
+:func:`build` walks a directory for trial files (``*.mcap``, ``*.csv``, ``*.parquet``), and
 reads only what is new or changed: a file whose size and mtime match its
 ``files`` row is skipped without opening it; one whose size or mtime changed is
 hashed, and re-read only when its sha256 changed too. A file that cannot be

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-TRIAL_SUFFIXES = (".mcap", ".csv")
+TRIAL_SUFFIXES = (".mcap", ".csv", ".parquet")
 
 # the log's trial_end status -> the catalogue's status
 _STATUS = {"completed": "completed", "interrupted": "aborted", "aborted": "aborted", "failed": "tripped",
@@ -101,7 +101,7 @@ def index_file(path: str) -> dict[str, Any]:
         "recipe": meta.get("recipe") or meta.get("recipe_name"),
         "lubricant": meta.get("lubricant"),
         "rig_profile": meta.get("profile_name") or meta.get("profile") or meta.get("rig_profile") or meta.get("rig"),
-        "backend": meta.get("backend") or ("imported" if meta.get("imported_from") or p.suffix.lower() == ".csv"
+        "backend": meta.get("backend") or ("imported" if meta.get("imported_from") or p.suffix.lower() in (".csv", ".parquet")
                                            else None),
         "started_utc": started,
         "duration_s": _float(dur),

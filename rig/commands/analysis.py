@@ -182,15 +182,23 @@ def identify_cmd(
                   jobs=jobs, scheduler=scheduler, db=db, summarize=identify_summary)
         return
     trials = _load(data)
+
+    from rig.commands.warmup import IDENTIFY_KERNELS, cold_kernels
+    cold = cold_kernels(IDENTIFY_KERNELS)  # the first identify compiles for seconds: say so
+    compiling = ("compiling the identification kernels (first run after an install or a change, once; "
+                 "`rig warmup` does it ahead)...")
     n_fits = len(trials) * (2 if law == "both" else 1)
+    with_bar = bool(unc_n and whole)
+    if cold and with_bar:  # one live display at a time: the bar, after a line that says it compiles first
+        err_console.print(compiling, markup=False)
     with progress_bar(json_out, f"{unc_method} ({uncertainty})", total=n_fits * unc_n,
-                      unit="refits" if unc_method == "bootstrap" else "steps") if unc_n and whole \
-            else _no_bar() as bar:
+                      unit="refits" if unc_method == "bootstrap" else "steps") if with_bar \
+            else (err_console.status(compiling) if cold else _no_bar()) as bar:
         try:
             idn = identify_trials(trials, use_events=events, velocity_method=velocity, whole_record=whole,
                                   whole_velocity=whole_velocity, stiffness=stiffness, directions=direction,
                                   min_ratio=min_ratio, names=[str(p) for p in data], law=law, detrend=detrend,
-                                  uncertainty=uncertainty, progress=bar.advance)
+                                  uncertainty=uncertainty, progress=getattr(bar, "advance", None))
         except ValueError as exc:
             _fail(_named(str(exc), data))
     rep = idn.report

@@ -36,8 +36,9 @@ EXIT_FAILURE = EXIT_FAILED
 EXIT_INTERRUPTED = EXIT_ABORTED
 
 
-#: log size of the raw 1 kHz channel (rig.columns.v2) per second of trial, measured: ~55 MB per hour
-RAW_LOG_BYTES_PER_S_AT_1KHZ = 55e6 / 3600
+#: log size of the raw 1 kHz channel (protobuf rig.LoopBlock) per second of trial, measured: 70-88 MB per hour
+#: (a slow slide to the velocity steps, simulated, 1 MB chunks; docs/trial.md)
+RAW_LOG_BYTES_PER_S_AT_1KHZ = 80e6 / 3600
 #: the per-sample JSON channel (/log25) per message, measured
 LOG25_BYTES_PER_SAMPLE = 40.0  # zstd-compressed JSON
 #: past this estimated log size `rig run` asks before starting (--yes skips; without a terminal it warns)
@@ -70,10 +71,14 @@ class TrialProgress:
         self._progress: Progress | None = None
         self._task = None
         self._console = console_ or err_console
+        self._compiling = False
 
     def __enter__(self) -> "TrialProgress":
         self._t0 = time.perf_counter()
         if self.enabled:
+            from rig.commands.warmup import SIM_KERNELS, cold_kernels
+
+            self._compiling = cold_kernels(SIM_KERNELS)  # shown until the first block arrives
             self._progress = Progress(
                 TextColumn("[bold]{task.description}"), BarColumn(),
                 TextColumn("{task.fields[simt]}"), TextColumn("{task.fields[rtf]}"), TimeElapsedColumn(),
@@ -99,6 +104,9 @@ class TrialProgress:
         return self.t_s / w if w > 0 else float("nan")
 
     def _describe(self, t_s: float) -> str:
+        if self._compiling:
+            return (f"{self.title}compiling the simulation kernels (first run after an install or a change, "
+                    "once; `rig warmup` does it ahead)")
         seg = self.plan.segment_at(t_s)
         name = seg["label"] or seg["kind"]
         n = sum(1 for s in self.plan.segments if s["index"] >= 0)
@@ -117,6 +125,9 @@ class TrialProgress:
 
     def update(self, t_s: float, **_: Any) -> None:
         self.t_s = float(t_s)
+        if self._compiling and self.t_s > 0:
+            self._compiling = False
+            self._last_draw = 0.0
         now = time.perf_counter()
         if now - self._last_draw >= 0.125:
             self._last_draw = now

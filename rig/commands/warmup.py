@@ -5,18 +5,99 @@ code beside the source (``__pycache__``, ``cache=True``); every later process
 loads it from there. Each command compiles only what it calls, so the first
 ``rig run`` pays for the simulation kernels and the first ``rig identify`` for
 the identification kernels. pip cannot run code at install time, hence this
-command: it runs a short simulated trial in memory and identifies it (and,
-with ``--all``, diagnoses it), writing nothing but the cache.
+command: it runs a short simulated trial (logged to a temporary file, so the
+log's kernels compile too) and identifies a synthetic velocity-step record (and,
+with ``--all``, diagnoses it), writing nothing but the cache. The groups compile
+in parallel processes (numba compiles in one thread per process), one per core.
+
+:func:`cold_kernels` tells a command whether its first call will compile, so
+that its progress display can say so.
 """
 
 from __future__ import annotations
 
+import os
 import time
 from pathlib import Path
 
 import typer
 
 from rig.commands.common import EXIT_FAILED, console, fail
+
+_RIG = Path(__file__).resolve().parents[1]
+#: the modules whose numba kernels each command compiles on its first call
+SIM_KERNELS = ("sim/plant.py", "control.py", "model/friction.py", "model/sensors.py", "log/writer.py",
+               "log/loopblock.py")
+IDENTIFY_KERNELS = ("kinematics.py", "model/forward.py", "model/loading.py", "model/friction.py",
+                    "model/sensors.py")
+
+
+def cold_kernels(modules) -> bool:
+    """True when one of these modules (paths under rig/) has no numba cache newer than its source: its
+    kernels will compile on first use (seconds), so a progress display should say so."""
+    for rel in modules:
+        src = _RIG / rel
+        try:
+            t_src = src.stat().st_mtime
+            cached = [f for f in (src.parent / "__pycache__").glob(f"{src.stem}.*.nbi")]
+        except OSError:
+            return True
+        if not cached or max(f.stat().st_mtime for f in cached) < t_src:
+            return True
+    return False
+
+
+def _warm_simulation() -> float:
+    """The simulation, controller and log kernels: the smoke recipe simulated and logged to a temp file."""
+    import tempfile
+
+    from rig.config.profile import default_profile_path, load_profile
+    from rig.config.recipe import load_recipe
+    from rig.log import TrialLogWriter
+    from rig.session.sim import simulate
+
+    t0 = time.perf_counter()
+    recipe = load_recipe(_RIG.parent / "config" / "recipes" / "smoke.yaml")
+    profile = load_profile(recipe.profile_path() or default_profile_path())
+    log, _ = simulate(recipe, profile)
+    with tempfile.TemporaryDirectory() as tmp:
+        w = TrialLogWriter(Path(tmp) / "warmup.mcap", threaded=False, fsync=False)
+        w.warm_up()
+        for b in log.blocks[:2]:
+            w.write_block(b)
+        w.close()
+    return time.perf_counter() - t0
+
+
+def _warm_identification() -> float:
+    """The identification kernels, on a synthetic record of the paper's velocity steps."""
+    from rig.analysis.identify import identify_trials
+    from rig.config.profile import default_profile_path, load_profile
+    from rig.sim.synth import generate, paper_step_protocol
+
+    t0 = time.perf_counter()
+    profile = load_profile(default_profile_path())
+    rec = generate(profile.friction_model("boundary"), paper_step_protocol(highs=(5.0,)), seed=0)
+    try:
+        identify_trials([rec.trial], names=["warmup"], whole_record=True, stiffness=True)
+    except ValueError:
+        pass  # a short record may have too little to fit: the kernels are compiled all the same
+    return time.perf_counter() - t0
+
+
+def _warm_diagnosis() -> float:
+    from rig.config.profile import default_profile_path, load_profile
+    from rig.diagnosis import diagnose
+    from rig.sim.synth import generate, paper_step_protocol
+
+    t0 = time.perf_counter()
+    profile = load_profile(default_profile_path())
+    rec = generate(profile.friction_model("boundary"), paper_step_protocol(highs=(5.0,)), seed=0)
+    try:
+        diagnose(rec.trial)
+    except ValueError:
+        pass
+    return time.perf_counter() - t0
 
 
 def warmup_command(
@@ -27,40 +108,27 @@ def warmup_command(
     Writes nothing but numba's cache (beside the sources). Run it once after
     installing; running it again is quick (everything is cached).
     """
-    from rig.analysis.identify import identify_trials
-    from rig.config.profile import default_profile_path, load_profile
-    from rig.config.recipe import load_recipe
-    from rig.session.sim import simulate
+    from concurrent.futures import ProcessPoolExecutor
 
     t0 = time.perf_counter()
-    recipe_path = Path(__file__).resolve().parents[2] / "config" / "recipes" / "smoke.yaml"
-    try:
-        recipe = load_recipe(recipe_path)
-        profile = load_profile(recipe.profile_path() or default_profile_path())
-    except Exception as exc:  # noqa: BLE001 - a broken install: say what is missing
-        fail(f"cannot load the smoke recipe and profile of the installation: {exc}", EXIT_FAILED)
-    with console.status("compiling the simulation kernels..."):
-        log, _ = simulate(recipe, profile)
-    t_sim = time.perf_counter() - t0
-    trial = log.trial_data(recipe.log.decimated_rate_hz)
-    with console.status("compiling the identification kernels..."):
-        try:
-            identify_trials([trial], names=["warmup"], whole_record=True, stiffness=True)
-        except ValueError:
-            pass  # a short record may have too little to fit: the kernels are compiled all the same
-    t_id = time.perf_counter() - t0 - t_sim
-    line = f"warm: simulation {t_sim:.1f} s, identification {t_id:.1f} s"
+    jobs = {"simulation": _warm_simulation, "identification": _warm_identification}
     if all_:
-        from rig.diagnosis import diagnose
-
-        t1 = time.perf_counter()
-        with console.status("compiling the diagnosis kernels..."):
-            try:
-                diagnose(trial)
-            except ValueError:
-                pass
-        line += f", diagnosis {time.perf_counter() - t1:.1f} s"
-    console.print(line + " (numba's cache is beside the sources; later commands load it)", markup=False)
+        jobs["diagnosis"] = _warm_diagnosis
+    workers = max(1, min(len(jobs), os.cpu_count() or 1))
+    done: dict[str, float] = {}
+    try:
+        with console.status(f"compiling the {', '.join(jobs)} kernels in {workers} process(es)..."):
+            if workers == 1:
+                done = {name: fn() for name, fn in jobs.items()}
+            else:
+                with ProcessPoolExecutor(max_workers=workers) as pool:
+                    futures = {name: pool.submit(fn) for name, fn in jobs.items()}
+                    done = {name: f.result() for name, f in futures.items()}
+    except Exception as exc:  # noqa: BLE001 - a broken install: say what is missing
+        fail(f"warmup failed: {type(exc).__name__}: {exc}", EXIT_FAILED)
+    parts = ", ".join(f"{name} {t:.1f} s" for name, t in done.items())
+    console.print(f"warm in {time.perf_counter() - t0:.1f} s ({parts}, {workers} in parallel; numba's cache is "
+                  "beside the sources; later commands load it)", markup=False)
 
 
 def register(app: typer.Typer) -> None:

@@ -24,8 +24,8 @@ normal_force_N, seed, software_version, rates, ``start_time_ns``), ``recipe``,
 ``rig_profile``, ``trial_end``, and ``recovery`` in a recovered file. Every
 chunk's CRC is verified on read (:mod:`rig.log.reader`).
 
-:func:`load_trial` dispatches a ``.csv`` (:func:`rig.data.read_csv`) or a
-``.mcap`` (:func:`read_trial`); it lives here, above :mod:`rig.data`, which
+:func:`load_trial` dispatches a ``.csv`` (:func:`rig.data.read_csv`), a ``.parquet``
+(:func:`read_parquet`, as ``rig export`` writes it) or a ``.mcap`` (:func:`read_trial`); it lives here, above :mod:`rig.data`, which
 imports nothing from the log.
 """
 
@@ -34,26 +34,49 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from typing import TYPE_CHECKING
+
 from rig.data import DataFormatError, TrialData, read_csv
-from rig.log.csv_import import write_parquet, write_trial_data
 from rig.log.reader import LogDamageWarning, read_log, read_metadata, read_trial, scan, trial_info
-from rig.log.recover import recover
 from rig.log.schemas import (BLOCK_KEYS, EVENTS_TOPIC, LOG25_TOPIC, RAW_TOPIC, RAW_V1_ENCODING, RAW_V2_ENCODING,
                              SAMPLE_FIELDS, STATS_TOPIC)
-from rig.log.writer import TrialLogWriter
+
+if TYPE_CHECKING:
+    from rig.log.csv_import import read_parquet, write_parquet, write_trial_data
+    from rig.log.recover import recover
+    from rig.log.writer import TrialLogWriter
+
+#: imported when first used, so that reading a log (rig info, export) does not load the writer's stack
+_LAZY = {"TrialLogWriter": "rig.log.writer", "recover": "rig.log.recover", "read_parquet": "rig.log.csv_import",
+         "write_parquet": "rig.log.csv_import", "write_trial_data": "rig.log.csv_import"}
+
+
+def __getattr__(name: str):
+    mod = _LAZY.get(name)
+    if mod is None:
+        raise AttributeError(f"module 'rig.log' has no attribute {name!r}")
+    import importlib
+
+    value = getattr(importlib.import_module(mod), name)
+    globals()[name] = value
+    return value
 
 
 def load_trial(path: str | os.PathLike, *, strict: bool = False) -> TrialData:
-    """Load a trial from a measured-data ``.csv`` or a rig ``.mcap`` log (25 Hz channel)."""
+    """Load a trial from a measured-data ``.csv``, its ``.parquet`` twin or a rig ``.mcap`` log (25 Hz channel)."""
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix == ".csv":
         return read_csv(path)
+    if suffix == ".parquet":
+        from rig.log.csv_import import read_parquet
+
+        return read_parquet(path)
     if suffix == ".mcap":
         return read_trial(path, strict=strict)
-    raise DataFormatError(path, None, f"unknown data file type {suffix!r} (expected .csv or .mcap)")
+    raise DataFormatError(path, None, f"unknown data file type {suffix!r} (expected .csv, .parquet or .mcap)")
 
 
 __all__ = ["TrialLogWriter", "read_trial", "read_metadata", "read_log", "scan", "trial_info", "recover",
-           "write_trial_data", "write_parquet", "load_trial", "LogDamageWarning", "RAW_TOPIC", "LOG25_TOPIC",
+           "write_trial_data", "write_parquet", "read_parquet", "load_trial", "LogDamageWarning", "RAW_TOPIC", "LOG25_TOPIC",
            "EVENTS_TOPIC", "STATS_TOPIC", "SAMPLE_FIELDS", "BLOCK_KEYS", "RAW_V1_ENCODING", "RAW_V2_ENCODING"]

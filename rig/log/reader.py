@@ -13,13 +13,17 @@ from __future__ import annotations
 
 import json
 import os
+import struct
 import warnings
+import zlib
+from io import BytesIO
 from pathlib import Path
 
 import numpy as np
 from mcap.exceptions import McapError
 from mcap.records import (Attachment, Channel, Chunk, Footer, Header, Message, MessageIndex, Metadata, Schema)
-from mcap.stream_reader import StreamReader, breakup_chunk
+from mcap.data_stream import ReadDataStream
+from mcap.stream_reader import StreamReader
 
 from rig.data import STANDARD_COLUMNS, DataFormatError, TrialData
 from rig.log.loopblock import PROTO_ENCODING, decode_loop_blocks
@@ -97,6 +101,75 @@ class LogContent:
         return "; ".join(parts)
 
 
+_MSG_HEAD = struct.Struct("<BQHIQQ")  # opcode, record length, channel id, sequence, log_time, publish_time
+_OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE = 0x03, 0x04, 0x05
+
+
+def _chunk_data(chunk: Chunk) -> bytes:
+    """A chunk's records, decompressed and checked against its CRC (ValueError naming what is wrong)."""
+    if chunk.compression == "zstd":
+        import zstandard
+
+        data = zstandard.ZstdDecompressor().decompress(chunk.data, max_output_size=chunk.uncompressed_size)
+    elif chunk.compression == "lz4":
+        import lz4.frame
+
+        data = lz4.frame.decompress(chunk.data)
+    elif chunk.compression == "":
+        data = chunk.data
+    else:
+        raise ValueError(f"unsupported chunk compression {chunk.compression!r}")
+    if chunk.uncompressed_crc != 0 and zlib.crc32(data) != chunk.uncompressed_crc:
+        raise ValueError("CRC mismatch")
+    return data
+
+
+def _chunk_records(data: bytes, ids: set[int] | None, topics: set[str] | None = None
+                   ) -> tuple[list, dict[int, list[int]]]:
+    """A chunk's records: the schemas, channels and the messages of channels ``ids`` (None: all; a channel
+    of ``topics`` met in the chunk joins ``ids``) as
+    records, and for every channel ``[messages, first log_time, last log_time]`` from the message headers
+    alone, so the 25 Hz and raw messages cost no Python objects unless asked for. ValueError for a
+    broken record (the chunk is then dropped whole)."""
+    recs: list = []
+    stats: dict[int, list[int]] = {}
+    pos, end = 0, len(data)
+    unpack = _MSG_HEAD.unpack_from
+    while pos < end:
+        if end - pos < 9:
+            raise ValueError("chunk ends inside a record header")
+        op = data[pos]
+        (length,) = struct.unpack_from("<Q", data, pos + 1)
+        body = pos + 9
+        nxt = body + length
+        if nxt > end:
+            raise ValueError("record runs past the end of its chunk")
+        if op == _OP_MESSAGE:
+            if length < 22:
+                raise ValueError("message record too short")
+            _, _, cid, seq, log_time, pub = unpack(data, pos)
+            st = stats.get(cid)
+            if st is None:
+                stats[cid] = [1, log_time, log_time]
+            else:
+                st[0] += 1
+                if log_time < st[1]:
+                    st[1] = log_time
+                elif log_time > st[2]:
+                    st[2] = log_time
+            if ids is None or cid in ids:
+                recs.append(Message(channel_id=cid, sequence=seq, log_time=log_time, publish_time=pub,
+                                    data=data[body + 22:nxt]))
+        elif op in (_OP_SCHEMA, _OP_CHANNEL):
+            stream = ReadDataStream(BytesIO(data[body:nxt]))
+            rec = Schema.read(stream) if op == _OP_SCHEMA else Channel.read(stream)
+            recs.append(rec)
+            if ids is not None and topics and isinstance(rec, Channel) and rec.topic in topics:
+                ids.add(rec.id)
+        pos = nxt
+    return recs, stats
+
+
 def scan(path: str | os.PathLike, topics: set[str] | None = None) -> LogContent:
     """Read every record up to the end or to where the framing breaks (never raises for damage).
 
@@ -110,13 +183,14 @@ def scan(path: str | os.PathLike, topics: set[str] | None = None) -> LogContent:
     keep_ids: set[int] = set()
     bad_chunk: dict | None = None
 
+    def count(cid: int, n: int, lo: int, hi: int) -> None:
+        c.counts[cid] = c.counts.get(cid, 0) + n
+        r = c.t_range.get(cid)
+        c.t_range[cid] = (lo, hi) if r is None else (min(r[0], lo), max(r[1], hi))
+
     def take(rec) -> None:
         if isinstance(rec, Message):
-            cid = rec.channel_id
-            c.counts[cid] = c.counts.get(cid, 0) + 1
-            lo, hi = c.t_range.get(cid, (rec.log_time, rec.log_time))
-            c.t_range[cid] = (min(lo, rec.log_time), max(hi, rec.log_time))
-            if topics is None or cid in keep_ids:
+            if topics is None or rec.channel_id in keep_ids:
                 c.messages.append(rec)
         elif isinstance(rec, Schema):
             c.schemas[rec.id] = rec
@@ -125,25 +199,38 @@ def scan(path: str | os.PathLike, topics: set[str] | None = None) -> LogContent:
             if topics is not None and rec.topic in topics:
                 keep_ids.add(rec.id)
 
+
     with open(path, "rb") as fh:
         try:
             for rec in StreamReader(fh, emit_chunks=True, record_size_limit=max(64, path.stat().st_size)).records:
                 if isinstance(rec, Chunk):
                     bad_chunk = None
                     try:
-                        inner = breakup_chunk(rec, validate_crc=True)
-                    except Exception as exc:  # CRC mismatch, zstd error, broken records inside
+                        data = _chunk_data(rec)
+                    except Exception as exc:  # CRC mismatch, a decompression error
                         what = "CRC mismatch" if "crc" in str(exc).lower() else f"{type(exc).__name__}: {exc}"
                         bad_chunk = {"start_ns": rec.message_start_time, "end_ns": rec.message_end_time,
                                      "channel_ids": [], "error": what}
                         c.damage.append(bad_chunk)
                         continue
-                    for r in inner:
+                    try:
+                        recs, stats = _chunk_records(data, None if topics is None else keep_ids, topics)
+                    except Exception as exc:  # broken records inside a chunk whose CRC matched
+                        bad_chunk = {"start_ns": rec.message_start_time, "end_ns": rec.message_end_time,
+                                     "channel_ids": [], "error": f"{type(exc).__name__}: {exc}"}
+                        c.damage.append(bad_chunk)
+                        continue
+                    for r in recs:
                         take(r)
+                    for cid, (n, lo, hi) in stats.items():
+                        count(cid, n, lo, hi)
+                elif isinstance(rec, Message):
+                    count(rec.channel_id, 1, rec.log_time, rec.log_time)
+                    take(rec)
                 elif isinstance(rec, MessageIndex):
                     if bad_chunk is not None:
                         bad_chunk["channel_ids"].append(rec.channel_id)
-                elif isinstance(rec, (Message, Schema, Channel)):
+                elif isinstance(rec, (Schema, Channel)):
                     take(rec)
                 elif isinstance(rec, Header):
                     c.header = rec

@@ -45,7 +45,7 @@ MCAP_PROFILE = "rig-trial"
 SAMPLE_FIELDS = ("t_s", "position_um", "friction_N", "normal_1_N", "normal_2_N", "position_ref_um", "valve_cmd",
                  "mu")
 BLOCK_KEYS = ("t_s", "position_ref_um", "position_um", "friction_N", "normal_1_N", "normal_2_N", "valve_cmd",
-              "pid_p", "pid_i", "pid_d", "dither", "true_position_um", "true_velocity_um_s", "true_mu")
+              "pid_p", "pid_i", "pid_d", "dither", "true_position_um", "true_velocity_um_s", "true_mu", "spool")
 
 RAW_V1_ENCODING = "rig.columns.v1"
 RAW_V1_MAGIC = b"RIGC"
@@ -96,6 +96,7 @@ DEVICE_COLUMNS: dict[str, Column] = {
     "true_position_um": Column("<i4", 0.001, 0.0, "µm", "delta+shuffle+zstd", "simulation truth, 1 nm steps"),
     "true_velocity_um_s": Column("<i4", 0.001, 0.0, "µm/s", "shuffle+zstd", "simulation truth"),
     "true_mu": Column("<i4", 1e-6, 0.0, "1", "shuffle+zstd", "simulation truth"),
+    "spool": Column("<f4", unit="1", filter="zstd", description="servovalve spool position (simulation), command units"),
 }
 #: any other column, and every column of an imported CSV: exact float64
 EXACT = Column("<f8", filter="shuffle+zstd", description="exact float64")

@@ -26,6 +26,7 @@ import json
 import math
 import os
 import queue
+import struct
 import threading
 import time
 import uuid
@@ -104,11 +105,84 @@ class _Sink:
         self.w = Writer(fh, chunk_size=chunk_size, compression=_COMPRESSION[compression])
 
     def messages(self, items: list) -> None:
+        """Add a batch of ``(channel_id, log_time, data, sequence)`` (``data`` may be a callable: a raw block
+        encoded here). Into the open chunk in one pass (:meth:`_add_batch`) where this ``mcap`` version's
+        Writer has the expected internals, else message by message through its public ``add_message``."""
+        if any(callable(it[2]) for it in items):
+            items = [(cid, ns, data() if callable(data) else data, seq) for cid, ns, data, seq in items]
+        if self._fast:
+            self._add_batch(items)
+            return
         add = self.w.add_message
         for cid, ns, data, seq in items:
-            if callable(data):  # a raw block, encoded here (in the writer thread when threaded)
-                data = data()
             add(cid, log_time=ns, data=data, publish_time=ns, sequence=seq)
+
+    _HEAD = struct.Struct("<BQHIQQ")  # message record: opcode 5, length, channel, sequence, log/publish time
+
+    @property
+    def _fast(self) -> bool:
+        ok = getattr(self, "_fast_ok", None)
+        if ok is None:
+            w = self.w
+            ok = all(hasattr(w, a) for a in ("_Writer__chunk_builder", "_Writer__statistics",
+                                            "_Writer__chunk_size", "_Writer__finalize_chunk"))
+            ok = ok and w._Writer__chunk_builder is not None and hasattr(w._Writer__chunk_builder, "record_writer")
+            self._fast_ok = ok
+        return ok
+
+    def _add_batch(self, items: list) -> None:
+        """What ``Writer.add_message`` does for each message (statistics, the chunk's message index, the
+        record), without a record object per message; the chunk is closed when it passes the chunk size,
+        as the Writer does."""
+        from mcap.records import MessageIndex
+
+        w = self.w
+        stats = w._Writer__statistics
+        counts = stats.channel_message_counts
+        limit = w._Writer__chunk_size
+        pack = self._HEAD.pack
+        i, n = 0, len(items)
+        while i < n:
+            cb = w._Writer__chunk_builder
+            buf = cb.record_writer._buffer
+            idx = cb.message_indices
+            pos = buf.tell()
+            parts = []
+            t_lo = t_hi = None
+            while i < n and pos <= limit:
+                cid, ns, data, seq = items[i]
+                i += 1
+                mi = idx.get(cid)
+                if mi is None:
+                    mi = idx[cid] = MessageIndex(channel_id=cid, records=[])
+                mi.records.append((ns, pos))
+                head = pack(5, 22 + len(data), cid, seq, ns, ns)
+                parts.append(head)
+                parts.append(data)
+                pos += 31 + len(data)
+                counts[cid] += 1
+                if t_lo is None:
+                    t_lo = t_hi = ns
+                elif ns < t_lo:
+                    t_lo = ns
+                elif ns > t_hi:
+                    t_hi = ns
+            buf.write(b"".join(parts))
+            k = len(parts) // 2
+            if cb.num_messages == 0:
+                cb.message_start_time, cb.message_end_time = t_lo, t_hi
+            else:
+                cb.message_start_time = min(cb.message_start_time, t_lo)
+                cb.message_end_time = max(cb.message_end_time, t_hi)
+            cb.num_messages += k
+            if stats.message_count == 0:
+                stats.message_start_time = t_lo
+            else:
+                stats.message_start_time = min(stats.message_start_time, t_lo)
+            stats.message_end_time = max(stats.message_end_time, t_hi)
+            stats.message_count += k
+            if cb.count > limit:
+                w._Writer__finalize_chunk()
 
     def call(self, fn: Callable, *args) -> None:
         fn(self.w, *args)
@@ -248,7 +322,7 @@ class TrialLogWriter:
                  metadata: dict[str, Any] | None = None, recipe_yaml: str | None = None,
                  recipe: dict | None = None, profile: dict | None = None,
                  raw_encoding: str = "binary", raw_dtype: str | None = None, flush_interval_s: float = 1.0,
-                 chunk_size: int = 1 << 18, fsync: bool = True, threaded: bool = True,
+                 chunk_size: int = 1 << 20, fsync: bool = True, threaded: bool = True,
                  compression: str = "zstd", start_time_ns: int | None = None, raw_columns: str = "device",
                  raw_format: str = "protobuf", exclusive: bool = False):
         if raw_encoding not in ("binary", "base64", "json"):

@@ -381,7 +381,7 @@ def plant_sample(q, st, z0, z1, z2, z3):
 
 # rows of the closed-loop output array (order of the block-dict keys)
 BLOCK_KEYS = ("t_s", "position_ref_um", "position_um", "friction_N", "normal_1_N", "normal_2_N", "valve_cmd",
-              "pid_p", "pid_i", "pid_d", "dither", "true_position_um", "true_velocity_um_s", "true_mu")
+              "pid_p", "pid_i", "pid_d", "dither", "true_position_um", "true_velocity_um_s", "true_mu", "spool")
 N_OUT = len(BLOCK_KEYS)
 
 
@@ -414,5 +414,6 @@ def run_closed_loop(q, fp, fs, st, ring, c, cs, xref, ffref, i0, noise, j0, out,
         out[11, o] = st[Z_XT]
         out[12, o] = st[Z_VS]
         out[13, o] = st[Z_MU]
+        out[14, o] = st[Z_XSP]
         plant_advance(q, fp, fs, st, ring, v)
     return count
