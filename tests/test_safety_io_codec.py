@@ -65,3 +65,44 @@ def test_emulator_answers_and_its_relay():
     assert not st.amplifier_enabled()
     ans, _ = decode_answer(em.answer(4, 1, bytes([0x05, 0, 0, 0xFF, 0])))  # function 5: not served
     assert ans.exception == 1
+
+
+def test_the_driver_against_the_emulator_tick_by_tick():
+    """The per-tick path (outputs + inputs in one send, the answers taken the next tick): the watchdog
+    toggles, the amplifier's enable follows, an open e-stop becomes the `estop` problem."""
+    from drivers.emulators.modbus_conditioner import free_tcp_port
+    from drivers.safety_io import SafetyIO
+
+    cfg = CFG.model_copy(update={"port": free_tcp_port(), "timeout_s": 0.5})
+    st = IoState(mp.get_context("spawn"), 0.5)
+    em = IoModuleEmulator(cfg, st)
+    em.start()
+    io = SafetyIO(cfg)
+    try:
+        io.connect()
+        io.poll()
+        assert io.estop_ok and io.pressure_ok and io.outputs == [False, False]
+
+        def tick():
+            t_end = time.monotonic() + 1.0
+            n = io.health().frames_ok
+            io.write()
+            while io.health().frames_ok == n and time.monotonic() < t_end:
+                time.sleep(0.001)
+                io.read()
+
+        io.enable = True
+        for _ in range(4):
+            tick()
+        assert st.amplifier_enabled() and io.health().problems == []
+        st.press_estop()
+        tick()
+        assert [p[0] for p in io.health().problems] == ["estop"] and not st.amplifier_enabled()
+        st.press_estop(False)
+        st.lose_pressure()
+        tick()
+        assert [p[0] for p in io.health().problems] == ["hydraulic_pressure"]
+        assert io.safe_stop() and not st.snapshot()["enable_coil"]
+    finally:
+        io.close()
+        em.stop()

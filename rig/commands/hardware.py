@@ -1,10 +1,12 @@
-"""Hardware commands: ``rig devices check``, ``rig emulate``, ``rig reset``, ``rig loop-bench``.
+"""Hardware commands: ``rig devices check``, ``rig emulate``, ``rig reset``, ``rig pause`` / ``rig resume``,
+``rig loop-bench``.
 
 ``rig devices check --hardware PROFILE [--start-emulators]`` connects to every
 device of the profile's ``hardware`` section, reads each once and says what
 answered (and where), the safety chain's inputs, outputs and latch included.
 ``rig reset --hardware PROFILE`` clears the safety chain's latch once its inputs
-read healthy. ``rig emulate --hardware PROFILE`` serves the emulated devices in
+read healthy. ``rig pause`` / ``rig resume`` talk to the running ``rig run`` of this
+user through its socket (:mod:`rig.session.pausing`). ``rig emulate --hardware PROFILE`` serves the emulated devices in
 the foreground until Ctrl-C. ``rig loop-bench`` runs the 1 kHz loop against
 the emulators holding position and prints a LinuxCNC-style latency report.
 """
@@ -180,6 +182,32 @@ def reset_command(
     console.print(f"safety chain {hw.safety.address_text}: {text}", highlight=False)
 
 
+def _pause_cmd(command: str, pid: int | None) -> None:
+    from rig.session.pausing import send
+
+    try:
+        answer = send(command, pid)
+    except (OSError, ValueError) as exc:
+        _fail(f"rig {command}: {exc}", 1)
+    if not answer.startswith("ok"):
+        _fail(f"rig {command}: the run answered {answer!r}", 1)
+    console.print(f"{command}: the run is {answer.split()[-1]}"
+                  + (" (it holds at the plan's next safe point)" if command == "pause" else ""), highlight=False)
+
+
+PID_OPTION = typer.Option(None, "--pid", help="The `rig run` to talk to (default: the only one of this user).")
+
+
+def pause_command(pid: Optional[int] = PID_OPTION):
+    """Pause the running trial: it holds the position at the plan's next safe point (as SIGUSR1 to `rig run`)."""
+    _pause_cmd("pause", pid)
+
+
+def resume_command(pid: Optional[int] = PID_OPTION):
+    """Resume the paused trial: a run-up of 5 L at the segment's velocity, then the plan goes on."""
+    _pause_cmd("resume", pid)
+
+
 def loop_bench(seconds: float = 60.0, profile_path: Path = DEFAULT_EMULATED, out_json: Path | None = None) -> dict:
     """Run the loop holding position against the (emulated) devices; return the final statistics.
 
@@ -292,4 +320,6 @@ def register(app: typer.Typer) -> None:
     app.add_typer(devices_app, name="devices")
     app.command("emulate")(emulate)
     app.command("reset")(reset_command)
+    app.command("pause")(pause_command)
+    app.command("resume")(resume_command)
     app.command("loop-bench")(loop_bench_command)

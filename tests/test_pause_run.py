@@ -1,0 +1,79 @@
+"""`rig run --sim` paused by SIGUSR1 and by `rig pause` / `rig resume` through its socket: the pause holds
+at the plan's next safe point, both are logged as events, the plan's later events move with the pause,
+and the log reads back (the physics of a pause: benchmarks/bench_pause.py, docs/hardware.md)."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from hw_helpers import REPO
+
+from rig.log import read_trial
+
+RECIPE = """\
+name: pause
+description: a short paced trial to pause
+lubricant: boundary
+normal_force_N: 100
+seed: 3
+trials: 1
+accel_um_s2: 100
+log: {raw_rate_hz: 1000, decimated_rate_hz: 25}
+segments:
+  - {kind: hold, label: settle, duration_s: 1.0}
+  - {kind: run_in, label: stub, distance_um: 10, speed_um_s: 20}
+  - {kind: hold, label: rest, duration_s: 1.0}
+"""
+
+
+def _rig(*args, env=None):
+    return subprocess.run([sys.executable, "-m", "rig.cli", *map(str, args)], cwd=REPO, capture_output=True,
+                          text=True, timeout=60, env=env)
+
+
+def test_a_paced_simulated_run_pauses_on_sigusr1_and_resumes_on_rig_resume(tmp_path, monkeypatch):
+    import os
+
+    env = {**os.environ, "XDG_RUNTIME_DIR": str(tmp_path / "run")}
+    (tmp_path / "run").mkdir(mode=0o700)
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path / "run"))
+    recipe = tmp_path / "pause.yaml"
+    recipe.write_text(RECIPE)
+    out = tmp_path / "pause.mcap"
+    p = subprocess.Popen([sys.executable, "-m", "rig.cli", "run", str(recipe), "--sim", "--pace", "1", "-q",
+                          "--out", str(out)], cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                         env=env)
+    sock = tmp_path / "run" / "rig" / f"run-{p.pid}.sock"
+    t_end = time.monotonic() + 30
+    while not sock.exists():
+        assert p.poll() is None and time.monotonic() < t_end, p.stdout.read() if p.poll() is not None else "no socket"
+        time.sleep(0.05)
+    assert sock.stat().st_mode & 0o777 == 0o600
+    time.sleep(0.3)  # in the settling hold: the pause takes effect at the next safe point (the stub's start)
+    p.send_signal(signal.SIGUSR1)  # toggles: pause
+    time.sleep(1.0)
+    from rig.session.pausing import send
+
+    assert send("status") == "ok paused"  # the socket sees the same state
+    r = _rig("resume", "--pid", p.pid, env=env)  # the CLI, through the socket
+    assert r.returncode == 0 and "running" in r.stdout, r.stdout + r.stderr
+    text = p.communicate(timeout=60)[0]
+    assert p.returncode == 0, text
+    assert not sock.exists()
+    tr = read_trial(out, channel="raw")
+    ev = {e["kind"]: e for e in tr.events if e["kind"] in ("pause", "resume", "runup_done")}
+    assert set(ev) == {"pause", "resume", "runup_done"}, [e["kind"] for e in tr.events]
+    assert ev["pause"]["t_s"] == pytest.approx(1.0, abs=0.01)  # the stub's start: the next safe point
+    held = ev["resume"]["t_s"] - ev["pause"]["t_s"]
+    assert held > 1.0
+    stub = [e for e in tr.events if e["kind"] == "segment_start" and e.get("label") == "stub"]
+    assert stub and stub[0]["t_s"] == pytest.approx(ev["runup_done"]["t_s"], abs=0.01)  # the plan moved on
+    from rig.kinematics import pause_intervals
+
+    assert pause_intervals(tr.events) == [(ev["pause"]["t_s"], ev["resume"]["t_s"])]
+    assert tr.time_s[-1] == pytest.approx(held + 3.0 + 0.5, abs=1.0)
