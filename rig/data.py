@@ -105,15 +105,22 @@ class TrialData:
     def has_normals(self) -> bool:
         return self.normal_1_N is not None and self.normal_2_N is not None
 
+    def positive_metadata(self, key: str, unit: str) -> float | None:
+        """The metadata value ``key`` as a positive number (None when absent); ValueError naming the
+        trial, the key and the ``unit`` when it is not one."""
+        value = self.metadata.get(key)
+        if value is None:
+            return None
+        v = positive_number(value)
+        if v is None:
+            raise ValueError(f"{self.source or 'trial'}: {key} metadata {value!r} is not a positive number of {unit}")
+        return v
+
     @property
     def normal_force_N(self) -> float:
         """Nominal per-rider normal force N (N)."""
-        value = self.metadata.get("normal_force_N")
-        if value is not None:
-            v = parse_number(str(value))
-            if v is None or not math.isfinite(v) or v <= 0:
-                raise ValueError(f"{self.source or 'trial'}: normal_force_N metadata {value!r} is not a positive "
-                                 "number of newtons")
+        v = self.positive_metadata("normal_force_N", "newtons")
+        if v is not None:
             return v
         if self.has_normals:
             with np.errstate(invalid="ignore"):
@@ -178,6 +185,12 @@ def parse_number(text: str) -> float | None:
     if not _NUMBER.fullmatch(s):
         return None
     return float(s)
+
+
+def positive_number(value) -> float | None:
+    """A metadata value as a finite positive number (:func:`parse_number`), else None."""
+    v = parse_number(str(value))
+    return v if v is not None and math.isfinite(v) and v > 0 else None
 
 
 def _parse_float(text: str, path, lineno: int, column: str) -> float:

@@ -30,6 +30,8 @@ def load_point_log(tmp_path_factory):
     write_trial_data(rec.trial, d / "lp.mcap")
     rec.trial.metadata["machine_stiffness_kN_per_m"] = "80"
     write_trial_data(rec.trial, d / "lp-known.mcap")
+    rec.trial.metadata["machine_stiffness_kN_per_m"] = "stiff"
+    write_trial_data(rec.trial, d / "lp-bad.mcap")
     return d
 
 
@@ -68,4 +70,11 @@ def test_bad_flag_is_one_error_and_no_file(load_point_log, arg):
     out = load_point_log / f"bad{arg}.csv"
     res, text = _export(load_point_log / "lp.mcap", out, arg)
     assert res.exit_code == 2 and "--elastic-correction" in text and "Traceback" not in text
+    assert not out.exists()
+
+
+def test_a_bad_metadata_stiffness_is_named(load_point_log):
+    out = load_point_log / "badmeta.csv"
+    res, text = _export(load_point_log / "lp-bad.mcap", out, "fit")
+    assert res.exit_code == 2 and "machine_stiffness_kN_per_m metadata 'stiff'" in text and "kN/m" in text
     assert not out.exists()

@@ -126,44 +126,43 @@ class SlideHoldSlide:
 
 
 @dataclass(frozen=True)
-class Square:
-    """A square wave of ``amplitude_um`` about the position where it starts, ``cycles`` cycles
-    at ``frequency_hz`` (first half cycle +amplitude), back to the start position at the end:
-    the step test of loop tuning. Each edge is a straight ramp at ``edge_speed_um_s`` (None:
-    the rig's maximum speed), so the reference never asks more speed than the actuator has.
-    ``velocity_um_s`` > 0: about a steady slide at that velocity instead (the interface then
-    slides throughout, and friction is linearised about steady sliding)."""
+class _Wave:
+    """What a loop-tuning wave has in common: its amplitude about the position where it starts
+    and the slide beneath it (``velocity_um_s`` > 0: the interface slides throughout, and its
+    friction is linear about steady sliding, as the loop model of ``rig stability`` assumes)."""
 
-    kind: ClassVar[str] = "square"
-    amplitude_um: float = 5.0
-    frequency_hz: float = 1.0
-    cycles: int = 5
-    edge_speed_um_s: float | None = None
+    amplitude_um: float = 1.0
     velocity_um_s: float = 0.0
     label: str | None = None
     accel_um_s2: float | None = None
 
 
 @dataclass(frozen=True)
-class SineSweep:
-    """A logarithmic chirp of ``amplitude_um`` about the position where it starts, from
-    ``f0_hz`` to ``f1_hz`` in ``duration_s``: x = x_c + a w(t) sin(phi(t)),
+class Square(_Wave):
+    """A square wave of ``amplitude_um``, ``cycles`` cycles at ``frequency_hz`` (first half cycle
+    +amplitude), back to the start position at the end: the step test of loop tuning. Each edge
+    is a straight ramp at ``edge_speed_um_s`` (None: the rig's maximum speed, less the slide),
+    so the reference never asks more speed than the actuator has."""
+
+    kind: ClassVar[str] = "square"
+    frequency_hz: float = 1.0
+    cycles: int = 5
+    edge_speed_um_s: float | None = None
+
+
+@dataclass(frozen=True)
+class SineSweep(_Wave):
+    """A logarithmic chirp from ``f0_hz`` to ``f1_hz`` in ``duration_s``: x = x_c + a w(t) sin(phi(t)),
     phi(t) = 2 pi f0 T / ln(f1/f0) (exp(t ln(f1/f0) / T) - 1), the instantaneous frequency
     f0 (f1/f0)^(t/T); w a raised-cosine taper over ``taper_s`` at both ends (None: one period
-    of f0, at most a tenth of the sweep), so position and velocity are continuous.
-    ``velocity_um_s`` > 0: about a steady slide at that velocity (x_c moves); above the sweep's
-    peak speed 2 pi f1 a the velocity never reverses, the interface slides throughout and its
-    friction is linear about steady sliding, as the loop model of ``rig stability`` assumes."""
+    of f0, at most a tenth of the sweep), so position and velocity are continuous. On a slide
+    faster than the sweep's peak speed 2 pi f1 a the velocity never reverses."""
 
     kind: ClassVar[str] = "sine_sweep"
     f0_hz: float = 1.0
     f1_hz: float = 100.0
-    amplitude_um: float = 2.0
     duration_s: float = 30.0
     taper_s: float | None = None
-    velocity_um_s: float = 0.0
-    label: str | None = None
-    accel_um_s2: float | None = None
 
     def taper(self) -> float:
         return self.taper_s if self.taper_s is not None else min(1.0 / self.f0_hz, 0.1 * self.duration_s)

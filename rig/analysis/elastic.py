@@ -19,7 +19,7 @@ import math
 
 import numpy as np
 
-from rig.data import TrialData, parse_number
+from rig.data import TrialData, positive_number
 
 KN_PER_M_TO_N_PER_UM = 1e-3
 
@@ -28,8 +28,8 @@ def parse_correction(text: str) -> float | None:
     """``fit`` -> None; a positive stiffness in kN/m -> its value. ValueError otherwise."""
     if text.strip().lower() == "fit":
         return None
-    v = parse_number(text.strip())
-    if v is None or not math.isfinite(v) or v <= 0:
+    v = positive_number(text)
+    if v is None:
         raise ValueError(f"--elastic-correction {text!r}: expected a positive stiffness in kN/m or 'fit'")
     return v
 
@@ -39,12 +39,8 @@ def stiffness_kN_per_m(trial: TrialData, given: float | None) -> tuple[float, st
     ValueError when the metadata value is not a positive number or the fit fails."""
     if given is not None:
         return float(given), "given", None
-    meta = trial.metadata.get("machine_stiffness_kN_per_m")
-    if meta is not None:
-        v = parse_number(str(meta))
-        if v is None or not math.isfinite(v) or v <= 0:
-            raise ValueError(f"{trial.source or 'trial'}: machine_stiffness_kN_per_m metadata {meta!r} is not a "
-                             "positive number of kN/m")
+    v = trial.positive_metadata("machine_stiffness_kN_per_m", "kN/m")
+    if v is not None:
         return v, "machine_stiffness_kN_per_m metadata", None
     from rig.analysis.identify import fit_whole_record
 

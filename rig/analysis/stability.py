@@ -234,6 +234,20 @@ def plant_matrices(lm: LoopModel):
     return A, b, c
 
 
+def discrete_plant(lm: LoopModel):
+    """(Phi, Gamma, c): the plant of :func:`plant_matrices` discretised exactly under a
+    zero-order hold of ``lm.dt_s``, Phi = e^{A dt}, Gamma = int_0^dt e^{A t} dt b."""
+    from scipy.linalg import expm
+
+    A, b, c = plant_matrices(lm)
+    n = A.shape[0]
+    E = np.zeros((n + 1, n + 1))
+    E[:n, :n] = A * lm.dt_s
+    E[:n, n] = b * lm.dt_s
+    Ed = expm(E)
+    return Ed[:n, :n], Ed[:n, n], c
+
+
 def closed_loop_matrix(lm: LoopModel, kp_N_per_um: float) -> np.ndarray:
     """Closed-loop matrix of the linearised loop. Discrete (dt > 0): state [x_n, s_n, e_{n-1}]
     with the plant discretised exactly under a zero-order hold (Phi = e^{A dt},
@@ -244,8 +258,6 @@ def closed_loop_matrix(lm: LoopModel, kp_N_per_um: float) -> np.ndarray:
     the PID of rig.control (integral of prior errors, backward-difference D). The
     characteristic polynomial is det(z I - M). Continuous (dt = 0): PID u = kp e + ki
     int e + kd de/dt (eq. 8's setting with ki = 0, kd = kv)."""
-    from scipy.linalg import expm
-
     A, b, c = plant_matrices(lm)
     n = A.shape[0]
     kp, ki, kd = kp_N_per_um, lm.ki_N_per_um_s, lm.kd_N_s_per_um
@@ -263,11 +275,7 @@ def closed_loop_matrix(lm: LoopModel, kp_N_per_um: float) -> np.ndarray:
             M[n, :n] = -c
         return M
     dt = lm.dt_s
-    E = np.zeros((n + 1, n + 1))
-    E[:n, :n] = A * dt
-    E[:n, n] = b * dt
-    Ed = expm(E)
-    Phi, Gam = Ed[:n, :n], Ed[:n, n]
+    Phi, Gam, _ = discrete_plant(lm)
     m = n + 1 + use_i
     M = np.zeros((m, m))
     M[:n, :n] = Phi - np.outer(Gam, (kp + kd / dt) * c)
@@ -337,15 +345,10 @@ def noise_spread(lm: LoopModel, kp_N_per_um: float, lvdt_sigma_um: float, lvdt_q
     M = closed_loop_matrix(lm, kp_N_per_um)
     if np.abs(np.linalg.eigvals(M)).max() >= 1.0:
         return math.inf
-    A, b, c = plant_matrices(lm)
-    n = A.shape[0]
+    _, gam, _ = discrete_plant(lm)
+    n = gam.size
     m = M.shape[0]
     dt = lm.dt_s
-    E = np.zeros((n + 1, n + 1))
-    E[:n, :n] = A * dt
-    E[:n, n] = b * dt
-    from scipy.linalg import expm
-    gam = expm(E)[:n, n]
     # response of the loop's state to a unit measurement error at this tick
     gw = np.zeros(m)
     gw[:n] = -gam * (kp_N_per_um + lm.kd_N_s_per_um / dt)

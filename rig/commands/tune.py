@@ -31,6 +31,8 @@ SWEEP = {"f0_hz": 2.0, "f1_hz": 70.0, "amplitude_um": 0.35, "duration_s": 20.0, 
 MAX_AMPLITUDE_UM = 2.0
 MAX_SWEEP_S = 60.0
 SWEEP_FORCE_N = 250.0   # the controller's output clamp during the sweep (overlay): ~10 x the friction
+MAX_REL_ERR = 0.25      # the plant fit's relative standard error beyond which no gains are proposed
+MIN_SEGMENTS = 15       # ... and the least number of clean Welch segments of the sweep
 
 
 def _log_context(path: Path):
@@ -98,16 +100,19 @@ def step_cmd(
 def _print_frf(con, rep: dict) -> None:
     c = rep.get("compare")
     con.print(f"H1 over {rep['segments_used']} Welch segments of {rep['nperseg']} samples"
-              f" ({rep['stalls_in_sweep']} loop stall(s) in the sweep left out); coherence >= 0.8 on "
+              f" (left out: those with {rep['stalls_in_sweep']} loop stall(s) and {rep['stale_position_runs']} stale "
+              "position stretch(es) of the sweep); coherence >= 0.8 on "
               f"{100 * rep['coherent_fraction']:.0f} % of {rep['segment']['f0_hz']:g}-{rep['segment']['f1_hz']:g} Hz")
     con.print(f"-3 dB bandwidth {_g(rep['bandwidth_3db_hz'], '.3g')} Hz; crossover {_g(rep['crossover_hz'], '.3g')} Hz, "
               f"phase margin {_g(rep['phase_margin_deg'], '.3g')} deg, gain margin {_g(rep['gain_margin_db'], '.3g')} dB "
               f"(at {_g(rep['gain_margin_hz'], '.3g')} Hz; open loop from the measured closed loop and the known PID)")
     if c:
         verdict = "within" if c["within_1db_5deg"] else "NOT within"
-        con.print(f"measured vs rig stability's loop model up to {c['max_hz']:g} Hz ({c['n']} coherent frequencies): "
-                  f"gain max {c['gain_db_max_abs']:.2f} dB (rms {c['gain_db_rms']:.2f}), phase max "
-                  f"{c['phase_deg_max_abs']:.1f} deg (rms {c['phase_deg_rms']:.1f}): {verdict} 1 dB and 5 deg"
+        con.print(f"measured vs rig stability's loop model up to {c['max_hz']:g} Hz ({c['n']} coherent frequencies in "
+                  f"{c['n_bands']} 1/6-octave bands): gain max {c['gain_db_max_abs']:.2f} dB, phase max "
+                  f"{c['phase_deg_max_abs']:.1f} deg: {verdict} 1 dB and 5 deg (single bins: max "
+                  f"{c['bin_gain_db_max_abs']:.2f} dB, {c['bin_phase_deg_max_abs']:.1f} deg, rms {c['gain_db_rms']:.2f} dB, "
+                  f"{c['phase_deg_rms']:.1f} deg; a bin's own random error about {c['bin_random_error_db_median']:.2f} dB)"
                   + (f"; the phase difference grows as a delay of {c['delay_ms']:.2f} ms" if "delay_ms" in c else ""))
     for note in rep["notes"]:
         con.print(f"[yellow]note:[/yellow] {note}", highlight=False)
@@ -235,9 +240,16 @@ def autotune_cmd(
     _print_frf(con, rep)
     pp, pe = plant["params"], plant["rel_err"]
     con.print(f"plant fit ({plant['n_freq']} frequencies, {plant['band_hz'][0]:.3g}-{plant['band_hz'][1]:.3g} Hz): "
-              f"force gain {pp['gain']:.3g} (±{100 * pe['gain']:.0f} %), leakage tau_L {1e3 * pp['tau_leak_s']:.3g} ms "
-              f"(±{100 * pe['tau_leak_s']:.0f} %), delay {1e3 * pp['delay_s']:.3g} ms; mass {plant['mass_kg']:g} kg "
-              f"({plant['mass_note']})", highlight=False)
+              f"leakage tau_L {1e3 * pp['tau_leak_s']:.3g} ms (±{100 * pe['tau_leak_s']:.0f} %), delay "
+              f"{1e3 * pp['delay_s']:.3g} ms; mass {plant['mass_kg']:g} kg ({plant['mass_note']}), force gain "
+              f"{pp['gain']:g} ({plant['gain_note']})", highlight=False)
+    worst = pe["tau_leak_s"]
+    if not math.isfinite(worst) or worst > MAX_REL_ERR or rep["segments_used"] < MIN_SEGMENTS:
+        _fail(f"the plant is not determined well enough to tune on: the leakage is known to "
+              f"±{100 * pe['tau_leak_s']:.0f} % (at most {100 * MAX_REL_ERR:.0f} %) from "
+              f"{rep['segments_used']} clean Welch segments (at least {MIN_SEGMENTS}; {rep['stalls_in_sweep']} loop stall(s), "
+              f"{rep['stale_position_runs']} stale position stretch(es) in the sweep); repeat on a quieter machine or "
+              f"with a longer --duration-s; no gains proposed (log {from_log})", EXIT_FAILED)
     tab = Table(title="proposed gains (the rule on the fitted plant) vs the analytic advice (the rule on the "
                       "profile's model)")
     for c in ("gain", "proposed", "analytic advice", "difference", "profile now"):
