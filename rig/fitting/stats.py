@@ -105,8 +105,10 @@ def jacobian_summary(pset: ParamSet, fit: FitOutcome, n_eff: float) -> dict:
     for prm, zi, si in zip(pset.params, z, sd_z):
         val = prm.to_value(float(zi))
         if prm.log:
-            sd[prm.name] = val * si
-            iv[prm.name] = [math.exp(zi - si), math.exp(zi + si)]
+            # an undetermined parameter's interval stops at its fit bounds
+            lo_z, hi_z = prm.internal_bounds
+            sd[prm.name] = val * si if si < 700 else math.inf
+            iv[prm.name] = [math.exp(max(zi - si, lo_z)), math.exp(min(zi + si, hi_z))]
         else:
             sd[prm.name] = si * prm.scale
             iv[prm.name] = [val - si * prm.scale, val + si * prm.scale]
