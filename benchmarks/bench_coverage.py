@@ -76,8 +76,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--trials", type=int, default=20)
     ap.add_argument("--engine", choices=("sim", "synth", "both"), default="both")
-    ap.add_argument("--estimators", default=",".join(ESTIMATORS),
-                    help="comma-separated names of ESTIMATORS (default: all)")
+    ap.add_argument("--estimators", default="identify whole-record (jacobian)",
+                    help=f"comma-separated names of ESTIMATORS (all: {', '.join(ESTIMATORS)})")
     a = ap.parse_args(argv)
     names = [n.strip() for n in a.estimators.split(",") if n.strip()]
     engines = ("sim", "synth") if a.engine == "both" else (a.engine,)

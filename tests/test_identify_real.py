@@ -102,3 +102,17 @@ def test_sepiolite_one_state_fits_badly(real_data_dir):
     tr = read_csv(real_data_dir / "giacomel-sepiolite-tr2.csv")
     w = fit_whole_record(tr, detect_steps(tr), stiffness=True, max_points=3000)
     assert w["params"]["B_mu"] < 0
+
+
+def test_leeman_known_stiffness_intervals_cover_published(leeman):
+    """The published k given as the file's machine_stiffness_kN_per_m (560 kN/m at 100 N per rider):
+    held, and the 68 % intervals of a, b and Dc cover the published fit (issue 24, item 5)."""
+    import copy
+
+    tr = copy.deepcopy(leeman)
+    tr.metadata["machine_stiffness_kN_per_m"] = "560"
+    w = identify_trials([tr]).report["whole_record"]
+    assert w["stiffness_source"] == "metadata" and w["params"]["k_per_um"] == pytest.approx(K_PUBLISHED, rel=1e-6)
+    for ours, (k, (val, _)) in zip(("a", "b", "Dc_um"), PUBLISHED.items()):
+        lo, hi = w["intervals"][ours]
+        assert lo <= val <= hi, (ours, lo, val, hi)

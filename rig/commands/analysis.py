@@ -42,21 +42,15 @@ class Direction(str, Enum):
     down = "down"
 
 
-class Law(str, Enum):
-    slip = "slip"
-    aging = "aging"
-    both = "both"
+def _choices(name: str, values: tuple[str, ...]) -> type[Enum]:
+    """A str Enum of an option's choices (typer lists them in --help)."""
+    return Enum(name, {v: v for v in values}, type=str)
 
 
-class Detrend(str, Enum):
-    none = "none"
-    linear = "linear"
-    auto = "auto"
-
-
-class Names(str, Enum):
-    spec = "spec"
-    rsf = "rsf"
+# identify's whole-record options (rig.analysis.identify: LAWS, DETRENDS)
+Law = _choices("Law", ("slip", "aging", "both"))
+Detrend = _choices("Detrend", ("none", "linear", "auto"))
+Names = _choices("Names", ("spec", "rsf"))
 
 
 #: --names rsf: the friction lab's names of the spec's (rig.model.spec.RSF_NAMES)

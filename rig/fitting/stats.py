@@ -105,8 +105,10 @@ def jacobian_summary(pset: ParamSet, fit: FitOutcome, n_eff: float) -> dict:
     for prm, zi, si in zip(pset.params, z, sd_z):
         val = prm.to_value(float(zi))
         if prm.log:
-            sd[prm.name] = val * si
-            iv[prm.name] = [math.exp(zi - si), math.exp(zi + si)]
+            # an undetermined parameter's interval stops at its fit bounds
+            lo_z, hi_z = prm.internal_bounds
+            sd[prm.name] = val * si if si < 700 else math.inf
+            iv[prm.name] = [math.exp(max(zi - si, lo_z)), math.exp(min(zi + si, hi_z))]
         else:
             sd[prm.name] = si * prm.scale
             iv[prm.name] = [val - si * prm.scale, val + si * prm.scale]
@@ -115,6 +117,57 @@ def jacobian_summary(pset: ParamSet, fit: FitOutcome, n_eff: float) -> dict:
     cov = cov_z * np.outer(d, d)
     return {"method": "jacobian", "params_sd": sd, "intervals": iv, "correlation": correlation_of(cov, pset.names),
             "cov": cov}
+
+
+def profile_interval(residual: Callable[[dict], np.ndarray], pset: ParamSet, fit: FitOutcome, name: str,
+                     n_eff: float, sd_z: float, *, iterations: int = 3, max_nfev: int = 60) -> list[float] | None:
+    """The 68 % profile-likelihood interval of one parameter: where the best fit with ``name`` held
+    (the others refitted) has ``Delta = (SSR - SSR_min) / s^2 * n_eff / n`` equal to 1 (one sigma
+    of a chi-square with 1 dof), ``s^2 = SSR_min / (n - p)``. Each side starts at the Jacobian's
+    ``sd_z`` (internal units: ln for a log parameter) and is refined on ``sqrt(Delta)``, which is
+    linear in the parameter where the likelihood is Gaussian (secant, ``iterations`` refits).
+    Skewed likelihoods (L on a flat a-b-L valley) give an asymmetric interval, as xlook reports
+    Dc. None when a refit fails."""
+    j = pset.names.index(name)
+    prm = pset.params[j]
+    rest = ParamSet([q for q in pset.params if q.name != name])
+    z0 = np.asarray(fit.extra["z"], dtype=float)
+    r0 = np.asarray(fit.residuals, dtype=float)
+    n, p = r0.size, z0.size
+    ssr0 = float(np.dot(r0, r0))
+    s2 = ssr0 / max(n - p, 1)
+    scale = min(max(n_eff, 1.0) / n, 1.0) / s2
+    lo_b, hi_b = prm.internal_bounds
+    start = {k: v for k, v in fit.params.items() if k != name}
+
+    def delta(zj: float) -> float:
+        held = prm.to_value(zj)
+        out = least_squares_fit(lambda q: residual({**q, name: held}), rest, [start], max_nfev=max_nfev,
+                                diff_step=None, xtol=1e-6, ftol=1e-8, x_scale="jac")
+        if out is None:
+            raise ValueError("profile refit failed")
+        return max(2.0 * out.cost - ssr0, 0.0) * scale
+
+    if not (sd_z > 0 and math.isfinite(sd_z)):
+        return None
+    ends = []
+    try:
+        for sign in (-1.0, 1.0):
+            a, fa = 0.0, 0.0                      # offset from z0 and sqrt(Delta) there
+            b = sd_z
+            for _ in range(iterations):
+                zb = min(max(z0[j] + sign * b, lo_b + 1e-9), hi_b - 1e-9)
+                fb = math.sqrt(delta(zb))
+                if abs(fb - 1.0) < 0.02 or zb in (lo_b + 1e-9, hi_b - 1e-9):
+                    break
+                # secant on sqrt(Delta) = 1 (from the minimum, where it is 0)
+                nb = a + (1.0 - fa) * (b - a) / (fb - fa) if fb > fa else 2.0 * b
+                a, fa = (b, fb) if fb < 1.0 else (a, fa)
+                b = min(max(nb, 0.2 * sd_z), 20.0 * sd_z)
+            ends.append(prm.to_value(min(max(z0[j] + sign * b, lo_b), hi_b)))
+    except ValueError:
+        return None
+    return [min(ends), max(ends)]
 
 
 def _sample_summary(pset: ParamSet, samples: np.ndarray, method: str, **extra) -> dict:
@@ -226,4 +279,4 @@ def parse_uncertainty(text: str) -> tuple[str, int]:
 
 
 __all__ = ["Q_LO", "Q_HI", "autocorr", "block_bootstrap", "correlation_of", "correlation_time", "effective_n",
-           "information_criterion", "jacobian_summary", "mcmc", "parse_uncertainty"]
+           "information_criterion", "jacobian_summary", "mcmc", "parse_uncertainty", "profile_interval"]
