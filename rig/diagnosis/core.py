@@ -88,6 +88,7 @@ class Candidate:
     accepted: bool
     note: str = ""
     zw: float = 0.0
+    info: dict = field(default_factory=dict)  # the screening figures of its round
 
 
 @dataclass
@@ -104,6 +105,12 @@ class Diagnosis:
     # the chosen baseline's and final model's parameters refitted on all sliding data (reported)
     baseline_all: dict | None = None
     final_all: dict | None = None
+    # the same as FitResults (their Jacobians give params_sd, intervals, correlation)
+    baseline_fit: FitResult | None = None
+    final_fit: FitResult | None = None
+    # causes the main split named that most re-splits did not (the record cannot tell them apart from
+    # what is left): [{"cause", "stability", "gain_pct"}]
+    unnamed: list[dict] = field(default_factory=list)
 
     @property
     def model(self):
@@ -114,16 +121,20 @@ class Diagnosis:
     def report(self) -> dict:
         """The JSON report of diagnosis.md (schema rig.diagnosis/1)."""
         b = self.baseline
+        base = {"model": b.baseline, "params": _public(self.baseline_all or b.params, b.baseline, b.extensions),
+                "holdout_rms_N": _r(b.holdout_rms_N)}
+        model = {"baseline": self.final.baseline, "extensions": list(self.final.extensions),
+                 "params": _public(self.final_all or self.final.params, self.final.baseline, self.final.extensions)}
+        for out, res in ((base, self.baseline_fit), (model, self.final_fit)):
+            if res is not None:
+                out.update(uncertainty(self.grid, res, list(out["params"])))
         return {
             "schema": "rig.diagnosis/1",
             "data": self.data,
-            "baseline": {"model": b.baseline, "params": _public(self.baseline_all or b.params, b.baseline, b.extensions),
-                         "holdout_rms_N": _r(b.holdout_rms_N)},
+            "baseline": base,
             "findings": self.findings,
             "unexplained": self.unexplained,
-            "model": {"baseline": self.final.baseline, "extensions": list(self.final.extensions),
-                      "params": _public(self.final_all or self.final.params, self.final.baseline,
-                                        self.final.extensions)},
+            "model": model,
             "holdout_rms_N": _r(self.final.holdout_rms_N),
         }
 
@@ -608,10 +619,17 @@ def try_candidate(grid: Grid, cur: FitResult, cause: str, info: dict, prior: dic
     dbic = res.bic - cur.bic
     z = paired_z(grid, cur.pred, res.pred)
     zw = white_z(grid, cur.pred, res.pred)
-    ok = (gain >= MIN_GAIN_PCT and dbic <= MIN_DBIC
-          and (z >= MIN_Z or zw >= MIN_ZW or gain >= STRONG_GAIN_PCT)
-          and _plausible(cause, res.params, grid))
     note = ""
+    if gain < MIN_GAIN_PCT:
+        note = f"hold-out gain under {MIN_GAIN_PCT:g}%"
+    elif dbic > MIN_DBIC:
+        note = (f"its BIC falls by only {-dbic:.1f}" if dbic < 0 else f"its BIC rises by {dbic:.1f}") + \
+            f" (a fall of {-MIN_DBIC:g} needed)"
+    elif not (z >= MIN_Z or zw >= MIN_ZW or gain >= STRONG_GAIN_PCT):
+        note = f"not significant on the hold-out blocks (z = {z:.1f})"
+    elif not _plausible(cause, res.params, grid):
+        note = "its fit is not physical (a bound, a parameter outside its plausible range, or an effect below the noise)"
+    ok = not note
     if ok and cur.extensions:
         moved = _confounded(cur, res)
         if moved:
@@ -754,7 +772,138 @@ def _plausible(cause: str, p: dict, grid: Grid) -> bool:
     return True
 
 
-def diagnose(trial: TrialData, baseline: str = "rate_state", progress=None, n_blocks: int = 20) -> Diagnosis:
+def known_params(trial: TrialData) -> dict:
+    """Parameters the file states (measured-data.md): ``machine_stiffness_kN_per_m``, a calibrated
+    stiffness between the measured position and the interface, held fixed in every fit (as xlook
+    and RSFit hold a calibrated k)."""
+    raw = trial.metadata.get("machine_stiffness_kN_per_m")
+    if raw is None or str(raw).strip() == "":
+        return {}
+    from rig.data import parse_number
+
+    k = parse_number(str(raw))
+    if k is None or not math.isfinite(k) or k <= 0:
+        raise ValueError(f"{trial.source or 'trial'}: metadata machine_stiffness_kN_per_m {raw!r} is not a positive "
+                         "number of kN/m")
+    return {"stiffness_kN_per_m": float(k)}
+
+
+# re-splits of the record (Deliver 5 of issue 20): other hold-out blocks and crops of a few per cent;
+# a cause is named only when it is named on most of them and the main split
+RESPLITS = ({"n_blocks": 16}, {"n_blocks": 24, "swap_aligned": True}, {"crop": (0.03, 0.0)}, {"crop": (0.0, 0.03)})
+MIN_STABILITY = 0.5  # named on more than this fraction of all splits (main + RESPLITS)
+RESPLIT_PARALLEL_MIN_S = 3.0  # a main search shorter than this runs its re-splits in-process
+
+
+@dataclass
+class _Search:
+    grid: Grid
+    base: FitResult
+    history: list[FitResult]
+    tried: list[list[Candidate]]
+    chosen: list[tuple[Candidate, FitResult, str]]  # (candidate, model before it, why it was chosen)
+
+
+def _search(trial: TrialData, baseline: str, prior: dict, steps: list, known: dict, load_point: bool,
+            n_blocks: int = 20, swap_aligned: bool = False, progress=None) -> _Search:
+    """One split of the record: the baseline, the machine's coupling (load point), then the loop of
+    candidates until none passes."""
+    grid = prepare(trial, n_blocks=n_blocks, restart_guard_um=3.0 * prior["L_um"] if prior else 0.0,
+                   step_times_s=np.array([s.t_s for s in steps]) if steps else np.zeros(0))
+    grid.known = dict(known)
+    if swap_aligned and grid.holdout_design.startswith("blocks aligned"):
+        grid = _swapped(grid)
+    if int(grid.sliding.sum()) < 10:
+        raise ValueError(f"{trial.source or 'trial'}: hardly any forward sliding (v > {0.1:g} um/s away from stops): "
+                         "nothing to diagnose")
+    base = fit_baseline(grid, baseline, prior)
+    cur = base
+    history, tried, chosen = [base], [], []
+    if load_point and baseline == "rate_state":
+        # measured-data.md: with position_source load_point (or a stated machine stiffness) the elastic
+        # coupling between the measured position and the interface is always there: fitted from the
+        # start (or held at the stated value), never left for a stand-in cause (aging, a lag, a drift)
+        if progress:
+            progress("the machine's coupling")
+        c = try_candidate(grid, cur, "finite_stiffness", {}, prior)
+        why = ("the file states the machine stiffness (machine_stiffness_kN_per_m), held fixed" if known else
+               "position_source: load_point: the machine's compliance lies between the measured position and the "
+               "interface, so the coupling is fitted from the start, whatever its hold-out gain")
+        chosen.append((c, cur, why))
+        tried.append([c])
+        cur = c.result
+        history.append(cur)
+    for _ in range(MAX_FINDINGS):
+        cands, info = screen(grid, cur)
+        results = []
+        for cn in cands:
+            if progress:
+                progress(f"trying {cn}")
+            results.append(try_candidate(grid, cur, cn, info, prior))
+        tried.append(results)
+        acc = [c for c in results if c.accepted]
+        if not acc:
+            break
+        best = max(acc, key=lambda c: c.gain_pct)
+        why = ""
+        nfv = [c for c in acc if c.cause == "normal_force_variation"]
+        if nfv and nfv[0] is not best and nfv[0].gain_pct > 0.5 * best.gain_pct:
+            why = (f"named over {best.cause} ({best.gain_pct:+.1f}%) because the residual follows the measured normal "
+                   f"force with the unit slope friction proportional to it predicts")
+            best = nfv[0]
+        best.info = info
+        chosen.append((best, cur, why))
+        cur = best.result
+        history.append(cur)
+    return _Search(grid, base, history, tried, chosen)
+
+
+def _resplit_causes(args) -> list[str]:
+    """The causes one re-split names, in order (a worker of :func:`diagnose`)."""
+    trial, baseline, prior, steps, known, load_point, spec = args
+    a, b = spec.get("crop", (0.0, 0.0))
+    if a or b:
+        t = np.asarray(trial.time_s, dtype=float)
+        T = t[-1] - t[0]
+        trial = canonical(trial.select((t >= t[0] + a * T) & (t <= t[-1] - b * T)))
+    try:
+        s = _search(trial, baseline, prior, steps, known, load_point, n_blocks=spec.get("n_blocks", 20),
+                    swap_aligned=spec.get("swap_aligned", False))
+    except (ValueError, ZeroDivisionError, FloatingPointError, IndexError):
+        return ["(failed)"]
+    return [c.cause for c, _, _ in s.chosen]
+
+
+def _run_resplits(jobs: list, parallel: bool, progress=None) -> list[list[str]]:
+    if parallel:
+        import concurrent.futures as cf
+        import multiprocessing as mp
+        import os
+
+        n = min(len(jobs), int(os.environ.get("RIG_JOBS", "0") or 0) or min(2, os.cpu_count() or 1))
+        if n > 1 and "fork" in mp.get_all_start_methods():
+            # fork: the workers start at once with the compiled kernels (spawn re-imports everything,
+            # slower than the re-splits themselves on a loaded 2-core machine); they call no progress
+            try:
+                with cf.ProcessPoolExecutor(n, mp_context=mp.get_context("fork")) as ex:
+                    out = []
+                    for r in ex.map(_resplit_causes, jobs):
+                        if progress:
+                            progress("re-splits")
+                        out.append(r)
+                    return out
+            except (OSError, cf.process.BrokenProcessPool):
+                pass  # no processes here: in-process
+    out = []
+    for j in jobs:
+        if progress:
+            progress("re-splits")
+        out.append(_resplit_causes(j))
+    return out
+
+
+def diagnose(trial: TrialData, baseline: str = "rate_state", progress=None, n_blocks: int = 20,
+             resplits: bool = True) -> Diagnosis:
     """Run the whole diagnosis on a trial; see the module docstring."""
     from rig.analysis.identify import check_analysable
 
@@ -765,88 +914,179 @@ def diagnose(trial: TrialData, baseline: str = "rate_state", progress=None, n_bl
     from rig.analysis.identify import decimated
     from rig.kinematics import detect_steps
 
+    known = known_params(trial)
     try:
         small = decimated(trial)
         steps = detect_steps(small)
     except (ValueError, IndexError, ZeroDivisionError):
         small, steps = trial, []
     prior = identify_prior(small, steps)
-    load_point = is_load_point(trial)
-    grid = prepare(trial, n_blocks=n_blocks, restart_guard_um=3.0 * prior["L_um"] if prior else 0.0,
-                   step_times_s=np.array([s.t_s for s in steps]) if steps else np.zeros(0))
+    load_point = is_load_point(trial) or bool(known)
+    if known and prior and "stiffness_kN_per_m" in prior:
+        prior["stiffness_kN_per_m"] = known["stiffness_kN_per_m"]
     t_prep = _time.perf_counter() - t0
-    if int(grid.sliding.sum()) < 10:
-        raise ValueError(f"{trial.source or 'trial'}: hardly any forward sliding (v > {0.1:g} um/s away from stops): "
-                         "nothing to diagnose")
-    base = fit_baseline(grid, baseline, prior)
-    cur = base
-    findings: list[dict] = []
-    history = [base]
-    tried = []
-    for it in range(MAX_FINDINGS):
-        cands, info = screen(grid, cur)
-        results = []
-        for c in cands:
-            if progress:
-                progress(f"trying {c}")
-            results.append(try_candidate(grid, cur, c, info, prior))
-        tried.append(results)
-        acc = [c for c in results if c.accepted]
-        if not acc:
-            break
-        best = max(acc, key=lambda c: c.gain_pct)
-        stiff = [c for c in acc if c.cause == "finite_stiffness"]
-        if load_point and stiff:
-            # prior knowledge (measured-data.md, position_source: load_point): the machine's
-            # compliance lies between the measured position and the interface; tested first
-            best = stiff[0]
-        nfv = [c for c in acc if c.cause == "normal_force_variation"]
-        if nfv and nfv[0].gain_pct > 0.5 * best.gain_pct:
-            best = nfv[0]
-        others = {c.cause: c.gain_pct for c in results if c is not best}
-        res = best.result
-        findings.append({
-            "cause": best.cause,
-            "params": {k: _r(res.params[k]) for k in _finding_params(best.cause)},
-            "evidence": _evidence(best.cause, res, grid, info, others, before=cur),
-            "holdout_rms_N_before": _r(cur.holdout_rms_N),
-            "holdout_rms_N_after": _r(res.holdout_rms_N),
-            "gain_pct": _r(best.gain_pct, 4),
-            "delta_bic": _r(best.delta_bic, 6),
-        })
-        cur = res
-        history.append(cur)
+    main = _search(trial, baseline, prior, steps, known, load_point, n_blocks=n_blocks, progress=progress)
+    grid, base = main.grid, main.base
     t_loop = _time.perf_counter() - t0 - t_prep
+    # re-splits: a cause is named only when most splits name it (the coupling of a load-point record is
+    # physics, named on every split)
+    split_causes: list[list[str]] = []
+    if resplits and main.chosen:
+        jobs = [(trial, baseline, prior, steps, known, load_point, spec) for spec in RESPLITS]
+        split_causes = _run_resplits(jobs, t_loop > RESPLIT_PARALLEL_MIN_S, progress)
+    n_splits = 1 + len(split_causes)
+    kept = 0
+    stab = []
+    for i, (c, _, _) in enumerate(main.chosen):
+        st = (1 + sum(c.cause in sc for sc in split_causes)) / n_splits
+        stab.append(st)
+        if st <= MIN_STABILITY and not (i == 0 and load_point and c.cause == "finite_stiffness"):
+            break
+        kept = i + 1
+    cur = main.history[kept]
+    unnamed = []  # causes the main split found but most re-splits did not: the record cannot tell
+    for i in range(kept, len(main.chosen)):
+        unnamed.append({"cause": main.chosen[i][0].cause, "stability": _r(stab[i], 3),
+                        "gain_pct": _r(main.chosen[i][0].gain_pct, 4)})
+    findings = []
+    for i, (c, before, why) in enumerate(main.chosen[:kept]):
+        res = c.result
+        round_ = main.tried[i]
+        others = {o.cause: o for o in round_ if o is not c}
+        ev = _evidence(c.cause, res, grid, getattr(c, "info", {}), {k: o.gain_pct for k, o in others.items()},
+                       before=before)
+        stronger = [o for o in others.values() if o.gain_pct > c.gain_pct + 0.5 and o.note]
+        if why:
+            ev += f"; {why}"
+        if stronger:
+            ev += "; not named: " + "; ".join(f"{o.cause} ({o.gain_pct:+.1f}%): {o.note}" for o in stronger)
+        f = {
+            "cause": c.cause,
+            "params": {k: _r(res.params[k]) for k in _finding_params(c.cause)},
+            "evidence": ev,
+            "holdout_rms_N_before": _r(before.holdout_rms_N),
+            "holdout_rms_N_after": _r(res.holdout_rms_N),
+            "gain_pct": _r(c.gain_pct, 4),
+            "delta_bic": _r(c.delta_bic, 6),
+        }
+        if split_causes:
+            f["stability"] = _r(stab[i], 3)
+        alts = _alternatives(grid, c, round_, [sc[i] if i < len(sc) else "none" for sc in split_causes
+                                               if c.cause not in sc])
+        if alts:
+            f["alternatives"] = alts
+        findings.append(f)
     unexplained = find_unexplained(grid, cur)
     d = Diagnosis(data=str(trial.source), baseline=base, findings=findings, unexplained=unexplained, final=cur,
-                  grid=grid, history=history, tried=tried)
+                  grid=grid, history=main.history[: kept + 1], tried=main.tried)
+    d.unnamed = unnamed
     # the reported parameters: the chosen models refitted on every sliding bin (fit and hold-out
     # blocks). The split decides WHICH model (hold-out gains); with half of a few steps in the fit
     # blocks, the direct effect A of a three-step record moves by +-50 % with the split alone
-    d.baseline_all = refit_all(grid, base)
-    d.final_all = d.baseline_all if cur is base else refit_all(grid, cur)
+    d.baseline_fit = refit_all(grid, base)
+    d.final_fit = d.baseline_fit if cur is base else refit_all(grid, cur)
+    d.baseline_all, d.final_all = d.baseline_fit.params, d.final_fit.params
+    for f in findings:
+        # a finding's parameters are the final model's; the single-cause fit's values beside them
+        single = f["params"]
+        final = {k: _r(d.final_all[k]) for k in single if k in d.final_all}
+        moved = {k: v for k, v in single.items() if v is not None and final.get(k) is not None
+                 and abs(final[k] - v) > 0.005 * abs(v)}
+        if moved:
+            f["evidence"] += ("; the parameters are the final model's, refitted on all sliding data (when it was "
+                              "found, on the fit blocks: " + ", ".join(f"{k} = {v:.4g}" for k, v in moved.items())
+                              + ")")
+        f["params"] = {k: final.get(k, v) for k, v in single.items()}
+        unc = uncertainty(grid, d.final_fit, list(single))
+        f.update(unc)
     d.timings = {"prepare_s": t_prep, "fit_s": t_loop, "total_s": _time.perf_counter() - t0,
-                 "n_samples": int(len(trial)), "n_bins": int(grid.t.size)}
+                 "n_samples": int(len(trial)), "n_bins": int(grid.t.size), "n_splits": n_splits}
     return d
 
 
-def refit_all(grid: Grid, res: FitResult) -> dict:
-    """Parameters of ``res``'s model fitted on all sliding bins, from ``res``'s own (the fit can only
-    improve on its start; a fit that fails keeps them)."""
+def _alternatives(grid: Grid, chosen: Candidate, round_: list[Candidate], instead: list[str]) -> list[dict]:
+    """Other causes (or "none") that explain the held-out data about as well as the one named: a
+    candidate of the same round with at least half its gain that the named one does not beat
+    significantly (paired z < MIN_Z), and whatever the re-splits that did not name it named instead."""
+    out = []
+    for o in round_:
+        if o is chosen or o.cause == chosen.cause or o.gain_pct < max(0.5 * chosen.gain_pct, MIN_GAIN_PCT):
+            continue
+        if paired_z(grid, o.result.pred, chosen.result.pred) < MIN_Z:
+            out.append({"cause": o.cause, "params": {k: _r(o.result.params[k]) for k in _finding_params(o.cause)},
+                        "gain_pct": _r(o.gain_pct, 4), "delta_bic": _r(o.delta_bic, 6)})
+    seen = {a["cause"] for a in out}
+    for cz in instead:
+        if cz in seen or cz == "(failed)":
+            continue
+        seen.add(cz)
+        o = next((x for x in round_ if x.cause == cz), None)
+        if o is not None:
+            out.append({"cause": cz, "params": {k: _r(o.result.params[k]) for k in _finding_params(cz)},
+                        "gain_pct": _r(o.gain_pct, 4), "delta_bic": _r(o.delta_bic, 6)})
+        else:
+            out.append({"cause": cz, "params": {}, "gain_pct": 0.0 if cz == "none" else None, "delta_bic": 0.0
+                        if cz == "none" else None})
+    return out
+
+
+# correlations reported between these parameters (Deliver 2 of issue 20: the a-b-L valley)
+CORRELATED = ("A_mu", "B_mu", "L_um")
+
+
+def uncertainty(grid: Grid, res: FitResult, names: list[str] | None = None) -> dict:
+    """``params_sd`` (one standard error per parameter, from the Jacobian with the residual's
+    autocorrelation), ``intervals`` for the slip distances (the +-1 sd interval in ln L, skewed as
+    the likelihood in L is) and ``correlation`` of A, B and L, for ``names`` (all by default)."""
+    from .fit import covariance
+
+    cv = covariance(grid, res)
+    if cv is None:
+        return {}
+    nm, vals, cov = cv
+    sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    want = nm if names is None else [n for n in names if n in nm]
+    out: dict = {"params_sd": {n: _r(sd[nm.index(n)]) for n in want}}
+    iv = {}
+    for n in want:
+        if n in ("L_um", "L2_um") and vals[nm.index(n)] > 0:
+            v, s = vals[nm.index(n)], sd[nm.index(n)]
+            iv[n] = [_r(v * math.exp(-s / v)), _r(v * math.exp(s / v))]
+    if iv:
+        out["intervals"] = iv
+    cn = [n for n in CORRELATED if n in nm and n in want]
+    if len(cn) >= 2:
+        corr = {}
+        for a_i, a in enumerate(cn):
+            for b in cn[a_i + 1:]:
+                i, j = nm.index(a), nm.index(b)
+                den = sd[i] * sd[j]
+                corr[f"{a},{b}"] = _r(cov[i, j] / den, 4) if den > 0 else None
+        out["correlation"] = corr
+    return out
+
+
+def refit_all(grid: Grid, res: FitResult) -> FitResult:
+    """``res``'s model fitted on all sliding bins, from ``res``'s own parameters (the fit can only
+    improve on its start; a fit that fails or runs away keeps them, evaluated on all bins)."""
+    keep = evaluate(grid, res.baseline, res.extensions, res.params)
     try:
         r = fit(grid, res.baseline, res.extensions, res.params, max_nfev=200, mask=grid.sliding)
     except (ValueError, ZeroDivisionError, FloatingPointError):
-        return dict(res.params)
+        return keep
     p = dict(r.params)
     from .fit import at_bound
 
     if (not np.all(np.isfinite(list(p.values()))) or at_bound(p, grid)
             or any(abs(p.get(k, 0.0)) > 0.05 for k in ("A_mu", "B_mu", "B2_mu"))
             or not _ext_params_plausible(res.extensions, p)):
-        return dict(res.params)  # ran away on the joined data: keep the validated split fit
+        return keep  # ran away on the joined data: keep the validated split fit
     if "second_state_variable" in res.extensions and "aging_law" not in res.extensions:
-        swap_slower_second(p)
-    return p
+        L1 = r.params.get("L_um")
+        swap_slower_second(r.params)
+        if r.params.get("L_um") != L1:
+            r.extra.pop("jac", None)  # its columns are in the other order: no standard errors
+    return r
 
 
 def _finding_params(cause: str) -> tuple:
