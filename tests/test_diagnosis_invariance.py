@@ -16,9 +16,13 @@ from rig.sim.synth import SynthSpec, make_record
 TRUTH = {"mu0": 0.11, "A_mu": 0.0011, "B_mu": 0.0040, "L_um": 19.2}
 
 
-def _load_point_step(k_kN_per_m: float = 300.0, seed: int = 7, stated: bool = False):
-    """One 1 -> 10 um/s step through a spring of known stiffness, written at the load point."""
-    trial, truth = make_record(SynthSpec(protocol=[(60.0, 1.0), (60.0, 10.0)], duration_s=120.0, rate_hz=100.0,
+STEP_S = 30.0
+
+
+def _load_point_step(k_kN_per_m: float = 300.0, seed: int = 7, stated: bool = False, rate_hz: float = 100.0):
+    """One 1 -> 10 um/s step (at STEP_S) through a spring of known stiffness, written at the load point."""
+    trial, truth = make_record(SynthSpec(protocol=[(STEP_S, 1.0), (STEP_S, 10.0)], duration_s=2 * STEP_S,
+                                         rate_hz=rate_hz,
                                          params=dict(TRUTH), effects={"finite_stiffness": {"stiffness_kN_per_m":
                                                                                           k_kN_per_m}},
                                          with_ref=False, seed=seed))
@@ -41,7 +45,7 @@ def test_load_point_step_with_rate_switch_and_offset_is_finite_stiffness(stated)
     """Must-show of issue 20: a synthetic step with a known stiffness, at the load point, logged at
     10 Hz then 100 Hz, with its clock from 1000 s: finite_stiffness, a, b and L within 10 %."""
     trial, truth = _load_point_step(stated=stated)
-    t_step = 60.0 - 0.5  # the switch just before the step, as rock-mechanics machines log
+    t_step = STEP_S - 0.5  # the switch just before the step, as rock-mechanics machines log
     trial = shift(switch_rate(trial, 10.0, 100.0, at_frac=t_step / float(trial.time_s[-1] - trial.time_s[0])))
     rep = diagnose(trial).report()
     assert _causes(rep)[:1] == ["finite_stiffness"], rep["findings"]
@@ -59,7 +63,7 @@ def test_load_point_step_with_rate_switch_and_offset_is_finite_stiffness(stated)
 
 @pytest.fixture(scope="module")
 def load_point_reports():
-    trial, truth = _load_point_step(seed=11)
+    trial, truth = _load_point_step(seed=11, rate_hz=25.0)
     out = {"orig": diagnose(trial).report()}
     for name, tf in TRANSFORMS.items():
         out[name] = diagnose(tf(trial)).report()

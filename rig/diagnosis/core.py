@@ -805,7 +805,7 @@ class _Search:
 
 
 def _search(trial: TrialData, baseline: str, prior: dict, steps: list, known: dict, load_point: bool,
-            n_blocks: int = 20, swap_aligned: bool = False, progress=None) -> _Search:
+            n_blocks: int = 20, swap_aligned: bool = False, progress=None, max_rounds: int = MAX_FINDINGS) -> _Search:
     """One split of the record: the baseline, the machine's coupling (load point), then the loop of
     candidates until none passes."""
     grid = prepare(trial, n_blocks=n_blocks, restart_guard_um=3.0 * prior["L_um"] if prior else 0.0,
@@ -833,7 +833,7 @@ def _search(trial: TrialData, baseline: str, prior: dict, steps: list, known: di
         tried.append([c])
         cur = c.result
         history.append(cur)
-    for _ in range(MAX_FINDINGS):
+    for _ in range(max_rounds):
         cands, info = screen(grid, cur)
         results = []
         for cn in cands:
@@ -860,7 +860,7 @@ def _search(trial: TrialData, baseline: str, prior: dict, steps: list, known: di
 
 def _resplit_causes(args) -> list[str]:
     """The causes one re-split names, in order (a worker of :func:`diagnose`)."""
-    trial, baseline, prior, steps, known, load_point, spec = args
+    trial, baseline, prior, steps, known, load_point, spec, rounds = args
     a, b = spec.get("crop", (0.0, 0.0))
     if a or b:
         t = np.asarray(trial.time_s, dtype=float)
@@ -868,7 +868,7 @@ def _resplit_causes(args) -> list[str]:
         trial = canonical(trial.select((t >= t[0] + a * T) & (t <= t[-1] - b * T)))
     try:
         s = _search(trial, baseline, prior, steps, known, load_point, n_blocks=spec.get("n_blocks", 20),
-                    swap_aligned=spec.get("swap_aligned", False))
+                    swap_aligned=spec.get("swap_aligned", False), max_rounds=rounds)
     except (ValueError, ZeroDivisionError, FloatingPointError, IndexError):
         return ["(failed)"]
     return [c.cause for c, _, _ in s.chosen]
@@ -892,8 +892,8 @@ def _run_resplits(jobs: list, parallel: bool, progress=None) -> list[list[str]]:
                             progress("re-splits")
                         out.append(r)
                     return out
-            except (OSError, cf.process.BrokenProcessPool):
-                pass  # no processes here: in-process
+            except (OSError, AssertionError, cf.process.BrokenProcessPool):
+                pass  # no processes here (a daemon worker may not fork its own): in-process
     out = []
     for j in jobs:
         if progress:
@@ -931,8 +931,11 @@ def diagnose(trial: TrialData, baseline: str = "rate_state", progress=None, n_bl
     # re-splits: a cause is named only when most splits name it (the coupling of a load-point record is
     # physics, named on every split)
     split_causes: list[list[str]] = []
-    if resplits and main.chosen:
-        jobs = [(trial, baseline, prior, steps, known, load_point, spec) for spec in RESPLITS]
+    coupling = 1 if (load_point and main.chosen and main.chosen[0][0].cause == "finite_stiffness") else 0
+    if resplits and len(main.chosen) > coupling:
+        # as many rounds as the main split took (what a re-split names after that is not asked)
+        jobs = [(trial, baseline, prior, steps, known, load_point, spec, len(main.chosen) - coupling)
+                for spec in RESPLITS]
         split_causes = _run_resplits(jobs, t_loop > RESPLIT_PARALLEL_MIN_S, progress)
     n_splits = 1 + len(split_causes)
     kept = 0
@@ -940,7 +943,7 @@ def diagnose(trial: TrialData, baseline: str = "rate_state", progress=None, n_bl
     for i, (c, _, _) in enumerate(main.chosen):
         st = (1 + sum(c.cause in sc for sc in split_causes)) / n_splits
         stab.append(st)
-        if st <= MIN_STABILITY and not (i == 0 and load_point and c.cause == "finite_stiffness"):
+        if st <= MIN_STABILITY and i >= coupling:
             break
         kept = i + 1
     cur = main.history[kept]
@@ -969,7 +972,7 @@ def diagnose(trial: TrialData, baseline: str = "rate_state", progress=None, n_bl
             "gain_pct": _r(c.gain_pct, 4),
             "delta_bic": _r(c.delta_bic, 6),
         }
-        if split_causes:
+        if split_causes or i < coupling:
             f["stability"] = _r(stab[i], 3)
         alts = _alternatives(grid, c, round_, [sc[i] if i < len(sc) else "none" for sc in split_causes
                                                if c.cause not in sc])
