@@ -43,14 +43,13 @@ from .fit import FitResult, evaluate, fit, multistart
 from rig.kinematics import velocity_changes
 from rig.model.forward import as_model
 from rig.model.spec import EXT_PARAMS, PLAUSIBLE, model_params
+from .causes import CAUSES, rate_starts, slip_of
 from .prep import Grid, canonical, prepare
 
 # a finding must matter in practice, not only pass a significance test (docs/diagnosis.md):
 # a hold-out RMS gain of at least MIN_GAIN_PCT, and (per cause, _plausible) an effect above the
 # noise floor with physically plausible parameters
 MIN_GAIN_PCT = 1.0
-EFFECT_MIN_NOISE = 0.5      # second state: its steady-state effect 2 N |B2| ln(v_hi/v_lo) >= this x noise
-STIFF_MIN_SLIP_FRAC = 0.05  # finite stiffness: the slip the spring takes up in a transient >= this x L
 MIN_Z = 2.5
 MIN_ZW = 5.0
 MIN_DBIC = -10.0
@@ -60,8 +59,6 @@ UNEXPLAINED_MIN_GAIN_PCT = 1.0
 # hold-out residual rms; a smaller one is significant but negligible (a few mN on a 0.04 N residual)
 UNEXPLAINED_MIN_EFFECT = 0.1
 MAX_FINDINGS = 5
-# two slip-law states of opposite sign must differ in length by at least this factor
-MIN_OPPOSITE_STATE_RATIO = 3.0
 # a further cause must leave the causes already found as they were (within this fraction): one that
 # takes over part of their job (a lag that makes a spring 60 % stiffer) is not separable from them
 MAX_FINDING_SHIFT = 0.3
@@ -72,10 +69,6 @@ MAX_FINDING_SHIFT = 0.3
 # fraction of its gain on the fitted ones (true lags and springs of bench_diagnose: 0.23-0.8; a
 # jump of friction inside one segment that a spring absorbed: 0.006)
 SWAP_MIN_FRACTION = 0.1
-EXPECTED_SCALING = {"frictional_memory": "slip", "second_state_variable": "slip", "finite_stiffness": "slip",
-                    "aging_law": None, "sensor_lag": "time", "time_delay": "time"}
-TRANSIENT_RATE = ("second_state_variable", "aging_law", "sensor_lag", "finite_stiffness")
-TRANSIENT_STEADY = ("frictional_memory", "time_delay", "sensor_lag", "finite_stiffness")
 
 
 @dataclass
@@ -224,12 +217,6 @@ def _wcorr_z(grid: Grid, r: np.ndarray, q: np.ndarray) -> tuple[float, float]:
     return slope, (slope / se if se > 0 else 0.0)
 
 
-def slip_of(grid: Grid) -> np.ndarray:
-    s = np.zeros_like(grid.t)
-    s[1:] = np.cumsum(0.5 * np.abs(grid.v[1:] + grid.v[:-1]) * np.diff(grid.t))
-    return s
-
-
 def _fft_periodogram(q: np.ndarray, r: np.ndarray, w: np.ndarray, dq: float, per_min: float, per_max: float):
     """Periodogram of r against q (binned on a uniform q grid of step dq, weighted means, empty bins 0).
 
@@ -302,60 +289,9 @@ def _steady_init(grid: Grid) -> dict:
     return {"mu0": float(sol[0]), "c_mu": float(sol[1])}
 
 
-def _rate_starts(p_ss: dict) -> list[dict]:
-    c = p_ss["c_mu"]
-    out = []
-    for L in (3.0, 10.0, 30.0, 100.0, 300.0):
-        for A in (1e-3, 4e-3):
-            out.append({"mu0": p_ss["mu0"], "A_mu": A, "B_mu": A - c, "L_um": L})
-    return out
-
-
 def _candidate_starts(cause: str, cur: FitResult, grid: Grid, screen: dict) -> list[dict]:
-    p = dict(cur.params)
-    if cause == "frictional_memory":
-        ss = {"mu0": p["mu0"], "c_mu": p.get("c_mu", 0.0)}
-        starts = []
-        for s in _rate_starts(ss):
-            q = dict(p)
-            q.pop("c_mu", None)
-            q.update(s)
-            starts.append(q)
-        return starts
-    if cause == "time_delay":
-        return [dict(p, delay_s=float(d)) for d in np.exp(np.linspace(np.log(0.02), np.log(10.0), 240))]
-    if cause == "second_state_variable":
-        L = p.get("L_um", 20.0)
-        B = p.get("B_mu", 0.003)
-        out = []
-        for f in (0.05, 0.2, 5.0, 15.0, 50.0):
-            for b2 in (0.5 * abs(B) + 5e-4, -0.5 * abs(B) - 5e-4):
-                out.append(dict(p, B2_mu=b2, L2_um=max(L * f, 0.5)))
-        # the baseline's state may be the slow one: a new fast state beside it
-        for f in (0.05, 0.2):
-            for b1 in (abs(B) + 1e-3, 3e-3):
-                out.append(dict(p, B_mu=b1, L_um=max(L * f, 0.2), B2_mu=B, L2_um=L))
-        return out
-    if cause == "aging_law":
-        return [dict(p), dict(p, L_um=p.get("L_um", 20.0) * 0.5), dict(p, L_um=p.get("L_um", 20.0) * 2.0)]
-    if cause == "sensor_lag":
-        return [dict(p, tau_s=float(t)) for t in np.exp(np.linspace(np.log(0.01), np.log(10.0), 22))]
-    if cause == "finite_stiffness":
-        return [dict(p, stiffness_kN_per_m=k) for k in (10.0, 40.0, 150.0, 600.0, 3000.0)]
-    if cause == "slip_wear_drift":
-        return [dict(p, rate_mu_per_mm=screen.get("wear0", 0.0))]
-    if cause == "force_offset_drift":
-        return [dict(p, rate_N_per_s=screen.get("drift0", 0.0))]
-    if cause == "normal_force_variation":
-        return [dict(p)]
-    if cause == "position_periodic":
-        lam = screen.get("lam0", 100.0)
-        out = []
-        for lf in (1.0, 0.97, 1.03):
-            for ph in (0.0, 1.6, 3.1, -1.6):
-                out.append(dict(p, amplitude_mu=screen.get("amp0", 1e-3), wavelength_um=lam * lf, phase_rad=ph))
-        return out
-    raise ValueError(cause)
+    """Starting points of a candidate's joint fit (the cause's own, rig.diagnosis.causes)."""
+    return CAUSES[cause].starts(dict(cur.params), grid, screen)
 
 
 # ---------------------------------------------------------------------------
@@ -418,13 +354,6 @@ def screen(grid: Grid, cur: FitResult) -> tuple[list[str], dict]:
 # ---------------------------------------------------------------------------
 # evidence sentences
 # ---------------------------------------------------------------------------
-def _speeds(grid: Grid) -> tuple[float, float]:
-    v = grid.v[grid.v > 0.05]
-    if v.size == 0:
-        return 0.0, 0.0
-    return float(np.percentile(v, 5)), float(np.percentile(v, 95))
-
-
 def transient_scaling(grid: Grid, before: np.ndarray, after: np.ndarray):
     """How the duration of what an extension adds after each velocity change scales with speed.
 
@@ -473,10 +402,8 @@ def transient_scaling(grid: Grid, before: np.ndarray, after: np.ndarray):
 def _evidence(cause: str, res: FitResult, grid: Grid, info: dict, others: dict[str, float],
               before: FitResult | None = None) -> str:
     p = res.params
-    vlo, vhi = _speeds(grid)
     scal = ""
-    if before is not None and cause in ("frictional_memory", "time_delay", "second_state_variable", "aging_law",
-                                        "sensor_lag", "finite_stiffness"):
+    if before is not None and CAUSES[cause].transient:
         ts = transient_scaling(grid, before.pred, res.pred)
         if ts is not None:
             slope, n, pairs = ts
@@ -488,51 +415,13 @@ def _evidence(cause: str, res: FitResult, grid: Grid, info: dict, others: dict[s
                 kind = "in between (transients cut short by the next velocity change, or both kinds)"
             scal = (f"; measured on {n} velocity changes, the added transient's duration scales as v^{slope:.2f}: "
                     f"{kind}")
-            expect = EXPECTED_SCALING.get(cause)
+            expect = CAUSES[cause].scaling
             if expect is not None and not ((expect == "slip" and slope < -0.6) or (expect == "time" and slope > -0.3)):
                 scal += (f" -- not the {'~1/v of a slip distance' if expect == 'slip' else 'fixed time'} that "
                          f"{cause} predicts: the cause is named on the hold-out gain, not on this slope")
     alt = ", ".join(f"{k} {v:+.1f}%" for k, v in sorted(others.items(), key=lambda kv: -kv[1])[:3])
     alt = f" (other candidates' hold-out gains: {alt})" if alt else ""
-    if cause == "frictional_memory":
-        L = p["L_um"]
-        s = (f"after each velocity change the friction approaches its new steady value over a slip of "
-             f"L = {L:.3g} um (time L/v from {L / max(vhi, 1e-9):.3g} s to {L / max(vlo, 1e-9):.3g} s), "
-             f"with a direct jump A = {p['A_mu']:.3g}: memory over a slip distance")
-    elif cause == "time_delay":
-        s = (f"friction follows the steady-state curve of the velocity {p['delay_s']:.3g} s earlier, the same "
-             f"delay at {vlo:.3g} and {vhi:.3g} um/s and no direct jump: a fixed time delay (Hess & Soom)")
-    elif cause == "second_state_variable":
-        s = (f"a second, {'slower' if p['L2_um'] > p.get('L_um', 0) else 'faster'} transient over a slip of "
-             f"L2 = {p['L2_um']:.3g} um (B2 = {p['B2_mu']:.3g}) remains after the first state's "
-             f"L = {p.get('L_um', float('nan')):.3g} um")
-    elif cause == "aging_law":
-        s = ("the transients are asymmetric between up- and down-steps in the way the Dieterich aging law "
-             f"predicts (state evolves with contact time), L = {p['L_um']:.3g} um")
-    elif cause == "sensor_lag":
-        tau = p["tau_s"]
-        s = (f"the friction's response to every velocity change is rounded over a fixed time tau = {tau:.3g} s "
-             f"(a slip of {tau * vlo:.3g} to {tau * vhi:.3g} um depending on speed): a time constant of the "
-             "force channel, not a slip distance")
-    elif cause == "finite_stiffness":
-        k = p["stiffness_kN_per_m"]
-        s = (f"the interface lags the measured position (LVDT or load point) by F/k: the rise after a "
-             f"velocity change spans a slip set by k = {k:.4g} kN/m (the measured point moves "
-             f"{1.0 / (k * 1e-3):.3g} um per N of friction change before the interface does)")
-    elif cause == "normal_force_variation":
-        s = (f"the residual follows mu x (N1 + N2 - 2 N_nom) with slope {info.get('normal_slope', float('nan')):.2f} "
-             f"(z = {info.get('normal_z', float('nan')):.1f}): friction scales with the measured normal force")
-    elif cause == "slip_wear_drift":
-        s = (f"friction drifts by {p['rate_mu_per_mm']:.3g} per mm of accumulated slip; a drift in slip fits "
-             "the hold-out blocks better than a drift in time")
-    elif cause == "force_offset_drift":
-        s = (f"the force zero drifts by {p['rate_N_per_s'] * 3600:.3g} N per hour, following time rather than "
-             "slip (it keeps drifting at the same rate whatever the speed)")
-    elif cause == "position_periodic":
-        s = (f"the residual is periodic in position with wavelength {p['wavelength_um']:.4g} um and amplitude "
-             f"{p['amplitude_mu']:.3g} in mu, the same at every speed (so not periodic in time)")
-    else:
-        s = cause
+    s = CAUSES[cause].evidence(p, grid, info)
     return s + scal + alt
 
 
@@ -574,7 +463,7 @@ def fit_baseline(grid: Grid, baseline: str, prior: dict | None = None) -> FitRes
         return fit(grid, "steady_state", [], p_ss)
     if baseline != "rate_state":
         raise ValueError(f"unknown baseline {baseline!r} (rate_state or steady_state)")
-    starts = _rate_starts(p_ss)
+    starts = rate_starts(p_ss)
     # identify's whole-record fit (fitted whatever its cost at the start: a ranking by cost at the
     # starting point is what let the fit settle in a cancelling A ~ B ~ 0.05 minimum before)
     must = [{"mu0": p_ss["mu0"], "A_mu": prior["A_mu"], "B_mu": prior["B_mu"], "L_um": prior["L_um"]}] if prior else []
@@ -591,8 +480,8 @@ def fit_baseline(grid: Grid, baseline: str, prior: dict | None = None) -> FitRes
 def try_candidate(grid: Grid, cur: FitResult, cause: str, info: dict, prior: dict | None = None) -> Candidate:
     exts = list(cur.extensions) + [cause]
     starts = _candidate_starts(cause, cur, grid, info)
-    # two states: many local minima (but the stiffness solver is costly)
-    keep = 4 if cause == "second_state_variable" and "finite_stiffness" not in exts else 2
+    # e.g. two states: many local minima (but the stiffness solver is costly)
+    keep = CAUSES[cause].keep if "finite_stiffness" not in exts else 2
     must = []
     if prior and cause in ("finite_stiffness", "second_state_variable") and cur.baseline == "rate_state":
         # also from identify's whole-record fit (the current model may sit in a minimum that only
@@ -636,7 +525,7 @@ def try_candidate(grid: Grid, cur: FitResult, cause: str, info: dict, prior: dic
             ok = False
             note = (f"confounded with {moved[0]}: adding it moves {moved[1]} from {moved[2]:.4g} to {moved[3]:.4g} "
                     f"({100 * moved[4]:+.0f}%); the data do not tell the two apart")
-    if ok and cause in TRANSIENT_RATE + TRANSIENT_STEADY and grid.holdout_design.startswith("blocks aligned"):
+    if ok and CAUSES[cause].transient and grid.holdout_design.startswith("blocks aligned"):
         # with the hold-out segments aligned to the steps, a transient cause must also predict the
         # other half of the steps: refitted on the hold-out segments, judged on the fit segments.
         # A true memory, lag or spring shows in every step; a one-off event inside one segment (a
@@ -736,40 +625,7 @@ def _plausible(cause: str, p: dict, grid: Grid) -> bool:
     # rate-and-state coefficients are O(0.001-0.02) (Table 2; rock friction)
     if any(abs(p.get(k, 0.0)) > 0.05 for k in ("A_mu", "B_mu", "B2_mu")):
         return False
-    T = float(grid.t[-1] - grid.t[0])
-    if cause == "sensor_lag" and (p["tau_s"] > 0.2 * T or p["tau_s"] < grid.time_resolution_s):
-        return False
-    if cause == "time_delay" and (p["delay_s"] > 0.2 * T or p["delay_s"] < grid.time_resolution_s):
-        return False
-    if cause in ("second_state_variable", "finite_stiffness"):
-        vlo, vhi = _speeds(grid)
-        lnr = math.log(max(vhi, 1e-9) / max(vlo, 1e-9)) if vlo > 0 else 0.0
-        F_scale = 2.0 * grid.N_nom * lnr  # N of friction per unit of mu coefficient across the speeds
-        if cause == "second_state_variable" and F_scale * abs(p["B2_mu"]) < EFFECT_MIN_NOISE * grid.noise_N:
-            return False  # significant perhaps, but below the noise floor: not a finding
-        if cause == "finite_stiffness":
-            dF = F_scale * (abs(p.get("A_mu", 0.0)) + abs(p.get("B_mu", p.get("c_mu", 0.0))))
-            if dF / (p["stiffness_kN_per_m"] * 1e-3) < STIFF_MIN_SLIP_FRAC * p.get("L_um", 20.0):
-                return False  # the spring takes up a negligible slip: as rigid as the data can tell
-    if cause == "second_state_variable":
-        # two states of opposite sign and similar length nearly cancel: their small difference (the
-        # basalt record: B = 0.0119 over 168 um, B2 = -0.0130 over 218 um) is one hump that a single
-        # state, a spring or a lag shapes as well; two states are two only if their lengths differ
-        L1, L2 = p.get("L_um", 0.0), p["L2_um"]
-        if p.get("B_mu", 0.0) * p["B2_mu"] < 0 and max(L1, L2) < MIN_OPPOSITE_STATE_RATIO * min(L1, L2):
-            return False
-        # a state longer than half the record's slip cannot be told from a drift
-        if p["L2_um"] > 0.5 * float(slip_of(grid)[-1]):
-            return False
-        # nor can one whose transient is shorter than the kinematics resolve, even at the
-        # fastest sliding (as sensor_lag and time_delay): it stands in for the loading/sensors
-        if p["L2_um"] / max(_speeds(grid)[1], 1e-9) < grid.time_resolution_s:
-            return False
-    if cause == "position_periodic":
-        span = float(grid.x.max() - grid.x.min())
-        if p["wavelength_um"] > span / 5:
-            return False
-    return True
+    return CAUSES[cause].plausible(p, grid)
 
 
 def known_params(trial: TrialData) -> dict:
@@ -965,7 +821,7 @@ def diagnose(trial: TrialData, baseline: str = "rate_state", progress=None, n_bl
             ev += "; not named: " + "; ".join(f"{o.cause} ({o.gain_pct:+.1f}%): {o.note}" for o in stronger)
         f = {
             "cause": c.cause,
-            "params": {k: _r(res.params[k]) for k in _finding_params(c.cause)},
+            "params": {k: _r(res.params[k]) for k in CAUSES[c.cause].params},
             "evidence": ev,
             "holdout_rms_N_before": _r(before.holdout_rms_N),
             "holdout_rms_N_after": _r(res.holdout_rms_N),
@@ -1016,7 +872,7 @@ def _alternatives(grid: Grid, chosen: Candidate, round_: list[Candidate], instea
         if o is chosen or o.cause == chosen.cause or o.gain_pct < max(0.5 * chosen.gain_pct, MIN_GAIN_PCT):
             continue
         if paired_z(grid, o.result.pred, chosen.result.pred) < MIN_Z:
-            out.append({"cause": o.cause, "params": {k: _r(o.result.params[k]) for k in _finding_params(o.cause)},
+            out.append({"cause": o.cause, "params": {k: _r(o.result.params[k]) for k in CAUSES[o.cause].params},
                         "gain_pct": _r(o.gain_pct, 4), "delta_bic": _r(o.delta_bic, 6)})
     seen = {a["cause"] for a in out}
     for cz in instead:
@@ -1025,7 +881,7 @@ def _alternatives(grid: Grid, chosen: Candidate, round_: list[Candidate], instea
         seen.add(cz)
         o = next((x for x in round_ if x.cause == cz), None)
         if o is not None:
-            out.append({"cause": cz, "params": {k: _r(o.result.params[k]) for k in _finding_params(cz)},
+            out.append({"cause": cz, "params": {k: _r(o.result.params[k]) for k in CAUSES[cz].params},
                         "gain_pct": _r(o.gain_pct, 4), "delta_bic": _r(o.delta_bic, 6)})
         else:
             out.append({"cause": cz, "params": {}, "gain_pct": 0.0 if cz == "none" else None, "delta_bic": 0.0
@@ -1090,12 +946,6 @@ def refit_all(grid: Grid, res: FitResult) -> FitResult:
         if r.params.get("L_um") != L1:
             r.extra.pop("jac", None)  # its columns are in the other order: no standard errors
     return r
-
-
-def _finding_params(cause: str) -> tuple:
-    if cause == "position_periodic":
-        return ("amplitude_mu", "wavelength_um")
-    return EXT_PARAMS[cause]
 
 
 # ---------------------------------------------------------------------------
