@@ -39,7 +39,7 @@ import numpy as np
 
 from rig.data import TrialData
 
-from .fit import FitResult, evaluate, fit, multistart
+from .fit import FitResult, at_bound, evaluate, fit, multistart, profile
 from rig.kinematics import velocity_changes
 from rig.model.forward import as_model
 from rig.model.spec import EXT_PARAMS, PLAUSIBLE, model_params
@@ -615,7 +615,6 @@ def _ext_params_plausible(extensions, p: dict) -> bool:
 
 def _plausible(cause: str, p: dict, grid: Grid) -> bool:
     """Reject fits that ran to a bound (the extension then stands in for something else)."""
-    from .fit import at_bound
 
     if at_bound(p, grid):
         return False
@@ -648,7 +647,8 @@ def known_params(trial: TrialData) -> dict:
 # a cause is named only when it is named on most of them and the main split
 RESPLITS = ({"n_blocks": 16}, {"n_blocks": 24, "swap_aligned": True}, {"crop": (0.03, 0.0)}, {"crop": (0.0, 0.03)})
 MIN_STABILITY = 0.5  # named on more than this fraction of all splits (main + RESPLITS)
-RESPLIT_PARALLEL_MIN_S = 3.0  # a main search shorter than this runs its re-splits in-process
+RESPLIT_PARALLEL_MIN_S = 3.0
+PROFILE_MAX_BINS_SPRING = 2000  # profile likelihood of a model with a spring only on grids this small  # a main search shorter than this runs its re-splits in-process
 
 
 @dataclass
@@ -844,6 +844,29 @@ def diagnose(trial: TrialData, baseline: str = "rate_state", progress=None, n_bl
     # blocks, the direct effect A of a three-step record moves by +-50 % with the split alone
     d.baseline_fit = refit_all(grid, base)
     d.final_fit = d.baseline_fit if cur is base else refit_all(grid, cur)
+    # the global optimum along the flat a-b-L valley and L's interval: a profile likelihood over ln L
+    # (fit.profile), for the baseline and the final model (with a spring only on small grids: each
+    # profile point is a spring fit)
+    for attr in ("baseline_fit", "final_fit"):
+        res = getattr(d, attr)
+        if attr == "final_fit" and res is d.baseline_fit:
+            continue
+        if "L_um" not in res.params or ("finite_stiffness" in res.extensions and grid.t.size > PROFILE_MAX_BINS_SPRING):
+            continue
+        if progress:
+            progress("profile likelihood of L")
+        better, iv = profile(grid, res)
+        if better is not None and not at_bound(better.params, grid) and _ext_params_plausible(better.extensions,
+                                                                                                better.params):
+            if "second_state_variable" in better.extensions and "aging_law" not in better.extensions:
+                better.params = swap_slower_second(better.params)
+            res = better
+            _, iv = profile(grid, res)
+        if iv is not None:
+            res.extra["interval_L_um"] = iv
+        setattr(d, attr, res)
+        if attr == "baseline_fit" and cur is base:
+            d.final_fit = res
     d.baseline_all, d.final_all = d.baseline_fit.params, d.final_fit.params
     for f in findings:
         # a finding's parameters are the final model's; the single-cause fit's values beside them
@@ -907,8 +930,11 @@ def uncertainty(grid: Grid, res: FitResult, names: list[str] | None = None) -> d
     want = nm if names is None else [n for n in names if n in nm]
     out: dict = {"params_sd": {n: _r(sd[nm.index(n)]) for n in want}}
     iv = {}
+    prof = res.extra.get("interval_L_um")
+    if prof is not None and "L_um" in want:
+        iv["L_um"] = [_r(prof[0]), _r(prof[1])]  # from the profile likelihood (fit.profile)
     for n in want:
-        if n in ("L_um", "L2_um") and vals[nm.index(n)] > 0:
+        if n in ("L_um", "L2_um") and n not in iv and vals[nm.index(n)] > 0:
             v, s = vals[nm.index(n)], sd[nm.index(n)]
             iv[n] = [_r(v * math.exp(-s / v)), _r(v * math.exp(s / v))]
     if iv:
@@ -934,8 +960,6 @@ def refit_all(grid: Grid, res: FitResult) -> FitResult:
     except (ValueError, ZeroDivisionError, FloatingPointError):
         return keep
     p = dict(r.params)
-    from .fit import at_bound
-
     if (not np.all(np.isfinite(list(p.values()))) or at_bound(p, grid)
             or any(abs(p.get(k, 0.0)) > 0.05 for k in ("A_mu", "B_mu", "B2_mu"))
             or not _ext_params_plausible(res.extensions, p)):

@@ -277,3 +277,75 @@ def at_bound(params: dict, grid: Grid | None = None) -> bool:
         if param(nm, grid).at_bound(v):
             return True
     return False
+
+
+PROFILE_POINTS = 9      # ln L grid of the profile likelihood (Deliver 2 of issue 20)
+PROFILE_SPAN = 8.0      # from L / span to L * span (within the parameter's bounds)
+PROFILE_NFEV = 40       # evaluations per profile point (continued from its neighbour)
+
+
+def profile(grid: Grid, res: FitResult, name: str = "L_um", mask: np.ndarray | None = None):
+    """Profile likelihood of ``res``'s model along ln ``name`` (the flat a-b-L valley): at each of
+    PROFILE_POINTS values the other parameters are refitted with ``name`` held (continuation from
+    the neighbouring point, outwards from the fit). Returns ``(better, interval)``: a fit polished
+    from the best profile point when that point lies below ``res`` (the global optimum along the
+    valley that a local search missed; else None), and the +-1 sd interval of ``name`` where the
+    profile's rise stays under one residual variance (``s^2``, with the autocorrelation
+    inflation of :func:`covariance`), interpolated in ln ``name`` (None without a Jacobian)."""
+    from dataclasses import replace as _replace
+
+    if name not in res.params or "jac" not in res.extra:
+        return None, None
+    pset, z, J, r, m0 = res.extra["jac"]
+    m = m0 if mask is None else mask
+    n, p = J.shape
+    x = r - r.mean()
+    rho = min(max(float(np.sum(x[1:] * x[:-1]) / max(float(np.sum(x * x)), 1e-300)), 0.0), 0.98)
+    s2 = float(np.dot(r, r) / max(n - p, 1)) * (1 + rho) / (1 - rho)
+    prm = param(name, grid)
+    v0 = float(res.params[name])
+    lo, hi = max(prm.lo * 1.0001, v0 / PROFILE_SPAN), min(prm.hi / 1.0001, v0 * PROFILE_SPAN)
+    if not lo < v0 < hi:
+        return None, None
+    grid_v = np.exp(np.linspace(math.log(lo), math.log(hi), PROFILE_POINTS))
+    sse0 = float(np.dot(r, r))
+    pts = {v0: (sse0, res.params)}
+    for side in (grid_v[grid_v > v0], grid_v[grid_v < v0][::-1]):
+        start = dict(res.params)
+        for v in side:
+            g = _replace(grid, known={**grid.known, name: float(v)})
+            rv = fit(g, res.baseline, res.extensions, dict(start, **{name: float(v)}), max_nfev=PROFILE_NFEV,
+                     mask=m)
+            if "jac" not in rv.extra or not np.isfinite(rv.sse_fit):
+                break
+            sse = float(np.dot(rv.extra["jac"][3], rv.extra["jac"][3]))
+            pts[float(v)] = (sse, rv.params)
+            start = rv.params
+    vs = np.array(sorted(pts))
+    ss = np.array([pts[v][0] for v in vs])
+    better = None
+    k = int(np.argmin(ss))
+    if ss[k] < sse0 - 1e-9 * max(sse0, 1.0):
+        better = fit(grid, res.baseline, res.extensions, dict(pts[vs[k]][1]), mask=m)
+        if not better.sse_fit < res.sse_fit:
+            better = None
+    if better is not None:
+        return better, None  # the caller reports from the better fit (its own profile, if asked again)
+    rise = ss - ss.min()
+    lv = np.log(vs)
+    i0 = int(np.argmin(ss))
+
+    def edge(idx):
+        # sqrt(rise) is nearly linear in ln L near the minimum (the rise is quadratic): interpolated so,
+        # a coarse grid does not narrow the interval
+        q, q1 = np.sqrt(rise), math.sqrt(s2)
+        for a, b in zip(idx[:-1], idx[1:]):
+            if q[b] > q1 >= q[a]:
+                f = (q1 - q[a]) / (q[b] - q[a])
+                return float(math.exp(lv[a] + f * (lv[b] - lv[a])))
+        return None  # flat to the end of the profile: the interval is open on that side
+
+    lo_e = edge(list(range(i0, -1, -1)))
+    hi_e = edge(list(range(i0, vs.size)))
+    return None, (lo_e if lo_e is not None else float(vs[0]), hi_e if hi_e is not None else float(vs[-1]),
+                  lo_e is None, hi_e is None)
