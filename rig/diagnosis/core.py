@@ -717,11 +717,20 @@ def _search(trial: TrialData, baseline: str, prior: dict, steps: list, known: di
 def _resplit_causes(args) -> list[str]:
     """The causes one re-split names, in order (a worker of :func:`diagnose`)."""
     trial, baseline, prior, steps, known, load_point, spec, rounds = args
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # a forked worker writes nothing (a stream's lock may be held at the fork)
+        return _resplit_search(trial, baseline, prior, steps, known, load_point, spec, rounds)
+
+
+def _resplit_search(trial, baseline, prior, steps, known, load_point, spec, rounds) -> list[str]:
     a, b = spec.get("crop", (0.0, 0.0))
     if a or b:
         t = np.asarray(trial.time_s, dtype=float)
         T = t[-1] - t[0]
-        trial = canonical(trial.select((t >= t[0] + a * T) & (t <= t[-1] - b * T)))
+        # not re-zeroed: the steps are on this clock (prepare measures everything from the first sample)
+        trial = trial.select((t >= t[0] + a * T) & (t <= t[-1] - b * T))
     try:
         s = _search(trial, baseline, prior, steps, known, load_point, n_blocks=spec.get("n_blocks", 20),
                     swap_aligned=spec.get("swap_aligned", False), max_rounds=rounds)
@@ -736,8 +745,13 @@ def _run_resplits(jobs: list, parallel: bool, progress=None) -> list[list[str]]:
         import multiprocessing as mp
         import os
 
+        import threading
+
         n = min(len(jobs), int(os.environ.get("RIG_JOBS", "0") or 0) or min(2, os.cpu_count() or 1))
-        if n > 1 and "fork" in mp.get_all_start_methods():
+        # forked only from the main thread of a main process (a batch worker, with its own threads or as
+        # a daemon, runs them in-process)
+        if (n > 1 and "fork" in mp.get_all_start_methods() and threading.current_thread() is threading.main_thread()
+                and mp.current_process().name == "MainProcess"):
             # fork: the workers start at once with the compiled kernels (spawn re-imports everything,
             # slower than the re-splits themselves on a loaded 2-core machine); they call no progress
             try:
