@@ -4,6 +4,7 @@
     python benchmarks/bench_diagnose.py real         # the 75,220-row real record (velstep2), read + diagnosed
     python benchmarks/bench_diagnose.py clean N      # false-finding rate over N clean records
     python benchmarks/bench_diagnose.py accuracy N   # per cause: named and within 25 %, over N seeds
+    python benchmarks/bench_diagnose.py coverage N   # the final model's 68 % intervals: how often they cover the truth
     ... [NOISE_SCALE]: records' sensor noise in units of the profile's (2 = the paper's ± as 1 sigma)
 """
 
@@ -97,10 +98,46 @@ def accuracy(n):
               f"{100 * np.median(errs) if errs else float('nan'):.1f} %", flush=True)
 
 
+def coverage(n):
+    """Issue 20, Deliver 6: over ``n`` generated records with known truth (clean and load-point
+    spring records, 25/100 Hz, with and without position_ref_um), how often the final model's
+    +-1 params_sd (and L's interval) covers the truth; a 68 % interval should cover it in 55-80 %."""
+    import os
+
+    hits: dict[str, list[bool]] = {}
+    t0 = time.perf_counter()
+    for seed in range(n):
+        rate = (25.0, 100.0)[seed % 2]
+        spring = seed % 3 == 2
+        eff = {"finite_stiffness": {"stiffness_kN_per_m": 150.0 + 50.0 * (seed % 5)}} if spring else {}
+        trial, truth = make_record(SynthSpec(rate_hz=rate, duration_s=600.0, seed=900 + seed, protocol="varied",
+                                             effects=eff, with_ref=bool(seed % 4 < 2), noise_scale=NOISE))
+        if spring:
+            trial.metadata["position_source"] = "load_point"
+        rep = diagnose(trial).report()
+        m = rep["model"]
+        sd, iv = m.get("params_sd", {}), m.get("intervals", {})
+        for k in ("A_mu", "B_mu", "L_um", "stiffness_kN_per_m"):
+            if k not in truth["params"] or k not in m["params"] or sd.get(k) is None:
+                continue
+            hits.setdefault(k, []).append(abs(m["params"][k] - truth["params"][k]) <= sd[k])
+            if k in iv:
+                hits.setdefault(k + " (interval)", []).append(iv[k][0] <= truth["params"][k] <= iv[k][1])
+        print(f"coverage seed {900 + seed} {rate:g} Hz{' spring' if spring else ''}: "
+              + " ".join(f"{k}={m['params'][k]:.4g}±{sd.get(k) or float('nan'):.2g} (truth {truth['params'][k]:.4g})"
+                         for k in ("A_mu", "B_mu", "L_um", "stiffness_kN_per_m") if k in m["params"]
+                         and k in truth["params"]), flush=True)
+    print("| parameter | records | covered by ±1 sd (68 % interval) |\n|---|---|---|")
+    for k, v in hits.items():
+        print(f"| {k} | {len(v)} | {sum(v)}/{len(v)} = {100.0 * sum(v) / len(v):.0f} % |")
+    print(f"{time.perf_counter() - t0:.0f} s wall, load average {os.getloadavg()[0]:.2f}, noise scale {NOISE:g}")
+
+
 NOISE = float(sys.argv[3]) if len(sys.argv) > 3 else 1.0
 
 
 if __name__ == "__main__":
     what = sys.argv[1] if len(sys.argv) > 1 else "speed"
     n = int(sys.argv[2]) if len(sys.argv) > 2 else 10
-    {"speed": lambda: speed(), "real": lambda: real(), "clean": lambda: clean(n), "accuracy": lambda: accuracy(n)}[what]()
+    {"speed": lambda: speed(), "real": lambda: real(), "clean": lambda: clean(n), "accuracy": lambda: accuracy(n),
+     "coverage": lambda: coverage(n)}[what]()

@@ -272,13 +272,16 @@ def edge_preserving_line(t, x, half):
         a, b, r = _centred_line_fit(t, x, lo_c, hi_c, t[i])
         if r < best_r:
             best_r, best_a, best_b = r, a, b
-        m_c = hi_c - lo_c + 1
-        # one-sided windows only when (nearly) full: a short window's scatter is no evidence
-        if i - lo_l + 1 >= 0.8 * m_c and i - lo_l + 1 >= 5:
+        # one-sided windows only when (nearly) full: a short window's scatter is no evidence. Full in
+        # time, not in rows: a record logged at 10 Hz before a step and 100 Hz after it has ten times
+        # fewer rows in the slow side's window, which is still full (counted in rows, the slow side
+        # never qualified and the centred window smeared the step over the second before it)
+        span_c = t[hi_c] - t[lo_c]
+        if t[i] - t[lo_l] >= 0.8 * span_c and i - lo_l + 1 >= 5:
             a, b, r = _centred_line_fit(t, x, lo_l, i, t[i])
             if r < best_r * 0.999:
                 best_r, best_a, best_b = r, a, b
-        if hi_r - i + 1 >= 0.8 * m_c and hi_r - i + 1 >= 5:
+        if t[hi_r] - t[i] >= 0.8 * span_c and hi_r - i + 1 >= 5:
             a, b, r = _centred_line_fit(t, x, i, hi_r, t[i])
             if r < best_r * 0.999:
                 best_r, best_a, best_b = r, a, b

@@ -26,14 +26,23 @@ def test_cli_report_plot_model(tmp_path):
     rep = json.loads(js.read_text())
     assert set(rep) - {"warnings"} == {"schema", "data", "baseline", "findings", "unexplained", "model", "holdout_rms_N"}
     assert rep["schema"] == "rig.diagnosis/1"
-    assert set(rep["baseline"]) == {"model", "params", "holdout_rms_N"}
+    # the spec's keys, and only its optional additive ones (plus the A-B-L correlation of issue 20)
+    optional = {"params_sd", "intervals", "correlation"}
+    assert {"model", "params", "holdout_rms_N"} <= set(rep["baseline"]) <= {"model", "params", "holdout_rms_N"} | optional
+    assert set(rep["baseline"]["params_sd"]) == set(rep["baseline"]["params"])
+    assert rep["baseline"]["intervals"]["L_um"][0] < rep["baseline"]["params"]["L_um"] < rep["baseline"]["intervals"]["L_um"][1]
+    assert all(-1.0 <= c <= 1.0 for c in rep["baseline"]["correlation"].values())
     f = rep["findings"][0]
-    assert set(f) == {"cause", "params", "evidence", "holdout_rms_N_before", "holdout_rms_N_after", "gain_pct",
-                      "delta_bic"}
+    required = {"cause", "params", "evidence", "holdout_rms_N_before", "holdout_rms_N_after", "gain_pct", "delta_bic"}
+    assert required <= set(f) <= required | optional | {"stability", "alternatives"}
+    assert 0.5 < f["stability"] <= 1.0
+    # a finding's parameters are the final model's
+    assert all(rep["model"]["params"][k] == v for k, v in f["params"].items())
+    assert "final model: rate_state + position_periodic" in res.output
     assert set(f["params"]) == {"amplitude_mu", "wavelength_um"}
     assert abs(f["gain_pct"] - 100 * (f["holdout_rms_N_before"] - f["holdout_rms_N_after"])
                / f["holdout_rms_N_before"]) < 0.05
-    assert set(rep["model"]) == {"baseline", "extensions", "params"}
+    assert {"baseline", "extensions", "params"} <= set(rep["model"]) <= {"baseline", "extensions", "params"} | optional
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     fm = FrictionModel.from_yaml(yml)
     assert fm.extensions == rep["model"]["extensions"]

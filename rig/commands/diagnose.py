@@ -79,7 +79,7 @@ def register(app: typer.Typer) -> None:
         rep = d.report()
         rep["data"] = str(data)
         rep["warnings"] = diagnosis_warnings(rep) + _calibration_warnings(trial, rep)  # issue 21
-        text = summary(dict(rep, _noise_N=d.grid.noise_N))
+        text = summary(dict(rep, _noise_N=d.grid.noise_N, _unnamed=d.unnamed))
         if json_to_stdout(json_out):
             err_console.print(text, markup=False)
         else:
@@ -119,6 +119,10 @@ def diagnosis_warnings(rep: dict) -> list[dict]:
     return out
 
 
+def _or(names: list[str]) -> str:
+    return names[0] if len(names) == 1 else ", ".join(names[:-1]) + " or " + names[-1]
+
+
 def summary(rep: dict) -> str:
     """A short human summary of a report."""
     from rig.model.checks import MARK, flagged
@@ -128,7 +132,9 @@ def summary(rep: dict) -> str:
     lines = [f"{rep['data']}: baseline {b['model']} "
              + ", ".join(f"{k}={v:.4g}" + (f" {MARK}" if k in fl else "") for k, v in b["params"].items())
              + f"; hold-out RMS {b['holdout_rms_N']:.4g} N"]
-    if not rep["findings"]:
+    if not rep["findings"] and rep.get("_unnamed"):
+        lines.append("  no finding that the record supports on most of its splits")
+    elif not rep["findings"]:
         noise = rep.get("_noise_N")
         if noise and b["holdout_rms_N"] > 1.2 * noise:
             lines.append(f"  no finding: no catalogue extension passes the hold-out test, though the residual "
@@ -137,13 +143,26 @@ def summary(rep: dict) -> str:
             lines.append("  no finding: the baseline explains the data to within its noise")
     for f in rep["findings"]:
         ps = ", ".join(f"{k}={v:.4g}" for k, v in f["params"].items())
+        st = f" [named on {f['stability']:.0%} of the record's splits]" if "stability" in f else ""
         lines.append(f"  found {f['cause']} ({ps}): hold-out RMS {f['holdout_rms_N_before']:.4g} -> "
-                     f"{f['holdout_rms_N_after']:.4g} N ({f['gain_pct']:+.1f}%, dBIC {f['delta_bic']:.0f})")
+                     f"{f['holdout_rms_N_after']:.4g} N ({f['gain_pct']:+.1f}%, dBIC {f['delta_bic']:.0f}){st}")
         lines.append(f"    {f['evidence']}")
+        alts = [a["cause"] for a in f.get("alternatives", [])]
+        if alts:
+            lines.append(f"  this record cannot tell {f['cause']} apart from {_or(alts)}: "
+                         f"{'they explain' if len(alts) > 1 else 'it explains'} the held-out data about as well")
+    for u in rep.get("_unnamed", []):
+        lines.append(f"  not named: {u['cause']} ({u['gain_pct']:+.1f}% on the main split, but named on only "
+                     f"{u['stability']:.0%} of the record's splits): this record cannot tell it apart from no such "
+                     "cause")
     for u in rep["unexplained"]:
         lines.append(f"  unexplained structure following {u['follows']}: {u['evidence']}")
     m = rep["model"]
-    lines.append(f"  model: {m['baseline']}" + (" + " + " + ".join(m["extensions"]) if m["extensions"] else "")
+    fl = flagged(rep.get("warnings", []), "model " + " + ".join([m["baseline"], *m["extensions"]]))
+    sd = m.get("params_sd", {})
+    lines.append(f"  final model: {m['baseline']}" + (" + " + " + ".join(m["extensions"]) if m["extensions"] else "")
+                 + ": " + ", ".join(f"{k}={v:.4g}" + (f" ± {sd[k]:.2g}" if sd.get(k) is not None else "")
+                                    + (f" {MARK}" if k in fl else "") for k, v in m["params"].items())
                  + f"; hold-out RMS {rep['holdout_rms_N']:.4g} N")
     for w in rep.get("warnings", []):
         lines.append(f"  warning (!): {w['where']}: {w['message']}")

@@ -39,18 +39,17 @@ import numpy as np
 
 from rig.data import TrialData
 
-from .fit import FitResult, evaluate, fit, multistart
+from .fit import FitResult, at_bound, evaluate, fit, multistart, profile
 from rig.kinematics import velocity_changes
 from rig.model.forward import as_model
 from rig.model.spec import EXT_PARAMS, PLAUSIBLE, model_params
+from .causes import CAUSES, rate_starts, slip_of
 from .prep import Grid, canonical, prepare
 
 # a finding must matter in practice, not only pass a significance test (docs/diagnosis.md):
 # a hold-out RMS gain of at least MIN_GAIN_PCT, and (per cause, _plausible) an effect above the
 # noise floor with physically plausible parameters
 MIN_GAIN_PCT = 1.0
-EFFECT_MIN_NOISE = 0.5      # second state: its steady-state effect 2 N |B2| ln(v_hi/v_lo) >= this x noise
-STIFF_MIN_SLIP_FRAC = 0.05  # finite stiffness: the slip the spring takes up in a transient >= this x L
 MIN_Z = 2.5
 MIN_ZW = 5.0
 MIN_DBIC = -10.0
@@ -60,8 +59,6 @@ UNEXPLAINED_MIN_GAIN_PCT = 1.0
 # hold-out residual rms; a smaller one is significant but negligible (a few mN on a 0.04 N residual)
 UNEXPLAINED_MIN_EFFECT = 0.1
 MAX_FINDINGS = 5
-# two slip-law states of opposite sign must differ in length by at least this factor
-MIN_OPPOSITE_STATE_RATIO = 3.0
 # a further cause must leave the causes already found as they were (within this fraction): one that
 # takes over part of their job (a lag that makes a spring 60 % stiffer) is not separable from them
 MAX_FINDING_SHIFT = 0.3
@@ -72,10 +69,6 @@ MAX_FINDING_SHIFT = 0.3
 # fraction of its gain on the fitted ones (true lags and springs of bench_diagnose: 0.23-0.8; a
 # jump of friction inside one segment that a spring absorbed: 0.006)
 SWAP_MIN_FRACTION = 0.1
-EXPECTED_SCALING = {"frictional_memory": "slip", "second_state_variable": "slip", "finite_stiffness": "slip",
-                    "aging_law": None, "sensor_lag": "time", "time_delay": "time"}
-TRANSIENT_RATE = ("second_state_variable", "aging_law", "sensor_lag", "finite_stiffness")
-TRANSIENT_STEADY = ("frictional_memory", "time_delay", "sensor_lag", "finite_stiffness")
 
 
 @dataclass
@@ -88,6 +81,7 @@ class Candidate:
     accepted: bool
     note: str = ""
     zw: float = 0.0
+    info: dict = field(default_factory=dict)  # the screening figures of its round
 
 
 @dataclass
@@ -104,6 +98,12 @@ class Diagnosis:
     # the chosen baseline's and final model's parameters refitted on all sliding data (reported)
     baseline_all: dict | None = None
     final_all: dict | None = None
+    # the same as FitResults (their Jacobians give params_sd, intervals, correlation)
+    baseline_fit: FitResult | None = None
+    final_fit: FitResult | None = None
+    # causes the main split named that most re-splits did not (the record cannot tell them apart from
+    # what is left): [{"cause", "stability", "gain_pct"}]
+    unnamed: list[dict] = field(default_factory=list)
 
     @property
     def model(self):
@@ -114,16 +114,20 @@ class Diagnosis:
     def report(self) -> dict:
         """The JSON report of diagnosis.md (schema rig.diagnosis/1)."""
         b = self.baseline
+        base = {"model": b.baseline, "params": _public(self.baseline_all or b.params, b.baseline, b.extensions),
+                "holdout_rms_N": _r(b.holdout_rms_N)}
+        model = {"baseline": self.final.baseline, "extensions": list(self.final.extensions),
+                 "params": _public(self.final_all or self.final.params, self.final.baseline, self.final.extensions)}
+        for out, res in ((base, self.baseline_fit), (model, self.final_fit)):
+            if res is not None:
+                out.update(uncertainty(self.grid, res, list(out["params"])))
         return {
             "schema": "rig.diagnosis/1",
             "data": self.data,
-            "baseline": {"model": b.baseline, "params": _public(self.baseline_all or b.params, b.baseline, b.extensions),
-                         "holdout_rms_N": _r(b.holdout_rms_N)},
+            "baseline": base,
             "findings": self.findings,
             "unexplained": self.unexplained,
-            "model": {"baseline": self.final.baseline, "extensions": list(self.final.extensions),
-                      "params": _public(self.final_all or self.final.params, self.final.baseline,
-                                        self.final.extensions)},
+            "model": model,
             "holdout_rms_N": _r(self.final.holdout_rms_N),
         }
 
@@ -213,12 +217,6 @@ def _wcorr_z(grid: Grid, r: np.ndarray, q: np.ndarray) -> tuple[float, float]:
     return slope, (slope / se if se > 0 else 0.0)
 
 
-def slip_of(grid: Grid) -> np.ndarray:
-    s = np.zeros_like(grid.t)
-    s[1:] = np.cumsum(0.5 * np.abs(grid.v[1:] + grid.v[:-1]) * np.diff(grid.t))
-    return s
-
-
 def _fft_periodogram(q: np.ndarray, r: np.ndarray, w: np.ndarray, dq: float, per_min: float, per_max: float):
     """Periodogram of r against q (binned on a uniform q grid of step dq, weighted means, empty bins 0).
 
@@ -291,60 +289,9 @@ def _steady_init(grid: Grid) -> dict:
     return {"mu0": float(sol[0]), "c_mu": float(sol[1])}
 
 
-def _rate_starts(p_ss: dict) -> list[dict]:
-    c = p_ss["c_mu"]
-    out = []
-    for L in (3.0, 10.0, 30.0, 100.0, 300.0):
-        for A in (1e-3, 4e-3):
-            out.append({"mu0": p_ss["mu0"], "A_mu": A, "B_mu": A - c, "L_um": L})
-    return out
-
-
 def _candidate_starts(cause: str, cur: FitResult, grid: Grid, screen: dict) -> list[dict]:
-    p = dict(cur.params)
-    if cause == "frictional_memory":
-        ss = {"mu0": p["mu0"], "c_mu": p.get("c_mu", 0.0)}
-        starts = []
-        for s in _rate_starts(ss):
-            q = dict(p)
-            q.pop("c_mu", None)
-            q.update(s)
-            starts.append(q)
-        return starts
-    if cause == "time_delay":
-        return [dict(p, delay_s=float(d)) for d in np.exp(np.linspace(np.log(0.02), np.log(10.0), 240))]
-    if cause == "second_state_variable":
-        L = p.get("L_um", 20.0)
-        B = p.get("B_mu", 0.003)
-        out = []
-        for f in (0.05, 0.2, 5.0, 15.0, 50.0):
-            for b2 in (0.5 * abs(B) + 5e-4, -0.5 * abs(B) - 5e-4):
-                out.append(dict(p, B2_mu=b2, L2_um=max(L * f, 0.5)))
-        # the baseline's state may be the slow one: a new fast state beside it
-        for f in (0.05, 0.2):
-            for b1 in (abs(B) + 1e-3, 3e-3):
-                out.append(dict(p, B_mu=b1, L_um=max(L * f, 0.2), B2_mu=B, L2_um=L))
-        return out
-    if cause == "aging_law":
-        return [dict(p), dict(p, L_um=p.get("L_um", 20.0) * 0.5), dict(p, L_um=p.get("L_um", 20.0) * 2.0)]
-    if cause == "sensor_lag":
-        return [dict(p, tau_s=float(t)) for t in np.exp(np.linspace(np.log(0.01), np.log(10.0), 22))]
-    if cause == "finite_stiffness":
-        return [dict(p, stiffness_kN_per_m=k) for k in (10.0, 40.0, 150.0, 600.0, 3000.0)]
-    if cause == "slip_wear_drift":
-        return [dict(p, rate_mu_per_mm=screen.get("wear0", 0.0))]
-    if cause == "force_offset_drift":
-        return [dict(p, rate_N_per_s=screen.get("drift0", 0.0))]
-    if cause == "normal_force_variation":
-        return [dict(p)]
-    if cause == "position_periodic":
-        lam = screen.get("lam0", 100.0)
-        out = []
-        for lf in (1.0, 0.97, 1.03):
-            for ph in (0.0, 1.6, 3.1, -1.6):
-                out.append(dict(p, amplitude_mu=screen.get("amp0", 1e-3), wavelength_um=lam * lf, phase_rad=ph))
-        return out
-    raise ValueError(cause)
+    """Starting points of a candidate's joint fit (the cause's own, rig.diagnosis.causes)."""
+    return CAUSES[cause].starts(dict(cur.params), grid, screen)
 
 
 # ---------------------------------------------------------------------------
@@ -407,13 +354,6 @@ def screen(grid: Grid, cur: FitResult) -> tuple[list[str], dict]:
 # ---------------------------------------------------------------------------
 # evidence sentences
 # ---------------------------------------------------------------------------
-def _speeds(grid: Grid) -> tuple[float, float]:
-    v = grid.v[grid.v > 0.05]
-    if v.size == 0:
-        return 0.0, 0.0
-    return float(np.percentile(v, 5)), float(np.percentile(v, 95))
-
-
 def transient_scaling(grid: Grid, before: np.ndarray, after: np.ndarray):
     """How the duration of what an extension adds after each velocity change scales with speed.
 
@@ -462,10 +402,8 @@ def transient_scaling(grid: Grid, before: np.ndarray, after: np.ndarray):
 def _evidence(cause: str, res: FitResult, grid: Grid, info: dict, others: dict[str, float],
               before: FitResult | None = None) -> str:
     p = res.params
-    vlo, vhi = _speeds(grid)
     scal = ""
-    if before is not None and cause in ("frictional_memory", "time_delay", "second_state_variable", "aging_law",
-                                        "sensor_lag", "finite_stiffness"):
+    if before is not None and CAUSES[cause].transient:
         ts = transient_scaling(grid, before.pred, res.pred)
         if ts is not None:
             slope, n, pairs = ts
@@ -477,51 +415,13 @@ def _evidence(cause: str, res: FitResult, grid: Grid, info: dict, others: dict[s
                 kind = "in between (transients cut short by the next velocity change, or both kinds)"
             scal = (f"; measured on {n} velocity changes, the added transient's duration scales as v^{slope:.2f}: "
                     f"{kind}")
-            expect = EXPECTED_SCALING.get(cause)
+            expect = CAUSES[cause].scaling
             if expect is not None and not ((expect == "slip" and slope < -0.6) or (expect == "time" and slope > -0.3)):
                 scal += (f" -- not the {'~1/v of a slip distance' if expect == 'slip' else 'fixed time'} that "
                          f"{cause} predicts: the cause is named on the hold-out gain, not on this slope")
     alt = ", ".join(f"{k} {v:+.1f}%" for k, v in sorted(others.items(), key=lambda kv: -kv[1])[:3])
     alt = f" (other candidates' hold-out gains: {alt})" if alt else ""
-    if cause == "frictional_memory":
-        L = p["L_um"]
-        s = (f"after each velocity change the friction approaches its new steady value over a slip of "
-             f"L = {L:.3g} um (time L/v from {L / max(vhi, 1e-9):.3g} s to {L / max(vlo, 1e-9):.3g} s), "
-             f"with a direct jump A = {p['A_mu']:.3g}: memory over a slip distance")
-    elif cause == "time_delay":
-        s = (f"friction follows the steady-state curve of the velocity {p['delay_s']:.3g} s earlier, the same "
-             f"delay at {vlo:.3g} and {vhi:.3g} um/s and no direct jump: a fixed time delay (Hess & Soom)")
-    elif cause == "second_state_variable":
-        s = (f"a second, {'slower' if p['L2_um'] > p.get('L_um', 0) else 'faster'} transient over a slip of "
-             f"L2 = {p['L2_um']:.3g} um (B2 = {p['B2_mu']:.3g}) remains after the first state's "
-             f"L = {p.get('L_um', float('nan')):.3g} um")
-    elif cause == "aging_law":
-        s = ("the transients are asymmetric between up- and down-steps in the way the Dieterich aging law "
-             f"predicts (state evolves with contact time), L = {p['L_um']:.3g} um")
-    elif cause == "sensor_lag":
-        tau = p["tau_s"]
-        s = (f"the friction's response to every velocity change is rounded over a fixed time tau = {tau:.3g} s "
-             f"(a slip of {tau * vlo:.3g} to {tau * vhi:.3g} um depending on speed): a time constant of the "
-             "force channel, not a slip distance")
-    elif cause == "finite_stiffness":
-        k = p["stiffness_kN_per_m"]
-        s = (f"the interface lags the measured position (LVDT or load point) by F/k: the rise after a "
-             f"velocity change spans a slip set by k = {k:.4g} kN/m (the measured point moves "
-             f"{1.0 / (k * 1e-3):.3g} um per N of friction change before the interface does)")
-    elif cause == "normal_force_variation":
-        s = (f"the residual follows mu x (N1 + N2 - 2 N_nom) with slope {info.get('normal_slope', float('nan')):.2f} "
-             f"(z = {info.get('normal_z', float('nan')):.1f}): friction scales with the measured normal force")
-    elif cause == "slip_wear_drift":
-        s = (f"friction drifts by {p['rate_mu_per_mm']:.3g} per mm of accumulated slip; a drift in slip fits "
-             "the hold-out blocks better than a drift in time")
-    elif cause == "force_offset_drift":
-        s = (f"the force zero drifts by {p['rate_N_per_s'] * 3600:.3g} N per hour, following time rather than "
-             "slip (it keeps drifting at the same rate whatever the speed)")
-    elif cause == "position_periodic":
-        s = (f"the residual is periodic in position with wavelength {p['wavelength_um']:.4g} um and amplitude "
-             f"{p['amplitude_mu']:.3g} in mu, the same at every speed (so not periodic in time)")
-    else:
-        s = cause
+    s = CAUSES[cause].evidence(p, grid, info)
     return s + scal + alt
 
 
@@ -563,7 +463,7 @@ def fit_baseline(grid: Grid, baseline: str, prior: dict | None = None) -> FitRes
         return fit(grid, "steady_state", [], p_ss)
     if baseline != "rate_state":
         raise ValueError(f"unknown baseline {baseline!r} (rate_state or steady_state)")
-    starts = _rate_starts(p_ss)
+    starts = rate_starts(p_ss)
     # identify's whole-record fit (fitted whatever its cost at the start: a ranking by cost at the
     # starting point is what let the fit settle in a cancelling A ~ B ~ 0.05 minimum before)
     must = [{"mu0": p_ss["mu0"], "A_mu": prior["A_mu"], "B_mu": prior["B_mu"], "L_um": prior["L_um"]}] if prior else []
@@ -580,8 +480,8 @@ def fit_baseline(grid: Grid, baseline: str, prior: dict | None = None) -> FitRes
 def try_candidate(grid: Grid, cur: FitResult, cause: str, info: dict, prior: dict | None = None) -> Candidate:
     exts = list(cur.extensions) + [cause]
     starts = _candidate_starts(cause, cur, grid, info)
-    # two states: many local minima (but the stiffness solver is costly)
-    keep = 4 if cause == "second_state_variable" and "finite_stiffness" not in exts else 2
+    # e.g. two states: many local minima (but the stiffness solver is costly)
+    keep = CAUSES[cause].keep if "finite_stiffness" not in exts else 2
     must = []
     if prior and cause in ("finite_stiffness", "second_state_variable") and cur.baseline == "rate_state":
         # also from identify's whole-record fit (the current model may sit in a minimum that only
@@ -608,17 +508,24 @@ def try_candidate(grid: Grid, cur: FitResult, cause: str, info: dict, prior: dic
     dbic = res.bic - cur.bic
     z = paired_z(grid, cur.pred, res.pred)
     zw = white_z(grid, cur.pred, res.pred)
-    ok = (gain >= MIN_GAIN_PCT and dbic <= MIN_DBIC
-          and (z >= MIN_Z or zw >= MIN_ZW or gain >= STRONG_GAIN_PCT)
-          and _plausible(cause, res.params, grid))
     note = ""
+    if gain < MIN_GAIN_PCT:
+        note = f"hold-out gain under {MIN_GAIN_PCT:g}%"
+    elif dbic > MIN_DBIC:
+        note = (f"its BIC falls by only {-dbic:.1f}" if dbic < 0 else f"its BIC rises by {dbic:.1f}") + \
+            f" (a fall of {-MIN_DBIC:g} needed)"
+    elif not (z >= MIN_Z or zw >= MIN_ZW or gain >= STRONG_GAIN_PCT):
+        note = f"not significant on the hold-out blocks (z = {z:.1f})"
+    elif not _plausible(cause, res.params, grid):
+        note = "its fit is not physical (a bound, a parameter outside its plausible range, or an effect below the noise)"
+    ok = not note
     if ok and cur.extensions:
         moved = _confounded(cur, res)
         if moved:
             ok = False
             note = (f"confounded with {moved[0]}: adding it moves {moved[1]} from {moved[2]:.4g} to {moved[3]:.4g} "
                     f"({100 * moved[4]:+.0f}%); the data do not tell the two apart")
-    if ok and cause in TRANSIENT_RATE + TRANSIENT_STEADY and grid.holdout_design.startswith("blocks aligned"):
+    if ok and CAUSES[cause].transient and grid.holdout_design.startswith("blocks aligned"):
         # with the hold-out segments aligned to the steps, a transient cause must also predict the
         # other half of the steps: refitted on the hold-out segments, judged on the fit segments.
         # A true memory, lag or spring shows in every step; a one-off event inside one segment (a
@@ -708,7 +615,6 @@ def _ext_params_plausible(extensions, p: dict) -> bool:
 
 def _plausible(cause: str, p: dict, grid: Grid) -> bool:
     """Reject fits that ran to a bound (the extension then stands in for something else)."""
-    from .fit import at_bound
 
     if at_bound(p, grid):
         return False
@@ -718,43 +624,156 @@ def _plausible(cause: str, p: dict, grid: Grid) -> bool:
     # rate-and-state coefficients are O(0.001-0.02) (Table 2; rock friction)
     if any(abs(p.get(k, 0.0)) > 0.05 for k in ("A_mu", "B_mu", "B2_mu")):
         return False
-    T = float(grid.t[-1] - grid.t[0])
-    if cause == "sensor_lag" and (p["tau_s"] > 0.2 * T or p["tau_s"] < grid.time_resolution_s):
-        return False
-    if cause == "time_delay" and (p["delay_s"] > 0.2 * T or p["delay_s"] < grid.time_resolution_s):
-        return False
-    if cause in ("second_state_variable", "finite_stiffness"):
-        vlo, vhi = _speeds(grid)
-        lnr = math.log(max(vhi, 1e-9) / max(vlo, 1e-9)) if vlo > 0 else 0.0
-        F_scale = 2.0 * grid.N_nom * lnr  # N of friction per unit of mu coefficient across the speeds
-        if cause == "second_state_variable" and F_scale * abs(p["B2_mu"]) < EFFECT_MIN_NOISE * grid.noise_N:
-            return False  # significant perhaps, but below the noise floor: not a finding
-        if cause == "finite_stiffness":
-            dF = F_scale * (abs(p.get("A_mu", 0.0)) + abs(p.get("B_mu", p.get("c_mu", 0.0))))
-            if dF / (p["stiffness_kN_per_m"] * 1e-3) < STIFF_MIN_SLIP_FRAC * p.get("L_um", 20.0):
-                return False  # the spring takes up a negligible slip: as rigid as the data can tell
-    if cause == "second_state_variable":
-        # two states of opposite sign and similar length nearly cancel: their small difference (the
-        # basalt record: B = 0.0119 over 168 um, B2 = -0.0130 over 218 um) is one hump that a single
-        # state, a spring or a lag shapes as well; two states are two only if their lengths differ
-        L1, L2 = p.get("L_um", 0.0), p["L2_um"]
-        if p.get("B_mu", 0.0) * p["B2_mu"] < 0 and max(L1, L2) < MIN_OPPOSITE_STATE_RATIO * min(L1, L2):
-            return False
-        # a state longer than half the record's slip cannot be told from a drift
-        if p["L2_um"] > 0.5 * float(slip_of(grid)[-1]):
-            return False
-        # nor can one whose transient is shorter than the kinematics resolve, even at the
-        # fastest sliding (as sensor_lag and time_delay): it stands in for the loading/sensors
-        if p["L2_um"] / max(_speeds(grid)[1], 1e-9) < grid.time_resolution_s:
-            return False
-    if cause == "position_periodic":
-        span = float(grid.x.max() - grid.x.min())
-        if p["wavelength_um"] > span / 5:
-            return False
-    return True
+    return CAUSES[cause].plausible(p, grid)
 
 
-def diagnose(trial: TrialData, baseline: str = "rate_state", progress=None, n_blocks: int = 20) -> Diagnosis:
+def known_params(trial: TrialData) -> dict:
+    """Parameters the file states (measured-data.md): ``machine_stiffness_kN_per_m``, a calibrated
+    stiffness between the measured position and the interface, held fixed in every fit (as xlook
+    and RSFit hold a calibrated k)."""
+    raw = trial.metadata.get("machine_stiffness_kN_per_m")
+    if raw is None or str(raw).strip() == "":
+        return {}
+    from rig.data import parse_number
+
+    k = parse_number(str(raw))
+    if k is None or not math.isfinite(k) or k <= 0:
+        raise ValueError(f"{trial.source or 'trial'}: metadata machine_stiffness_kN_per_m {raw!r} is not a positive "
+                         "number of kN/m")
+    return {"stiffness_kN_per_m": float(k)}
+
+
+# re-splits of the record (Deliver 5 of issue 20): other hold-out blocks and crops of a few per cent;
+# a cause is named only when it is named on most of them and the main split
+RESPLITS = ({"n_blocks": 16}, {"n_blocks": 24, "swap_aligned": True}, {"crop": (0.03, 0.0)}, {"crop": (0.0, 0.03)})
+MIN_STABILITY = 0.5  # named on more than this fraction of all splits (main + RESPLITS)
+RESPLIT_PARALLEL_MIN_S = 3.0
+PROFILE_MAX_BINS_SPRING = 2000  # profile likelihood of a model with a spring only on grids this small  # a main search shorter than this runs its re-splits in-process
+
+
+@dataclass
+class _Search:
+    grid: Grid
+    base: FitResult
+    history: list[FitResult]
+    tried: list[list[Candidate]]
+    chosen: list[tuple[Candidate, FitResult, str]]  # (candidate, model before it, why it was chosen)
+
+
+def _search(trial: TrialData, baseline: str, prior: dict, steps: list, known: dict, load_point: bool,
+            n_blocks: int = 20, swap_aligned: bool = False, progress=None, max_rounds: int = MAX_FINDINGS) -> _Search:
+    """One split of the record: the baseline, the machine's coupling (load point), then the loop of
+    candidates until none passes."""
+    grid = prepare(trial, n_blocks=n_blocks, restart_guard_um=3.0 * prior["L_um"] if prior else 0.0,
+                   step_times_s=np.array([s.t_s for s in steps]) if steps else np.zeros(0))
+    grid.known = dict(known)
+    if swap_aligned and grid.holdout_design.startswith("blocks aligned"):
+        grid = _swapped(grid)
+    if int(grid.sliding.sum()) < 10:
+        raise ValueError(f"{trial.source or 'trial'}: hardly any forward sliding (v > {0.1:g} um/s away from stops): "
+                         "nothing to diagnose")
+    base = fit_baseline(grid, baseline, prior)
+    cur = base
+    history, tried, chosen = [base], [], []
+    if load_point and baseline == "rate_state":
+        # measured-data.md: with position_source load_point (or a stated machine stiffness) the elastic
+        # coupling between the measured position and the interface is always there: fitted from the
+        # start (or held at the stated value), never left for a stand-in cause (aging, a lag, a drift)
+        if progress:
+            progress("the machine's coupling")
+        c = try_candidate(grid, cur, "finite_stiffness", {}, prior)
+        why = ("the file states the machine stiffness (machine_stiffness_kN_per_m), held fixed" if known else
+               "position_source: load_point: the machine's compliance lies between the measured position and the "
+               "interface, so the coupling is fitted from the start, whatever its hold-out gain")
+        chosen.append((c, cur, why))
+        tried.append([c])
+        cur = c.result
+        history.append(cur)
+    for _ in range(max_rounds):
+        cands, info = screen(grid, cur)
+        results = []
+        for cn in cands:
+            if progress:
+                progress(f"trying {cn}")
+            results.append(try_candidate(grid, cur, cn, info, prior))
+        tried.append(results)
+        acc = [c for c in results if c.accepted]
+        if not acc:
+            break
+        best = max(acc, key=lambda c: c.gain_pct)
+        why = ""
+        nfv = [c for c in acc if c.cause == "normal_force_variation"]
+        if nfv and nfv[0] is not best and nfv[0].gain_pct > 0.5 * best.gain_pct:
+            why = (f"named over {best.cause} ({best.gain_pct:+.1f}%) because the residual follows the measured normal "
+                   f"force with the unit slope friction proportional to it predicts")
+            best = nfv[0]
+        best.info = info
+        chosen.append((best, cur, why))
+        cur = best.result
+        history.append(cur)
+    return _Search(grid, base, history, tried, chosen)
+
+
+def _resplit_causes(args) -> list[str]:
+    """The causes one re-split names, in order (a worker of :func:`diagnose`)."""
+    trial, baseline, prior, steps, known, load_point, spec, rounds = args
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # a forked worker writes nothing (a stream's lock may be held at the fork)
+        return _resplit_search(trial, baseline, prior, steps, known, load_point, spec, rounds)
+
+
+def _resplit_search(trial, baseline, prior, steps, known, load_point, spec, rounds) -> list[str]:
+    a, b = spec.get("crop", (0.0, 0.0))
+    if a or b:
+        t = np.asarray(trial.time_s, dtype=float)
+        T = t[-1] - t[0]
+        # not re-zeroed: the steps are on this clock (prepare measures everything from the first sample)
+        trial = trial.select((t >= t[0] + a * T) & (t <= t[-1] - b * T))
+    try:
+        s = _search(trial, baseline, prior, steps, known, load_point, n_blocks=spec.get("n_blocks", 20),
+                    swap_aligned=spec.get("swap_aligned", False), max_rounds=rounds)
+    except (ValueError, ZeroDivisionError, FloatingPointError, IndexError):
+        return ["(failed)"]
+    return [c.cause for c, _, _ in s.chosen]
+
+
+def _run_resplits(jobs: list, parallel: bool, progress=None) -> list[list[str]]:
+    if parallel:
+        import concurrent.futures as cf
+        import multiprocessing as mp
+        import os
+
+        import threading
+
+        n = min(len(jobs), int(os.environ.get("RIG_JOBS", "0") or 0) or min(2, os.cpu_count() or 1))
+        # forked only from the main thread of a main process (a batch worker, with its own threads or as
+        # a daemon, runs them in-process)
+        if (n > 1 and "fork" in mp.get_all_start_methods() and threading.current_thread() is threading.main_thread()
+                and mp.current_process().name == "MainProcess"):
+            # fork: the workers start at once with the compiled kernels (spawn re-imports everything,
+            # slower than the re-splits themselves on a loaded 2-core machine); they call no progress
+            try:
+                with cf.ProcessPoolExecutor(n, mp_context=mp.get_context("fork")) as ex:
+                    out = []
+                    for r in ex.map(_resplit_causes, jobs):
+                        if progress:
+                            progress("re-splits")
+                        out.append(r)
+                    return out
+            except (OSError, AssertionError, cf.process.BrokenProcessPool):
+                pass  # no processes here (a daemon worker may not fork its own): in-process
+    out = []
+    for j in jobs:
+        if progress:
+            progress("re-splits")
+        out.append(_resplit_causes(j))
+    return out
+
+
+def diagnose(trial: TrialData, baseline: str = "rate_state", progress=None, n_blocks: int = 20,
+             resplits: bool = True) -> Diagnosis:
     """Run the whole diagnosis on a trial; see the module docstring."""
     from rig.analysis.identify import check_analysable
 
@@ -765,94 +784,206 @@ def diagnose(trial: TrialData, baseline: str = "rate_state", progress=None, n_bl
     from rig.analysis.identify import decimated
     from rig.kinematics import detect_steps
 
+    known = known_params(trial)
     try:
         small = decimated(trial)
         steps = detect_steps(small)
     except (ValueError, IndexError, ZeroDivisionError):
         small, steps = trial, []
     prior = identify_prior(small, steps)
-    load_point = is_load_point(trial)
-    grid = prepare(trial, n_blocks=n_blocks, restart_guard_um=3.0 * prior["L_um"] if prior else 0.0,
-                   step_times_s=np.array([s.t_s for s in steps]) if steps else np.zeros(0))
+    load_point = is_load_point(trial) or bool(known)
+    if known and prior and "stiffness_kN_per_m" in prior:
+        prior["stiffness_kN_per_m"] = known["stiffness_kN_per_m"]
     t_prep = _time.perf_counter() - t0
-    if int(grid.sliding.sum()) < 10:
-        raise ValueError(f"{trial.source or 'trial'}: hardly any forward sliding (v > {0.1:g} um/s away from stops): "
-                         "nothing to diagnose")
-    base = fit_baseline(grid, baseline, prior)
-    cur = base
-    findings: list[dict] = []
-    history = [base]
-    tried = []
-    for it in range(MAX_FINDINGS):
-        cands, info = screen(grid, cur)
-        results = []
-        for c in cands:
-            if progress:
-                progress(f"trying {c}")
-            results.append(try_candidate(grid, cur, c, info, prior))
-        tried.append(results)
-        acc = [c for c in results if c.accepted]
-        if not acc:
-            break
-        best = max(acc, key=lambda c: c.gain_pct)
-        stiff = [c for c in acc if c.cause == "finite_stiffness"]
-        if load_point and stiff:
-            # prior knowledge (measured-data.md, position_source: load_point): the machine's
-            # compliance lies between the measured position and the interface; tested first
-            best = stiff[0]
-        nfv = [c for c in acc if c.cause == "normal_force_variation"]
-        if nfv and nfv[0].gain_pct > 0.5 * best.gain_pct:
-            best = nfv[0]
-        others = {c.cause: c.gain_pct for c in results if c is not best}
-        res = best.result
-        findings.append({
-            "cause": best.cause,
-            "params": {k: _r(res.params[k]) for k in _finding_params(best.cause)},
-            "evidence": _evidence(best.cause, res, grid, info, others, before=cur),
-            "holdout_rms_N_before": _r(cur.holdout_rms_N),
-            "holdout_rms_N_after": _r(res.holdout_rms_N),
-            "gain_pct": _r(best.gain_pct, 4),
-            "delta_bic": _r(best.delta_bic, 6),
-        })
-        cur = res
-        history.append(cur)
+    main = _search(trial, baseline, prior, steps, known, load_point, n_blocks=n_blocks, progress=progress)
+    grid, base = main.grid, main.base
     t_loop = _time.perf_counter() - t0 - t_prep
+    # re-splits: a cause is named only when most splits name it (the coupling of a load-point record is
+    # physics, named on every split)
+    split_causes: list[list[str]] = []
+    coupling = 1 if (load_point and main.chosen and main.chosen[0][0].cause == "finite_stiffness") else 0
+    if resplits and len(main.chosen) > coupling:
+        # as many rounds as the main split took (what a re-split names after that is not asked)
+        jobs = [(trial, baseline, prior, steps, known, load_point, spec, len(main.chosen) - coupling)
+                for spec in RESPLITS]
+        split_causes = _run_resplits(jobs, t_loop > RESPLIT_PARALLEL_MIN_S, progress)
+    n_splits = 1 + len(split_causes)
+    kept = 0
+    stab = []
+    for i, (c, _, _) in enumerate(main.chosen):
+        st = (1 + sum(c.cause in sc for sc in split_causes)) / n_splits
+        stab.append(st)
+        if st <= MIN_STABILITY and i >= coupling:
+            break
+        kept = i + 1
+    cur = main.history[kept]
+    unnamed = []  # causes the main split found but most re-splits did not: the record cannot tell
+    for i in range(kept, len(main.chosen)):
+        unnamed.append({"cause": main.chosen[i][0].cause, "stability": _r(stab[i], 3),
+                        "gain_pct": _r(main.chosen[i][0].gain_pct, 4)})
+    findings = []
+    for i, (c, before, why) in enumerate(main.chosen[:kept]):
+        res = c.result
+        round_ = main.tried[i]
+        others = {o.cause: o for o in round_ if o is not c}
+        ev = _evidence(c.cause, res, grid, getattr(c, "info", {}), {k: o.gain_pct for k, o in others.items()},
+                       before=before)
+        stronger = [o for o in others.values() if o.gain_pct > c.gain_pct + 0.5 and o.note]
+        if why:
+            ev += f"; {why}"
+        if stronger:
+            ev += "; not named: " + "; ".join(f"{o.cause} ({o.gain_pct:+.1f}%): {o.note}" for o in stronger)
+        f = {
+            "cause": c.cause,
+            "params": {k: _r(res.params[k]) for k in CAUSES[c.cause].params},
+            "evidence": ev,
+            "holdout_rms_N_before": _r(before.holdout_rms_N),
+            "holdout_rms_N_after": _r(res.holdout_rms_N),
+            "gain_pct": _r(c.gain_pct, 4),
+            "delta_bic": _r(c.delta_bic, 6),
+        }
+        if split_causes or i < coupling:
+            f["stability"] = _r(stab[i], 3)
+        alts = _alternatives(grid, c, round_, [sc[i] if i < len(sc) else "none" for sc in split_causes
+                                               if c.cause not in sc])
+        if alts:
+            f["alternatives"] = alts
+        findings.append(f)
     unexplained = find_unexplained(grid, cur)
     d = Diagnosis(data=str(trial.source), baseline=base, findings=findings, unexplained=unexplained, final=cur,
-                  grid=grid, history=history, tried=tried)
+                  grid=grid, history=main.history[: kept + 1], tried=main.tried)
+    d.unnamed = unnamed
     # the reported parameters: the chosen models refitted on every sliding bin (fit and hold-out
     # blocks). The split decides WHICH model (hold-out gains); with half of a few steps in the fit
     # blocks, the direct effect A of a three-step record moves by +-50 % with the split alone
-    d.baseline_all = refit_all(grid, base)
-    d.final_all = d.baseline_all if cur is base else refit_all(grid, cur)
+    d.baseline_fit = refit_all(grid, base)
+    d.final_fit = d.baseline_fit if cur is base else refit_all(grid, cur)
+    # the global optimum along the flat a-b-L valley and L's interval: a profile likelihood over ln L
+    # (fit.profile), for the baseline and the final model (with a spring only on small grids: each
+    # profile point is a spring fit)
+    for attr in ("baseline_fit", "final_fit"):
+        res = getattr(d, attr)
+        if attr == "final_fit" and res is d.baseline_fit:
+            continue
+        if "L_um" not in res.params or ("finite_stiffness" in res.extensions and grid.t.size > PROFILE_MAX_BINS_SPRING):
+            continue
+        if progress:
+            progress("profile likelihood of L")
+        better, iv = profile(grid, res)
+        if better is not None and not at_bound(better.params, grid) and _ext_params_plausible(better.extensions,
+                                                                                                better.params):
+            if "second_state_variable" in better.extensions and "aging_law" not in better.extensions:
+                better.params = swap_slower_second(better.params)
+            res = better
+            _, iv = profile(grid, res)
+        if iv is not None:
+            res.extra["interval_L_um"] = iv
+        setattr(d, attr, res)
+        if attr == "baseline_fit" and cur is base:
+            d.final_fit = res
+    d.baseline_all, d.final_all = d.baseline_fit.params, d.final_fit.params
+    for f in findings:
+        # a finding's parameters are the final model's; the single-cause fit's values beside them
+        single = f["params"]
+        final = {k: _r(d.final_all[k]) for k in single if k in d.final_all}
+        moved = {k: v for k, v in single.items() if v is not None and final.get(k) is not None
+                 and abs(final[k] - v) > 0.005 * abs(v)}
+        if moved:
+            f["evidence"] += ("; the parameters are the final model's, refitted on all sliding data (when it was "
+                              "found, on the fit blocks: " + ", ".join(f"{k} = {v:.4g}" for k, v in moved.items())
+                              + ")")
+        f["params"] = {k: final.get(k, v) for k, v in single.items()}
+        unc = uncertainty(grid, d.final_fit, list(single))
+        f.update(unc)
     d.timings = {"prepare_s": t_prep, "fit_s": t_loop, "total_s": _time.perf_counter() - t0,
-                 "n_samples": int(len(trial)), "n_bins": int(grid.t.size)}
+                 "n_samples": int(len(trial)), "n_bins": int(grid.t.size), "n_splits": n_splits}
     return d
 
 
-def refit_all(grid: Grid, res: FitResult) -> dict:
-    """Parameters of ``res``'s model fitted on all sliding bins, from ``res``'s own (the fit can only
-    improve on its start; a fit that fails keeps them)."""
+def _alternatives(grid: Grid, chosen: Candidate, round_: list[Candidate], instead: list[str]) -> list[dict]:
+    """Other causes (or "none") that explain the held-out data about as well as the one named: a
+    candidate of the same round with at least half its gain that the named one does not beat
+    significantly (paired z < MIN_Z), and whatever the re-splits that did not name it named instead."""
+    out = []
+    for o in round_:
+        if o is chosen or o.cause == chosen.cause or o.gain_pct < max(0.5 * chosen.gain_pct, MIN_GAIN_PCT):
+            continue
+        if paired_z(grid, o.result.pred, chosen.result.pred) < MIN_Z:
+            out.append({"cause": o.cause, "params": {k: _r(o.result.params[k]) for k in CAUSES[o.cause].params},
+                        "gain_pct": _r(o.gain_pct, 4), "delta_bic": _r(o.delta_bic, 6)})
+    seen = {a["cause"] for a in out}
+    for cz in instead:
+        if cz in seen or cz == "(failed)":
+            continue
+        seen.add(cz)
+        o = next((x for x in round_ if x.cause == cz), None)
+        if o is not None:
+            out.append({"cause": cz, "params": {k: _r(o.result.params[k]) for k in CAUSES[cz].params},
+                        "gain_pct": _r(o.gain_pct, 4), "delta_bic": _r(o.delta_bic, 6)})
+        else:
+            out.append({"cause": cz, "params": {}, "gain_pct": 0.0 if cz == "none" else None, "delta_bic": 0.0
+                        if cz == "none" else None})
+    return out
+
+
+# correlations reported between these parameters (Deliver 2 of issue 20: the a-b-L valley)
+CORRELATED = ("A_mu", "B_mu", "L_um")
+
+
+def uncertainty(grid: Grid, res: FitResult, names: list[str] | None = None) -> dict:
+    """``params_sd`` (one standard error per parameter, from the Jacobian with the residual's
+    autocorrelation), ``intervals`` for the slip distances (the +-1 sd interval in ln L, skewed as
+    the likelihood in L is) and ``correlation`` of A, B and L, for ``names`` (all by default)."""
+    from .fit import covariance
+
+    cv = covariance(grid, res)
+    if cv is None:
+        return {}
+    nm, vals, cov = cv
+    sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    want = nm if names is None else [n for n in names if n in nm]
+    out: dict = {"params_sd": {n: _r(sd[nm.index(n)]) for n in want}}
+    iv = {}
+    prof = res.extra.get("interval_L_um")
+    if prof is not None and "L_um" in want:
+        iv["L_um"] = [_r(prof[0]), _r(prof[1])]  # from the profile likelihood (fit.profile)
+    for n in want:
+        if n in ("L_um", "L2_um") and n not in iv and vals[nm.index(n)] > 0:
+            v, s = vals[nm.index(n)], sd[nm.index(n)]
+            iv[n] = [_r(v * math.exp(-s / v)), _r(v * math.exp(s / v))]
+    if iv:
+        out["intervals"] = iv
+    cn = [n for n in CORRELATED if n in nm and n in want]
+    if len(cn) >= 2:
+        corr = {}
+        for a_i, a in enumerate(cn):
+            for b in cn[a_i + 1:]:
+                i, j = nm.index(a), nm.index(b)
+                den = sd[i] * sd[j]
+                corr[f"{a},{b}"] = _r(cov[i, j] / den, 4) if den > 0 else None
+        out["correlation"] = corr
+    return out
+
+
+def refit_all(grid: Grid, res: FitResult) -> FitResult:
+    """``res``'s model fitted on all sliding bins, from ``res``'s own parameters (the fit can only
+    improve on its start; a fit that fails or runs away keeps them, evaluated on all bins)."""
+    keep = evaluate(grid, res.baseline, res.extensions, res.params)
     try:
         r = fit(grid, res.baseline, res.extensions, res.params, max_nfev=200, mask=grid.sliding)
     except (ValueError, ZeroDivisionError, FloatingPointError):
-        return dict(res.params)
+        return keep
     p = dict(r.params)
-    from .fit import at_bound
-
     if (not np.all(np.isfinite(list(p.values()))) or at_bound(p, grid)
             or any(abs(p.get(k, 0.0)) > 0.05 for k in ("A_mu", "B_mu", "B2_mu"))
             or not _ext_params_plausible(res.extensions, p)):
-        return dict(res.params)  # ran away on the joined data: keep the validated split fit
+        return keep  # ran away on the joined data: keep the validated split fit
     if "second_state_variable" in res.extensions and "aging_law" not in res.extensions:
-        swap_slower_second(p)
-    return p
-
-
-def _finding_params(cause: str) -> tuple:
-    if cause == "position_periodic":
-        return ("amplitude_mu", "wavelength_um")
-    return EXT_PARAMS[cause]
+        L1 = r.params.get("L_um")
+        swap_slower_second(r.params)
+        if r.params.get("L_um") != L1:
+            r.extra.pop("jac", None)  # its columns are in the other order: no standard errors
+    return r
 
 
 # ---------------------------------------------------------------------------

@@ -79,8 +79,9 @@ class FitResult:
         return ne * math.log(max(self.sse_fit, 1e-300) / n) + self.n_par * math.log(ne)
 
 
-def _free_names(baseline: str, extensions: list[str], init: dict | None = None) -> list[str]:
-    names = model_params(baseline, extensions)
+def _free_names(baseline: str, extensions: list[str], init: dict | None = None,
+                known: dict | None = None) -> list[str]:
+    names = [nm for nm in model_params(baseline, extensions) if nm not in (known or {})]
     if init is not None and "v_init_um_s" in init:
         names = names + ["v_init_um_s"]
     out = []
@@ -123,6 +124,9 @@ def predict(grid: Grid, baseline: str, extensions: list[str], params: dict[str, 
 
 def evaluate(grid: Grid, baseline: str, extensions: list[str], params: dict[str, float],
              pred: np.ndarray | None = None, nfev: int = 0) -> FitResult:
+    kn = {k: v for k, v in grid.known.items() if k in model_params(baseline, extensions)}
+    if any(params.get(k) != v for k, v in kn.items()):  # a parameter the file states is never another
+        params, pred = {**params, **kn}, None
     if pred is None:
         pred = predict(grid, baseline, extensions, params)
     r2 = grid.count * (grid.F_mean - pred) ** 2 + grid.ss_within
@@ -131,7 +135,7 @@ def evaluate(grid: Grid, baseline: str, extensions: list[str], params: dict[str,
     bad = not np.all(np.isfinite(pred))
     sse_f = float(r2[fm].sum()) if not bad else math.inf
     sse_h = float(r2[hm].sum()) if not bad else math.inf
-    npar = len(model_params(baseline, extensions))
+    npar = len([nm for nm in model_params(baseline, extensions) if nm not in grid.known])
     return FitResult(baseline, list(extensions), dict(params), pred, sse_f, sse_h, int(grid.count[fm].sum()),
                      int(grid.count[hm].sum()), npar, nfev, noise_corr=grid.noise_corr)
 
@@ -139,8 +143,9 @@ def evaluate(grid: Grid, baseline: str, extensions: list[str], params: dict[str,
 def fit(grid: Grid, baseline: str, extensions: list[str], init: dict[str, float],
         max_nfev: int = 400, mask: np.ndarray | None = None) -> FitResult:
     """Least-squares fit of all the model's parameters from ``init`` on the fit blocks (or ``mask``)."""
-    names = _free_names(baseline, extensions, init)
+    names = _free_names(baseline, extensions, init, grid.known)
     internal = _from_params(init)
+    internal.update({k: v for k, v in grid.known.items() if k in model_params(baseline, extensions)})
     pset = ParamSet([param(nm, grid) for nm in names])
     fixed = {k: v for k, v in internal.items() if k not in names and not k.startswith("_")
              and k not in ("amplitude_mu", "phase_rad")}
@@ -182,7 +187,41 @@ def fit(grid: Grid, baseline: str, extensions: list[str], init: dict[str, float]
                             x_scale=1.0, jac=jac)
     free = out.params if out is not None else pset.unpack(np.clip(pset.pack(internal), *pset.bounds()))
     nfev = out.nfev if out is not None else 0
-    return evaluate(grid, baseline, extensions, _fold({**fixed, **free}), nfev=nfev)
+    res = evaluate(grid, baseline, extensions, _fold({**fixed, **free}), nfev=nfev)
+    if out is not None and out.jac is not None:
+        res.extra["jac"] = (pset, np.asarray(out.extra["z"]), np.asarray(out.jac), np.asarray(out.residuals), m)
+    return res
+
+
+def covariance(grid: Grid, res: FitResult) -> tuple[list[str], np.ndarray, np.ndarray] | None:
+    """(names, values, covariance of the values) of ``res``'s free parameters from the Jacobian of
+    its fit, ``(J^T J)^-1 s^2`` with ``s^2`` the weighted residual variance, inflated by the
+    residual's autocorrelation: ``(1 + rho) / (1 - rho)``, rho the lag-1 autocorrelation of the
+    fitted bins' weighted residuals in time order (the effective sample size, Deliver 3 of issue
+    20; white residuals give 1). The periodic term's internal sine/cosine amplitudes are left out.
+    None without a Jacobian."""
+    if "jac" not in res.extra:
+        return None
+    pset, z, J, r, m = res.extra["jac"]
+    n, p = J.shape
+    if n <= p + 1:
+        return None
+    s2 = float(np.dot(r, r) / (n - p))
+    try:
+        cz = np.linalg.pinv(J.T @ J) * s2
+    except (np.linalg.LinAlgError, ValueError):
+        return None
+    x = r - r.mean()
+    rho = float(np.sum(x[1:] * x[:-1]) / max(float(np.sum(x * x)), 1e-300))
+    rho = min(max(rho, 0.0), 0.98)
+    cz = cz * (1.0 + rho) / (1.0 - rho)
+    # internal (ln or scaled) -> the parameter's unit, to first order
+    d = np.array([prm.to_value(float(zi)) if prm.log else prm.scale for prm, zi in zip(pset.params, z)])
+    cov = cz * np.outer(d, d)
+    names = [prm.name for prm in pset.params]
+    vals = np.array([prm.to_value(float(zi)) for prm, zi in zip(pset.params, z)])
+    keep = [i for i, nm in enumerate(names) if not nm.startswith("_")]
+    return [names[i] for i in keep], vals[keep], cov[np.ix_(keep, keep)]
 
 
 def cost_at(grid: Grid, baseline: str, extensions: list[str], params: dict[str, float]) -> float:
@@ -238,3 +277,75 @@ def at_bound(params: dict, grid: Grid | None = None) -> bool:
         if param(nm, grid).at_bound(v):
             return True
     return False
+
+
+PROFILE_POINTS = 9      # ln L grid of the profile likelihood (Deliver 2 of issue 20)
+PROFILE_SPAN = 8.0      # from L / span to L * span (within the parameter's bounds)
+PROFILE_NFEV = 40       # evaluations per profile point (continued from its neighbour)
+
+
+def profile(grid: Grid, res: FitResult, name: str = "L_um", mask: np.ndarray | None = None):
+    """Profile likelihood of ``res``'s model along ln ``name`` (the flat a-b-L valley): at each of
+    PROFILE_POINTS values the other parameters are refitted with ``name`` held (continuation from
+    the neighbouring point, outwards from the fit). Returns ``(better, interval)``: a fit polished
+    from the best profile point when that point lies below ``res`` (the global optimum along the
+    valley that a local search missed; else None), and the +-1 sd interval of ``name`` where the
+    profile's rise stays under one residual variance (``s^2``, with the autocorrelation
+    inflation of :func:`covariance`), interpolated in ln ``name`` (None without a Jacobian)."""
+    from dataclasses import replace as _replace
+
+    if name not in res.params or "jac" not in res.extra:
+        return None, None
+    pset, z, J, r, m0 = res.extra["jac"]
+    m = m0 if mask is None else mask
+    n, p = J.shape
+    x = r - r.mean()
+    rho = min(max(float(np.sum(x[1:] * x[:-1]) / max(float(np.sum(x * x)), 1e-300)), 0.0), 0.98)
+    s2 = float(np.dot(r, r) / max(n - p, 1)) * (1 + rho) / (1 - rho)
+    prm = param(name, grid)
+    v0 = float(res.params[name])
+    lo, hi = max(prm.lo * 1.0001, v0 / PROFILE_SPAN), min(prm.hi / 1.0001, v0 * PROFILE_SPAN)
+    if not lo < v0 < hi:
+        return None, None
+    grid_v = np.exp(np.linspace(math.log(lo), math.log(hi), PROFILE_POINTS))
+    sse0 = float(np.dot(r, r))
+    pts = {v0: (sse0, res.params)}
+    for side in (grid_v[grid_v > v0], grid_v[grid_v < v0][::-1]):
+        start = dict(res.params)
+        for v in side:
+            g = _replace(grid, known={**grid.known, name: float(v)})
+            rv = fit(g, res.baseline, res.extensions, dict(start, **{name: float(v)}), max_nfev=PROFILE_NFEV,
+                     mask=m)
+            if "jac" not in rv.extra or not np.isfinite(rv.sse_fit):
+                break
+            sse = float(np.dot(rv.extra["jac"][3], rv.extra["jac"][3]))
+            pts[float(v)] = (sse, rv.params)
+            start = rv.params
+    vs = np.array(sorted(pts))
+    ss = np.array([pts[v][0] for v in vs])
+    better = None
+    k = int(np.argmin(ss))
+    if ss[k] < sse0 - 1e-9 * max(sse0, 1.0):
+        better = fit(grid, res.baseline, res.extensions, dict(pts[vs[k]][1]), mask=m)
+        if not better.sse_fit < res.sse_fit:
+            better = None
+    if better is not None:
+        return better, None  # the caller reports from the better fit (its own profile, if asked again)
+    rise = ss - ss.min()
+    lv = np.log(vs)
+    i0 = int(np.argmin(ss))
+
+    def edge(idx):
+        # sqrt(rise) is nearly linear in ln L near the minimum (the rise is quadratic): interpolated so,
+        # a coarse grid does not narrow the interval
+        q, q1 = np.sqrt(rise), math.sqrt(s2)
+        for a, b in zip(idx[:-1], idx[1:]):
+            if q[b] > q1 >= q[a]:
+                f = (q1 - q[a]) / (q[b] - q[a])
+                return float(math.exp(lv[a] + f * (lv[b] - lv[a])))
+        return None  # flat to the end of the profile: the interval is open on that side
+
+    lo_e = edge(list(range(i0, -1, -1)))
+    hi_e = edge(list(range(i0, vs.size)))
+    return None, (lo_e if lo_e is not None else float(vs[0]), hi_e if hi_e is not None else float(vs[-1]),
+                  lo_e is None, hi_e is None)

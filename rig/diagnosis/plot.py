@@ -66,32 +66,47 @@ def build_diagnosis(d: Diagnosis, warnings: list[dict] | None = None):
     symlog_velocity(av, np.asarray(g.v, float), max_ticks=5)
     av.set_ylabel("v (µm/s)")
     av.set_xlabel("time (s)")
-    lim = max(4 * g.noise_N, float(np.percentile(np.abs(rb), 99.5)))
+    # scaled to the steady residual (the sliding bins' 95th percentile of the final model's residual,
+    # what a finding is about), not to the start-up and reversal spikes: those are clipped to the
+    # panel's edge and marked
+    sl = g.sliding if g.sliding is not None and g.sliding.any() else np.ones(g.t.size, bool)
+    steady = float(np.percentile(np.abs(np.concatenate([rf[sl], rb[sl]])), 95))
+    lim = max(4 * g.noise_N / math.sqrt(max(float(np.median(g.count)), 1.0)), 1.5 * steady, 1e-6)
     res_axes = []
+    n_clipped = 0
     for k, (q, lab, title) in enumerate(((g.t, "time (s)", "residual against time (drifts, transients)"),
                                          (s, "slip (µm)", "residual against slip (memory, wear)"),
                                          (g.x, "position (µm)", "residual against position (the surface)"))):
         axi = fig.add_subplot(gs[2 + k])
         qb, rbb = _binned(q, rb, g.count)
         qf, rff = _binned(q, rf, g.count)
-        axi.plot(q, rb, ".", ms=0.8, color="tab:blue", alpha=0.25, rasterized=True)
-        axi.plot(qb, rbb, "-", lw=1.0, color="tab:blue", label="baseline (binned mean)")
+        axi.plot(q, np.clip(rb, -lim, lim), ".", ms=0.8, color="tab:blue", alpha=0.25, rasterized=True)
+        out = np.abs(rb) > lim
+        n_clipped = max(n_clipped, int(out.sum()))
+        if out.any():
+            axi.plot(q[out], np.sign(rb[out]) * lim * 0.97, "x", ms=3, color=WARN_COLOR,
+                     lw=0, label=None)
+        axi.plot(qb, np.clip(rbb, -lim, lim), "--", lw=1.0, color="tab:blue")
         if fin is not base:
-            axi.plot(qf, rff, "-", lw=1.0, color="tab:red", label="extended model (binned mean)")
+            axi.plot(qf, np.clip(rff, -lim, lim), "--", lw=1.0, color="tab:red")
         axi.axhline(0, color="k", lw=0.5)
         axi.set_xlabel(lab)
         axi.set_ylabel("residual (N)")
         axi.set_ylim(-lim, lim)
         axi.set_title(title)
         res_axes.append(axi)
-    # one legend, above the panels (it covers no data)
+    # one legend, above the panels (it covers no data); a model and its residual are separate entries
     from matplotlib.lines import Line2D
 
     h, lab = a.get_legend_handles_labels()
-    h += [Line2D([], [], color="tab:blue", lw=1.0), Line2D([], [], color="tab:red", lw=1.0)][: 2 if fin is not base else 1]
+    h += [Line2D([], [], color="tab:blue", lw=1.0, ls="--"), Line2D([], [], color="tab:red", lw=1.0, ls="--")][
+        : 2 if fin is not base else 1]
     lab += ["residual of the baseline (binned mean)", "residual of the extended model (binned mean)"][
         : 2 if fin is not base else 1]
-    fig.legend(h, lab, loc="outside upper center", ncols=2, markerscale=4)
+    if n_clipped:
+        h.append(Line2D([], [], color=WARN_COLOR, marker="x", lw=0, ms=3))
+        lab.append(f"residual beyond ±{lim:.2g} N (start-up, reversals), clipped to the edge")
+    fig.legend(h, lab, loc="outside upper center", ncols=2, markerscale=2)
     # evidence marks
     for f in d.findings:
         c = f["cause"]

@@ -116,6 +116,8 @@ class Grid:
     holdout_design: str = "time blocks"
     # the velocity steps identify finds (rig.kinematics.detect_steps), grid time (s); None: not given
     step_times_s: np.ndarray | None = None
+    # parameters the file states (measured-data.md: machine_stiffness_kN_per_m), held fixed in every fit
+    known: dict = field(default_factory=dict)
 
     @property
     def n_raw(self) -> int:

@@ -1,0 +1,130 @@
+"""The answer depends on the physics only (diagnosis.md; issue 20, Deliver 1): every record the
+project has x every harmless transformation -> causes and parameters, with a verdict.
+
+    python benchmarks/bench_invariance.py            # everything (real, converted, synthetic of every cause, clean)
+    python benchmarks/bench_invariance.py real       # the shared real records and tests/data's converted ones
+    python benchmarks/bench_invariance.py synth      # a synthetic record of every cause, two clean ones, the load-point step
+
+Verdict per row: "same" when the causes are those of the original and every parameter is within
+twice the original's standard error or 25 % (a stiffness and a force drift scaled with the forces
+under "scale"); otherwise what differs. Printed with the load average (2 cores shared).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from rig.diagnosis import diagnose
+from rig.diagnosis.transforms import TRANSFORMS, expected
+from rig.sim.synth import SynthSpec, make_record, random_effect
+
+ROOT = Path(__file__).resolve().parent.parent
+EFFECTS = ["second_state_variable", "aging_law", "sensor_lag", "finite_stiffness", "normal_force_variation",
+           "slip_wear_drift", "force_offset_drift", "position_periodic", "time_delay"]
+
+
+def real_records():
+    from rig.log import load_trial
+
+    paths = sorted((ROOT.parent / "shared" / "data" / "real").glob("*.csv")) + sorted((ROOT / "tests" / "data").glob(
+        "giacomel-*.csv"))
+    for p in paths:
+        yield p.stem, load_trial(p), "rate_state"
+
+
+def synth_records():
+    for i, eff in enumerate(EFFECTS):
+        rng = np.random.default_rng(700 + i)
+        e = {eff: random_effect(eff, rng)}
+        rate = 100.0 if eff in ("sensor_lag", "finite_stiffness") else 25.0
+        trial, _ = make_record(SynthSpec(rate_hz=rate, duration_s=600.0, seed=700 + i, protocol="varied",
+                                         effects=e, with_ref=bool(i % 2),
+                                         baseline="steady_state" if eff == "time_delay" else "rate_state"))
+        yield f"synth {eff}", trial, "steady_state" if eff == "time_delay" else "rate_state"
+    for s in (1, 2):
+        trial, _ = make_record(SynthSpec(rate_hz=25.0, duration_s=600.0, seed=800 + s, protocol="varied"))
+        yield f"synth clean {s}", trial, "rate_state"
+    trial, _ = make_record(SynthSpec(protocol=[(60.0, 1.0), (60.0, 10.0)], duration_s=120.0, rate_hz=100.0,
+                                     effects={"finite_stiffness": {"stiffness_kN_per_m": 300.0}}, with_ref=False,
+                                     seed=7))
+    trial.metadata["position_source"] = "load_point"
+    yield "synth load-point step k=300", trial, "rate_state"
+
+
+def _row(rep):
+    causes = [f["cause"] for f in rep["findings"]]
+    alts = {f["cause"]: [a["cause"] for a in f.get("alternatives", [])] for f in rep["findings"]}
+    params = {k: v for k, v in rep["model"]["params"].items() if k != "mu0" and k != "v_init_um_s"}
+    return causes, alts, params, rep["model"].get("params_sd", {})
+
+
+def verdict(ref, got, name) -> str:
+    rc, _, rp, rsd = ref
+    gc, _, gp, _ = got
+    if gc != rc:
+        return "causes differ"
+    off = []
+    for k, v in rp.items():
+        if v is None or gp.get(k) is None:
+            continue
+        want = expected(k, v, name)
+        tol = max(2.0 * abs(expected(k, rsd.get(k) or 0.0, name)), 0.25 * abs(want))
+        if abs(gp[k] - want) > tol:
+            off.append(f"{k} {gp[k]:.3g} vs {want:.3g}")
+    return "same" if not off else "params differ: " + ", ".join(off)
+
+
+def fmt(params) -> str:
+    return " ".join(f"{k}={v:.3g}" for k, v in params.items() if v is not None)
+
+
+def main(which: str = "all") -> int:
+    from rich.progress import Progress
+
+    recs = []
+    if which in ("all", "real"):
+        recs += list(real_records())
+    if which in ("all", "synth"):
+        recs += list(synth_records())
+    names = ["orig"] + list(TRANSFORMS)
+    t_start = time.perf_counter()
+    lines = ["| record | transformation | causes (alternatives) | final model | verdict | time |",
+             "|---|---|---|---|---|---|"]
+    n_same = n_all = 0
+    with Progress(transient=True) as bar:
+        task = bar.add_task("records x transformations", total=len(recs) * len(names))
+        for label, trial, baseline in recs:
+            ref = None
+            for name in names:
+                bar.update(task, description=f"{label}: {name}")
+                t2 = trial if name == "orig" else TRANSFORMS[name](trial)
+                t0 = time.perf_counter()
+                try:
+                    row = _row(diagnose(t2, baseline=baseline).report())
+                except ValueError as exc:
+                    row = (["(error: " + str(exc)[:60] + ")"], {}, {}, {})
+                dt = time.perf_counter() - t0
+                if ref is None:
+                    ref, v = row, "(reference)"
+                else:
+                    v = verdict(ref, row, name)
+                    n_all += 1
+                    n_same += v == "same"
+                cz = ", ".join(c + (f" ({'/'.join(row[1][c])})" if row[1].get(c) else "") for c in row[0]) or "none"
+                line = f"| {label} | {name} | {cz} | {fmt(row[2])} | {v} | {dt:.1f} s |"
+                lines.append(line)
+                bar.console.print(line)
+                bar.advance(task)
+    print("\n".join(lines))
+    print(f"\n{n_same}/{n_all} transformed records give the original's answer; {time.perf_counter() - t_start:.0f} s "
+          f"wall, load average {', '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1] if len(sys.argv) > 1 else "all"))
