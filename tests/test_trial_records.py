@@ -212,9 +212,20 @@ def test_calibration_expired_and_shunt_drift_refused_override_logged(lab):
     assert [p["relative_error"] for p in rec["points"]] == [pytest.approx(0.004, abs=1e-5)] * 2
     # the override runs and logs both (the shunt check before the trial caught the drift through the
     # emulator's shunt-calibration registers), naming the channel; the MCAP records the calibration snapshot
+    import time
+
+    t0 = time.time_ns()
     code, text = _run("--hardware", prof, "--out", lab / "h.mcap", "--allow-expired-calibration")
+    t1 = time.time_ns()
     assert code == 0, text
     tr = read_trial(lab / "h.mcap")
+    # the log's clock is the loop's: trial time 0 is its first tick's wall-clock time, after the emulators and
+    # the loop process started, and the last sample was taken before the command returned
+    start, last = int(tr.metadata["start_time_ns"]), int(tr.metadata["start_time_ns"]) + tr.time_s[-1] * 1e9
+    assert tr.metadata["clock"] == "first_sample" and t0 < start and last < t1
+    c = read_log(lab / "h.mcap", topics={"/events"})
+    opened = [m.log_time for m in c.messages if json.loads(m.data)["kind"] == "trial_start"][0]
+    assert start - opened > 0.1e9  # the log opened before the loop process had even started
     ev = [(e["kind"], e["channel"]) for e in tr.events if e["kind"].startswith("calibration_")]
     assert ev == [("calibration_expired", "friction"), ("calibration_shunt_drift", "friction"),
                   ("calibration_shunt_drift", "normal_1"), ("calibration_shunt_drift", "normal_2")]
