@@ -113,12 +113,18 @@ def test_identity_specimen_operator_through_info_export_import_and_catalogue(lab
     imp = lab / "elsewhere" / "imported.mcap"
     assert runner.invoke(app, ["import", str(csv), "-o", str(imp)]).exit_code == 0
     assert read_log(imp, topics=set()).metadata_dict()["trial"]["trial_uid"] == uid
-    # a CSV without one gets a new one
-    bare = lab / "bare.csv"
+    # a CSV without one (another system's): the import takes the UUID of the CSV's content, the one the
+    # catalogue gives that CSV, so the two are one trial
+    from rig.data import content_uid
+
+    bare = lab / "ext" / "bare.csv"
+    bare.parent.mkdir()
     bare.write_text("\n".join(ln for ln in csv.read_text().splitlines() if not ln.startswith("# trial_uid")) + "\n")
-    assert runner.invoke(app, ["import", str(bare), "-o", str(lab / "bare.mcap")]).exit_code == 0
-    other = read_log(lab / "bare.mcap", topics=set()).metadata_dict()["trial"]["trial_uid"]
-    assert len(other) == 36 and other != uid
+    assert runner.invoke(app, ["import", str(bare), "-o", str(lab / "ext" / "bare.mcap")]).exit_code == 0
+    other = read_log(lab / "ext" / "bare.mcap", topics=set()).metadata_dict()["trial"]["trial_uid"]
+    assert other == content_uid(_sha(bare)) and other != uid
+    build(lab / "ext")
+    assert query(lab / "ext" / "catalog.duckdb", "SELECT trial_uid, n_files FROM trials").rows == [(other, 2)]
     # the catalogue: the log and its export are one trial with both paths; the specimens view
     rep = build(lab / "archive")
     assert len(rep.read) == 2

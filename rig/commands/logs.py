@@ -189,7 +189,13 @@ def import_command(
     for w in caught:
         _warn(str(w.message))
     try:
-        write_trial_data(trial, out, extra_metadata={"imported_from": str(path)}, overwrite=overwrite)
+        extra = {"imported_from": str(path)}
+        if not str(trial.metadata.get("trial_uid", "")).strip():  # the CSV's own identity: the catalogue's for it
+            from rig.catalog.tasks import sha256_file
+            from rig.data import content_uid
+
+            extra["trial_uid"] = content_uid(sha256_file(path))
+        write_trial_data(trial, out, extra_metadata=extra, overwrite=overwrite)
     except DataFormatError as exc:
         _fail(str(exc))
     except FileExistsError:
