@@ -28,7 +28,7 @@ from __future__ import annotations
 import datetime as _dt
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 
 class StrictModel(BaseModel):
@@ -67,6 +67,14 @@ class CalibrationRecord(StrictModel):
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False, validate_assignment=True,
                               populate_by_name=True)
+
+    @field_validator("class_", mode="before")
+    @classmethod
+    def _class_text(cls, v):
+        """``class: 1`` or ``class: 0.5`` as a lab writes it: the class's name."""
+        if isinstance(v, (int, float)) and not isinstance(v, bool):
+            return f"{v:g}"
+        return v
 
     @model_validator(mode="after")
     def _ranges(self):

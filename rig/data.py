@@ -515,6 +515,14 @@ def atomic_write_text(path: str | os.PathLike, text: str, *, overwrite: bool = T
     atomic_write_bytes(path, text.encode("utf-8"), overwrite=overwrite)
 
 
+def content_uid(sha256_hex: str) -> str:
+    """The trial id of a file that carries none (a CSV from another system): a UUID (version 5) of its
+    content's sha256, so the file, its moved copies and the log ``rig import`` makes from it are one trial."""
+    import uuid
+
+    return str(uuid.uuid5(uuid.NAMESPACE_URL, f"rig-trial:sha256:{sha256_hex}"))
+
+
 # ---------------------------------------------------------------------------
 # calibration: what the force channels' records say about a trial's numbers (issue 21)
 # ---------------------------------------------------------------------------

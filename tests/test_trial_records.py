@@ -113,12 +113,18 @@ def test_identity_specimen_operator_through_info_export_import_and_catalogue(lab
     imp = lab / "elsewhere" / "imported.mcap"
     assert runner.invoke(app, ["import", str(csv), "-o", str(imp)]).exit_code == 0
     assert read_log(imp, topics=set()).metadata_dict()["trial"]["trial_uid"] == uid
-    # a CSV without one gets a new one
-    bare = lab / "bare.csv"
+    # a CSV without one (another system's): the import takes the UUID of the CSV's content, the one the
+    # catalogue gives that CSV, so the two are one trial
+    from rig.data import content_uid
+
+    bare = lab / "ext" / "bare.csv"
+    bare.parent.mkdir()
     bare.write_text("\n".join(ln for ln in csv.read_text().splitlines() if not ln.startswith("# trial_uid")) + "\n")
-    assert runner.invoke(app, ["import", str(bare), "-o", str(lab / "bare.mcap")]).exit_code == 0
-    other = read_log(lab / "bare.mcap", topics=set()).metadata_dict()["trial"]["trial_uid"]
-    assert len(other) == 36 and other != uid
+    assert runner.invoke(app, ["import", str(bare), "-o", str(lab / "ext" / "bare.mcap")]).exit_code == 0
+    other = read_log(lab / "ext" / "bare.mcap", topics=set()).metadata_dict()["trial"]["trial_uid"]
+    assert other == content_uid(_sha(bare)) and other != uid
+    build(lab / "ext")
+    assert query(lab / "ext" / "catalog.duckdb", "SELECT trial_uid, n_files FROM trials").rows == [(other, 2)]
     # the catalogue: the log and its export are one trial with both paths; the specimens view
     rep = build(lab / "archive")
     assert len(rep.read) == 2
@@ -212,9 +218,20 @@ def test_calibration_expired_and_shunt_drift_refused_override_logged(lab):
     assert [p["relative_error"] for p in rec["points"]] == [pytest.approx(0.004, abs=1e-5)] * 2
     # the override runs and logs both (the shunt check before the trial caught the drift through the
     # emulator's shunt-calibration registers), naming the channel; the MCAP records the calibration snapshot
+    import time
+
+    t0 = time.time_ns()
     code, text = _run("--hardware", prof, "--out", lab / "h.mcap", "--allow-expired-calibration")
+    t1 = time.time_ns()
     assert code == 0, text
     tr = read_trial(lab / "h.mcap")
+    # the log's clock is the loop's: trial time 0 is its first tick's wall-clock time, after the emulators and
+    # the loop process started, and the last sample was taken before the command returned
+    start, last = int(tr.metadata["start_time_ns"]), int(tr.metadata["start_time_ns"]) + tr.time_s[-1] * 1e9
+    assert tr.metadata["clock"] == "first_sample" and t0 < start and last < t1
+    c = read_log(lab / "h.mcap", topics={"/events"})
+    opened = [m.log_time for m in c.messages if json.loads(m.data)["kind"] == "trial_start"][0]
+    assert start - opened > 0.1e9  # the log opened before the loop process had even started
     ev = [(e["kind"], e["channel"]) for e in tr.events if e["kind"].startswith("calibration_")]
     assert ev == [("calibration_expired", "friction"), ("calibration_shunt_drift", "friction"),
                   ("calibration_shunt_drift", "normal_1"), ("calibration_shunt_drift", "normal_2")]

@@ -104,12 +104,15 @@ _TRIAL_COLUMNS = ("path", "trial_uid", "uid_source", "sha256", "kind", "recipe",
 
 def trial_key(row: dict) -> tuple[str, str]:
     """(trial_uid, where it came from) of an indexed file: its ``trial_uid`` metadata (a log, its
-    exports, imports, copies and recoveries share it), else ``sha256:<file digest>`` (a file from
-    another system: a moved or renamed copy keeps its results, an edited one is another trial)."""
+    exports, imports, copies and recoveries share it), else the UUID of its content
+    (:func:`rig.data.content_uid`: a file from another system; a moved or renamed copy keeps its
+    results, the log ``rig import`` makes from it is the same trial, an edited one is another)."""
+    from rig.data import content_uid
+
     uid = str(row.get("trial_uid") or "").strip()
     if uid:
         return uid, "metadata"
-    return f"sha256:{row['sha256']}", "content"
+    return content_uid(row["sha256"]), "content"
 
 
 def _write_trial(con, row: dict) -> None:
@@ -218,10 +221,12 @@ def _num(d: dict, k: str):
 def _uid_of(con, path: str, sha: str | None) -> str:
     """The trial a result belongs to: its file's ``trial_uid`` in the catalogue (the batch run indexes
     the files first), else the one its content gives (``sha256:...``), else the path itself."""
+    from rig.data import content_uid
+
     row = con.execute("SELECT trial_uid FROM files WHERE path = ?", [path]).fetchone()
     if row and row[0]:
         return row[0]
-    return f"sha256:{sha}" if sha else f"path:{path}"
+    return content_uid(sha) if sha else f"path:{path}"
 
 
 def _record(db: str | Path, table: str, results: list[TaskResult], ok_row, failed_cols: str, failed_row) -> None:

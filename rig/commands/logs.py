@@ -59,6 +59,9 @@ def info_command(
     who = [f"{k} {info[k]}" for k in ("trial_uid", "specimen", "operator") if info.get(k)]
     console.print("trial: " + ("; ".join(who) if who else "(no trial_uid: written before rig recorded one)")
                   + (f"; note: {info['note']}" if info.get("note") else ""), highlight=False, markup=False)
+    cal = _calibration_line(info["metadata"].get("trial", {}).get("calibration"))
+    if cal:
+        console.print(f"calibration: {cal}", highlight=False, markup=False)
     tab = Table(title="channels")
     for col in ("topic", "schema", "encoding", "messages"):
         tab.add_column(col)
@@ -71,7 +74,7 @@ def info_command(
     mt.add_column("value", overflow="fold")
     for name, rec_ in info["metadata"].items():
         for key, value in rec_.items():
-            if key == "json" and len(value) > 80:
+            if key in ("json", "calibration") and len(value) > 80:
                 value = value[:77] + "..."
             mt.add_row(name, key, value)
     console.print(mt)
@@ -92,6 +95,18 @@ def info_command(
     for d in info["corrupt_chunks"]:
         _warn(f"corrupt chunk ({d['error']}): t = {d['t_start_s']:.3f}..{d['t_end_s']:.3f} s, channels lost "
               f"there: {', '.join(d['channels']) or 'unknown'}")
+
+
+def _calibration_line(text: str | None) -> str:
+    """The calibration snapshot of a hardware trial in one line: channel, serial, due date."""
+    import json
+
+    try:
+        snap = json.loads(text) if text else {}
+    except ValueError:
+        return ""
+    return ", ".join(f"{ch} {rec.get('serial')}" + (f" (due {rec['due_on']})" if rec.get("due_on") else "")
+                     for ch, rec in snap.items() if isinstance(rec, dict))
 
 
 class Rate(str, Enum):
@@ -216,7 +231,13 @@ def import_command(
     for w in caught:
         _warn(str(w.message))
     try:
-        write_trial_data(trial, out, extra_metadata={"imported_from": str(path)}, overwrite=overwrite)
+        extra = {"imported_from": str(path)}
+        if not str(trial.metadata.get("trial_uid", "")).strip():  # the CSV's own identity: the catalogue's for it
+            from rig.catalog.tasks import sha256_file
+            from rig.data import content_uid
+
+            extra["trial_uid"] = content_uid(sha256_file(path))
+        write_trial_data(trial, out, extra_metadata=extra, overwrite=overwrite)
     except DataFormatError as exc:
         _fail(str(exc))
     except FileExistsError:

@@ -99,22 +99,24 @@ class LiveView:
         return f"ws://{host}:{self.port}"
 
     # -- the writer side (the session's thread): append and return ---------------------------------
-    def listener(self, start_time_ns: int) -> Callable[[str, dict], None]:
-        """A writer listener for a trial that started at ``start_time_ns`` (epoch ns of t_s = 0)."""
-        q, maxlen, t0 = self._q, self._maxlen, int(start_time_ns)
+    def listener(self, start_time_ns: int | Callable[[], int]) -> Callable[[str, dict], None]:
+        """A writer listener for a trial that started at ``start_time_ns`` (epoch ns of t_s = 0; or a callable
+        giving it now: the log's clock is anchored on its samples' wall clock as they come, issue 21)."""
+        q, maxlen = self._q, self._maxlen
+        clock = start_time_ns if callable(start_time_ns) else (lambda t=int(start_time_ns): t)
 
         def live_view(kind: str, payload: dict) -> None:
             if len(q) >= maxlen:
                 self.dropped += 1
             if kind == "samples":  # the writer's arrays may be views of the loop's buffers: copy (≈25 values)
                 payload = {k: np.array(v, dtype=np.float64) for k, v in payload.items()}
-            q.append((t0, kind, payload))
+            q.append((clock(), kind, payload))
 
         return live_view
 
     def attach(self, writer) -> Callable[[str, dict], None]:
         """Publish what ``writer`` (a :class:`rig.log.TrialLogWriter`) logs from now on; returns the listener."""
-        fn = self.listener(writer.start_time_ns)
+        fn = self.listener((lambda: writer.origin_ns) if hasattr(writer, "origin_ns") else writer.start_time_ns)
         writer.add_listener(fn)
         return fn
 

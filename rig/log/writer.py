@@ -460,6 +460,12 @@ class TrialLogWriter:
         elif origin > self._origin_ns:
             self._origin_ns = origin
 
+    @property
+    def origin_ns(self) -> int:
+        """The wall-clock ns of trial time 0 that ``log_time`` counts from now (``start_time_ns`` until a block
+        re-anchors it after a stall of the loop)."""
+        return self._origin_ns
+
     # -- writing ---------------------------------------------------------------
     def _ns(self, t_s: float) -> int:
         ns = self._origin_ns + int(round(float(t_s) * 1e9)) if math.isfinite(t_s) else self._origin_ns
