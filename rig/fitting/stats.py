@@ -275,7 +275,7 @@ def mcmc(residual: Callable[[dict], np.ndarray], pset: ParamSet, fit: FitOutcome
     p0 = z0 + rng.standard_normal((nw, p)) * scale
     p0 = np.clip(p0, lo + 1e-9, hi - 1e-9)
     sampler = emcee.EnsembleSampler(nw, p, log_prob)
-    sampler._random = np.random.mtrand.RandomState(seed)  # reproducible moves
+    sampler.random_state = np.random.RandomState(seed).get_state()  # reproducible moves
     state = p0
     for _ in sampler.sample(state, iterations=int(n_steps)):
         if progress is not None:
