@@ -90,9 +90,9 @@ def correlation_of(cov: np.ndarray, names: list[str]) -> dict:
 
 
 def jacobian_summary(pset: ParamSet, fit: FitOutcome, n_eff: float, hac: bool = True) -> dict:
-    """sd, 68 % intervals and correlation from the fit's Jacobian. With ``hac`` (default), the
-    Newey-West covariance (:func:`hac_cov`, lags = 4 correlation times), never below the plain
-    Jacobian's; else the residual variance inflated by ``n / n_eff``. Internal variables: ln
+    """sd, 68 % intervals and correlation from the fit's Jacobian: the residual variance inflated
+    by ``n / n_eff``, and with ``hac`` (default) the Newey-West covariance (:func:`hac_cov`, lags =
+    4 correlation times) where that is larger (per parameter; its correlations are kept). Internal variables: ln
     for log parameters, so their intervals are asymmetric. ``sd_ratio`` (per parameter) is this
     sd over the ``n / n_eff``-inflated one, for rescaling a profile interval."""
     z = fit.extra["z"]
@@ -104,9 +104,10 @@ def jacobian_summary(pset: ParamSet, fit: FitOutcome, n_eff: float, hac: bool = 
         cov_z = cov_n
         if hac:
             cov_h = hac_cov(fit.jac, r, int(math.ceil(4.0 * correlation_time(r)))) * n / max(n - p, 1)
-            plain = np.linalg.pinv(fit.jac.T @ fit.jac) * float(np.dot(r, r)) / max(n - p, 1)
-            # never more confident than the plain Jacobian (a short record's HAC can fall below it)
-            f = np.sqrt(np.maximum(np.diag(cov_h), np.diag(plain)) / np.maximum(np.diag(cov_h), 1e-300))
+            # the larger of the two per parameter: each is a lower bound under its own assumption
+            # (the HAC's lags are truncated, so a slow misfit escapes it; one n/n_eff factor misses
+            # correlation concentrated where a parameter's information is)
+            f = np.sqrt(np.maximum(np.diag(cov_h), np.diag(cov_n)) / np.maximum(np.diag(cov_h), 1e-300))
             cov_z = cov_h * np.outer(f, f)
     except (np.linalg.LinAlgError, ValueError):
         cov_z = cov_n = np.full((p, p), np.nan)
@@ -129,7 +130,7 @@ def jacobian_summary(pset: ParamSet, fit: FitOutcome, n_eff: float, hac: bool = 
         ratio = np.sqrt(np.diag(cov_z) / np.diag(cov_n))
     return {"method": "jacobian", "params_sd": sd, "intervals": iv, "correlation": correlation_of(cov, pset.names),
             "cov": cov, "sd_ratio": {nm: float(x) for nm, x in zip(pset.names, ratio)},
-            "errors": "Newey-West (HAC)" if hac else "n_eff-inflated"}
+            "errors": "max(Newey-West HAC, n_eff-inflated)" if hac else "n_eff-inflated"}
 
 
 def profile_interval(residual: Callable[[dict], np.ndarray], pset: ParamSet, fit: FitOutcome, name: str,
