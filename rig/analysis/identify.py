@@ -628,12 +628,16 @@ def fit_whole_record(trial: TrialData, steps: list[Step] | None = None, *, stiff
     unc = jacobian_summary(pset, fit, n_eff)
     if method == "jacobian" and profile:
         # L's interval from its profile likelihood (the a-b-L valley is flat and skewed in L)
+        # (its shape from the n_eff-scaled likelihood, its width rescaled to the HAC sd)
         jl = names.index("L_um")
         zl = fit.extra["z"][jl]
-        sd_zl = unc["params_sd"]["L_um"] / max(math.exp(zl), 1e-12)
+        ratio = unc["sd_ratio"].get("L_um", 1.0)
+        ratio = ratio if math.isfinite(ratio) and ratio > 0 else 1.0
+        sd_zl = unc["params_sd"]["L_um"] / max(math.exp(zl), 1e-12) / ratio
         piv = profile_interval(resid, pset, fit, "L_um", n_eff, sd_zl)
         if piv is not None:
-            unc["intervals"]["L_um"] = piv
+            lo_z, hi_z = math.log(piv[0]), math.log(piv[1])
+            unc["intervals"]["L_um"] = [math.exp(zl - (zl - lo_z) * ratio), math.exp(zl + (hi_z - zl) * ratio)]
             unc["profile"] = ["L_um"]
     if method == "bootstrap":
         m_hat = model(q)[sliding]
@@ -687,7 +691,8 @@ def fit_whole_record(trial: TrialData, steps: list[Step] | None = None, *, stiff
     out = {"ok": fit.success, "model": "rate_state" + ("+finite_stiffness" if stiffness else "")
            + ("+aging_law" if law == "aging" else ""),
            "law": law, "params": params, "params_sd": params_sd, "intervals": intervals, "correlation": correlation,
-           "uncertainty": {k_: v_ for k_, v_ in unc.items() if k_ not in ("params_sd", "intervals", "correlation", "cov")},
+           "uncertainty": {k_: v_ for k_, v_ in unc.items() if k_ not in ("params_sd", "intervals", "correlation", "cov",
+                                                                          "sd_ratio")},
            "err": {nm: _r(jac_sd.get(nm, 0.0)) for nm in order}, "err_corr": {nm: params_sd[nm] for nm in order},
            "rho1": _r(rho), "n_eff": _r(n_eff, 4), "bin_s": _r(width, 4),
            "information_criterion": _r(information_criterion(ssr, n, n_eff, n_par)),

@@ -13,9 +13,10 @@ times: statistics weigh time, not rows).
 * :func:`information_criterion`: Gaussian BIC on the effective sample size,
   ``n_eff ln(SSR / n) + p ln(n_eff)`` (Schwarz 1978; Kass & Raftery 1995: a difference above
   6 is strong evidence).
-* :func:`jacobian_summary`: ``cov = (J^T J)^-1 s^2 n / n_eff`` in the internal variables, mapped
-  to each parameter's unit; a ln-scaled parameter's 68 % interval is ``exp(ln v +- sd_ln)``
-  (asymmetric, as xlook reports Dc).
+* :func:`jacobian_summary`: the Newey-West (HAC) covariance ``B^-1 M B^-1`` in the internal
+  variables (each parameter sees the residual correlation where its information is), mapped to
+  each parameter's unit; a ln-scaled parameter's 68 % interval is ``exp(ln v +- sd_ln)``
+  (asymmetric, as xlook reports Dc). :func:`profile_interval` gives a skewed interval.
 * :func:`block_bootstrap`: the residuals resampled in blocks of about twice their correlation
   time (moving-block bootstrap, Kuensch 1989), added to the fitted curve and refitted N times.
 * :func:`mcmc`: emcee's affine-invariant ensemble sampler (Foreman-Mackey et al. 2013) on the
@@ -88,18 +89,28 @@ def correlation_of(cov: np.ndarray, names: list[str]) -> dict:
     return {"names": list(names), "matrix": [[round(float(v), 4) for v in row] for row in np.clip(c, -1, 1)]}
 
 
-def jacobian_summary(pset: ParamSet, fit: FitOutcome, n_eff: float) -> dict:
-    """sd, 68 % intervals and correlation from the fit's Jacobian, the residual variance inflated
-    by ``n / n_eff`` (correlated residuals). Internal variables: ln for log parameters, so their
-    intervals are asymmetric."""
+def jacobian_summary(pset: ParamSet, fit: FitOutcome, n_eff: float, hac: bool = True) -> dict:
+    """sd, 68 % intervals and correlation from the fit's Jacobian: the residual variance inflated
+    by ``n / n_eff``, and with ``hac`` (default) the Newey-West covariance (:func:`hac_cov`, lags =
+    4 correlation times) where that is larger (per parameter; its correlations are kept). Internal variables: ln
+    for log parameters, so their intervals are asymmetric. ``sd_ratio`` (per parameter) is this
+    sd over the ``n / n_eff``-inflated one, for rescaling a profile interval."""
     z = fit.extra["z"]
-    r = fit.residuals
+    r = np.asarray(fit.residuals, dtype=float)
     n, p = r.size, z.size
     s2 = float(np.dot(r, r)) / max(n - p, 1) * max(n / max(n_eff, 1.0), 1.0)
     try:
-        cov_z = np.linalg.pinv(fit.jac.T @ fit.jac) * s2
+        cov_n = np.linalg.pinv(fit.jac.T @ fit.jac) * s2
+        cov_z = cov_n
+        if hac:
+            cov_h = hac_cov(fit.jac, r, int(math.ceil(4.0 * correlation_time(r)))) * n / max(n - p, 1)
+            # the larger of the two per parameter: each is a lower bound under its own assumption
+            # (the HAC's lags are truncated, so a slow misfit escapes it; one n/n_eff factor misses
+            # correlation concentrated where a parameter's information is)
+            f = np.sqrt(np.maximum(np.diag(cov_h), np.diag(cov_n)) / np.maximum(np.diag(cov_h), 1e-300))
+            cov_z = cov_h * np.outer(f, f)
     except (np.linalg.LinAlgError, ValueError):
-        cov_z = np.full((p, p), np.nan)
+        cov_z = cov_n = np.full((p, p), np.nan)
     sd_z = np.sqrt(np.maximum(np.diag(cov_z), 0.0))
     sd, iv = {}, {}
     for prm, zi, si in zip(pset.params, z, sd_z):
@@ -115,8 +126,11 @@ def jacobian_summary(pset: ParamSet, fit: FitOutcome, n_eff: float) -> dict:
     # covariance in the parameters' own units (first order) for the correlation
     d = np.array([prm.to_value(float(zi)) if prm.log else prm.scale for prm, zi in zip(pset.params, z)])
     cov = cov_z * np.outer(d, d)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio = np.sqrt(np.diag(cov_z) / np.diag(cov_n))
     return {"method": "jacobian", "params_sd": sd, "intervals": iv, "correlation": correlation_of(cov, pset.names),
-            "cov": cov}
+            "cov": cov, "sd_ratio": {nm: float(x) for nm, x in zip(pset.names, ratio)},
+            "errors": "max(Newey-West HAC, n_eff-inflated)" if hac else "n_eff-inflated"}
 
 
 def profile_interval(residual: Callable[[dict], np.ndarray], pset: ParamSet, fit: FitOutcome, name: str,
@@ -168,6 +182,22 @@ def profile_interval(residual: Callable[[dict], np.ndarray], pset: ParamSet, fit
     except ValueError:
         return None
     return [min(ends), max(ends)]
+
+
+def hac_cov(jac: np.ndarray, r: np.ndarray, lags: int) -> np.ndarray:
+    """Heteroscedasticity- and autocorrelation-consistent covariance (Newey & West 1987) of a
+    least-squares fit in its internal variables: ``B^-1 M B^-1`` with ``B = J^T J`` and ``M`` the
+    Bartlett-weighted sum of the score's autocovariances ``sum_k w_k sum_i g_i g_{i+k}^T``,
+    ``g_i = J_i r_i``, ``w_k = 1 - k / (lags + 1)``. Unlike one inflation factor for all, it lets
+    each parameter see the residual correlation where its information is (L's in the transients)."""
+    g = jac * r[:, None]
+    meat = g.T @ g
+    for k in range(1, max(int(lags), 0) + 1):
+        w = 1.0 - k / (lags + 1.0)
+        c = g[k:].T @ g[:-k]
+        meat += w * (c + c.T)
+    bread = np.linalg.pinv(jac.T @ jac)
+    return bread @ meat @ bread
 
 
 def _sample_summary(pset: ParamSet, samples: np.ndarray, method: str, **extra) -> dict:
@@ -246,7 +276,7 @@ def mcmc(residual: Callable[[dict], np.ndarray], pset: ParamSet, fit: FitOutcome
     p0 = z0 + rng.standard_normal((nw, p)) * scale
     p0 = np.clip(p0, lo + 1e-9, hi - 1e-9)
     sampler = emcee.EnsembleSampler(nw, p, log_prob)
-    sampler._random = np.random.mtrand.RandomState(seed)  # reproducible moves
+    sampler.random_state = np.random.RandomState(seed).get_state()  # reproducible moves
     state = p0
     for _ in sampler.sample(state, iterations=int(n_steps)):
         if progress is not None:
@@ -279,4 +309,4 @@ def parse_uncertainty(text: str) -> tuple[str, int]:
 
 
 __all__ = ["Q_LO", "Q_HI", "autocorr", "block_bootstrap", "correlation_of", "correlation_time", "effective_n",
-           "information_criterion", "jacobian_summary", "mcmc", "parse_uncertainty", "profile_interval"]
+           "hac_cov", "information_criterion", "jacobian_summary", "mcmc", "parse_uncertainty", "profile_interval"]
