@@ -143,3 +143,24 @@ def test_cold_kernels_says_when_a_first_call_compiles(tmp_path, monkeypatch):
     assert not warmup.cold_kernels(["mod.py"])  # cache newer than the source
     os.utime(src, (2e9, 2e9))
     assert warmup.cold_kernels(["mod.py"])  # the source changed since
+
+
+@pytest.mark.parametrize("fmt, encoding", [(None, "protobuf"), ("v2", "rig.columns.v2")])
+def test_recipe_chooses_the_raw_layout(tmp_path, fmt, encoding):
+    from pathlib import Path
+    from types import SimpleNamespace
+
+    from rig.config import default_profile_path, load_profile, parse_recipe
+    from rig.session.logfile import open_log
+
+    text = (Path(__file__).parents[1] / "config" / "recipes" / "smoke.yaml").read_text()
+    if fmt:
+        text = text.replace("log:\n", f"log:\n  raw_format: {fmt}\n", 1)
+    recipe = parse_recipe(text, "smoke.yaml")
+    w = open_log(tmp_path / "r.mcap", SimpleNamespace(loop_rate_hz=1000.0), recipe,
+                 load_profile(default_profile_path()), {})
+    w.write_block(blocks(2, 100)[0])
+    w.close()
+    with open(tmp_path / "r.mcap", "rb") as fh:
+        chans = make_reader(fh).get_summary().channels.values()
+    assert {c.topic: c.message_encoding for c in chans}["/raw"] == encoding
