@@ -26,11 +26,11 @@ CSV_NAME = {"t_s": "time_s", "position_nm": "position_um", "position_ref_um": "p
             "friction_mN": "friction_N", "normal_1_mN": "normal_1_N", "normal_2_mN": "normal_2_N",
             "valve_cmd_per_32767": "valve_cmd", "pid_p_mN": "pid_p", "pid_i_uN": "pid_i", "pid_d_N": "pid_d",
             "dither_uN": "dither", "true_position_nm": "true_position_um",
-            "true_velocity_nm_per_s": "true_velocity_um_s", "true_mu_ppm": "true_mu", "spool": "spool"}
+            "true_velocity_nm_per_s": "true_velocity_um_s", "true_mu_ppm": "true_mu", "spool_per_32767": "spool"}
 #: one quantization step of each stored column (the devices' counts), in the CSV's unit
 STEP = {"position_um": 0.076, "position_ref_um": 1e-3, "friction_N": 1e-3, "normal_1_N": 1e-3, "normal_2_N": 1e-3,
         "valve_cmd": 1 / 32767, "pid_p": 1e-3, "pid_i": 1e-4, "pid_d": 1e-6, "dither": 1e-6,
-        "true_position_um": 1e-3, "true_velocity_um_s": 1e-3, "true_mu": 1e-6, "time_s": 1e-9, "spool": 1e-6}
+        "true_position_um": 1e-3, "true_velocity_um_s": 1e-3, "true_mu": 1e-6, "time_s": 1e-9, "spool": 1 / 32767}
 
 
 def blocks(n_blocks=4, n=500, seed=3):
@@ -123,7 +123,7 @@ def test_field_names_carry_units():
     from rig.log.loopblock import DISPLAY
 
     for key, (name, kind, unit) in DISPLAY.items():
-        assert re.fullmatch(r"[a-z_0-9]+(_um|_nm|_mN|_uN|_N|_per_32767|_ppm|_nm_per_s)|spool", name), name
+        assert re.fullmatch(r"[a-z_0-9]+(_um|_nm|_mN|_uN|_N|_per_32767|_ppm|_nm_per_s)", name), name
         assert unit == pytest.approx(unit_of(name)) or kind != "sint64", name
 
 
