@@ -164,3 +164,35 @@ def test_recipe_chooses_the_raw_layout(tmp_path, fmt, encoding):
     with open(tmp_path / "r.mcap", "rb") as fh:
         chans = make_reader(fh).get_summary().channels.values()
     assert {c.topic: c.message_encoding for c in chans}["/raw"] == encoding
+
+
+def test_small_real_time_chunks_are_compacted_at_close(tmp_path):
+    """A trial logged in real time closes a chunk every second; at close the file is rewritten into
+    large chunks (atomically): smaller, the same data, events and metadata."""
+    from rig.log import read_metadata, read_trial
+
+    def run(name, compact):
+        w = TrialLogWriter(tmp_path / name, start_time_ns=T0_NS, threaded=False, fsync=False, compact=compact,
+                           metadata={"lubricant": "boundary"})
+        for b in blocks(12, 500):
+            w.write_block(b)
+            w.flush()  # as the hardware's 1 s flushes
+        w.close()
+        return w
+
+    plain, packed = run("plain.mcap", False), run("packed.mcap", True)
+    assert plain.compacted is None and packed.compacted["chunks_before"] >= 12
+    with open(tmp_path / "packed.mcap", "rb") as fh:
+        summary = make_reader(fh, validate_crcs=True).get_summary()
+    assert len(summary.chunk_indexes) < 4
+    assert (tmp_path / "packed.mcap").stat().st_size < 0.9 * (tmp_path / "plain.mcap").stat().st_size
+    a, b = (read_trial(tmp_path / n, "raw") for n in ("plain.mcap", "packed.mcap"))
+    assert a.columns().keys() == b.columns().keys()
+    for k, v in a.columns().items():
+        assert np.array_equal(np.asarray(v), np.asarray(b.columns()[k]), equal_nan=True), k
+    assert [e["kind"] for e in a.events] == [e["kind"] for e in b.events]
+    ma, mb = (read_metadata(tmp_path / n) for n in ("plain.mcap", "packed.mcap"))
+    for m in (ma, mb):
+        m["trial_end"].pop("ended_utc")  # the two runs ended at different times
+    assert ma == mb
+    assert not list(tmp_path.glob(".*.tmp"))
