@@ -705,7 +705,10 @@ class TrialLogWriter:
         else:
             self._guard(self._sink.finish)
         if self._compact:
-            self.compacted = compact_log(self.path, self._chunk_size)
+            try:
+                self.compacted = compact_log(self.path, self._chunk_size)
+            except OSError as exc:  # e.g. no room for the copy: the complete original stays as written
+                self.compacted = {"error": f"{type(exc).__name__}: {exc}"}
 
     compacted: dict | None = None
 
