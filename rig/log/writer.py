@@ -309,7 +309,7 @@ class TrialLogWriter:
     tool decodes) or ``"v2"`` (``rig.columns.v2``, kept to compare with older logs). ``raw_encoding`` and
     ``raw_dtype`` are obsolete and ignored (older encodings are read, no longer written).
     ``compact``: a file finished in many small chunks (a trial logged in real time closes one
-    every second for crash safety) is rewritten at close into chunks of ``chunk_size``
+    every second for crash safety) is rewritten at close into chunks of 1 MB
     (:func:`compact_log`), atomically: zstd then sees the columns of many blocks at once
     (the hardware's columns: 73 -> 55 MB per hour, docs/trial.md).
     """
@@ -319,7 +319,7 @@ class TrialLogWriter:
                  metadata: dict[str, Any] | None = None, recipe_yaml: str | None = None,
                  recipe: dict | None = None, profile: dict | None = None,
                  raw_encoding: str = "binary", raw_dtype: str | None = None, flush_interval_s: float = 1.0,
-                 chunk_size: int = 1 << 20, fsync: bool = True, threaded: bool = True,
+                 chunk_size: int = 1 << 18, fsync: bool = True, threaded: bool = True,
                  compression: str = "zstd", start_time_ns: int | None = None, raw_columns: str = "device",
                  raw_format: str = "protobuf", compact: bool = True):
         if raw_encoding not in ("binary", "base64", "json"):
@@ -356,7 +356,6 @@ class TrialLogWriter:
             else self._enc
         self.flush_interval_s = float(flush_interval_s)
         self._compact = bool(compact)
-        self._chunk_size = int(chunk_size)
         self._fh = open(self.path, "wb")
         sink = _Sink(self._fh, fsync, compression, int(chunk_size))
         sink.w.start(profile=MCAP_PROFILE, library=f"rig {__version__} (mcap {_mcap_version()})")
@@ -706,7 +705,7 @@ class TrialLogWriter:
             self._guard(self._sink.finish)
         if self._compact:
             try:
-                self.compacted = compact_log(self.path, self._chunk_size)
+                self.compacted = compact_log(self.path)
             except OSError as exc:  # e.g. no room for the copy: the complete original stays as written
                 self.compacted = {"error": f"{type(exc).__name__}: {exc}"}
 
@@ -734,12 +733,15 @@ class TrialLogWriter:
             self.close("failed", error=f"{exc_type.__name__}: {exc}")
 
 
-#: compact a finished file whose chunks hold on average less than this share of the chunk size
-COMPACT_BELOW = 0.25
+#: compact a finished file whose chunks hold on average less than this (uncompressed; a real-time
+#: trial's 0.5-1 s chunks hold 25-100 kB, a simulated trial's fill the writer's 256 kB) ...
+COMPACT_BELOW_BYTES = 128 * 1024
 COMPACT_MIN_CHUNKS = 8
+#: ... into chunks of this size (zstd then sees many blocks' columns at once)
+COMPACT_CHUNK_SIZE = 1 << 20
 
 
-def compact_log(path: str | os.PathLike, chunk_size: int = 1 << 20) -> dict | None:
+def compact_log(path: str | os.PathLike, chunk_size: int = COMPACT_CHUNK_SIZE) -> dict | None:
     """Rewrite a complete log written in many small chunks (real-time flushes) into chunks of
     ``chunk_size``: the same header, schemas, channels, messages (in file order), metadata and
     attachments, every chunk's CRC checked on the way; written to a temporary file, fsync'd and
@@ -760,7 +762,7 @@ def compact_log(path: str | os.PathLike, chunk_size: int = 1 << 20) -> dict | No
     if summary is None or len(summary.chunk_indexes) < COMPACT_MIN_CHUNKS:
         return None
     mean = sum(ci.uncompressed_size for ci in summary.chunk_indexes) / len(summary.chunk_indexes)
-    if mean >= COMPACT_BELOW * chunk_size:
+    if mean >= COMPACT_BELOW_BYTES:
         return None
     c = scan(path)
     if c.error or not c.complete or c.damage or c.header is None:
