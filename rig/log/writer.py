@@ -319,7 +319,7 @@ class TrialLogWriter:
                  metadata: dict[str, Any] | None = None, recipe_yaml: str | None = None,
                  recipe: dict | None = None, profile: dict | None = None,
                  raw_encoding: str = "binary", raw_dtype: str | None = None, flush_interval_s: float = 1.0,
-                 chunk_size: int = 1 << 18, fsync: bool = True, threaded: bool = True,
+                 chunk_size: int = 1 << 20, fsync: bool = True, threaded: bool = True,
                  compression: str = "zstd", start_time_ns: int | None = None, raw_columns: str = "device",
                  raw_format: str = "protobuf", compact: bool = True):
         if raw_encoding not in ("binary", "base64", "json"):
@@ -734,7 +734,7 @@ class TrialLogWriter:
 
 
 #: compact a finished file whose chunks hold on average less than this (uncompressed; a real-time
-#: trial's 0.5-1 s chunks hold 25-100 kB, a simulated trial's fill the writer's 256 kB) ...
+#: trial's 0.5-1 s chunks hold 25-100 kB, a simulated trial's fill the writer's 1 MB) ...
 COMPACT_BELOW_BYTES = 128 * 1024
 COMPACT_MIN_CHUNKS = 8
 #: ... into chunks of this size (zstd then sees many blocks' columns at once)
