@@ -21,7 +21,7 @@ def small_log(tmp_path):
     rng = np.random.default_rng(3)
     path = tmp_path / "trial.mcap"
     w = TrialLogWriter(path, metadata={"lubricant": "paraffin", "normal_force_N": 100.0, "seed": 1},
-                       flush_interval_s=0.0, compact=False)  # one chunk per block, as a crash leaves them
+                       flush_interval_s=0.0)  # one chunk per block
     for b in range(20):
         t = (b * 100 + np.arange(100)) / 1000.0
         blk = {k: rng.normal(size=100) for k in BLOCK_KEYS}

@@ -308,8 +308,9 @@ class TrialLogWriter:
     ``raw_format``: ``"protobuf"`` (default: ``rig.LoopBlock``, :mod:`rig.log.loopblock`, which any MCAP
     tool decodes) or ``"v2"`` (``rig.columns.v2``, kept to compare with older logs). ``raw_encoding`` and
     ``raw_dtype`` are obsolete and ignored (older encodings are read, no longer written).
-    ``compact``: a file finished in many small chunks (a trial logged in real time closes one
-    every second for crash safety) is rewritten at close into chunks of 1 MB
+    ``compact`` (``rig run`` turns it on, :func:`rig.session.logfile.open_log`): a file finished in
+    many small chunks (a trial logged in real time closes one every 0.5-1 s for crash safety) is
+    rewritten at close into chunks of 1 MB
     (:func:`compact_log`), atomically: zstd then sees the columns of many blocks at once
     (the hardware's columns: 73 -> 55 MB per hour, docs/trial.md).
     """
@@ -321,7 +322,7 @@ class TrialLogWriter:
                  raw_encoding: str = "binary", raw_dtype: str | None = None, flush_interval_s: float = 1.0,
                  chunk_size: int = 1 << 20, fsync: bool = True, threaded: bool = True,
                  compression: str = "zstd", start_time_ns: int | None = None, raw_columns: str = "device",
-                 raw_format: str = "protobuf", compact: bool = True):
+                 raw_format: str = "protobuf", compact: bool = False):
         if raw_encoding not in ("binary", "base64", "json"):
             raise ValueError(f"raw_encoding must be 'binary', not {raw_encoding!r}")
         if compression not in _COMPRESSION:
