@@ -174,17 +174,17 @@ def test_small_real_time_chunks_are_compacted_at_close(tmp_path):
     def run(name, compact):
         w = TrialLogWriter(tmp_path / name, start_time_ns=T0_NS, threaded=False, fsync=False, compact=compact,
                            metadata={"lubricant": "boundary"})
-        for b in blocks(12, 500):
+        for b in blocks(130, 50):
             w.write_block(b)
-            w.flush()  # as the hardware's 1 s flushes
+            w.flush()  # as the hardware's 0.5-1 s flushes
         w.close()
         return w
 
     plain, packed = run("plain.mcap", False), run("packed.mcap", True)
-    assert plain.compacted is None and packed.compacted["chunks_before"] >= 12
+    assert plain.compacted is None and packed.compacted["chunks_before"] >= 130
     with open(tmp_path / "packed.mcap", "rb") as fh:
         summary = make_reader(fh, validate_crcs=True).get_summary()
-    assert len(summary.chunk_indexes) < 4
+    assert len(summary.chunk_indexes) < 6
     assert (tmp_path / "packed.mcap").stat().st_size < 0.9 * (tmp_path / "plain.mcap").stat().st_size
     a, b = (read_trial(tmp_path / n, "raw") for n in ("plain.mcap", "packed.mcap"))
     assert a.columns().keys() == b.columns().keys()

@@ -737,7 +737,9 @@ class TrialLogWriter:
 #: compact a finished file whose chunks hold on average less than this (uncompressed; a real-time
 #: trial's 0.5-1 s chunks hold 25-100 kB, a simulated trial's fill the writer's 1 MB) ...
 COMPACT_BELOW_BYTES = 128 * 1024
-COMPACT_MIN_CHUNKS = 8
+#: and that has at least this many (a minute at the hardware's 0.5 s flushes: a short trial's size does
+#: not matter, and its many chunks keep the most of it readable should the finished file be damaged)
+COMPACT_MIN_CHUNKS = 120
 #: ... into chunks of this size (zstd then sees many blocks' columns at once)
 COMPACT_CHUNK_SIZE = 1 << 20
 
@@ -776,6 +778,7 @@ def compact_log(path: str | os.PathLike, chunk_size: int = COMPACT_CHUNK_SIZE) -
         sid = {i: w.register_schema(s.name, s.encoding, s.data) for i, s in sorted(c.schemas.items())}
         cid = {i: w.register_channel(ch.topic, ch.message_encoding, sid.get(ch.schema_id, 0), dict(ch.metadata))
                for i, ch in sorted(c.channels.items())}
+        w.flush()  # the schemas and channels in a first chunk of their own, as the writer does
         for md in c.metadata:
             w.add_metadata(md.name, dict(md.metadata))
         for a in c.attachments:
