@@ -23,6 +23,11 @@ second, real-time factor, file size and MB per hour of trial; best of
 after; CPU figures are the stable ones.
 
     python benchmarks/bench_run.py [--repeat 3] [--recipe config/recipes/velocity-steps.yaml] [--json out.json]
+
+``--phases``: one (default: one-hour, ``benchmarks/recipes/one-hour-slide.yaml``) trial phase by
+phase -- imports, plan, simulation, encoding, compression, fsync, the whole ``rig run`` process -- each
+beside the load average, and the log's size per hour in the protobuf and the v2 layouts, with the
+simulation's chunks and with real-time ones.
 """
 
 from __future__ import annotations
@@ -158,8 +163,115 @@ def _run_cli(args: list[str], repeat: int) -> dict:
     return {"wall_s": best_wall, "cpu_s": best_cpu}
 
 
+HOUR_RECIPE = REPO / "benchmarks" / "recipes" / "one-hour-slide.yaml"
+
+
+def _load() -> str:
+    return f"load {os.getloadavg()[0]:.2f}"
+
+
+def phases(recipe_path: Path, profile_path: Path, out_json: str | None = None) -> dict:
+    """Where the time of a (one-hour) simulated trial with its full log goes, phase by phase, each printed
+    beside the load average (the machine is shared); and the file's size per hour in each raw layout,
+    with the simulation's chunks and with real-time chunks (one per 1 s block, as the hardware writes)."""
+    import numpy as np
+
+    res: dict = {"recipe": str(recipe_path)}
+
+    def line(name, wall, cpu, extra=""):
+        res[name] = {"wall_s": wall, "cpu_s": cpu}
+        print(f"  {name:34s} wall {wall:7.3f} s  cpu {cpu:7.3f} s  {extra:28s} ({_load()})", flush=True)
+
+    print(f"phases of {recipe_path.name} ({_load()}, {os.cpu_count()} cores)")
+    w0, r0 = time.perf_counter(), os.times()
+    subprocess.run([sys.executable, "-c", "import rig.cli, rig.session.sim, rig.log.writer, rig.log.loopblock"],
+                   check=True, cwd=REPO)
+    r1 = os.times()
+    line("imports (fresh process)", time.perf_counter() - w0,
+         (r1.children_user - r0.children_user) + (r1.children_system - r0.children_system))
+
+    from rig.config.profile import load_profile
+    from rig.config.recipe import compile_recipe, load_recipe
+    from rig.log import TrialLogWriter
+    from rig.log.loopblock import LoopBlockEncoder
+    from rig.log.schemas import ColumnsV2Encoder, device_columns
+    from rig.sim import SimRig
+
+    w0, c0 = time.perf_counter(), time.process_time()
+    recipe = load_recipe(recipe_path)
+    profile = load_profile(profile_path)
+    plan = compile_recipe(recipe, profile)
+    line("plan (recipe, profile, reference)", time.perf_counter() - w0, time.process_time() - c0)
+    hours = plan.duration_s / 3600.0
+    rig = SimRig(profile, profile.friction_model(recipe.lubricant), recipe.normal_force_N, recipe.seed)
+    for _ in rig.run_blocks(plan.x_ref_um[:2000], block_ticks=1000, controller=plan.controller):
+        pass  # numba's cache loaded
+    rig = SimRig(profile, profile.friction_model(recipe.lubricant), recipe.normal_force_N, recipe.seed)
+    w0, c0 = time.perf_counter(), time.process_time()
+    blocks = [{k: v.copy() for k, v in b.items()}
+              for b in rig.run_blocks(plan.x_ref_um, block_ticks=1000, controller=plan.controller)]
+    line("simulation (closed loop, no log)", time.perf_counter() - w0, time.process_time() - c0,
+         f"{plan.n_ticks / 1e6:.2f} M ticks")
+    cols = device_columns()
+    enc = LoopBlockEncoder(lambda k: cols.get(k, cols["t_s"]), 1000.0)
+    enc.plan(tuple(blocks[0]))
+    enc.encode(blocks[0], 0.0)
+    w0, c0 = time.perf_counter(), time.process_time()
+    raw_bytes = sum(len(enc.encode(b, float(b["t_s"][0]))) for b in blocks)
+    line("encoding /raw (protobuf)", time.perf_counter() - w0, time.process_time() - c0,
+         f"{raw_bytes / 1e6 / hours:.0f} MB/h before zstd")
+    v2 = ColumnsV2Encoder(cols, 1000.0)
+    w0, c0 = time.perf_counter(), time.process_time()
+    for b in blocks:
+        v2.encode(b, float(b["t_s"][0]))
+    line("  (encoding /raw as rig.columns.v2)", time.perf_counter() - w0, time.process_time() - c0)
+    tmp = Path(tempfile.mkdtemp(prefix="bench_phases_"))
+
+    def write(name, realtime=False, **kw):
+        w = TrialLogWriter(tmp / f"{name}.mcap", threaded=False, **kw)
+        w.warm_up()
+        w0, c0 = time.perf_counter(), time.process_time()
+        for b in blocks:
+            w.write_block(b)
+            if realtime:
+                w.flush()
+        w.close()
+        size = (tmp / f"{name}.mcap").stat().st_size / 1e6
+        return time.perf_counter() - w0, time.process_time() - c0, size / hours
+
+    none = write("none", compression="none", fsync=False)
+    line("log without compression/fsync", none[0], none[1], "(encoding, 25 Hz JSON, records)")
+    z = write("zstd", fsync=False)
+    line("compression (zstd chunks)", z[0] - none[0], z[1] - none[1])
+    f = write("fsync")
+    line("fsync (every second of wall time)", f[0] - z[0], f[1] - z[1])
+    res["sizes_MB_per_hour"] = sizes = {"protobuf": f[2]}
+    sizes["protobuf, real-time chunks"] = write("rt", realtime=True, fsync=False)[2]
+    sizes["v2 (before)"] = write("v2", fsync=False, raw_format="v2")[2]
+    sizes["v2 (before), real-time chunks"] = write("v2rt", realtime=True, fsync=False, raw_format="v2")[2]
+    no_truth = [{k: v for k, v in b.items() if not k.startswith("true_") and k != "spool"} for b in blocks]
+    blocks[:] = no_truth
+    sizes["protobuf, hardware's columns (no sim truths/spool)"] = write("hw", fsync=False)[2]
+    sizes["protobuf, hardware's columns, real-time chunks"] = write("hwrt", realtime=True, fsync=False)[2]
+    for k, v in sizes.items():
+        print(f"  size {k:52s} {v:6.1f} MB per hour of trial")
+    w0, r0 = time.perf_counter(), os.times()
+    subprocess.run([sys.executable, "-m", "rig.cli", "run", str(recipe_path), "--sim", "-q", "--yes", "--out",
+                    str(tmp / "whole.mcap")], check=True, cwd=REPO, capture_output=True)
+    r1 = os.times()
+    line("whole `rig run --sim -q` process", time.perf_counter() - w0,
+         (r1.children_user - r0.children_user) + (r1.children_system - r0.children_system),
+         f"{plan.duration_s:.0f} s simulated")
+    if out_json:
+        Path(out_json).write_text(json.dumps(res, indent=2))
+    return res
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--phases", action="store_true", help="where the time of a one-hour trial goes, phase by "
+                    "phase (imports, plan, simulation, encoding, compression, fsync, the whole process), and "
+                    "its size per hour in each raw layout (--recipe defaults to the one-hour slide then)")
     ap.add_argument("--recipe", default=str(REPO / "config" / "recipes" / "velocity-steps.yaml"))
     ap.add_argument("--profile", default=str(REPO / "config" / "rigs" / "sim.yaml"))
     ap.add_argument("--repeat", type=int, default=3)
@@ -167,6 +279,10 @@ def main(argv=None) -> int:
     ap.add_argument("--json", default=None, help="also write the figures to this JSON file")
     ap.add_argument("--baseline", default=BASELINE, help="git commit whose rig/log.py is the 'before' writer")
     args = ap.parse_args(argv)
+    if args.phases:
+        rec = Path(args.recipe) if "--recipe" in (argv or sys.argv) else HOUR_RECIPE
+        phases(rec, Path(args.profile), args.json)
+        return 0
     load0 = os.getloadavg()
 
     from rig.log import TrialLogWriter

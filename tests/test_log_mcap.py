@@ -475,7 +475,7 @@ def test_foxglove_layout_plots_only_fields_the_log_has():
                  "/log25.normal_2_N", "/log25.valve_cmd", "/loop_stats.late_p99_us", "/raw.position_nm[:]",
                  "/raw.position_ref_um[:]", "/raw.friction_mN[:]", "/raw.normal_1_mN[:]", "/raw.normal_2_mN[:]",
                  "/raw.valve_cmd_per_32767[:]", "/raw.pid_p_mN[:]", "/raw.pid_i_uN[:]", "/raw.pid_d_N[:]",
-                 "/raw.dither_uN[:]", "/raw.spool[:]"):
+                 "/raw.dither_uN[:]", "/raw.spool_per_32767[:]"):
         assert want in paths
 
     def leaves(node):

@@ -26,11 +26,11 @@ CSV_NAME = {"t_s": "time_s", "position_nm": "position_um", "position_ref_um": "p
             "friction_mN": "friction_N", "normal_1_mN": "normal_1_N", "normal_2_mN": "normal_2_N",
             "valve_cmd_per_32767": "valve_cmd", "pid_p_mN": "pid_p", "pid_i_uN": "pid_i", "pid_d_N": "pid_d",
             "dither_uN": "dither", "true_position_nm": "true_position_um",
-            "true_velocity_nm_per_s": "true_velocity_um_s", "true_mu_ppm": "true_mu", "spool": "spool"}
+            "true_velocity_nm_per_s": "true_velocity_um_s", "true_mu_ppm": "true_mu", "spool_per_32767": "spool"}
 #: one quantization step of each stored column (the devices' counts), in the CSV's unit
 STEP = {"position_um": 0.076, "position_ref_um": 1e-3, "friction_N": 1e-3, "normal_1_N": 1e-3, "normal_2_N": 1e-3,
         "valve_cmd": 1 / 32767, "pid_p": 1e-3, "pid_i": 1e-4, "pid_d": 1e-6, "dither": 1e-6,
-        "true_position_um": 1e-3, "true_velocity_um_s": 1e-3, "true_mu": 1e-6, "time_s": 1e-9, "spool": 1e-6}
+        "true_position_um": 1e-3, "true_velocity_um_s": 1e-3, "true_mu": 1e-6, "time_s": 1e-9, "spool": 1 / 32767}
 
 
 def blocks(n_blocks=4, n=500, seed=3):
@@ -123,7 +123,7 @@ def test_field_names_carry_units():
     from rig.log.loopblock import DISPLAY
 
     for key, (name, kind, unit) in DISPLAY.items():
-        assert re.fullmatch(r"[a-z_0-9]+(_um|_nm|_mN|_uN|_N|_per_32767|_ppm|_nm_per_s)|spool", name), name
+        assert re.fullmatch(r"[a-z_0-9]+(_um|_nm|_mN|_uN|_N|_per_32767|_ppm|_nm_per_s)", name), name
         assert unit == pytest.approx(unit_of(name)) or kind != "sint64", name
 
 
@@ -143,3 +143,56 @@ def test_cold_kernels_says_when_a_first_call_compiles(tmp_path, monkeypatch):
     assert not warmup.cold_kernels(["mod.py"])  # cache newer than the source
     os.utime(src, (2e9, 2e9))
     assert warmup.cold_kernels(["mod.py"])  # the source changed since
+
+
+@pytest.mark.parametrize("fmt, encoding", [(None, "protobuf"), ("v2", "rig.columns.v2")])
+def test_recipe_chooses_the_raw_layout(tmp_path, fmt, encoding):
+    from pathlib import Path
+    from types import SimpleNamespace
+
+    from rig.config import default_profile_path, load_profile, parse_recipe
+    from rig.session.logfile import open_log
+
+    text = (Path(__file__).parents[1] / "config" / "recipes" / "smoke.yaml").read_text()
+    if fmt:
+        text = text.replace("log:\n", f"log:\n  raw_format: {fmt}\n", 1)
+    recipe = parse_recipe(text, "smoke.yaml")
+    w = open_log(tmp_path / "r.mcap", SimpleNamespace(loop_rate_hz=1000.0), recipe,
+                 load_profile(default_profile_path()), {})
+    w.write_block(blocks(2, 100)[0])
+    w.close()
+    with open(tmp_path / "r.mcap", "rb") as fh:
+        chans = make_reader(fh).get_summary().channels.values()
+    assert {c.topic: c.message_encoding for c in chans}["/raw"] == encoding
+
+
+def test_small_real_time_chunks_are_compacted_at_close(tmp_path):
+    """A trial logged in real time closes a chunk every second; at close the file is rewritten into
+    large chunks (atomically): smaller, the same data, events and metadata."""
+    from rig.log import read_metadata, read_trial
+
+    def run(name, compact):
+        w = TrialLogWriter(tmp_path / name, start_time_ns=T0_NS, threaded=False, fsync=False, compact=compact,
+                           metadata={"lubricant": "boundary"})
+        for b in blocks(130, 50):
+            w.write_block(b)
+            w.flush()  # as the hardware's 0.5-1 s flushes
+        w.close()
+        return w
+
+    plain, packed = run("plain.mcap", False), run("packed.mcap", True)
+    assert plain.compacted is None and packed.compacted["chunks_before"] >= 130
+    with open(tmp_path / "packed.mcap", "rb") as fh:
+        summary = make_reader(fh, validate_crcs=True).get_summary()
+    assert len(summary.chunk_indexes) < 6
+    assert (tmp_path / "packed.mcap").stat().st_size < 0.9 * (tmp_path / "plain.mcap").stat().st_size
+    a, b = (read_trial(tmp_path / n, "raw") for n in ("plain.mcap", "packed.mcap"))
+    assert a.columns().keys() == b.columns().keys()
+    for k, v in a.columns().items():
+        assert np.array_equal(np.asarray(v), np.asarray(b.columns()[k]), equal_nan=True), k
+    assert [e["kind"] for e in a.events] == [e["kind"] for e in b.events]
+    ma, mb = (read_metadata(tmp_path / n) for n in ("plain.mcap", "packed.mcap"))
+    for m in (ma, mb):
+        m["trial_end"].pop("ended_utc")  # the two runs ended at different times
+    assert ma == mb
+    assert not list(tmp_path.glob(".*.tmp"))

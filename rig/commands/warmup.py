@@ -69,32 +69,34 @@ def _warm_simulation() -> float:
     return time.perf_counter() - t0
 
 
-def _warm_identification() -> float:
-    """The identification kernels, on a synthetic record of the paper's velocity steps."""
-    from rig.analysis.identify import identify_trials
+def _synthetic_steps():
+    """A synthetic record of the paper's velocity steps (boundary lubricant, one 1 -> 5 µm/s step)."""
     from rig.config.profile import default_profile_path, load_profile
     from rig.sim.synth import generate, paper_step_protocol
 
-    t0 = time.perf_counter()
     profile = load_profile(default_profile_path())
-    rec = generate(profile.friction_model("boundary"), paper_step_protocol(highs=(5.0,)), seed=0)
+    return generate(profile.friction_model("boundary"), paper_step_protocol(highs=(5.0,)), seed=0).trial
+
+
+def _warm_identification() -> float:
+    """The identification kernels, on a synthetic record of the paper's velocity steps."""
+    from rig.analysis.identify import identify_trials
+
+    t0 = time.perf_counter()
     try:
-        identify_trials([rec.trial], names=["warmup"], whole_record=True, stiffness=True)
+        identify_trials([_synthetic_steps()], names=["warmup"], whole_record=True, stiffness=True)
     except ValueError:
         pass  # a short record may have too little to fit: the kernels are compiled all the same
     return time.perf_counter() - t0
 
 
 def _warm_diagnosis() -> float:
-    from rig.config.profile import default_profile_path, load_profile
+    """The diagnosis kernels, on the same synthetic record."""
     from rig.diagnosis import diagnose
-    from rig.sim.synth import generate, paper_step_protocol
 
     t0 = time.perf_counter()
-    profile = load_profile(default_profile_path())
-    rec = generate(profile.friction_model("boundary"), paper_step_protocol(highs=(5.0,)), seed=0)
     try:
-        diagnose(rec.trial)
+        diagnose(_synthetic_steps())
     except ValueError:
         pass
     return time.perf_counter() - t0

@@ -268,6 +268,10 @@ class LogRates(StrictModel):
     raw_dtype: Literal["float64", "float32"] = Field(
         "float64", description="Precision of the raw arrays (t_s is always float64); float32 halves "
                                "the raw data.")
+    raw_format: Literal["protobuf", "v2"] = Field(
+        "protobuf", description="Layout of the 1 kHz /raw channel: protobuf rig.LoopBlock (any MCAP tool and "
+                                "Foxglove plot it) or rig.columns.v2 (rig's own binary: about 0.6x the size "
+                                "and less CPU; docs/trial.md).")
 
 
 class ControllerSwitches(StrictModel):

@@ -23,7 +23,7 @@ field                       type        value
 ``pid_i_uN``                sint64      PID integral term, µN (a multiple of 100)
 ``pid_d_N``                 float       PID derivative term, N
 ``dither_uN``               sint64      dither, µN
-``spool``                   float       spool position (simulation), command units
+``spool_per_32767``         sint64      spool position (simulation), valve command steps
 ``true_position_nm``        sint64      simulation truth, nm
 ``true_velocity_nm_per_s``  sint64      simulation truth, nm/s
 ``true_mu_ppm``             sint64      simulation truth, 1e-6
@@ -75,7 +75,7 @@ DISPLAY: dict[str, tuple[str, str, float]] = {
     "pid_i": ("pid_i_uN", "sint64", 1e-6),
     "pid_d": ("pid_d_N", "float", 1.0),
     "dither": ("dither_uN", "sint64", 1e-6),
-    "spool": ("spool", "float", 1.0),
+    "spool": ("spool_per_32767", "sint64", 1.0 / 32767),
     "true_position_um": ("true_position_nm", "sint64", 1e-3),
     "true_velocity_um_s": ("true_velocity_nm_per_s", "sint64", 1e-3),
     "true_mu": ("true_mu_ppm", "sint64", 1e-6),

@@ -96,7 +96,8 @@ DEVICE_COLUMNS: dict[str, Column] = {
     "true_position_um": Column("<i4", 0.001, 0.0, "µm", "delta+shuffle+zstd", "simulation truth, 1 nm steps"),
     "true_velocity_um_s": Column("<i4", 0.001, 0.0, "µm/s", "shuffle+zstd", "simulation truth"),
     "true_mu": Column("<i4", 1e-6, 0.0, "1", "shuffle+zstd", "simulation truth"),
-    "spool": Column("<f4", unit="1", filter="zstd", description="servovalve spool position (simulation), command units"),
+    "spool": Column("<i4", 1.0 / VALVE_FULL_SCALE, 0.0, "1", "shuffle+zstd",
+                    "servovalve spool position (simulation), in the valve command's int16 steps"),
 }
 #: any other column, and every column of an imported CSV: exact float64
 EXACT = Column("<f8", filter="shuffle+zstd", description="exact float64")

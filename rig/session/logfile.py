@@ -31,7 +31,9 @@ def open_log(path: Path, plan, recipe, profile, metadata: dict, flush_interval_s
                           recipe_yaml=recipe.source_text, recipe=recipe.model_dump(mode="json"),
                           profile=profile.model_dump(mode="json"),
                           raw_encoding=recipe.log.raw_encoding, raw_dtype=recipe.log.raw_dtype,
-                          flush_interval_s=flush_interval_s, exclusive=exclusive)
+                          raw_format=recipe.log.raw_format, flush_interval_s=flush_interval_s,
+                          exclusive=exclusive,
+                          compact=True)  # a real-time trial's small chunks rewritten at close (docs/trial.md)
 
 
 def run_to_log(path: Path, plan, recipe, profile, backend: Backend, metadata: dict, *,
