@@ -192,6 +192,8 @@ class RtLoop:
         self.devices = self.rig.all
         self.pos, self.forces, self.valve = self.rig.position, self.rig.forces, self.rig.valve
         self.safety = self.rig.safety  # the safety chain's I/O (None: the profile has none)
+        if self.safety is not None and options.get("safety_link") is not None:
+            self.safety.attach(*options["safety_link"])  # its link process, started by the session's side
         self.il = Interlocks(ilc, float(profile.stroke.min_um), float(profile.stroke.max_um),
                              hw.valve.heartbeat_timeout_s, self.period)
         self.timing = TimingWatch(ilc, self.period)
