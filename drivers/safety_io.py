@@ -449,14 +449,16 @@ class SafetyLink:
         self.estop_ok = self.pressure_ok = False
         self._proc = self._conn = None
         self._attached = False
+        self._failed: str | None = None  # why the link another process started could not connect
         self._frames = 0.0
         self._problems_key = None
         self._final = ""
 
-    def attach(self, shm, conn) -> None:
+    def attach(self, shm, conn, failed: str | None = None) -> None:
         """Use a link another process started (:meth:`connect` there; the loop's process is a daemon and
-        may not start processes): its shared values and its pipe."""
-        self.shm, self._conn, self._attached = shm, conn, True
+        may not start processes): its shared values and its pipe, or why it could not connect (then
+        :meth:`connect` raises it here, beside the other devices' failures)."""
+        self.shm, self._conn, self._attached, self._failed = shm, conn, True, failed
 
     @property
     def link(self) -> tuple:
@@ -465,6 +467,8 @@ class SafetyLink:
 
     def connect(self) -> None:
         if self._attached:
+            if self._failed:
+                raise DeviceError(DEVICE, self.address, self._failed)
             return
         self._conn, child = self._ctx.Pipe()
         self._proc = self._ctx.Process(target=_link_main, name="rig-safety-link", daemon=True,

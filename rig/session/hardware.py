@@ -144,9 +144,10 @@ class HardwareBackend:
             self.safety_link = safety_link(self.hw)
             try:
                 self.safety_link.connect()
-            except DeviceError as exc:
-                raise BackendError(str(exc)) from None
-            link = self.safety_link.link
+                link = self.safety_link.link
+            except DeviceError as exc:  # named by the loop with every other device that does not answer
+                link = (self.safety_link.shm, None, exc.message)
+                self.safety_link = None
         self.proc = ctx.Process(target=loop_main, name="rig-rt-loop", daemon=True,
                                 args=(self.hw.model_dump(), self.profile, x_ref, self.q, self.abort,
                                       {"period_s": 1.0 / self.rate_hz, "controller": self.controller,
