@@ -20,7 +20,6 @@ I/O; the emulator (:mod:`drivers.emulators.modbus_io`) uses the same codec.
 
 from __future__ import annotations
 
-import errno
 import socket
 import struct
 import time
@@ -29,6 +28,7 @@ from dataclasses import dataclass
 from drivers.config import SafetyConfig
 from drivers.device import DeviceHealth
 from drivers.errors import DeviceError
+from drivers.linux import close_quietly, open_tcp_nodelay, recv_available
 
 DEVICE = "safety I/O module"
 FC_READ_COILS, FC_READ_INPUTS, FC_WRITE_COILS = 0x01, 0x02, 0x0F
@@ -153,24 +153,14 @@ class SafetyIO:
     # -- connection ------------------------------------------------------------------------------------
     def connect(self) -> None:
         c = self.cfg
-        try:
-            sk = socket.create_connection((c.host, c.port), timeout=max(0.5, c.timeout_s))
-        except OSError as exc:
-            raise DeviceError(DEVICE, self.address, f"cannot connect: {exc}") from exc
-        sk.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        sk.setblocking(False)
-        self._sock = sk
+        self._sock = open_tcp_nodelay(c.host, c.port, c.timeout_s, DEVICE, self.address)
         self._rx.clear()
         self._pending.clear()
         self._t_new = time.monotonic()
 
     def close(self) -> None:
-        if self._sock is not None:
-            try:
-                self._sock.close()
-            except OSError:
-                pass
-            self._sock = None
+        close_quietly(self._sock)
+        self._sock = None
 
     def _lost(self, msg: str) -> DeviceError:
         self.close()
@@ -226,20 +216,7 @@ class SafetyIO:
         sk = self._sock
         if sk is None:
             raise DeviceError(DEVICE, self.address, "not connected", kind="lost")
-        need = self._ans_len if self._tick_tids is not None else 1 << 30
-        try:
-            while True:
-                chunk = sk.recv(4096)
-                if not chunk:
-                    raise self._lost("connection lost (closed by the module)")
-                self._rx += chunk
-                if len(self._rx) >= need:
-                    break  # this tick's answers are in: no second recv just to hear EAGAIN
-        except BlockingIOError:
-            pass
-        except OSError as exc:
-            if exc.errno not in (errno.EAGAIN, errno.EWOULDBLOCK):
-                raise self._lost(f"connection lost: {exc}") from exc
+        recv_available(sk, self._rx, self._ans_len if self._tick_tids is not None else 1 << 30, self._lost, "module")
         new = False
         rx, tt = self._rx, self._tick_tids
         if tt is not None and len(rx) >= self._ans_len:

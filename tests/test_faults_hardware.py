@@ -22,7 +22,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from hw_helpers import REPO, find_child, private_profile
+from hw_helpers import REPO, find_child, private_profile, short_recipe
 
 from drivers.config import hardware_of_profile
 from drivers.emulators.valve_controller import send_foreign, send_malformed
@@ -35,20 +35,7 @@ from rig.log import read_trial
 pytestmark = pytest.mark.slow
 
 # about 5 s: a hold, a 30 µm run-in stub each way at 20 µm/s (motion for the following checks), a hold
-RECIPE = """\
-name: faults
-description: short trial for the fault-injection tests
-lubricant: boundary
-normal_force_N: 100
-seed: 3
-trials: 1
-accel_um_s2: 100
-log: {raw_rate_hz: 1000, decimated_rate_hz: 25}
-segments:
-  - {kind: hold, label: settle, duration_s: 0.5}
-  - {kind: run_in, label: stub, distance_um: 30, speed_um_s: 20}
-  - {kind: hold, label: rest, duration_s: 1.5}
-"""
+RECIPE = short_recipe("faults")
 
 
 def _emulated_env(tmp: Path) -> SimpleNamespace:

@@ -12,7 +12,7 @@ import pytest
 from drivers.config import hardware_of_profile
 from drivers.errors import DeviceError
 from rig.config.profile import load_profile
-from rig.hardware.fake import FakeClock, fake_rig
+from rig.hardware.fake import FakeClock, ListQueue, fake_rig
 from rig.hardware.interlocks import ABORT_FAIL, ABORT_OPERATOR
 from rig.hardware.loop import RtLoop
 from rig.hardware.safety import latch_path
@@ -22,17 +22,6 @@ from hw_helpers import REPO
 PROFILE = load_profile(REPO / "config/rigs/emulated.yaml")
 HW = hardware_of_profile(PROFILE)
 HOLD_TICKS = round(HW.interlocks.stop_hold_s / 1e-3)
-
-
-class ListQueue:
-    def __init__(self):
-        self.items = []
-
-    def put(self, item):
-        self.items.append(item)
-
-    def cancel_join_thread(self):
-        pass
 
 
 def run(n_ticks=400, at=100, act=None, x_ref=None, ack=None, abort=None, hw=HW, safety=False):
