@@ -219,8 +219,12 @@ def test_sigstop_of_the_loop(env):
     assert p.returncode == 1, text
     _safe_valve(env)
     trip, tr = _trip(out, {"loop_stall", "valve_watchdog", "valve_heartbeat", "valve_fault"})
+    # the valve's confirmed safe state after the stall is in the log (its heartbeat: it left OPERATIONAL
+    # during the stall, so its last status PDO, from before, is not its state)
+    safe = [e for e in tr.events if e["kind"] == "stop_state" and e.get("state") == "safe"]
+    assert safe and "enabled False" in safe[0]["detail"] and "confirmed True" in safe[0]["detail"], tr.events[-5:]
     stalls = [e for e in tr.events if e["kind"] == "stall" and e["gap_s"] > 0.08]
-    assert stalls and stalls[-1]["gap_s"] >= 0.25, stalls
+    assert stalls and stalls[-1]["gap_s"] >= 0.25, (trip, stalls)
     if short_s < 0.2:
         assert len(stalls) >= 2 and stalls[0]["gap_s"] < 0.25 and stalls[0]["t_s"] < trip["t_s"], stalls
     # the reference never jumps: time is held across the stalls (no gaps in t_s, steps <= v dt)
