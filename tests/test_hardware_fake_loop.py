@@ -192,3 +192,21 @@ def test_a_pause_holds_at_the_safe_point_resumes_with_a_run_up_and_times_out():
     trips = [m[3] for m in q.items if m[0] == "event" and m[2] == "interlock"]
     assert trips[0]["name"] == "pause_timeout" and round(trips[0]["t_s"] * 1000) == 1000 + 200
     assert rig.valve.writes[-1] == (0.0, False)
+
+
+def test_a_valve_that_does_not_enable_trips_before_the_first_tick():
+    rig, q = fake_rig(500.0), ListQueue()
+
+    def refuse():
+        raise DeviceError("servovalve controller", "fake-can:0 node 1", "did not enable within 1 s")
+
+    rig.valve.start = refuse
+    loop = RtLoop(HW, PROFILE, np.full(100, 500.0), q, SimpleNamespace(value=0), {"why": None}, {}, devices=rig,
+                  clock=FakeClock())
+    assert loop.connect()
+    loop.start()
+    while loop.tick():
+        pass
+    loop.finish()
+    done = q.items[-1][1]
+    assert done["trip"]["name"] == "valve_enable" and done["ticks"] == 0 and rig.valve.writes[-1] == (0.0, False)

@@ -60,7 +60,7 @@ from rig.control import apply_switches, controller_params_from_profile, controll
 from rig.hardware.devices import build_devices, wait_for_data
 from rig.hardware.interlocks import (
     ABORT_FAIL, ABORT_NONE, ABORT_OPERATOR, DEVICE_TRIPS, SAFETY_TRIPS, Interlocks, LoggerWatch, TimingWatch, Trip,
-    pause_trip, session_trip,
+    pause_trip, session_trip, valve_enable_trip,
 )
 from rig.hardware.safety import latched_message, write_latch
 from rig.hardware.timing import Pacer, set_pdeathsig, set_process_name, setup_realtime
@@ -286,7 +286,7 @@ class RtLoop:
         try:
             self.valve.start()
         except DeviceError as exc:
-            start_trip = Trip("valve_enable", f"{exc}", 0.0, {"status_bits": self.valve.final_state()["status_bits"]})
+            start_trip = valve_enable_trip(exc, self.valve.final_state()["status_bits"])
         for d in self.devices:  # drain what arrived while enabling; staleness counts from here
             try:
                 d.read(self.clock())
