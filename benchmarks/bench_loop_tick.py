@@ -35,18 +35,6 @@ PHASES = ("lvdt_read", "loadcells_read", "valve_read", "health", "interlocks", "
           "tick")
 
 
-class _ListQueue:
-    """Stands in for the loop's multiprocessing queue in-process (the bench reads what was put)."""
-
-    def __init__(self):
-        self.items = []
-
-    def put(self, item):
-        self.items.append(item)
-
-    def cancel_join_thread(self):
-        pass
-
 
 class _Value:
     def __init__(self, v):
@@ -160,7 +148,9 @@ def run_loop(hw_dict, profile, seconds: float, profiled: bool):
     from rig.hardware import loop as L
 
     x = np.full(int(seconds * 1000), float(profile.stroke.home_um))
-    q = _ListQueue()
+    from rig.hardware.fake import ListQueue
+
+    q = ListQueue()
     args = (hw_dict, profile, x, q, _Value(0), {"why": None}, {"period_s": 1e-3}, None, None)
     text = ""
     if profiled:

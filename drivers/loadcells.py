@@ -37,7 +37,6 @@ and the request is sent again; a closed connection raises at once.
 
 from __future__ import annotations
 
-import errno
 import socket
 import struct
 import time
@@ -45,6 +44,7 @@ import time
 from drivers.config import LoadCellConfig
 from drivers.device import DeviceHealth
 from drivers.errors import DeviceError
+from drivers.linux import close_quietly, open_tcp_nodelay, recv_available
 
 DEVICE = "load-cell conditioner"
 CHANNELS = ("friction", "normal_1", "normal_2")
@@ -141,13 +141,7 @@ class LoadCellReader:
 
     def _connect_socket(self) -> None:
         c = self.cfg
-        try:
-            sk = socket.create_connection((c.host, c.port), timeout=max(0.5, c.timeout_s))
-        except OSError as exc:
-            raise DeviceError(DEVICE, self.address, f"cannot connect: {exc}") from exc
-        sk.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        sk.setblocking(False)
-        self._sock = sk
+        self._sock = open_tcp_nodelay(c.host, c.port, c.timeout_s, DEVICE, self.address)
         self._rx.clear()
         self._out_tid = None
         fc = 4 if c.register_type == "input" else 3
@@ -158,12 +152,8 @@ class LoadCellReader:
         self._last_change_t = time.monotonic()
 
     def _drop_socket(self) -> None:
-        if self._sock is not None:
-            try:
-                self._sock.close()
-            except OSError:
-                pass
-            self._sock = None
+        close_quietly(self._sock)
+        self._sock = None
 
     def close(self) -> None:
         self._drop_socket()
@@ -278,19 +268,7 @@ class LoadCellReader:
         byte count, registers), else None. Validated: transaction id (a late answer is dropped),
         protocol id, unit id, function code, byte count, exception responses."""
         rx = self._rx
-        try:
-            while True:
-                chunk = self._sock.recv(4096)
-                if not chunk:
-                    raise self._lost("connection lost (closed by the conditioner)")
-                rx += chunk
-                if len(rx) >= self._answer_len:
-                    break  # a whole answer's worth is here: no second recv just to hear EAGAIN
-        except BlockingIOError:
-            pass
-        except OSError as exc:
-            if exc.errno not in (errno.EAGAIN, errno.EWOULDBLOCK):
-                raise self._lost(f"connection lost: {exc}") from exc
+        recv_available(self._sock, rx, self._answer_len, self._lost, "conditioner")
         frame = None
         while len(rx) >= 8:
             tid, pid, ln = _MBAP.unpack_from(rx)

@@ -20,7 +20,6 @@ I/O; the emulator (:mod:`drivers.emulators.modbus_io`) uses the same codec.
 
 from __future__ import annotations
 
-import errno
 import socket
 import struct
 import time
@@ -29,6 +28,7 @@ from dataclasses import dataclass
 from drivers.config import SafetyConfig
 from drivers.device import DeviceHealth
 from drivers.errors import DeviceError
+from drivers.linux import close_quietly, open_tcp_nodelay, recv_available
 
 DEVICE = "safety I/O module"
 FC_READ_COILS, FC_READ_INPUTS, FC_WRITE_COILS = 0x01, 0x02, 0x0F
@@ -153,24 +153,14 @@ class SafetyIO:
     # -- connection ------------------------------------------------------------------------------------
     def connect(self) -> None:
         c = self.cfg
-        try:
-            sk = socket.create_connection((c.host, c.port), timeout=max(0.5, c.timeout_s))
-        except OSError as exc:
-            raise DeviceError(DEVICE, self.address, f"cannot connect: {exc}") from exc
-        sk.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        sk.setblocking(False)
-        self._sock = sk
+        self._sock = open_tcp_nodelay(c.host, c.port, c.timeout_s, DEVICE, self.address)
         self._rx.clear()
         self._pending.clear()
         self._t_new = time.monotonic()
 
     def close(self) -> None:
-        if self._sock is not None:
-            try:
-                self._sock.close()
-            except OSError:
-                pass
-            self._sock = None
+        close_quietly(self._sock)
+        self._sock = None
 
     def _lost(self, msg: str) -> DeviceError:
         self.close()
@@ -196,13 +186,16 @@ class SafetyIO:
         return encode_write_coils(self._next_tid(FC_WRITE_COILS), self.cfg.device_id, self._out0, bits)
 
     # -- per tick --------------------------------------------------------------------------------------
-    def write(self, now: float | None = None) -> None:
-        """The outputs (enable, the watchdog toggled) and the request for the inputs, in one send."""
+    def write(self, now: float | None = None, toggle: bool = True) -> None:
+        """The outputs (enable, the watchdog toggled unless ``toggle`` is false) and the request for the
+        inputs, in one send."""
         now = time.monotonic() if now is None else now
         self._writing = True
         if self._pending or self._tick_tids is not None:
             return  # the last tick's answers are not all in yet: never queue behind a slow module
-        self.watchdog = wd = not self.watchdog
+        if toggle:
+            self.watchdog = not self.watchdog
+        wd = self.watchdog
         buf = self._tick_frames[bool(self.enable), wd]
         t1 = (self._tid + 1) & 0xFFFF
         t2 = (t1 + 1) & 0xFFFF
@@ -211,25 +204,19 @@ class SafetyIO:
         _U16.pack_into(buf, self._off2, t2)
         self._tick_tids = (t1, t2)
         self._t_sent = now
-        self._send(buf)
+        try:
+            self._sock.send(buf)
+        except (OSError, AttributeError) as exc:
+            raise self._lost(f"connection lost: {exc}") from exc
 
     def read(self, now: float | None = None) -> None:
         """Take in the answers that have arrived (the inputs of the last request)."""
         now = time.monotonic() if now is None else now
         h = self._health
-        if self._sock is None:
+        sk = self._sock
+        if sk is None:
             raise DeviceError(DEVICE, self.address, "not connected", kind="lost")
-        try:
-            while True:
-                chunk = self._sock.recv(4096)
-                if not chunk:
-                    raise self._lost("connection lost (closed by the module)")
-                self._rx += chunk
-        except BlockingIOError:
-            pass
-        except OSError as exc:
-            if exc.errno not in (errno.EAGAIN, errno.EWOULDBLOCK):
-                raise self._lost(f"connection lost: {exc}") from exc
+        recv_available(sk, self._rx, self._ans_len if self._tick_tids is not None else 1 << 30, self._lost, "module")
         new = False
         rx, tt = self._rx, self._tick_tids
         if tt is not None and len(rx) >= self._ans_len:
@@ -300,14 +287,7 @@ class SafetyIO:
         if key == self._problems_key:
             return h
         self._problems_key = key
-        probs = []
-        if h.frames_ok:
-            if not self.estop_ok:
-                probs.append(("estop", f"e-stop pressed or its circuit open (input {c.estop_input} of {self.address})"))
-            if not self.pressure_ok:
-                probs.append(("hydraulic_pressure", f"hydraulic pressure lost (input {c.pressure_ok_input} of "
-                              f"{self.address})"))
-        h.problems = probs
+        h.problems = _chain_problems(c, self.address, self.estop_ok, self.pressure_ok) if h.frames_ok else []
         return h
 
     # -- outside the loop ------------------------------------------------------------------------------
@@ -353,4 +333,201 @@ class SafetyIO:
                 f"pressure {'OK' if self.pressure_ok else 'LOST'}, enable output {out}")
 
 
-__all__ = ["SafetyIO", "decode_answer", "encode_read_inputs", "encode_write_coils", "pack_bits", "unpack_bits"]
+# -- the module on a process of its own: what the loop drives ------------------------------------------------
+
+# the link's shared values: the loop's tick count and enable request; the module's inputs and link health
+L_SEQ, L_ENABLE, L_ESTOP, L_PRESSURE, L_FRAMES, L_T_NEW, L_ERRORS, L_CONSEC, L_LOST, L_BAD, L_N = range(11)
+
+
+def _link_main(cfg_dict, shm, conn, period_s: float, priority: int) -> None:
+    """The link process: every ``period_s`` the module's inputs (into ``shm``) and its outputs (the loop's
+    enable request; the watchdog toggled only when the loop's tick count moved since the last time)."""
+    import os
+    import signal as _signal
+
+    from drivers.linux import set_pdeathsig, set_process_name
+
+    set_pdeathsig()
+    set_process_name("rig-safety-link")
+    _signal.signal(_signal.SIGINT, _signal.SIG_IGN)
+    io = SafetyIO(SafetyConfig.model_validate(cfg_dict))
+    try:
+        io.connect()
+        io.poll()
+    except DeviceError as exc:
+        conn.send(("error", str(exc)))
+        return
+    if priority:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+        except (OSError, AttributeError):
+            pass
+    conn.send(("ready", None))
+    seq_seen, mono = -1.0, time.monotonic
+    nxt = mono()
+    while True:
+        nxt += period_s
+        left = nxt - mono()
+        if left > 0:
+            time.sleep(left)
+        else:
+            nxt = mono()
+        now = mono()
+        try:
+            io.read(now)
+        except DeviceError:
+            pass  # counted in its health: the loop sees the link go stale or its errors
+        h = io._health
+        if h.frames_ok != shm[L_FRAMES]:
+            shm[L_ESTOP], shm[L_PRESSURE], shm[L_T_NEW] = float(io.estop_ok), float(io.pressure_ok), now
+            shm[L_FRAMES] = h.frames_ok
+        shm[L_ERRORS], shm[L_CONSEC], shm[L_LOST], shm[L_BAD] = h.errors, h.consecutive_errors, h.frames_lost, \
+            h.frames_bad
+        seq = shm[L_SEQ]
+        io.enable = bool(shm[L_ENABLE])
+        try:
+            io.write(now, toggle=seq != seq_seen)  # a stalled loop stops the watchdog: the relay drops
+        except DeviceError:
+            pass
+        seq_seen = seq
+        if conn.poll():
+            try:
+                req = conn.recv()
+            except EOFError:
+                break
+            if req == "safe_stop":
+                shm[L_ENABLE] = 0.0
+                ok = io.safe_stop()
+                conn.send(("safe_stop", ok, io.describe()))
+            elif req == "stop":
+                break
+    io.close()
+
+
+class SafetyLink:
+    """The safety chain's I/O module as the loop's Device (``name`` "safety"), served by a process of its
+    own (:func:`_link_main`, every ``period_s``): the Modbus round trips (two TCP frames each way) stay out
+    of the loop's tick, which only reads and writes shared memory. ``read`` takes the latest inputs,
+    ``write`` hands over ``enable`` and the tick count (the link toggles the watchdog output only while the
+    count moves: a stalled loop lets the module's relay drop the enable); ``health`` is the link's (a dead
+    link goes stale and trips). ``safe_stop`` turns the enable output off and reads it back."""
+
+    name = "safety"
+
+    def __init__(self, cfg: SafetyConfig, period_s: float = 1e-3, priority: int = 0):
+        import multiprocessing as mp
+
+        self.cfg, self.address = cfg, cfg.address_text
+        self.period_s, self.priority = period_s, priority
+        self._ctx = mp.get_context("spawn")
+        self.shm = self._ctx.Array("d", L_N, lock=False)
+        self._health = DeviceHealth(DEVICE, self.address)
+        self.enable = False
+        self.estop_ok = self.pressure_ok = False
+        self._proc = self._conn = None
+        self._attached = False
+        self._failed: str | None = None  # why the link another process started could not connect
+        self._frames = 0.0
+        self._problems_key = None
+        self._final = ""
+
+    def attach(self, shm, conn, failed: str | None = None) -> None:
+        """Use a link another process started (:meth:`connect` there; the loop's process is a daemon and
+        may not start processes): its shared values and its pipe, or why it could not connect (then
+        :meth:`connect` raises it here, beside the other devices' failures)."""
+        self.shm, self._conn, self._attached, self._failed = shm, conn, True, failed
+
+    @property
+    def link(self) -> tuple:
+        """What :meth:`attach` needs in another process."""
+        return self.shm, self._conn
+
+    def connect(self) -> None:
+        if self._attached:
+            if self._failed:
+                raise DeviceError(DEVICE, self.address, self._failed)
+            return
+        self._conn, child = self._ctx.Pipe()
+        self._proc = self._ctx.Process(target=_link_main, name="rig-safety-link", daemon=True,
+                                       args=(self.cfg.model_dump(), self.shm, child, self.period_s, self.priority))
+        self._proc.start()
+        if not self._conn.poll(30.0):
+            self.close()
+            raise DeviceError(DEVICE, self.address, "the safety link process did not start")
+        kind, payload = self._conn.recv()
+        if kind != "ready":
+            self.close()
+            raise DeviceError(DEVICE, self.address, str(payload).split(": ", 1)[-1])
+
+    def read(self, now: float | None = None) -> None:
+        s, h = self.shm, self._health
+        if s[L_FRAMES] != self._frames:
+            self._frames = s[L_FRAMES]
+            self.estop_ok, self.pressure_ok = s[L_ESTOP] > 0.5, s[L_PRESSURE] > 0.5
+            h.polls_since_new = 0
+        else:
+            h.polls_since_new += 1
+
+    def write(self, now: float | None = None) -> None:
+        s = self.shm
+        s[L_ENABLE] = 1.0 if self.enable else 0.0
+        s[L_SEQ] += 1.0
+
+    def health(self, now: float | None = None) -> DeviceHealth:
+        now = time.monotonic() if now is None else now
+        s, h, c = self.shm, self._health, self.cfg
+        h.frames_ok = int(s[L_FRAMES])
+        h.age_s = now - s[L_T_NEW] if s[L_T_NEW] else float("inf")
+        h.errors, h.consecutive_errors, h.frames_lost, h.frames_bad = int(s[L_ERRORS]), int(s[L_CONSEC]), \
+            int(s[L_LOST]), int(s[L_BAD])
+        h.status = (1 if self.estop_ok else 0) | (2 if self.pressure_ok else 0) | (4 if self.enable else 0)
+        key = (self.estop_ok, self.pressure_ok, h.frames_ok > 0)
+        if key != self._problems_key:
+            self._problems_key = key
+            h.problems = _chain_problems(c, self.address, self.estop_ok, self.pressure_ok) if h.frames_ok else []
+        return h
+
+    def safe_stop(self, timeout_s: float = 0.5) -> bool:
+        """The enable output off (the link turns it off and reads the coils back); True once it is."""
+        self.enable = False
+        self.shm[L_ENABLE] = 0.0
+        if self._conn is None or (self._proc is not None and not self._proc.is_alive()):
+            return False
+        try:
+            self._conn.send("safe_stop")
+            if self._conn.poll(timeout_s):
+                _, ok, self._final = self._conn.recv()
+                return bool(ok)
+        except (OSError, EOFError):
+            pass
+        return False
+
+    def describe(self) -> str:
+        return self._final or (f"e-stop {'closed (healthy)' if self.estop_ok else 'OPEN'}, "
+                               f"pressure {'OK' if self.pressure_ok else 'LOST'}")
+
+    def close(self) -> None:
+        if self._attached:
+            return  # the process that started the link stops it
+        if self._proc is not None:
+            try:
+                self._conn.send("stop")
+            except (OSError, BrokenPipeError):
+                pass
+            self._proc.join(2.0)
+            if self._proc.is_alive():
+                self._proc.kill()
+                self._proc.join(1.0)
+            self._proc = None
+
+
+def _chain_problems(c: SafetyConfig, address: str, estop_ok: bool, pressure_ok: bool) -> list:
+    probs = []
+    if not estop_ok:
+        probs.append(("estop", f"e-stop pressed or its circuit open (input {c.estop_input} of {address})"))
+    if not pressure_ok:
+        probs.append(("hydraulic_pressure", f"hydraulic pressure lost (input {c.pressure_ok_input} of {address})"))
+    return probs
+
+
+__all__ = ["SafetyIO", "SafetyLink", "decode_answer", "encode_read_inputs", "encode_write_coils", "pack_bits", "unpack_bits"]

@@ -51,3 +51,21 @@ def find_child(ppid: int, comm: str) -> int | None:
         if parent == ppid:
             return int(d.name)
     return None
+
+
+def short_recipe(name: str, settle_s: float = 0.5, stub_um: float = 30.0, rest_s: float = 1.5) -> str:
+    """A short boundary-lubricant recipe: a hold, a run-in stub each way at 20 µm/s, a hold."""
+    return f"""\
+name: {name}
+description: a short trial for the hardware tests
+lubricant: boundary
+normal_force_N: 100
+seed: 3
+trials: 1
+accel_um_s2: 100
+log: {{raw_rate_hz: 1000, decimated_rate_hz: 25}}
+segments:
+  - {{kind: hold, label: settle, duration_s: {settle_s}}}
+  - {{kind: run_in, label: stub, distance_um: {stub_um}, speed_um_s: 20}}
+  - {{kind: hold, label: rest, duration_s: {rest_s}}}
+"""

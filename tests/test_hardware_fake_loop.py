@@ -12,7 +12,7 @@ import pytest
 from drivers.config import hardware_of_profile
 from drivers.errors import DeviceError
 from rig.config.profile import load_profile
-from rig.hardware.fake import FakeClock, fake_rig
+from rig.hardware.fake import FakeClock, ListQueue, fake_rig
 from rig.hardware.interlocks import ABORT_FAIL, ABORT_OPERATOR
 from rig.hardware.loop import RtLoop
 from rig.hardware.safety import latch_path
@@ -22,17 +22,6 @@ from hw_helpers import REPO
 PROFILE = load_profile(REPO / "config/rigs/emulated.yaml")
 HW = hardware_of_profile(PROFILE)
 HOLD_TICKS = round(HW.interlocks.stop_hold_s / 1e-3)
-
-
-class ListQueue:
-    def __init__(self):
-        self.items = []
-
-    def put(self, item):
-        self.items.append(item)
-
-    def cancel_join_thread(self):
-        pass
 
 
 def run(n_ticks=400, at=100, act=None, x_ref=None, ack=None, abort=None, hw=HW, safety=False):
@@ -203,3 +192,21 @@ def test_a_pause_holds_at_the_safe_point_resumes_with_a_run_up_and_times_out():
     trips = [m[3] for m in q.items if m[0] == "event" and m[2] == "interlock"]
     assert trips[0]["name"] == "pause_timeout" and round(trips[0]["t_s"] * 1000) == 1000 + 200
     assert rig.valve.writes[-1] == (0.0, False)
+
+
+def test_a_valve_that_does_not_enable_trips_before_the_first_tick():
+    rig, q = fake_rig(500.0), ListQueue()
+
+    def refuse():
+        raise DeviceError("servovalve controller", "fake-can:0 node 1", "did not enable within 1 s")
+
+    rig.valve.start = refuse
+    loop = RtLoop(HW, PROFILE, np.full(100, 500.0), q, SimpleNamespace(value=0), {"why": None}, {}, devices=rig,
+                  clock=FakeClock())
+    assert loop.connect()
+    loop.start()
+    while loop.tick():
+        pass
+    loop.finish()
+    done = q.items[-1][1]
+    assert done["trip"]["name"] == "valve_enable" and done["ticks"] == 0 and rig.valve.writes[-1] == (0.0, False)

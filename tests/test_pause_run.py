@@ -11,24 +11,11 @@ import time
 
 import pytest
 
-from hw_helpers import REPO
+from hw_helpers import REPO, short_recipe
 
 from rig.log import read_trial
 
-RECIPE = """\
-name: pause
-description: a short paced trial to pause
-lubricant: boundary
-normal_force_N: 100
-seed: 3
-trials: 1
-accel_um_s2: 100
-log: {raw_rate_hz: 1000, decimated_rate_hz: 25}
-segments:
-  - {kind: hold, label: settle, duration_s: 1.0}
-  - {kind: run_in, label: stub, distance_um: 10, speed_um_s: 20}
-  - {kind: hold, label: rest, duration_s: 1.0}
-"""
+RECIPE = short_recipe("pause", settle_s=1.0, stub_um=10, rest_s=1.0)
 
 
 def _rig(*args, env=None):

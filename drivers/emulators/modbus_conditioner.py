@@ -218,7 +218,7 @@ def modbus_server_main(cfg_dict, shared: SharedSample, rtu_server_port, fifo_pri
     import sys
     import time
 
-    from drivers.linux import set_pdeathsig
+    from drivers.linux import serve_requests, set_pdeathsig
 
     set_pdeathsig()
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -240,17 +240,6 @@ def modbus_server_main(cfg_dict, shared: SharedSample, rtu_server_port, fifo_pri
     gc.collect()
     gc.freeze()
     conn.send(("ready", None))
-    stop = {"flag": False}
-    signal.signal(signal.SIGTERM, lambda *_: stop.update(flag=True))
-    while not stop["flag"]:
-        if conn.poll(0.1):
-            try:
-                req = conn.recv()
-            except EOFError:
-                break
-            if req[0] == "stats":
-                conn.send(("stats", em.n_requests))
-            elif req[0] == "stop":
-                break
+    serve_requests(conn, lambda req: conn.send(("stats", em.n_requests)) if req[0] == "stats" else None)
     em.stop()
     del time

@@ -159,7 +159,7 @@ def io_server_main(cfg_dict, state: IoState, fifo_priority: int, conn) -> None:
     import os
     import signal
 
-    from drivers.linux import set_pdeathsig, set_process_name
+    from drivers.linux import serve_requests, set_pdeathsig, set_process_name
 
     set_pdeathsig()
     set_process_name("rig-emulator-io")
@@ -176,14 +176,5 @@ def io_server_main(cfg_dict, state: IoState, fifo_priority: int, conn) -> None:
         conn.send(("error", str(exc)))
         return
     conn.send(("ready", None))
-    stop = {"flag": False}
-    signal.signal(signal.SIGTERM, lambda *_: stop.update(flag=True))
-    while not stop["flag"]:
-        if conn.poll(0.1):
-            try:
-                req = conn.recv()
-            except EOFError:
-                break
-            if req[0] == "stop":
-                break
+    serve_requests(conn, lambda req: None)  # nothing to ask it but to stop: the state is shared
     em.stop()

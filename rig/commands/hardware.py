@@ -73,7 +73,10 @@ def check_devices(hw) -> list[dict]:
     from drivers.errors import DeviceError
     from rig.hardware.devices import build_devices, wait_for_data
 
+    from drivers.safety_io import SafetyIO
+
     rig = build_devices(hw)
+    rig.safety = SafetyIO(hw.safety) if hw.safety is not None else None  # read once, directly (no link)
     order = (rig.forces, rig.position, rig.valve) + ((rig.safety,) if rig.safety is not None else ())
     rows = []
     for dev in order:

@@ -25,7 +25,7 @@ from drivers.device import Device
 from drivers.errors import DeviceError
 from drivers.loadcells import LoadCellReader
 from drivers.lvdt import LvdtReader
-from drivers.safety_io import SafetyIO
+from drivers.safety_io import SafetyLink
 from drivers.valve import CanopenValve
 
 
@@ -34,7 +34,7 @@ class RigDevices:
     position: LvdtReader
     forces: LoadCellReader
     valve: CanopenValve
-    safety: SafetyIO | None = field(default=None)
+    safety: SafetyLink | None = field(default=None)
 
     @property
     def all(self) -> list[Device]:
@@ -46,7 +46,15 @@ class RigDevices:
 def build_devices(hw: HardwareConfig) -> RigDevices:
     return RigDevices(position=LvdtReader(hw.lvdt), forces=LoadCellReader(hw.loadcells, pipelined=True),
                       valve=CanopenValve(hw.valve),
-                      safety=SafetyIO(hw.safety) if hw.safety is not None else None)
+                      safety=safety_link(hw))
+
+
+def safety_link(hw: HardwareConfig) -> SafetyLink | None:
+    """The safety chain's I/O on its own process, polled every loop period, just below the loop's priority."""
+    if hw.safety is None:
+        return None
+    rt = hw.realtime
+    return SafetyLink(hw.safety, 1e-3, max(1, rt.priority - 1) if rt.sched_fifo else 0)
 
 
 def wait_for_data(devices: list[Device], timeout_s: float, clock) -> None:

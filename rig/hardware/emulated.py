@@ -41,7 +41,7 @@ from drivers.emulators.modbus_io import IoState, io_server_main
 from drivers.emulators.modbus_conditioner import (
     ModbusConditionerEmulator, SharedSample, free_tcp_port, modbus_server_main,
 )
-from drivers.linux import set_pdeathsig, set_process_name
+from drivers.linux import serve_private_socket, set_pdeathsig, set_process_name
 from drivers.emulators.pty import PtyBridge
 from drivers.emulators.valve_controller import ValveControllerEmulator
 from drivers.valve import SW_WATCHDOG
@@ -147,57 +147,27 @@ class EmulatedRig:
                                     self.hw.loadcells.serial_port + ".server")
         self.lvdt.start()
         self.valve.start()
+        em = self.hw.emulators
+        prio = em.priority if em.sched_fifo else 0
         if self.modbus_process:
-            ctx = mp.get_context("spawn")
-            self._mb_conn, child = ctx.Pipe()
-            em = self.hw.emulators
-            self._mb_proc = ctx.Process(target=modbus_server_main, name="rig-emulator-modbus", daemon=True,
-                                        args=(self.hw.loadcells.model_dump(), self.shared,
-                                              self.rtu_server_port,
-                                              em.priority if em.sched_fifo else 0, child))
-            self._mb_proc.start()
-            if not self._mb_conn.poll(30):
-                raise RuntimeError("Modbus emulator process did not start")
-            kind, payload = self._mb_conn.recv()
-            if kind != "ready":
-                raise EmulatorError(str(payload))
+            self._mb_proc, self._mb_conn = _start_server_process(
+                modbus_server_main, "rig-emulator-modbus", "Modbus emulator",
+                (self.hw.loadcells.model_dump(), self.shared, self.rtu_server_port, prio))
         else:
             self.modbus.start()
         if self.io is not None:
-            ctx = mp.get_context("spawn")
-            self._io_conn, child = ctx.Pipe()
-            em = self.hw.emulators
-            self._io_proc = ctx.Process(target=io_server_main, name="rig-emulator-io", daemon=True,
-                                        args=(self.hw.safety.model_dump(), self.io,
-                                              em.priority if em.sched_fifo else 0, child))
-            self._io_proc.start()
-            if not self._io_conn.poll(30):
-                raise RuntimeError("the I/O module emulator process did not start")
-            kind, payload = self._io_conn.recv()
-            if kind != "ready":
-                raise EmulatorError(str(payload))
+            self._io_proc, self._io_conn = _start_server_process(
+                io_server_main, "rig-emulator-io", "I/O module emulator", (self.hw.safety.model_dump(), self.io, prio))
         self.step(0.0)
 
     def stop(self) -> None:
         self.running = False
         if self._mb_proc is not None:
-            try:
-                self._mb_conn.send(("stop",))
-            except OSError:
-                pass
-            self._mb_proc.join(3)
-            if self._mb_proc.is_alive():
-                self._mb_proc.kill()
+            _stop_process(self._mb_proc, self._mb_conn)
         else:
             self.modbus.stop()
         if self._io_proc is not None:
-            try:
-                self._io_conn.send(("stop",))
-            except OSError:
-                pass
-            self._io_proc.join(3)
-            if self._io_proc.is_alive():
-                self._io_proc.kill()
+            _stop_process(self._io_proc, self._io_conn)
         self.valve.stop()
         self.lvdt.stop()
         if self.bridge is not None:
@@ -304,6 +274,31 @@ class EmulatedRig:
                 if next_free < now:
                     next_free = now + dt  # skip, don't bunch
         self.running = False
+
+
+def _start_server_process(target, name: str, what: str, args: tuple):
+    """A server process of the emulated rig (``target(*args, conn)``), once it says it is ready."""
+    ctx = mp.get_context("spawn")
+    conn, child = ctx.Pipe()
+    proc = ctx.Process(target=target, name=name, daemon=True, args=(*args, child))
+    proc.start()
+    if not conn.poll(30):
+        raise RuntimeError(f"{what} process did not start")
+    kind, payload = conn.recv()
+    if kind != "ready":
+        raise EmulatorError(str(payload))
+    return proc, conn
+
+
+def _stop_process(proc, conn) -> None:
+    """Ask a server process of the emulated rig to stop; kill it after 3 s."""
+    try:
+        conn.send(("stop",))
+    except OSError:
+        pass
+    proc.join(3)
+    if proc.is_alive():
+        proc.kill()
 
 
 # -- its own process -------------------------------------------------------------------
@@ -512,7 +507,6 @@ class EmulatorService:
     per request: ``{"op": "reset", "x0_um": .., "v_init_um_s": ..}`` or ``{"op": "hello"}``."""
 
     def __init__(self, handle: EmulatorHandle, path: Path):
-        import socket
         import threading
 
         self.handle, self.path = handle, Path(path)
@@ -520,38 +514,20 @@ class EmulatorService:
             if RemoteEmulator.connect(handle.hw, self.path) is not None:
                 raise EmulatorError(f"another `rig emulate` already serves {self.path}")
             self.path.unlink()
-        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        old = os.umask(0o177)
-        try:
-            self.sock.bind(str(self.path))
-        finally:
-            os.umask(old)
-        self.sock.listen(4)
         self._lock = threading.Lock()
-        self._th = threading.Thread(target=self._serve, name="rig-emulate-control", daemon=True)
-        self._th.start()
+        self.sock = serve_private_socket(self.path, self._answer, "rig-emulate-control")
 
-    def _serve(self) -> None:
+    def _answer(self, line: str) -> str:
         import json
 
-        while True:
-            try:
-                conn, _ = self.sock.accept()
-            except OSError:
-                return
-            with conn:
-                try:
-                    conn.settimeout(2.0)
-                    req = json.loads(conn.makefile("r").readline() or "{}")
-                    with self._lock:
-                        if req.get("op") == "reset":
-                            self.handle.reset_plant(float(req["x0_um"]), req.get("v_init_um_s"))
-                    conn.sendall(b'{"ok": true}\n')
-                except (OSError, ValueError, KeyError, EmulatorError) as exc:
-                    try:
-                        conn.sendall((json.dumps({"ok": False, "error": str(exc)}) + "\n").encode())
-                    except OSError:
-                        pass
+        try:
+            req = json.loads(line or "{}")
+            with self._lock:
+                if req.get("op") == "reset":
+                    self.handle.reset_plant(float(req["x0_um"]), req.get("v_init_um_s"))
+            return '{"ok": true}'
+        except (ValueError, KeyError, EmulatorError) as exc:
+            return json.dumps({"ok": False, "error": str(exc)})
 
     def close(self) -> None:
         try:

@@ -114,6 +114,19 @@ def fake_rig(x_um: float = 500.0, safety: bool = False) -> RigDevices:
     return RigDevices(position=lvdt, forces=cells, valve=FakeValve(), safety=FakeSafety() if safety else None)
 
 
+class ListQueue:
+    """The loop's output queue, in a list (``items``), for running the loop in-process."""
+
+    def __init__(self):
+        self.items = []
+
+    def put(self, item):
+        self.items.append(item)
+
+    def cancel_join_thread(self):
+        pass
+
+
 class FakeClock:
     """A simulated CLOCK_MONOTONIC for :class:`rig.hardware.timing.Pacer` (``Pacer(..., clock=c, sleep=c.sleep)``):
     ``sleep`` moves it on at once; ``stall(s)`` makes the next wake ``s`` late (a stalled machine)."""

@@ -290,6 +290,11 @@ class LoggerWatch:
 ABORT_NONE, ABORT_OPERATOR, ABORT_FAIL = 0, 1, 2
 
 
+def valve_enable_trip(exc: DeviceError, status_bits: int) -> Trip:
+    """The valve's explicit start (NMT start, fault reset, enable) failed before the first tick."""
+    return Trip("valve_enable", f"{exc}", 0.0, {"status_bits": status_bits})
+
+
 def pause_trip(t_s: float, held_s: float, limit_s: float) -> Trip | None:
     """An operator's pause held longer than ``max_pause_s``: to the safe state."""
     if held_s <= limit_s:

@@ -9,7 +9,14 @@ Dunlap 1995, section 3 and Fig. 4):
    :class:`drivers.device.DeviceHealth`, then the controller
    (:func:`rig.control.controller_step`: PID on x_ref - x + 500 Hz dither,
    command = demand / full-scale force);
-3. **write**: every device's ``write(now)`` (the valve's setpoint; its enable).
+3. **write**: every device's ``write(now)`` (the valve's setpoint; its enable; the safety chain's
+   amplifier enable and tick count);
+4. **record**: the tick's row into the block; a full block to the logger.
+
+These are the methods of :class:`RtLoop` (``tick()`` calls them, then ``advance()``); every
+trip is defined in :mod:`rig.hardware.interlocks` and goes through ``RtLoop.trip()``, the one
+trip path. Tick 0's wall clock (``RtLoop.wall_ns_tick0``, ``time.time_ns()`` at tick 0's
+deadline) is taken in ``RtLoop.start()`` and handed to the session in ``loop_start``.
 
 Samples go to the parent in blocks (``BLOCK_KEYS``) on a multiprocessing
 queue, with the per-tick lateness, period, execution time and device read
@@ -29,7 +36,10 @@ where it was instead of jumping; each stall is a ``stall`` event, a long one a
 ``abort_flag`` (operator abort: hold then safe; session failure, e.g. its log:
 safe at once), ``logger_ack`` (blocks logged: ``logger_stalled`` when they stop)
 and ``logger_alive`` (the logger's heartbeat: ``logger_died`` when it stops;
-PR_SET_PDEATHSIG -> SIGTERM with the parent gone is the same trip).
+PR_SET_PDEATHSIG -> SIGTERM with the parent gone is the same trip) and
+``pause_req`` (the operator's pause: the reference comes from
+:class:`trajectories.pause.PausableReference`, held at the plan's next safe point,
+run up 5 L on resume; ``pause_timeout`` after ``max_pause_s``).
 """
 
 from __future__ import annotations
@@ -50,7 +60,7 @@ from rig.control import apply_switches, controller_params_from_profile, controll
 from rig.hardware.devices import build_devices, wait_for_data
 from rig.hardware.interlocks import (
     ABORT_FAIL, ABORT_NONE, ABORT_OPERATOR, DEVICE_TRIPS, SAFETY_TRIPS, Interlocks, LoggerWatch, TimingWatch, Trip,
-    pause_trip, session_trip,
+    pause_trip, session_trip, valve_enable_trip,
 )
 from rig.hardware.safety import latched_message, write_latch
 from rig.hardware.timing import Pacer, set_pdeathsig, set_process_name, setup_realtime
@@ -192,6 +202,8 @@ class RtLoop:
         self.devices = self.rig.all
         self.pos, self.forces, self.valve = self.rig.position, self.rig.forces, self.rig.valve
         self.safety = self.rig.safety  # the safety chain's I/O (None: the profile has none)
+        if self.safety is not None and options.get("safety_link") is not None:
+            self.safety.attach(*options["safety_link"])  # its link process, started by the session's side
         self.il = Interlocks(ilc, float(profile.stroke.min_um), float(profile.stroke.max_um),
                              hw.valve.heartbeat_timeout_s, self.period)
         self.timing = TimingWatch(ilc, self.period)
@@ -274,7 +286,7 @@ class RtLoop:
         try:
             self.valve.start()
         except DeviceError as exc:
-            start_trip = Trip("valve_enable", f"{exc}", 0.0, {"status_bits": self.valve.final_state()["status_bits"]})
+            start_trip = valve_enable_trip(exc, self.valve.final_state()["status_bits"])
         for d in self.devices:  # drain what arrived while enabling; staleness counts from here
             try:
                 d.read(self.clock())

@@ -63,6 +63,7 @@ class HardwareBackend:
         self.q = None
         self.abort = None
         self.pause_req = None
+        self.safety_link = None  # the safety chain's link process (drivers.safety_io.SafetyLink)
         self.rate_hz = 1000.0
         self.stats = TimingStats(1e-3)
         self.read_max_s = 0.0  # the devices' read phase of a tick
@@ -135,11 +136,23 @@ class HardwareBackend:
         self.logger_alive = ctx.Value("d", 0.0, lock=False)
         self.pause_req = ctx.Value("i", 0, lock=False)
         popt = pause_options(plan, self._friction_model())
+        link = None
+        if self.hw.safety is not None:  # its own process, started here: the loop's process may not start one
+            from drivers.errors import DeviceError
+            from rig.hardware.devices import safety_link
+
+            self.safety_link = safety_link(self.hw)
+            try:
+                self.safety_link.connect()
+                link = self.safety_link.link
+            except DeviceError as exc:  # named by the loop with every other device that does not answer
+                link = (self.safety_link.shm, None, exc.message)
+                self.safety_link = None
         self.proc = ctx.Process(target=loop_main, name="rig-rt-loop", daemon=True,
                                 args=(self.hw.model_dump(), self.profile, x_ref, self.q, self.abort,
                                       {"period_s": 1.0 / self.rate_hz, "controller": self.controller,
                                        "switches": switches, "ff_N": ff_N, "safe_ticks": popt["safe_ticks"],
-                                       "runup_um": popt["runup_um"]},
+                                       "runup_um": popt["runup_um"], "safety_link": link},
                                       self.logger_ack, self.logger_alive, self.pause_req))
         self.proc.start()
 
@@ -267,6 +280,9 @@ class HardwareBackend:
             if self.proc.is_alive():
                 self.proc.terminate()
                 self.proc.join(2)
+        if self.safety_link is not None:
+            self.safety_link.close()
+            self.safety_link = None
         if self._own_emulator is not None:
             self._own_emulator.stop()
             self._own_emulator = None

@@ -25,6 +25,7 @@ import socket
 import threading
 from pathlib import Path
 
+from drivers.linux import serve_private_socket
 from trajectories.pause import PausableReference, safe_ticks_of
 
 RUNUP_L = 5.0  # slip distances run up after a pause before the plan goes on (exp(-5): 0.7 % of the state left)
@@ -126,36 +127,16 @@ class PauseControl:
             raise OSError(f"{d} is not private to this user")
         self.path = socket_path()
         self.path.unlink(missing_ok=True)
-        s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        old = os.umask(0o177)
-        try:
-            s.bind(str(self.path))
-        finally:
-            os.umask(old)
-        s.listen(2)
-        self._sock = s
-        threading.Thread(target=self._serve, name="rig-pause-control", daemon=True).start()
+        self._sock = serve_private_socket(self.path, self._answer, "rig-pause-control")
 
-    def _serve(self) -> None:
-        while True:
-            try:
-                conn, _ = self._sock.accept()
-            except OSError:
-                return
-            with conn:
-                try:
-                    conn.settimeout(1.0)
-                    cmd = conn.makefile("r").readline().strip()
-                    if cmd == "pause":
-                        self.request(True)
-                    elif cmd == "resume":
-                        self.request(False)
-                    elif cmd != "status":
-                        conn.sendall(f"error: unknown command {cmd!r}\n".encode())
-                        continue
-                    conn.sendall(f"ok {'paused' if self.want else 'running'}\n".encode())
-                except OSError:
-                    pass
+    def _answer(self, cmd: str) -> str:
+        if cmd == "pause":
+            self.request(True)
+        elif cmd == "resume":
+            self.request(False)
+        elif cmd != "status":
+            return f"error: unknown command {cmd!r}"
+        return f"ok {'paused' if self.want else 'running'}"
 
     def stop(self) -> None:
         if self._old is not None:
