@@ -311,7 +311,8 @@ def frf(trial: TrialData, profile, model, switches: dict | None = None, nperseg:
         notes.append(f"no loop model: {exc}")
     fric = _friction_terms(lm) if (lm is not None and sw["friction_ff"]) else None
     C, F = controller_terms(ctrl, fric, V, f, dt)
-    P_meas = H / (C + F - H * C)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        P_meas = H / (C + F - H * C)
     L_meas = P_meas * C
     out = {"schema": SCHEMA_FRF, "source": trial.source,
            "segment": {k: v for k, v in ev.items()}, "nperseg": int(nperseg),
