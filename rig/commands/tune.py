@@ -216,8 +216,16 @@ def autotune_cmd(
                 f"autotune moves the actuator: a {duration_s:g} s sine sweep of {amplitude_um:g} µm on a "
                 f"{sweep['velocity_um_s']:.0f} µm/s slide, force clamped at {SWEEP_FORCE_N:g} N. Go on?"):
             raise typer.Exit(1)
+        from rig.config.recipe import compile_recipe, parse_recipe
+        from trajectories import PlanError
+
+        text = _sweep_recipe(lubricant, sweep)
+        try:  # the sweep must fit this rig's stroke and speed before anything moves
+            compile_recipe(parse_recipe(text, "autotune sweep"), prof)
+        except PlanError as exc:
+            _fail(f"the autotune sweep does not fit {hardware}: {exc}; lower --duration-s")
         tmp = Path(tempfile.mkdtemp(prefix="rig-autotune-"))
-        (tmp / "sweep.yaml").write_text(_sweep_recipe(lubricant, sweep))
+        (tmp / "sweep.yaml").write_text(text)
         (tmp / "bounded.yaml").write_text(f"extends: {hardware.resolve()}\ncontroller:\n"
                                           f"  output_max_N: {SWEEP_FORCE_N:g}\n")
         log = tmp / "sweep.mcap"
