@@ -109,6 +109,23 @@ def test_aging_law_heals_as_predicted_at_a_stiff_loading(runs):
                                                                      0.1 * beta_pred))
     assert 0.6 * lp.B_mu * np.log(10) < rep["beta_per_decade"] < 1.05 * lp.B_mu * np.log(10)
     assert all(h["reference"] == "before" and not h["reversal"] for h in rep["holds"])
+    # another lab's record: no reference, no events; the holds from the measured position alone
+    tr = trials["aging"]
+    bare = type(tr)(time_s=tr.time_s, position_um=tr.position_um, friction_N=tr.friction_N,
+                    normal_1_N=tr.normal_1_N, normal_2_N=tr.normal_2_N)
+    rep2 = heal(bare)
+    assert rep2["rests_from"] == "position_um" and rep2["n_holds"] == len(HOLDS)
+    got2 = np.array([h["delta_mu_peak"] for h in rep2["holds"]])
+    assert np.all(np.abs(got2 / pred - 1) < 0.2), got2 / pred
+
+
+def test_slow_noisy_sliding_is_not_a_hold(repo_root):
+    """The sepiolite record slides at 0.2 µm/s with 0.2 µm of displacement noise: its short
+    stretches without a significant local slope are not holds."""
+    from rig.data import read_csv
+
+    with pytest.raises(ValueError, match="no hold"):
+        heal(read_csv(repo_root / "tests" / "data" / "giacomel-sepiolite-velstep2.csv"))
 
 
 def test_slip_law_does_not_heal_at_rest(runs):

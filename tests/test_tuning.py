@@ -29,7 +29,7 @@ accel_um_s2: 500
 controller: {ff1: on, friction_ff: on}
 segments:
   - {kind: hold, duration_s: 0.5}
-  - {kind: square, amplitude_um: 5, frequency_hz: 2, cycles: 2, velocity_um_s: 50, edge_speed_um_s: 500}
+  - {kind: square, amplitude_um: 5, frequency_hz: 1, cycles: 2, velocity_um_s: 50, edge_speed_um_s: 500}
   - {kind: sine_sweep, f0_hz: 2, f1_hz: 70, amplitude_um: 0.35, duration_s: 12, velocity_um_s: 160}
 """
 
@@ -100,7 +100,7 @@ def test_h1_recovers_a_known_filter_through_output_noise_and_skips_stalls():
     y = lfilter([1 - a], [1, -a], r) + rng.normal(0, 0.05, n)
     keep = np.ones(n, bool)
     keep[10_000:10_100] = False
-    f, H, coh, used = h1_estimate(r, y, fs, 1024, keep)
+    f, H, coh, used, n_bin = h1_estimate(r, y, fs, 1024, keep)
     z = np.exp(-2j * np.pi * f / fs)
     true = (1 - a) / (1 - a * z)
     sel = (f > 1) & (f < 50)
@@ -108,6 +108,7 @@ def test_h1_recovers_a_known_filter_through_output_noise_and_skips_stalls():
     assert np.abs(np.degrees(np.angle(H[sel] / true[sel]))).max() < 4.0
     assert coh[(f > 1) & (f < 10)].min() > 0.8
     assert used == 2 * n // 1024 - 1 - 2                        # the two segments over the stall left out
+    assert (n_bin == used).all()
 
 
 def test_margins_of_a_known_loop():
@@ -152,6 +153,9 @@ def test_step_metrics_on_the_square(sweep_log):
     doc = json.loads(res.stdout)
     ups = [e for e in doc["edges"] if e["delta_um"] > 0 and e["rise_s"] is not None]
     assert ups and all(0 < e["rise_s"] < 0.05 for e in ups)       # 10 µm at 500 µm/s: a 20 ms edge
+    downs = [e for e in doc["edges"] if e["delta_um"] < 0]
+    assert downs and all(e["reverses"] for e in downs)           # 500 µm/s against a 50 µm/s slide
+    assert not set(doc["edges_in_means"]) & {e["edge"] for e in downs}
     assert doc["following_error_max_um"] < 20.0
 
 

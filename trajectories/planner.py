@@ -36,6 +36,7 @@ from trajectories.segments import (DEFAULT_RUN_UP_L, MIN_RUN_UP_L, Hold, Move, P
                                    SineSweep, SlideHoldSlide, Square, SteppedPass, VelocitySteps)
 
 MAX_PLAN_DURATION_S = 8 * 3600.0
+WAVE_LEAD_IN_S = 1.0  # a square or sweep on a slide starts this long after the slide reaches its speed
 _EPS_UM = 1e-9
 
 
@@ -460,7 +461,8 @@ def _run_up_um(b: _Builder, st, seg: VelocitySteps, accel: float, j: int, spec: 
     """Slip from rest to the step (ramp to v1 included), checked against L of the model in use."""
     return _run_up_check(b, st.v1_um_s, st.slip_before_um, accel, spec,
                          f"step {j + 1} ({st.v1_um_s:g} -> {st.v2_um_s:g} µm/s)", fail, "slip_before_um",
-                         steady=seg.require_steady_state, hint=", or set require_steady_state: false", vname="v1")
+                         steady=seg.require_steady_state, hint=", or set require_steady_state: false", vname="v1",
+                         noun="a step")
 
 
 def _velocity_steps(b: _Builder, seg: VelocitySteps, accel: float, index: int, events: list, fail,
@@ -494,7 +496,8 @@ def _velocity_steps(b: _Builder, seg: VelocitySteps, accel: float, index: int, e
 
 
 def _run_up_check(b: _Builder, v: float, given: float | None, accel: float, spec: PlanSpec, what: str, fail,
-                  field_name: str, steady: bool = True, hint: str = "", vname: str = "v") -> float:
+                  field_name: str, steady: bool = True, hint: str = "", vname: str = "v",
+                  noun: str = "a hold") -> float:
     """Slip from rest (ramp to ``v`` included) before a hold or a step: ``given``, or the ramp
     plus DEFAULT_RUN_UP_L x L; refused below MIN_RUN_UP_L x L at ``v`` (exp(-5): the state
     within 0.7 % of steady state, eq. 6)."""
@@ -509,8 +512,8 @@ def _run_up_check(b: _Builder, v: float, given: float | None, accel: float, spec
     if L is not None and steady and given - d_ramp < MIN_RUN_UP_L * L * (1 - 1e-9):
         src = f" ({spec.state_length_source})" if spec.state_length_source else ""
         fail(f"{what} would start out of steady state: {given - d_ramp:.1f} µm of slip at {vname} is "
-             f"{(given - d_ramp) / L:.2f} L, with L = {L:g} µm{src}; at least {MIN_RUN_UP_L:g} L = "
-             f"{MIN_RUN_UP_L * L:.1f} µm is needed (the state relaxes as exp(-slip/L), eq. 6). Set {field_name} "
+             f"{(given - d_ramp) / L:.2f} L, with L = {L:g} µm{src}; {noun} needs at least {MIN_RUN_UP_L:g} L = "
+             f"{MIN_RUN_UP_L * L:.1f} µm at {vname} (the state relaxes as exp(-slip/L), eq. 6). Set {field_name} "
              f">= {math.ceil(d_ramp + MIN_RUN_UP_L * L):g}, or leave it out ({DEFAULT_RUN_UP_L:g} L){hint}")
     return given
 
@@ -551,6 +554,8 @@ def _waveform(b: _Builder, seg, accel: float, index: int, events: list, overlays
              f"{raw:g} Hz must be {lim.loop_rate_hz:g} Hz")
     if b.v != seg.velocity_um_s:
         b.ramp(seg.velocity_um_s, accel)
+        if seg.velocity_um_s > 0:
+            b.cruise_time(WAVE_LEAD_IN_S)  # the loop settles on the slide before the wave begins
     t0, xc = b.t, b.x
     if isinstance(seg, Square):
         edge = seg.edge_speed_um_s or (lim.max_speed_um_s - seg.velocity_um_s)

@@ -19,7 +19,8 @@ slide at ``v`` to steady state, stop and rest ``t_h``, re-slide. For each hold:
 Signs follow the sliding direction (mu of a slide in -x is taken as -mu), so a reversal's
 peak is a peak too. Holds are found in the record, not taken from a recipe: rests of the
 reference (``position_ref_um``, exact for the rig's logs) or, without one, of the measured
-position (local slopes over 1 s), at least ``min_hold_s`` long with sliding on both sides.
+position (local slopes over +-0.25 s that are zero within 3 standard errors), at least
+``min_hold_s`` long with sliding on both sides.
 A slide ends at a rest or at a change of velocity inside it (a velocity step). A ``hold``
 event of the planner (slide_hold_slide) adds the planned hold time.
 
@@ -50,6 +51,7 @@ STEADY_FRACTION = 0.3     # the steady friction: mean over the last 30 % of a sl
 PEAK_FRACTION = 0.5       # the peak is looked for in the first half of the re-slide
 END_OF_HOLD_S = 0.5       # mu_end: mean over the last 0.5 s of the rest (at most a fifth of it)
 CHANGE_WINDOW_S = 1.0     # velocity changes inside a slide (rig.kinematics.velocity_changes) end it
+REST_WINDOW_S = 0.25      # half-window of the local slopes of a measured position (no reference)
 
 
 def aging_prediction(B_mu: float, L_um: float, v_um_s: float, t_hold_s) -> np.ndarray:
@@ -63,33 +65,60 @@ def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
     return list(zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1)))
 
 
-def _velocity(t: np.ndarray, x: np.ndarray, exact: bool) -> np.ndarray:
-    if exact:
-        return np.gradient(x, t)
-    # local slopes over about 1 s (the LVDT noise at 25 Hz to 1 kHz)
+def _local_slopes(t: np.ndarray, x: np.ndarray, half_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares slopes of ``x`` over windows of +-``half_s`` and their standard errors."""
     dt = float(np.median(np.diff(t)))
-    half = max(2, int(round(0.5 / dt)))
+    half = max(2, int(round(half_s / dt)))
     k = np.ones(2 * half + 1)
-    tc = t - t.mean()
+    tc, xc = t - t.mean(), x - x.mean()
     n = np.convolve(np.ones_like(t), k, "same")
-    st, sx = np.convolve(tc, k, "same"), np.convolve(x, k, "same")
-    stt, stx = np.convolve(tc * tc, k, "same"), np.convolve(tc * x, k, "same")
-    den = n * stt - st * st
-    return np.where(den > 0, (n * stx - st * sx) / np.where(den > 0, den, 1.0), 0.0)
+    st, sx = np.convolve(tc, k, "same"), np.convolve(xc, k, "same")
+    stt = np.convolve(tc * tc, k, "same") - st * st / n
+    stx = np.convolve(tc * xc, k, "same") - st * sx / n
+    sxx = np.convolve(xc * xc, k, "same") - sx * sx / n
+    ok = stt > 0
+    slope = np.where(ok, stx / np.where(ok, stt, 1.0), 0.0)
+    ssr = np.maximum(sxx - slope * stx, 0.0)
+    se = np.where(ok & (n > 2), np.sqrt(ssr / np.maximum(n - 2, 1) / np.where(ok, stt, 1.0)), np.inf)
+    return slope, se
+
+
+def _slope_se(t: np.ndarray, x: np.ndarray) -> tuple[float, float]:
+    """Least-squares slope of ``x`` over ``t`` and its standard error (0 for an exact line)."""
+    if t.size < 3:
+        return 0.0, math.inf
+    tc = t - t.mean()
+    stt = float(np.dot(tc, tc))
+    if stt <= 0:
+        return 0.0, math.inf
+    b = float(np.dot(tc, x - x.mean())) / stt
+    r = x - x.mean() - b * tc
+    return b, math.sqrt(float(np.dot(r, r)) / (t.size - 2) / stt)
 
 
 def find_rests(trial: TrialData, min_hold_s: float = MIN_HOLD_S) -> tuple[list[tuple[int, int]], np.ndarray, str]:
-    """Rests of the record (index ranges, end exclusive), the velocity used, and its source."""
+    """Rests of the record (index ranges, end exclusive), the velocity used, and its source.
+
+    From the reference when the record has one (its velocity is exact: a rest is where it is 0);
+    else from the measured position: local slopes over +-0.25 s, a rest where the slope is
+    indistinguishable from zero (below 3 standard errors of the local fit) and below 15 % of
+    the record's typical sliding speed (its 90th percentile)."""
     t = np.asarray(trial.time_s, float)
     ref = trial.position_ref_um
     exact = ref is not None and bool(np.isfinite(ref).all()) and np.ptp(ref) > 0
-    x = np.asarray(ref if exact else trial.position_um, float)
-    v = _velocity(t, x, exact)
     if exact:
+        x = np.asarray(ref, float)
+        v = np.gradient(x, t)
         rest = np.abs(v) < 1e-6 * max(1.0, float(np.abs(v).max()))
     else:
+        v, se = _local_slopes(t, np.asarray(trial.position_um, float), REST_WINDOW_S)
         vs = float(np.percentile(np.abs(v), 90))
-        rest = np.abs(v) < 0.15 * vs
+        rest = (np.abs(v) < 3.0 * se) & (np.abs(v) < 0.15 * vs)
+        # the noise breaks a long rest now and then: close gaps shorter than the window
+        gap = max(1, int(round(2 * REST_WINDOW_S / float(np.median(np.diff(t))))))
+        for i, j in _runs(~rest):
+            if 0 < i and j < rest.size and j - i <= gap:
+                rest[i:j] = True
     runs = [(i, j) for i, j in _runs(rest) if t[j - 1] - t[i] >= min_hold_s]
     return runs, v, "position_ref_um" if exact else "position_um"
 
@@ -106,11 +135,17 @@ def _cruise(v: np.ndarray) -> float:
     return float(np.median(v[av >= 0.8 * av.max()]))
 
 
-def _hold(t, mu, v, before: tuple[int, int], rest: tuple[int, int], after: tuple[int, int], dt: float) -> dict:
+def _hold(t, mu, v, before: tuple[int, int], rest: tuple[int, int], after: tuple[int, int], dt: float,
+          x: np.ndarray | None = None) -> dict:
+    """One hold. ``x``: a measured position (no reference): the slides' velocities are then line
+    fits over each slide, and their equality is judged within 20 % (5 % from the reference)."""
     b0, b1 = before
     a0, a1 = after
     r0, r1 = rest
-    vb, va = _cruise(v[b0:b1]), _cruise(v[a0:a1])
+    if x is None:
+        vb, va, same_tol = _cruise(v[b0:b1]), _cruise(v[a0:a1]), 0.05
+    else:
+        vb, va, same_tol = _slope_se(t[b0:b1], x[b0:b1])[0], _slope_se(t[a0:a1], x[a0:a1])[0], 0.2
     sb, sa = (1.0 if vb >= 0 else -1.0), (1.0 if va >= 0 else -1.0)
     guard = max(1, int(round(0.1 / dt)))  # the ramps at both ends of a slide
     win_b = slice(b0 + int((b1 - b0) * (1 - STEADY_FRACTION)), max(b0 + 1, b1 - guard))
@@ -125,7 +160,7 @@ def _hold(t, mu, v, before: tuple[int, int], rest: tuple[int, int], after: tuple
     t_peak = float(t[a0 + k + (seg.size - sm.size) // 2])
     win_a = slice(a0 + int((a1 - a0) * (1 - STEADY_FRACTION)), max(a0 + 1, a1 - guard))
     mu_after = float(np.mean(sa * mu[win_a]))
-    same = sa == sb and abs(va - vb) <= 0.05 * abs(vb)
+    same = sa == sb and abs(va - vb) <= same_tol * abs(vb)
     ref, ref_mu = ("before", mu_before) if same else ("after", mu_after)
     return {"t_s": float(t[r0]), "t_end_s": float(t[r1 - 1]), "hold_s": float(t[r1 - 1] - t[r0]),
             "v_before_um_s": vb, "v_after_um_s": va, "reversal": bool(sa != sb), "reference": ref,
@@ -157,6 +192,7 @@ def heal(trial: TrialData, *, min_hold_s: float = MIN_HOLD_S) -> dict:
     mu = np.asarray(trial.mu, float)
     dt = float(np.median(np.diff(t)))
     rests, v, source = find_rests(trial, min_hold_s)
+    x = np.asarray(trial.position_ref_um if source == "position_ref_um" else trial.position_um, float)
     # a slide ends at a change of velocity (a velocity step inside it), not only at a rest
     changes = velocity_changes(t, v, CHANGE_WINDOW_S, 0.3)
     planned = [e for e in (trial.events or []) if e.get("kind") == "hold" and "hold_s" in e]
@@ -174,15 +210,22 @@ def heal(trial: TrialData, *, min_hold_s: float = MIN_HOLD_S) -> dict:
             a1 = int(np.searchsorted(t, inside[0] - CHANGE_WINDOW_S))
         if r0 - b0 < 5 or a1 - r1 < 5:
             continue
-        h = _hold(t, mu, v, (b0, r0), (r0, r1), (r1, a1), dt)
+        h = _hold(t, mu, v, (b0, r0), (r0, r1), (r1, a1), dt, None if source == "position_ref_um" else x)
+        # a rest is a hold when the record shows it standing still against both slides: the
+        # rest's own slope below 10 % of theirs, known to 5 % of them (slow sliding on a noisy
+        # record, which the local slopes cannot tell from rest, is not a hold)
+        v_slide = min(abs(h["v_before_um_s"]), abs(h["v_after_um_s"]))
+        v_rest, se_rest = _slope_se(t[r0:r1], x[r0:r1])
+        if abs(v_rest) > 0.1 * v_slide or se_rest > 0.05 * v_slide:
+            continue
         ev = min(planned, key=lambda e: abs(e["t_s"] - h["t_s"]), default=None)
         if ev is not None and abs(ev["t_s"] - h["t_s"]) < max(1.0, 0.1 * h["hold_s"]):
             h["hold_s_planned"] = float(ev["hold_s"])
         h["hold"] = len(holds)
         holds.append(h)
     if not holds:
-        raise ValueError(f"no hold of at least {min_hold_s:g} s between two slides was found "
-                         f"(rests from {source}: {len(rests)})")
+        raise ValueError(f"no hold of at least {min_hold_s:g} s between two slides was found ({len(rests)} "
+                         f"candidate rest(s) in {source}, none standing still against slides on both sides)")
     use = [h for h in holds if not h["reversal"]] or holds
     th = [h.get("hold_s_planned", h["hold_s"]) for h in use]
     beta, beta_sd = healing_rate(th, [h["delta_mu_peak"] for h in use])

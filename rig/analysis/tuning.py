@@ -90,7 +90,7 @@ def _window(trial: TrialData, t0: float, t1: float):
 def step_response(trial: TrialData) -> dict:
     """Rise, overshoot, settling and following error of each edge of the last square segment."""
     ev = segment_window(trial, "square")
-    t, r, y, dt = _window(trial, ev["t_s"], ev["t_end_s"])
+    t, r, y, dt = _window(trial, ev["t_s"] - 0.05, ev["t_end_s"])
     base = ev["x_um"] + ev.get("velocity_um_s", 0.0) * (t - ev["t_s"])
     rd, yd = r - base, y - base
     n_s = max(1, int(round(SMOOTH_S / dt)))
@@ -114,7 +114,9 @@ def step_response(trial: TrialData) -> dict:
         reached = bool(s.max() >= 0.9)
         out = np.flatnonzero(np.abs(s - 1.0) > SETTLE_BAND)
         settled = out.size == 0 or out[-1] < s.size - max(3, int(round(0.05 / dt)))
+        V, ve = ev.get("velocity_um_s", 0.0), ev.get("edge_speed_um_s", math.inf)
         rows.append({"edge": k, "t_s": float(te), "delta_um": delta,
+                     "reverses": bool(V > 0 and delta < 0 and ve > V),
                      "rise_s": float(tt[i90] - tt[i10]) if reached else None,
                      "overshoot": float(s.max() - 1.0),
                      "settling_s": (float(tt[out[-1] + 1]) if out.size else 0.0) if settled else None})
@@ -122,15 +124,18 @@ def step_response(trial: TrialData) -> dict:
         raise ValueError(f"{trial.source or 'record'}: no edge of the square segment could be measured")
     e = r - y
     fin = [r_ for r_ in rows if r_["rise_s"] is not None]
+    # on a slide, an edge faster than the slide against it reverses the sliding: the friction
+    # flips sign and that edge measures friction, not the loop; the means leave such edges out
+    used = [r_ for r_ in rows if not r_["reverses"]] or rows
 
     def mean(key):
-        v = [r_[key] for r_ in rows if r_[key] is not None]
+        v = [r_[key] for r_ in used if r_[key] is not None]
         return float(np.mean(v)) if v else None
 
     return {"schema": SCHEMA_STEP, "source": trial.source, "segment": {k: v for k, v in ev.items() if k != "edges_t_s"},
             "edges": rows, "rise_s": mean("rise_s"), "overshoot": mean("overshoot"), "settling_s": mean("settling_s"),
             "following_error_rms_um": float(np.sqrt(np.mean(e * e))), "following_error_max_um": float(np.abs(e).max()),
-            "n_reached": len(fin), "settle_band": SETTLE_BAND}
+            "n_reached": len(fin), "settle_band": SETTLE_BAND, "edges_in_means": [r_["edge"] for r_ in used]}
 
 
 # ---------------------------------------------------------------------------
@@ -138,26 +143,38 @@ def step_response(trial: TrialData) -> dict:
 # ---------------------------------------------------------------------------
 
 def h1_estimate(r: np.ndarray, y: np.ndarray, fs_hz: float, nperseg: int,
-                keep: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
-    """(f, H1 = P_ry / P_rr, coherence, segments used) by Welch's method: Hann windows of
-    ``nperseg`` samples, half overlap, each segment's mean removed. ``keep`` (per sample, bool):
-    a segment with any sample not kept is left out (a loop stall inside it)."""
+                keep: np.ndarray | None = None, band_of=None,
+                overlap: float = 0.5) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, np.ndarray]:
+    """(f, H1 = P_ry / P_rr, coherence, segments used, segments averaged per bin) by Welch's method: Hann windows of
+    ``nperseg`` samples, ``overlap`` between neighbours, each segment's mean removed. ``keep``
+    (per sample, bool): a segment with any sample not kept is left out (a loop stall inside it).
+    ``band_of(i0, i1)``: the (lowest, highest) frequency the input has in samples i0..i1 (a
+    sweep); each bin then averages only the segments whose band, widened by 1.25x both ways,
+    holds it, so the spectra are not diluted by segments in which the sweep is elsewhere (with a
+    log sweep every bin gets the same time, T ln(1.25^2) / ln(f1/f0))."""
     nperseg = int(min(nperseg, r.size))
-    step = nperseg // 2
+    step = max(1, int(round(nperseg * (1.0 - overlap))))
     win = np.hanning(nperseg)
     starts = [i for i in range(0, r.size - nperseg + 1, step) if keep is None or keep[i:i + nperseg].all()]
     if not starts:
         raise ValueError("no stretch of the sweep free of loop stalls as long as one Welch segment "
                          f"({nperseg} samples); lower --nperseg")
+    f = np.fft.rfftfreq(nperseg, 1.0 / fs_hz)
     R = np.array([np.fft.rfft(win * (r[i:i + nperseg] - r[i:i + nperseg].mean())) for i in starts])
     Y = np.array([np.fft.rfft(win * (y[i:i + nperseg] - y[i:i + nperseg].mean())) for i in starts])
-    p_rr = np.mean(np.abs(R) ** 2, axis=0)
-    p_yy = np.mean(np.abs(Y) ** 2, axis=0)
-    p_ry = np.mean(np.conj(R) * Y, axis=0)
+    W = np.ones(R.shape)
+    if band_of is not None:
+        for k, i in enumerate(starts):
+            lo, hi = band_of(i, i + nperseg)
+            W[k] = (f >= lo / 1.25) & (f <= hi * 1.25)
+    n = W.sum(axis=0)
     with np.errstate(divide="ignore", invalid="ignore"):
+        p_rr = (W * np.abs(R) ** 2).sum(axis=0) / n
+        p_yy = (W * np.abs(Y) ** 2).sum(axis=0) / n
+        p_ry = (W * np.conj(R) * Y).sum(axis=0) / n
         h = p_ry / p_rr
-        coh = np.abs(p_ry) ** 2 / (p_rr * p_yy)
-    return np.fft.rfftfreq(nperseg, 1.0 / fs_hz), h, np.nan_to_num(coh), len(starts)
+        coh = np.where(n >= 3, np.abs(p_ry) ** 2 / (p_rr * p_yy), 0.0)
+    return f, h, np.nan_to_num(coh.real), len(starts), n
 
 
 STALE_S = 0.010         # the same position reading this long on a slide: the stream was held up
@@ -273,9 +290,15 @@ def frf(trial: TrialData, profile, model, switches: dict | None = None, nperseg:
     stale = _stale_runs(y, dt) if V > 0 else []
     for i0, i1 in stale:
         keep[(t >= t[i0] - 0.01) & (t <= t[min(i1, t.size - 1)] + RECOVER_S)] = False
-    f, H, coh, n_seg = h1_estimate(r - base, y - base, fs, nperseg, keep)
+    kk = math.log(ev["f1_hz"] / ev["f0_hz"]) / ev["duration_s"]
+    tau0 = t[0] - ev["t_s"]
+
+    def band_of(i0, i1):  # the log sweep's instantaneous frequency over samples i0..i1
+        return (ev["f0_hz"] * math.exp(kk * (tau0 + i0 * dt)), ev["f0_hz"] * math.exp(kk * (tau0 + i1 * dt)))
+
+    f, H, coh, n_seg, n_bin = h1_estimate(r - base, y - base, fs, nperseg, keep, band_of, overlap=0.75)
     band = (f >= ev["f0_hz"]) & (f <= ev["f1_hz"])
-    f, H, coh = f[band], H[band], coh[band]
+    f, H, coh, n_bin = f[band], H[band], coh[band], n_bin[band]
     sw = {"ff1": True, "friction_ff": False, **(switches or {})}
     ctrl = profile.controller.model_dump()
     if not sw["ff1"]:
@@ -288,7 +311,8 @@ def frf(trial: TrialData, profile, model, switches: dict | None = None, nperseg:
         notes.append(f"no loop model: {exc}")
     fric = _friction_terms(lm) if (lm is not None and sw["friction_ff"]) else None
     C, F = controller_terms(ctrl, fric, V, f, dt)
-    P_meas = H / (C + F - H * C)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        P_meas = H / (C + F - H * C)
     L_meas = P_meas * C
     out = {"schema": SCHEMA_FRF, "source": trial.source,
            "segment": {k: v for k, v in ev.items()}, "nperseg": int(nperseg),
@@ -328,7 +352,9 @@ def frf(trial: TrialData, profile, model, switches: dict | None = None, nperseg:
             bg = np.array([20 * math.log10(abs(b)) for _, b in bands])
             bp = np.array([math.degrees(np.angle(b)) for _, b in bands])
             g2 = coh[cmp_]
-            rand_db = 20 * np.log10(1 + np.sqrt(1 - g2) / (np.sqrt(g2) * math.sqrt(2 * n_seg)))
+            # segments averaged per bin; with 75 % overlap about half of them are independent
+            n_d = np.maximum(n_bin[cmp_] / 2.0, 1.0)
+            rand_db = 20 * np.log10(1 + np.sqrt(1 - g2) / (np.sqrt(g2) * np.sqrt(2 * n_d)))
             out["compare"] = {"max_hz": COMPARE_MAX_HZ, "n": int(cmp_.sum()), "n_bands": len(bands),
                               "band_hz": [b for b, _ in bands], "band_gain_db": bg.tolist(),
                               "band_phase_deg": bp.tolist(),
@@ -483,7 +509,7 @@ def propose_gains(profile, model, plant: dict | None = None, margin: float = 2.0
 def build_frf(rep: dict):
     """Bode plot: the measured H1 (coherent points solid, the rest faint) and the loop model, with
     the coherence beneath."""
-    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+    from matplotlib.ticker import FixedLocator, FuncFormatter, NullFormatter
 
     from rig.analysis.plots import PAGE_WIDTH_IN, _plt
 
@@ -516,7 +542,8 @@ def build_frf(rep: dict):
     axs[2].set_ylabel("coherence")
     axs[2].set_xlabel("frequency (Hz)")
     axs[2].set_xscale("log")
-    axs[2].xaxis.set_major_locator(LogLocator(base=10))
+    ticks = [m * 10.0 ** e for e in range(-2, 4) for m in (1, 2, 5)]
+    axs[2].xaxis.set_major_locator(FixedLocator([v for v in ticks if f.size and f.min() <= v <= f.max()] or ticks))
     axs[2].xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
     axs[2].xaxis.set_minor_formatter(NullFormatter())
     h, lab = axs[0].get_legend_handles_labels()

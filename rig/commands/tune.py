@@ -85,11 +85,12 @@ def step_cmd(
     for c in ("edge", "t (s)", "step (µm)", "rise 10-90 % (ms)", "overshoot (%)", "settling (ms)"):
         tab.add_column(c, justify="right")
     for r in rep["edges"]:
-        tab.add_row(str(r["edge"] + 1), f"{r['t_s']:.3f}", f"{r['delta_um']:+.3g}",
+        tab.add_row(str(r["edge"] + 1) + (" (reverses the slide)" if r["reverses"] else ""), f"{r['t_s']:.3f}",
+                    f"{r['delta_um']:+.3g}",
                     _g(None if r["rise_s"] is None else 1e3 * r["rise_s"], ".3g"), f"{100 * r['overshoot']:.1f}",
                     _g(None if r["settling_s"] is None else 1e3 * r["settling_s"], ".3g"))
     con.print(tab)
-    con.print(f"mean: rise {_g(rep['rise_s'] and 1e3 * rep['rise_s'], '.3g')} ms, overshoot "
+    con.print(f"mean over edges {', '.join(str(i + 1) for i in rep['edges_in_means'])}: rise {_g(rep['rise_s'] and 1e3 * rep['rise_s'], '.3g')} ms, overshoot "
               f"{_g(rep['overshoot'] and 100 * rep['overshoot'], '.3g')} %, settling "
               f"{_g(rep['settling_s'] and 1e3 * rep['settling_s'], '.3g')} ms (not settled: -); following error "
               f"rms {rep['following_error_rms_um']:.3g} µm, max {rep['following_error_max_um']:.3g} µm")
@@ -215,8 +216,16 @@ def autotune_cmd(
                 f"autotune moves the actuator: a {duration_s:g} s sine sweep of {amplitude_um:g} µm on a "
                 f"{sweep['velocity_um_s']:.0f} µm/s slide, force clamped at {SWEEP_FORCE_N:g} N. Go on?"):
             raise typer.Exit(1)
+        from rig.config.recipe import compile_recipe, parse_recipe
+        from trajectories import PlanError
+
+        text = _sweep_recipe(lubricant, sweep)
+        try:  # the sweep must fit this rig's stroke and speed before anything moves
+            compile_recipe(parse_recipe(text, "autotune sweep"), prof)
+        except PlanError as exc:
+            _fail(f"the autotune sweep does not fit {hardware}: {exc}; lower --duration-s")
         tmp = Path(tempfile.mkdtemp(prefix="rig-autotune-"))
-        (tmp / "sweep.yaml").write_text(_sweep_recipe(lubricant, sweep))
+        (tmp / "sweep.yaml").write_text(text)
         (tmp / "bounded.yaml").write_text(f"extends: {hardware.resolve()}\ncontroller:\n"
                                           f"  output_max_N: {SWEEP_FORCE_N:g}\n")
         log = tmp / "sweep.mcap"
