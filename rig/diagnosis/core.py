@@ -884,11 +884,14 @@ def diagnose(trial: TrialData, baseline: str = "rate_state", progress=None, n_bl
         if attr == "baseline_fit" and cur is base:
             d.final_fit = res
     d.baseline_all, d.final_all = d.baseline_fit.params, d.final_fit.params
-    if progress:
-        progress("split-half errors")
-    split_sd(grid, base, d.baseline_fit)
-    if d.final_fit is not d.baseline_fit:
-        split_sd(grid, cur, d.final_fit)
+    if grid.holdout_design.startswith("blocks aligned"):
+        # only where each half holds steps of its own: with one to three steps the hold-out blocks are
+        # phased so that the step is fitted, and refitted alone they hold no transient to fit
+        if progress:
+            progress("split-half errors")
+        split_sd(grid, base, d.baseline_fit)
+        if d.final_fit is not d.baseline_fit:
+            split_sd(grid, cur, d.final_fit)
     for f in findings:
         # a finding's parameters are the final model's; the single-cause fit's values beside them
         single = f["params"]
