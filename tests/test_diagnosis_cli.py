@@ -66,3 +66,19 @@ def test_cli_bad_mcap(tmp_path):
     assert res.exit_code == 2  # bad input (rig.commands.common's exit-code table)
     assert "bad.mcap" in res.output
     assert not (tmp_path / "o.json").exists()
+
+
+def test_cli_bad_machine_stiffness(tmp_path):
+    """A stated machine stiffness that is no positive number: one error naming the key, exit 2,
+    nothing written (measured-data.md: machine_stiffness_kN_per_m)."""
+    t = np.arange(0.0, 30.0, 0.1)
+    rows = "\n".join(f"{a:.2f},{a * 2:.3f},{60 + 0.01 * a:.4f}" for a in t)
+    bad = tmp_path / "k.csv"
+    bad.write_text("# rig-trial-csv: 1\n# normal_force_N: 100\n# position_source: load_point\n"
+                   "# machine_stiffness_kN_per_m: -300\ntime_s,position_um,friction_N\n" + rows + "\n")
+    js = tmp_path / "o.json"
+    res = CliRunner().invoke(app, ["diagnose", str(bad), "--json", str(js)])
+    assert res.exit_code == 2, res.output
+    assert "machine_stiffness_kN_per_m" in res.output and "k.csv" in res.output
+    assert "Traceback" not in res.output
+    assert not js.exists()

@@ -105,10 +105,15 @@ def _memory_evidence(p, grid, info):
             f"with a direct jump A = {p['A_mu']:.3g}: memory over a slip distance")
 
 
+def _resolved_time(name: str):
+    """A time constant ``name`` (s) the kinematics resolve and shorter than a fifth of the record
+    (a 72 s "sensor lag" on a 2.8 h record is no sensor's)."""
+    def check(p, grid):
+        return grid.time_resolution_s <= p[name] <= 0.2 * float(grid.t[-1] - grid.t[0])
+    return check
+
+
 # --- time delay (steady_state baseline only) ---------------------------------------------------
-def _delay_plausible(p, grid):
-    T = float(grid.t[-1] - grid.t[0])
-    return grid.time_resolution_s <= p["delay_s"] <= 0.2 * T
 
 
 def _delay_evidence(p, grid, info):
@@ -167,9 +172,6 @@ def _aging_evidence(p, grid, info):
 
 
 # --- sensor lag ------------------------------------------------------------------------------------
-def _lag_plausible(p, grid):
-    T = float(grid.t[-1] - grid.t[0])
-    return grid.time_resolution_s <= p["tau_s"] <= 0.2 * T
 
 
 def _lag_evidence(p, grid, info):
@@ -230,13 +232,13 @@ CAUSES: dict[str, Cause] = {c.name: c for c in (
           scaling="slip", transient=True),
     Cause("time_delay", EXT_PARAMS["time_delay"],
           lambda p, g, s: [dict(p, delay_s=float(d)) for d in np.exp(np.linspace(np.log(0.02), np.log(10.0), 240))],
-          _delay_evidence, _delay_plausible, scaling="time", transient=True),
+          _delay_evidence, _resolved_time("delay_s"), scaling="time", transient=True),
     Cause("second_state_variable", EXT_PARAMS["second_state_variable"], _second_starts, _second_evidence,
           _second_plausible, scaling="slip", transient=True, keep=4),
     Cause("aging_law", EXT_PARAMS["aging_law"], _aging_starts, _aging_evidence, transient=True),
     Cause("sensor_lag", EXT_PARAMS["sensor_lag"],
           lambda p, g, s: [dict(p, tau_s=float(t)) for t in np.exp(np.linspace(np.log(0.01), np.log(10.0), 22))],
-          _lag_evidence, _lag_plausible, scaling="time", transient=True),
+          _lag_evidence, _resolved_time("tau_s"), scaling="time", transient=True),
     Cause("finite_stiffness", EXT_PARAMS["finite_stiffness"],
           lambda p, g, s: [dict(p, stiffness_kN_per_m=k) for k in (10.0, 40.0, 150.0, 600.0, 3000.0)],
           _stiff_evidence, _stiff_plausible, scaling="slip", transient=True),

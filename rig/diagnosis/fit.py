@@ -193,13 +193,19 @@ def fit(grid: Grid, baseline: str, extensions: list[str], init: dict[str, float]
     return res
 
 
-def covariance(grid: Grid, res: FitResult) -> tuple[list[str], np.ndarray, np.ndarray] | None:
-    """(names, values, covariance of the values) of ``res``'s free parameters from the Jacobian of
-    its fit, ``(J^T J)^-1 s^2`` with ``s^2`` the weighted residual variance, inflated by the
-    residual's autocorrelation: ``(1 + rho) / (1 - rho)``, rho the lag-1 autocorrelation of the
-    fitted bins' weighted residuals in time order (the effective sample size, Deliver 3 of issue
-    20; white residuals give 1). The periodic term's internal sine/cosine amplitudes are left out.
-    None without a Jacobian."""
+COV_CHUNKS = 40  # time chunks of the cluster-robust covariance
+
+
+def _cov_internal(grid: Grid, res: FitResult):
+    """(pset, z, covariance in the internal variables, its ratio to the white-noise one per parameter).
+
+    The covariance is cluster-robust in time (a sandwich, ``B M B`` with ``B = (J^T J)^-1`` and
+    ``M`` the sum over COV_CHUNKS chunks of time of ``(J_c^T r_c)(J_c^T r_c)^T``, times G / (G - 1)):
+    residuals correlated over seconds (the kinematics' own errors after a step, the servo, a slow
+    structure no model holds) count as the few independent pieces they are -- the effective sample
+    size of Deliver 3 of issue 20. It is never smaller than the white-noise one, ``B s^2``, inflated
+    by ``(1 + rho) / (1 - rho)`` (rho the lag-1 autocorrelation of the fitted bins' residuals), which
+    is used alone when the record has fewer than 10 chunks."""
     if "jac" not in res.extra:
         return None
     pset, z, J, r, m = res.extra["jac"]
@@ -208,13 +214,37 @@ def covariance(grid: Grid, res: FitResult) -> tuple[list[str], np.ndarray, np.nd
         return None
     s2 = float(np.dot(r, r) / (n - p))
     try:
-        cz = np.linalg.pinv(J.T @ J) * s2
+        B = np.linalg.pinv(J.T @ J)
     except (np.linalg.LinAlgError, ValueError):
         return None
+    white = B * s2
     x = r - r.mean()
     rho = float(np.sum(x[1:] * x[:-1]) / max(float(np.sum(x * x)), 1e-300))
     rho = min(max(rho, 0.0), 0.98)
-    cz = cz * (1.0 + rho) / (1.0 - rho)
+    cz = white * (1.0 + rho) / (1.0 - rho)
+    tm = grid.t[m] if m is not None and np.size(m) == grid.t.size else None
+    if tm is not None and tm.size == n and tm[-1] > tm[0]:
+        ch = np.minimum(((tm - tm[0]) / (tm[-1] - tm[0]) * COV_CHUNKS).astype(np.int64), COV_CHUNKS - 1)
+        G = np.unique(ch).size
+        if G >= 10:
+            g = np.zeros((COV_CHUNKS, p))
+            np.add.at(g, ch, J * r[:, None])
+            robust = B @ (g.T @ g) @ B * G / (G - 1)
+            dd = np.maximum(np.diag(robust), np.diag(cz))
+            sc = np.sqrt(dd / np.maximum(np.diag(robust), 1e-300))
+            cz = robust * np.outer(sc, sc)  # the robust correlations, never below the inflated white sd
+    ratio = np.diag(cz) / np.maximum(np.diag(white), 1e-300)
+    return pset, z, cz, ratio, s2
+
+
+def covariance(grid: Grid, res: FitResult) -> tuple[list[str], np.ndarray, np.ndarray] | None:
+    """(names, values, covariance of the values) of ``res``'s free parameters from the Jacobian of
+    its fit (:func:`_cov_internal`: cluster-robust in time). The periodic term's internal
+    sine/cosine amplitudes are left out. None without a Jacobian."""
+    ci = _cov_internal(grid, res)
+    if ci is None:
+        return None
+    pset, z, cz, _, _ = ci
     # internal (ln or scaled) -> the parameter's unit, to first order
     d = np.array([prm.to_value(float(zi)) if prm.log else prm.scale for prm, zi in zip(pset.params, z)])
     cov = cz * np.outer(d, d)
@@ -298,10 +328,11 @@ def profile(grid: Grid, res: FitResult, name: str = "L_um", mask: np.ndarray | N
         return None, None
     pset, z, J, r, m0 = res.extra["jac"]
     m = m0 if mask is None else mask
-    n, p = J.shape
-    x = r - r.mean()
-    rho = min(max(float(np.sum(x[1:] * x[:-1]) / max(float(np.sum(x * x)), 1e-300)), 0.0), 0.98)
-    s2 = float(np.dot(r, r) / max(n - p, 1)) * (1 + rho) / (1 - rho)
+    ci = _cov_internal(grid, res)
+    if ci is None or name not in pset.names:
+        return None, None
+    # one residual variance, scaled as the covariance scales this parameter's (robust / white)
+    s2 = ci[4] * float(ci[3][pset.names.index(name)])
     prm = param(name, grid)
     v0 = float(res.params[name])
     lo, hi = max(prm.lo * 1.0001, v0 / PROFILE_SPAN), min(prm.hi / 1.0001, v0 * PROFILE_SPAN)

@@ -377,7 +377,7 @@ def _holdout_blocks(tk: np.ndarray, vs: np.ndarray, time_blk: np.ndarray, T: flo
 
 def prepare(trial: TrialData, n_blocks: int = 20, slip_window_um: float = 3.0,
             bin_dt_max_s: float = 1.0, bin_slip_um: float = 1.0, restart_guard_um: float = 0.0,
-            step_times_s: np.ndarray | None = None) -> Grid:
+            step_times_s: np.ndarray | None = None, align_to_steps: bool = True) -> Grid:
     """Kinematic grid + adaptive fit bins + hold-out blocks from a trial (see module doc)."""
     t_raw = np.asarray(trial.time_s, dtype=float)
     if t_raw.size < 20:
@@ -456,7 +456,7 @@ def prepare(trial: TrialData, n_blocks: int = 20, slip_window_um: float = 3.0,
     time_res = max(3.0 * dtk0, 2.0 * servo_tau) if use_ref else max(3.0 * dtk0, 0.15)
 
     # 4. blocks and bins
-    for aligned in (True, False):
+    for aligned in ((True, False) if align_to_steps else (False,)):
         T = float(tk[-1] - tk[0]) if tk.size > 1 else 1.0
         time_blk_k = np.minimum((tk - tk[0]) / (T / n_blocks), n_blocks - 1).astype(np.int64)
         blk_k, holdout_design = _holdout_blocks(tk, vs, time_blk_k, T, n_blocks,
