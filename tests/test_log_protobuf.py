@@ -27,6 +27,9 @@ CSV_NAME = {"t_s": "time_s", "position_nm": "position_um", "position_ref_um": "p
             "valve_cmd_per_32767": "valve_cmd", "pid_p_mN": "pid_p", "pid_i_uN": "pid_i", "pid_d_N": "pid_d",
             "dither_uN": "dither", "true_position_nm": "true_position_um",
             "true_velocity_nm_per_s": "true_velocity_um_s", "true_mu_ppm": "true_mu", "spool_per_32767": "spool"}
+#: a fixed identity: these tests write the same trial twice and compare the files (the writer gives
+#: every other log a new uuid4 trial_uid, issue 21)
+TRIAL_UID = "00000000-0000-4000-8000-000000000001"
 #: one quantization step of each stored column (the devices' counts), in the CSV's unit
 STEP = {"position_um": 0.076, "position_ref_um": 1e-3, "friction_N": 1e-3, "normal_1_N": 1e-3, "normal_2_N": 1e-3,
         "valve_cmd": 1 / 32767, "pid_p": 1e-3, "pid_i": 1e-4, "pid_d": 1e-6, "dither": 1e-6,
@@ -55,7 +58,8 @@ def blocks(n_blocks=4, n=500, seed=3):
 
 
 def write(path, raw_format="protobuf"):
-    w = TrialLogWriter(path, metadata={"lubricant": "boundary", "normal_force_N": 100.0, "recipe": "unit"},
+    w = TrialLogWriter(path, metadata={"lubricant": "boundary", "normal_force_N": 100.0, "recipe": "unit",
+                                 "trial_uid": TRIAL_UID},  # one trial written twice: same identity
                        start_time_ns=T0_NS, raw_format=raw_format, threaded=False, fsync=False)
     for b in blocks():
         w.write_block(b)
@@ -173,7 +177,7 @@ def test_small_real_time_chunks_are_compacted_at_close(tmp_path):
 
     def run(name, compact):
         w = TrialLogWriter(tmp_path / name, start_time_ns=T0_NS, threaded=False, fsync=False, compact=compact,
-                           metadata={"lubricant": "boundary"})
+                           metadata={"lubricant": "boundary", "trial_uid": TRIAL_UID})
         for b in blocks(130, 50):
             w.write_block(b)
             w.flush()  # as the hardware's 0.5-1 s flushes

@@ -49,3 +49,20 @@ def test_a_pause_that_would_leave_the_stroke_is_refused():
     r.request_pause()
     y, _ = r.take(5000)
     assert np.array_equal(y, x) and [e[1] for e in r.events] == ["pause_refused"]
+
+
+def test_a_pause_after_a_ramp_to_rest_has_no_run_up():
+    # 1 s at 10 µm/s, a ramp down to rest over 0.5 s, then a hold: the hold's start (tick 1500) is the safe
+    # point; the segment before ended at rest, so the resume goes straight on (its last tick's speed, a few
+    # nm/s, is no velocity to run up 5 L at)
+    v = np.r_[np.full(1000, 10.0), np.linspace(10.0, 0.0, 500, endpoint=False), np.zeros(1000)] * 1e-3
+    x = 500.0 + np.cumsum(v) - v[0]
+    r = PausableReference(x, 1e-3, [1500], runup_um=50.0)
+    r.request_pause()
+    y, _ = r.take(1500 + 500)
+    assert r.paused
+    r.toggle()
+    y2, _ = r.take(5000)
+    assert r.done and [e[1] for e in r.events] == ["pause", "resume", "runup_done"]
+    assert r.events[0][2]["runup_um"] == 0.0 and y2.size == 1000  # the plan's 1000 ticks left, no more
+    assert np.allclose(np.r_[y, y2][-1], x[-1])

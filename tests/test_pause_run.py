@@ -7,6 +7,7 @@ from __future__ import annotations
 import signal
 import subprocess
 import sys
+import threading
 import time
 
 import pytest
@@ -26,7 +27,7 @@ def _rig(*args, env=None):
 def test_a_paced_simulated_run_pauses_on_sigusr1_and_resumes_on_rig_resume(tmp_path, monkeypatch):
     import os
 
-    env = {**os.environ, "XDG_RUNTIME_DIR": str(tmp_path / "run")}
+    env = {**os.environ, "XDG_RUNTIME_DIR": str(tmp_path / "run"), "PYTHONUNBUFFERED": "1"}
     (tmp_path / "run").mkdir(mode=0o700)
     monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path / "run"))
     recipe = tmp_path / "pause.yaml"
@@ -43,13 +44,24 @@ def test_a_paced_simulated_run_pauses_on_sigusr1_and_resumes_on_rig_resume(tmp_p
     assert sock.stat().st_mode & 0o777 == 0o600
     time.sleep(0.3)  # in the settling hold: the pause takes effect at the next safe point (the stub's start)
     p.send_signal(signal.SIGUSR1)  # toggles: pause
-    time.sleep(1.0)
+    # wait for the pause to take effect (its echo), then hold 1.2 s: the hold does not depend on how long
+    # the run took from binding its socket to tick 0 (a loaded machine)
+    lines: list[str] = []
+    reader = threading.Thread(target=lambda: lines.extend(p.stdout), daemon=True)
+    reader.start()
+    t_end = time.monotonic() + 30
+    while not any(line.startswith("paused at") for line in lines):
+        assert p.poll() is None and time.monotonic() < t_end, "".join(lines) or "no pause"
+        time.sleep(0.05)
+    time.sleep(1.2)
     from rig.session.pausing import send
 
     assert send("status") == "ok paused"  # the socket sees the same state
     r = _rig("resume", "--pid", p.pid, env=env)  # the CLI, through the socket
     assert r.returncode == 0 and "running" in r.stdout, r.stdout + r.stderr
-    text = p.communicate(timeout=60)[0]
+    assert p.wait(timeout=60) is not None
+    reader.join(timeout=10)
+    text = "".join(lines)
     assert p.returncode == 0, text
     assert not sock.exists()
     tr = read_trial(out, channel="raw")

@@ -127,7 +127,7 @@ def test_stability_map_figure(repo_root):
     fig = plots.build_stability_map(scans, title="kp scan", spread_max=SPREAD_MAX, onset_spread=ONSET_SPREAD)
     text = check_figure(fig, n_data_axes_min=len(scans))
     assert "fig1" not in text and "SimRig" not in text and "rig_loop" not in text
-    assert "simulated/analysis" in text
+    assert "sim/analysis−1 ∈ [" in text  # the simulated boundary as its bracket, never a point
 
 
 def test_reproduce_figure_with_warning():

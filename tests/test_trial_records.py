@@ -60,7 +60,8 @@ def test_two_runs_without_out_give_two_files_and_out_existing_is_refused(lab):
     digest = _sha(first[0])
     code, text = _run("--sim")
     assert code == 0, text
-    files = sorted((lab / "out" / "tiny").glob("*.mcap"))
+    # the first trial first (by name they sort by start second, then by uid when both started in one second)
+    files = sorted((lab / "out" / "tiny").glob("*.mcap"), key=lambda f: f != first[0])
     assert len(files) == 2 and _sha(first[0]) == digest  # the first trial is untouched
     uids = {read_log(f, topics=set()).metadata_dict()["trial"]["trial_uid"] for f in files}
     assert len(uids) == 2 and all(f.name.split("-")[-1] == f"{u[:8]}.mcap" for f, u in

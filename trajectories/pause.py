@@ -117,6 +117,9 @@ class PausableReference:
         k = self.k_plan
         self.hold_um = self._plan_value(k - 1) if k > 0 else self._plan_value(0)
         v = (self.x[k - 1] - self.x[k - 2]) if k >= 2 else 0.0  # µm per tick of the segment before
+        if k >= 3 and abs(v - (self.x[k - 2] - self.x[k - 3])) > 1e-9:
+            v = 0.0  # it ended on a ramp to rest (a run-in's return): no slide to run up to (its last tick's
+            #          speed, a fraction of a µm/s, would take hours over 5 L)
         dist = self.runup_um if abs(v) > 1e-12 else 0.0
         lo, hi = self.stroke
         rest = self.x[k:] + self.shift_um + np.sign(v) * dist  # the plan after the run-up

@@ -399,7 +399,7 @@ def build_stability_map(scans: list[dict], title: str = "", *, spread_max: float
         lines = [f"{s['lubricant']}, {_controller(s)}"]
         if s.get("rel_bracket") is not None:
             r0, r1 = s["rel_bracket"]
-            lines.append(f"simulated boundary in [{r0 * 100:+.1f}, {r1 * 100:+.1f}]% of the analysis")
+            lines.append(f"sim/analysis−1 ∈ [{r0 * 100:+.1f}, {r1 * 100:+.1f}]%")  # the bracket (fits the panel)
         if not s.get("k_cr_loop_N_per_um") and not b_hi and not bad.any():
             lines.append("steady at every kp scanned")
         if s.get("onset_rel_diff") is not None:

@@ -188,6 +188,8 @@ def reset_command(
 def _pause_cmd(command: str, pid: int | None) -> None:
     from rig.session.pausing import send
 
+    if pid is not None and pid <= 0:
+        _fail(f"--pid {pid}: a process id is a positive number")
     try:
         answer = send(command, pid)
     except (OSError, ValueError) as exc:

@@ -71,6 +71,8 @@ def send(command: str, pid: int | None = None, timeout_s: float = 2.0) -> str:
     its answer. OSError / ValueError with a sentence when there is none (or more than one)."""
     if pid is not None:
         path = socket_path(pid)
+        if not path.exists():
+            raise ValueError(f"no `rig run` of pid {pid} is running for this user (no socket {path})")
     else:
         socks = [p for p in running_sockets() if _alive(p)]
         if not socks:
