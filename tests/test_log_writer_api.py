@@ -51,9 +51,12 @@ def test_close_never_hangs_on_a_write_that_hangs(tmp_path):
     w = TrialLogWriter(tmp_path / "hang.mcap")
     release = threading.Event()
     sink = w._sink._sink  # the injection point: the threaded sink's file side
-    sink._sync = lambda: release.wait(60)
     try:
+        # the first block registers its channels (write_block waits for the writer thread once for
+        # that); the disk dies after it, so the hang is the flush's, as the docstring says (injected
+        # before, the test waited the whole 60 s inside write_block)
         w.write_block(_block(0.0))
+        sink._sync = lambda: release.wait(60)
         w.flush()
         t0 = time.monotonic()
         with pytest.raises(TimeoutError, match="did not"):
