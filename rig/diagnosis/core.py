@@ -517,7 +517,8 @@ def try_candidate(grid: Grid, cur: FitResult, cause: str, info: dict, prior: dic
     elif not (z >= MIN_Z or zw >= MIN_ZW or gain >= STRONG_GAIN_PCT):
         note = f"not significant on the hold-out blocks (z = {z:.1f})"
     elif not _plausible(cause, res.params, grid):
-        note = "its fit is not physical (a bound, a parameter outside its plausible range, or an effect below the noise)"
+        note = ("its fit is not physical (a bound, a parameter outside its plausible range, or an effect below "
+                "the noise)")
     ok = not note
     if ok and cur.extensions:
         moved = _confounded(cur, res)
@@ -648,8 +649,8 @@ def known_params(trial: TrialData) -> dict:
 RESPLITS = ({"n_blocks": 16, "align": False}, {"n_blocks": 24, "swap_aligned": True}, {"crop": (0.03, 0.0)},
             {"crop": (0.0, 0.03)})
 MIN_STABILITY = 0.5  # named on more than this fraction of all splits (main + RESPLITS)
-RESPLIT_PARALLEL_MIN_S = 3.0
-PROFILE_MAX_BINS_SPRING = 2000  # profile likelihood of a model with a spring only on grids this small  # a main search shorter than this runs its re-splits in-process
+RESPLIT_PARALLEL_MIN_S = 3.0  # a main search shorter than this runs its re-splits in-process
+PROFILE_MAX_BINS_SPRING = 2000  # profile likelihood of a model with a spring only on grids this small
 
 
 @dataclass
