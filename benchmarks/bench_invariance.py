@@ -3,11 +3,12 @@ project has x every harmless transformation -> causes and parameters, with a ver
 
     python benchmarks/bench_invariance.py            # everything: real, converted, synthetic, clean
     python benchmarks/bench_invariance.py real       # the shared real records and tests/data's converted ones
-    python benchmarks/bench_invariance.py synth      # a synthetic record of every cause, two clean ones, the load-point step
+    python benchmarks/bench_invariance.py synth      # every cause, two clean, the load-point step
 
 Verdict per row: "same" when the causes are those of the original and every parameter is within
 twice the joint standard error of the two estimates (original and transformed) or 25 % (a
-stiffness and a force drift scaled with the forces under "scale"); otherwise what differs. Printed with the load average (2 cores shared).
+stiffness and a force drift scaled with the forces under "scale"); otherwise what differs.
+Printed with the load average (2 cores shared).
 """
 
 from __future__ import annotations
