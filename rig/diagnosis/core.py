@@ -26,6 +26,16 @@ Method (docs/diagnosis.md):
    the measured normal force with the expected unit slope.
 5. Repeat until no candidate passes; then the residual is searched for
    structure no extension explains (``unexplained``).
+
+Issue 20 (docs/diagnosis.md, "The answer depends on the physics only"): the
+record is seen from time 0 and position 0, samples are weighted by time; on a
+load-point record the machine's coupling (``finite_stiffness``) is fitted from
+the start or held at the file's ``machine_stiffness_kN_per_m``; the search is
+repeated on re-splits of the record and a cause is named only when most splits
+name it (``stability``, ``alternatives``); the reported parameters carry
+``params_sd``, ``intervals`` (profile likelihood of L) and the A-B-L
+``correlation``. What is particular to each cause is its object in
+:mod:`rig.diagnosis.causes`.
 """
 
 from __future__ import annotations
