@@ -487,13 +487,20 @@ def fit_baseline(grid: Grid, baseline: str, prior: dict | None = None) -> FitRes
     return multistart(grid, "rate_state", [], starts, keep=3, must=must)
 
 
-def try_candidate(grid: Grid, cur: FitResult, cause: str, info: dict, prior: dict | None = None) -> Candidate:
+def try_candidate(grid: Grid, cur: FitResult, cause: str, info: dict, prior: dict | None = None,
+                  warm: dict | None = None) -> Candidate:
+    """Fit ``cause`` jointly with the current model and judge it on the hold-out blocks. ``warm``:
+    the same candidate's fit on another split of the record (a re-split), its one starting point
+    besides the current model's with the cause's first start."""
     exts = list(cur.extensions) + [cause]
     starts = _candidate_starts(cause, cur, grid, info)
     # e.g. two states: many local minima (but the stiffness solver is costly)
     keep = CAUSES[cause].keep if "finite_stiffness" not in exts else 2
     must = []
-    if prior and cause in ("finite_stiffness", "second_state_variable") and cur.baseline == "rate_state":
+    if warm is not None:
+        starts, keep = starts[:1], 1
+        must = [dict(warm)]
+    elif prior and cause in ("finite_stiffness", "second_state_variable") and cur.baseline == "rate_state":
         # also from identify's whole-record fit (the current model may sit in a minimum that only
         # the rigid model has)
         q = dict(cur.params, A_mu=prior["A_mu"], B_mu=prior["B_mu"], L_um=prior["L_um"])
@@ -674,7 +681,7 @@ class _Search:
 
 def _search(trial: TrialData, baseline: str, prior: dict, steps: list, known: dict, load_point: bool,
             n_blocks: int = 20, swap_aligned: bool = False, progress=None, max_rounds: int = MAX_FINDINGS,
-            align: bool = True) -> _Search:
+            align: bool = True, warm: list[dict] | None = None) -> _Search:
     """One split of the record: the baseline, the machine's coupling (load point), then the loop of
     candidates until none passes."""
     grid = prepare(trial, n_blocks=n_blocks, restart_guard_um=3.0 * prior["L_um"] if prior else 0.0,
@@ -694,7 +701,8 @@ def _search(trial: TrialData, baseline: str, prior: dict, steps: list, known: di
         # start (or held at the stated value), never left for a stand-in cause (aging, a lag, a drift)
         if progress:
             progress("the machine's coupling")
-        c = try_candidate(grid, cur, "finite_stiffness", {}, prior)
+        c = try_candidate(grid, cur, "finite_stiffness", {}, prior,
+                          warm=(warm[0].get("finite_stiffness") if warm else None))
         why = ("the file states the machine stiffness (machine_stiffness_kN_per_m), held fixed" if known else
                "position_source: load_point: the machine's compliance lies between the measured position and the "
                "interface, so the coupling is fitted from the start, whatever its hold-out gain")
@@ -705,10 +713,11 @@ def _search(trial: TrialData, baseline: str, prior: dict, steps: list, known: di
     for _ in range(max_rounds):
         cands, info = screen(grid, cur)
         results = []
+        w = warm[len(tried)] if warm and len(tried) < len(warm) else {}
         for cn in cands:
             if progress:
                 progress(f"trying {cn}")
-            results.append(try_candidate(grid, cur, cn, info, prior))
+            results.append(try_candidate(grid, cur, cn, info, prior, warm=w.get(cn)))
         tried.append(results)
         acc = [c for c in results if c.accepted]
         if not acc:
@@ -729,15 +738,15 @@ def _search(trial: TrialData, baseline: str, prior: dict, steps: list, known: di
 
 def _resplit_causes(args) -> list[str]:
     """The causes one re-split names, in order (a worker of :func:`diagnose`)."""
-    trial, baseline, prior, steps, known, load_point, spec, rounds = args
+    trial, baseline, prior, steps, known, load_point, spec, rounds, warm = args
     import warnings
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # a forked worker writes nothing (a stream's lock may be held at the fork)
-        return _resplit_search(trial, baseline, prior, steps, known, load_point, spec, rounds)
+        return _resplit_search(trial, baseline, prior, steps, known, load_point, spec, rounds, warm)
 
 
-def _resplit_search(trial, baseline, prior, steps, known, load_point, spec, rounds) -> list[str]:
+def _resplit_search(trial, baseline, prior, steps, known, load_point, spec, rounds, warm) -> list[str]:
     a, b = spec.get("crop", (0.0, 0.0))
     if a or b:
         t = np.asarray(trial.time_s, dtype=float)
@@ -746,7 +755,8 @@ def _resplit_search(trial, baseline, prior, steps, known, load_point, spec, roun
         trial = trial.select((t >= t[0] + a * T) & (t <= t[-1] - b * T))
     try:
         s = _search(trial, baseline, prior, steps, known, load_point, n_blocks=spec.get("n_blocks", 20),
-                    swap_aligned=spec.get("swap_aligned", False), max_rounds=rounds, align=spec.get("align", True))
+                    swap_aligned=spec.get("swap_aligned", False), max_rounds=rounds, align=spec.get("align", True),
+                    warm=warm)
     except (ValueError, ZeroDivisionError, FloatingPointError, IndexError):
         return ["(failed)"]
     return [c.cause for c, _, _ in s.chosen]
@@ -817,7 +827,9 @@ def diagnose(trial: TrialData, baseline: str = "rate_state", progress=None, n_bl
     coupling = 1 if (load_point and main.chosen and main.chosen[0][0].cause == "finite_stiffness") else 0
     if resplits and len(main.chosen) > coupling:
         # as many rounds as the main split took (what a re-split names after that is not asked)
-        jobs = [(trial, baseline, prior, steps, known, load_point, spec, len(main.chosen) - coupling)
+        # warm-started from the main split's fit of every candidate of the same round
+        warm = [{c.cause: dict(c.result.params) for c in round_} for round_ in main.tried]
+        jobs = [(trial, baseline, prior, steps, known, load_point, spec, len(main.chosen) - coupling, warm)
                 for spec in RESPLITS]
         split_causes = _run_resplits(jobs, t_loop > RESPLIT_PARALLEL_MIN_S, progress)
     n_splits = 1 + len(split_causes)
