@@ -498,8 +498,11 @@ def try_candidate(grid: Grid, cur: FitResult, cause: str, info: dict, prior: dic
     keep = CAUSES[cause].keep if "finite_stiffness" not in exts else 2
     must = []
     if warm is not None:
+        # the warm fit's values for this model's parameters, the current model's for the rest (the
+        # re-split may have named another cause in an earlier round than the main split did)
+        names = set(model_params(cur.baseline, exts)) | {"v_init_um_s"}
         starts, keep = starts[:1], 1
-        must = [dict(warm)]
+        must = [{**cur.params, **{k: v for k, v in warm.items() if k in names and k in starts[0]}}]
     elif prior and cause in ("finite_stiffness", "second_state_variable") and cur.baseline == "rate_state":
         # also from identify's whole-record fit (the current model may sit in a minimum that only
         # the rigid model has)
@@ -757,8 +760,8 @@ def _resplit_search(trial, baseline, prior, steps, known, load_point, spec, roun
         s = _search(trial, baseline, prior, steps, known, load_point, n_blocks=spec.get("n_blocks", 20),
                     swap_aligned=spec.get("swap_aligned", False), max_rounds=rounds, align=spec.get("align", True),
                     warm=warm)
-    except (ValueError, ZeroDivisionError, FloatingPointError, IndexError):
-        return ["(failed)"]
+    except (ValueError, ZeroDivisionError, FloatingPointError, IndexError, KeyError):
+        return ["(failed)"]  # counted as a split that does not name the cause
     return [c.cause for c, _, _ in s.chosen]
 
 
