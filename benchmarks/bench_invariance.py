@@ -1,13 +1,14 @@
 """The answer depends on the physics only (diagnosis.md; issue 20, Deliver 1): every record the
 project has x every harmless transformation -> causes and parameters, with a verdict.
 
-    python benchmarks/bench_invariance.py            # everything (real, converted, synthetic of every cause, clean)
+    python benchmarks/bench_invariance.py            # everything: real, converted, synthetic, clean
     python benchmarks/bench_invariance.py real       # the shared real records and tests/data's converted ones
-    python benchmarks/bench_invariance.py synth      # a synthetic record of every cause, two clean ones, the load-point step
+    python benchmarks/bench_invariance.py synth      # every cause, two clean, the load-point step
 
 Verdict per row: "same" when the causes are those of the original and every parameter is within
-twice the original's standard error or 25 % (a stiffness and a force drift scaled with the forces
-under "scale"); otherwise what differs. Printed with the load average (2 cores shared).
+twice the joint standard error of the two estimates (original and transformed) or 25 % (a
+stiffness and a force drift scaled with the forces under "scale"); otherwise what differs.
+Printed with the load average (2 cores shared).
 """
 
 from __future__ import annotations
@@ -65,7 +66,7 @@ def _row(rep):
 
 def verdict(ref, got, name) -> str:
     rc, _, rp, rsd = ref
-    gc, _, gp, _ = got
+    gc, _, gp, gsd = got
     if gc != rc:
         return "causes differ"
     off = []
@@ -73,7 +74,8 @@ def verdict(ref, got, name) -> str:
         if v is None or gp.get(k) is None:
             continue
         want = expected(k, v, name)
-        tol = max(2.0 * abs(expected(k, rsd.get(k) or 0.0, name)), 0.25 * abs(want))
+        joint = float(np.hypot(expected(k, rsd.get(k) or 0.0, name), gsd.get(k) or 0.0))
+        tol = max(2.0 * joint, 0.25 * abs(want))
         if abs(gp[k] - want) > tol:
             off.append(f"{k} {gp[k]:.3g} vs {want:.3g}")
     return "same" if not off else "params differ: " + ", ".join(off)

@@ -75,10 +75,12 @@ def test_same_causes_and_parameters_under_every_transformation(load_point_report
     reps, truth = load_point_reports
     ref, rep = reps["orig"], reps[name]
     assert _causes(rep) == _causes(ref), (name, rep["findings"], ref["findings"])
-    sd = ref["model"].get("params_sd", {})
+    sd, sd2 = ref["model"].get("params_sd", {}), rep["model"].get("params_sd", {})
     for k, v in _params(ref).items():
         want = expected(k, v, name)
-        tol = max(2.0 * abs(expected(k, sd.get(k) or 0.0, name)), 0.25 * abs(want))
+        # within twice the two estimates' joint reported uncertainty, or 25 %
+        joint = float(np.hypot(expected(k, sd.get(k) or 0.0, name), sd2.get(k) or 0.0))
+        tol = max(2.0 * joint, 0.25 * abs(want))
         assert abs(_params(rep)[k] - want) <= tol, (name, k, _params(rep)[k], want, tol)
 
 

@@ -115,10 +115,11 @@ def test_sepiolite_no_second_state_from_any_crop(real_data_dir):
     from pathlib import Path
 
     data = Path(__file__).parent / "data"
-    cases = ((real_data_dir / "giacomel-sepiolite-tr2.csv", ((0.0, np.inf), (300.0, np.inf), (0.0, 2100.0),
-                                                             (800.0, np.inf))),
-             (data / "giacomel-sepiolite-velstep1.csv", ((0.0, np.inf), (1000.0, np.inf))),
-             (data / "giacomel-sepiolite-velstep2.csv", ((0.0, np.inf), (0.0, 3000.0))))
+    # fewer crops than before issue 20: these load-point records now carry the machine's spring in
+    # every fit (several times the cost); the full sweep is benchmarks/bench_invariance.py
+    cases = ((real_data_dir / "giacomel-sepiolite-tr2.csv", ((0.0, np.inf), (800.0, np.inf))),
+             (data / "giacomel-sepiolite-velstep1.csv", ((1000.0, np.inf),)),
+             (data / "giacomel-sepiolite-velstep2.csv", ((0.0, 3000.0),)))
     for path, crops in cases:
         tr = load_trial(path)
         for t0, t1 in crops:

@@ -26,6 +26,16 @@ Method (docs/diagnosis.md):
    the measured normal force with the expected unit slope.
 5. Repeat until no candidate passes; then the residual is searched for
    structure no extension explains (``unexplained``).
+
+Issue 20 (docs/diagnosis.md, "The answer depends on the physics only"): the
+record is seen from time 0 and position 0, samples are weighted by time; on a
+load-point record the machine's coupling (``finite_stiffness``) is fitted from
+the start or held at the file's ``machine_stiffness_kN_per_m``; the search is
+repeated on re-splits of the record and a cause is named only when most splits
+name it (``stability``, ``alternatives``); the reported parameters carry
+``params_sd``, ``intervals`` (profile likelihood of L) and the A-B-L
+``correlation``. What is particular to each cause is its object in
+:mod:`rig.diagnosis.causes`.
 """
 
 from __future__ import annotations
@@ -477,13 +487,23 @@ def fit_baseline(grid: Grid, baseline: str, prior: dict | None = None) -> FitRes
     return multistart(grid, "rate_state", [], starts, keep=3, must=must)
 
 
-def try_candidate(grid: Grid, cur: FitResult, cause: str, info: dict, prior: dict | None = None) -> Candidate:
+def try_candidate(grid: Grid, cur: FitResult, cause: str, info: dict, prior: dict | None = None,
+                  warm: dict | None = None) -> Candidate:
+    """Fit ``cause`` jointly with the current model and judge it on the hold-out blocks. ``warm``:
+    the same candidate's fit on another split of the record (a re-split), its one starting point
+    besides the current model's with the cause's first start."""
     exts = list(cur.extensions) + [cause]
     starts = _candidate_starts(cause, cur, grid, info)
     # e.g. two states: many local minima (but the stiffness solver is costly)
     keep = CAUSES[cause].keep if "finite_stiffness" not in exts else 2
     must = []
-    if prior and cause in ("finite_stiffness", "second_state_variable") and cur.baseline == "rate_state":
+    if warm is not None:
+        # the warm fit's values for this model's parameters, the current model's for the rest (the
+        # re-split may have named another cause in an earlier round than the main split did)
+        names = set(model_params(cur.baseline, exts)) | {"v_init_um_s"}
+        starts, keep = starts[:1], 1
+        must = [{**cur.params, **{k: v for k, v in warm.items() if k in names and k in starts[0]}}]
+    elif prior and cause in ("finite_stiffness", "second_state_variable") and cur.baseline == "rate_state":
         # also from identify's whole-record fit (the current model may sit in a minimum that only
         # the rigid model has)
         q = dict(cur.params, A_mu=prior["A_mu"], B_mu=prior["B_mu"], L_um=prior["L_um"])
@@ -517,7 +537,8 @@ def try_candidate(grid: Grid, cur: FitResult, cause: str, info: dict, prior: dic
     elif not (z >= MIN_Z or zw >= MIN_ZW or gain >= STRONG_GAIN_PCT):
         note = f"not significant on the hold-out blocks (z = {z:.1f})"
     elif not _plausible(cause, res.params, grid):
-        note = "its fit is not physical (a bound, a parameter outside its plausible range, or an effect below the noise)"
+        note = ("its fit is not physical (a bound, a parameter outside its plausible range, or an effect below "
+                "the noise)")
     ok = not note
     if ok and cur.extensions:
         moved = _confounded(cur, res)
@@ -648,8 +669,8 @@ def known_params(trial: TrialData) -> dict:
 RESPLITS = ({"n_blocks": 16, "align": False}, {"n_blocks": 24, "swap_aligned": True}, {"crop": (0.03, 0.0)},
             {"crop": (0.0, 0.03)})
 MIN_STABILITY = 0.5  # named on more than this fraction of all splits (main + RESPLITS)
-RESPLIT_PARALLEL_MIN_S = 3.0
-PROFILE_MAX_BINS_SPRING = 2000  # profile likelihood of a model with a spring only on grids this small  # a main search shorter than this runs its re-splits in-process
+RESPLIT_PARALLEL_MIN_S = 3.0  # a main search shorter than this runs its re-splits in-process
+PROFILE_MAX_BINS_SPRING = 2000  # profile likelihood of a model with a spring only on grids this small
 
 
 @dataclass
@@ -663,7 +684,7 @@ class _Search:
 
 def _search(trial: TrialData, baseline: str, prior: dict, steps: list, known: dict, load_point: bool,
             n_blocks: int = 20, swap_aligned: bool = False, progress=None, max_rounds: int = MAX_FINDINGS,
-            align: bool = True) -> _Search:
+            align: bool = True, warm: list[dict] | None = None) -> _Search:
     """One split of the record: the baseline, the machine's coupling (load point), then the loop of
     candidates until none passes."""
     grid = prepare(trial, n_blocks=n_blocks, restart_guard_um=3.0 * prior["L_um"] if prior else 0.0,
@@ -683,7 +704,8 @@ def _search(trial: TrialData, baseline: str, prior: dict, steps: list, known: di
         # start (or held at the stated value), never left for a stand-in cause (aging, a lag, a drift)
         if progress:
             progress("the machine's coupling")
-        c = try_candidate(grid, cur, "finite_stiffness", {}, prior)
+        c = try_candidate(grid, cur, "finite_stiffness", {}, prior,
+                          warm=(warm[0].get("finite_stiffness") if warm else None))
         why = ("the file states the machine stiffness (machine_stiffness_kN_per_m), held fixed" if known else
                "position_source: load_point: the machine's compliance lies between the measured position and the "
                "interface, so the coupling is fitted from the start, whatever its hold-out gain")
@@ -694,10 +716,11 @@ def _search(trial: TrialData, baseline: str, prior: dict, steps: list, known: di
     for _ in range(max_rounds):
         cands, info = screen(grid, cur)
         results = []
+        w = warm[len(tried)] if warm and len(tried) < len(warm) else {}
         for cn in cands:
             if progress:
                 progress(f"trying {cn}")
-            results.append(try_candidate(grid, cur, cn, info, prior))
+            results.append(try_candidate(grid, cur, cn, info, prior, warm=w.get(cn)))
         tried.append(results)
         acc = [c for c in results if c.accepted]
         if not acc:
@@ -718,15 +741,15 @@ def _search(trial: TrialData, baseline: str, prior: dict, steps: list, known: di
 
 def _resplit_causes(args) -> list[str]:
     """The causes one re-split names, in order (a worker of :func:`diagnose`)."""
-    trial, baseline, prior, steps, known, load_point, spec, rounds = args
+    trial, baseline, prior, steps, known, load_point, spec, rounds, warm = args
     import warnings
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # a forked worker writes nothing (a stream's lock may be held at the fork)
-        return _resplit_search(trial, baseline, prior, steps, known, load_point, spec, rounds)
+        return _resplit_search(trial, baseline, prior, steps, known, load_point, spec, rounds, warm)
 
 
-def _resplit_search(trial, baseline, prior, steps, known, load_point, spec, rounds) -> list[str]:
+def _resplit_search(trial, baseline, prior, steps, known, load_point, spec, rounds, warm) -> list[str]:
     a, b = spec.get("crop", (0.0, 0.0))
     if a or b:
         t = np.asarray(trial.time_s, dtype=float)
@@ -735,9 +758,10 @@ def _resplit_search(trial, baseline, prior, steps, known, load_point, spec, roun
         trial = trial.select((t >= t[0] + a * T) & (t <= t[-1] - b * T))
     try:
         s = _search(trial, baseline, prior, steps, known, load_point, n_blocks=spec.get("n_blocks", 20),
-                    swap_aligned=spec.get("swap_aligned", False), max_rounds=rounds, align=spec.get("align", True))
-    except (ValueError, ZeroDivisionError, FloatingPointError, IndexError):
-        return ["(failed)"]
+                    swap_aligned=spec.get("swap_aligned", False), max_rounds=rounds, align=spec.get("align", True),
+                    warm=warm)
+    except (ValueError, ZeroDivisionError, FloatingPointError, IndexError, KeyError):
+        return ["(failed)"]  # counted as a split that does not name the cause
     return [c.cause for c, _, _ in s.chosen]
 
 
@@ -806,7 +830,9 @@ def diagnose(trial: TrialData, baseline: str = "rate_state", progress=None, n_bl
     coupling = 1 if (load_point and main.chosen and main.chosen[0][0].cause == "finite_stiffness") else 0
     if resplits and len(main.chosen) > coupling:
         # as many rounds as the main split took (what a re-split names after that is not asked)
-        jobs = [(trial, baseline, prior, steps, known, load_point, spec, len(main.chosen) - coupling)
+        # warm-started from the main split's fit of every candidate of the same round
+        warm = [{c.cause: dict(c.result.params) for c in round_} for round_ in main.tried]
+        jobs = [(trial, baseline, prior, steps, known, load_point, spec, len(main.chosen) - coupling, warm)
                 for spec in RESPLITS]
         split_causes = _run_resplits(jobs, t_loop > RESPLIT_PARALLEL_MIN_S, progress)
     n_splits = 1 + len(split_causes)

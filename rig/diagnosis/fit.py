@@ -309,9 +309,9 @@ def at_bound(params: dict, grid: Grid | None = None) -> bool:
     return False
 
 
-PROFILE_POINTS = 9      # ln L grid of the profile likelihood (Deliver 2 of issue 20)
+PROFILE_POINTS = 7      # ln L grid of the profile likelihood (Deliver 2 of issue 20)
 PROFILE_SPAN = 8.0      # from L / span to L * span (within the parameter's bounds)
-PROFILE_NFEV = 40       # evaluations per profile point (continued from its neighbour)
+PROFILE_NFEV = 12       # evaluations per profile point (continued from its neighbour: a few suffice)
 
 
 def profile(grid: Grid, res: FitResult, name: str = "L_um", mask: np.ndarray | None = None):
