@@ -221,7 +221,8 @@ def build_identification(idn, max_steps: int = 9):
         spec = {k: v for k, v in wr["params"].items() if k not in ("a", "b", "Dc_um", "a_minus_b", "k_per_um")}
         head += "\nwhole-record fit: " + _title_params({**spec, "k_cr_kN_per_m": wr.get("k_cr_kN_per_m")},
                                                         wr.get("err_corr"), flagged(warns, "whole-record fit"))
-        head += "\n" + _uncertainty_line(wr)
+        unc = _uncertainty_line(wr)
+        head += "\n" + unc if unc else ""
         if isinstance(rep.get("laws"), dict):
             c = rep["laws"]["comparison"]
             head += f"\npreferred law: {c['preferred_law']} (ΔBIC {g3(c.get('delta_bic'), 3)}; 6 or more decides)"
@@ -272,17 +273,24 @@ def build_identification(idn, max_steps: int = 9):
 
 
 def _uncertainty_line(w: dict) -> str:
-    """The whole-record fit's 68 % interval of L and the correlations of A, B, L (the figure's title)."""
-    iv = w.get("intervals", {}).get("L_um")
+    """The whole-record fit's 68 % interval of each parameter (asymmetric where the likelihood is, as
+    for L) and the correlations of A, B, L: two lines under the figure's title."""
+    iv = w.get("intervals", {})
     c = w.get("correlation", {})
     nm = c.get("names", [])
-    parts = []
-    if iv and None not in iv:
-        parts.append(f"L 68 % interval [{g3(iv[0], 3)}, {g3(iv[1], 3)}] µm ({w.get('uncertainty', {}).get('method', '')})")
-    for a, b in (("A_mu", "B_mu"), ("A_mu", "L_um"), ("B_mu", "L_um")):
-        if a in nm and b in nm:
-            parts.append(f"corr({a[0]},{b[0]}) {c['matrix'][nm.index(a)][nm.index(b)]:+.2f}")
-    return ", ".join(parts)
+    units = {"L_um": " µm", "stiffness_kN_per_m": " kN/m"}
+    short = {"A_mu": "A", "B_mu": "B", "L_um": "L", "stiffness_kN_per_m": "k", "rate_mu_per_mm": "trend"}
+    parts = [f"{short[k]} [{g3(iv[k][0], 3)}, {g3(iv[k][1], 3)}]{units.get(k, '')}"
+             for k in short if iv.get(k) and None not in iv[k]]
+    corr = [f"corr({a[0]},{b[0]}) {c['matrix'][nm.index(a)][nm.index(b)]:+.2f}"
+            for a, b in (("A_mu", "B_mu"), ("A_mu", "L_um"), ("B_mu", "L_um")) if a in nm and b in nm]
+    lines = []
+    if parts:  # A, B, L on the first line; the stiffness, the trend and the correlations on the next
+        lines.append(f"68 % intervals ({w.get('uncertainty', {}).get('method', 'jacobian')}): " + ", ".join(parts[:3]))
+    rest = parts[3:] + corr
+    if rest:
+        lines.append(", ".join(rest))
+    return "\n".join(lines)
 
 
 def plot_identification(idn, path: str | Path, max_steps: int = 9) -> None:
