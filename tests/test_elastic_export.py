@@ -32,6 +32,10 @@ def load_point_log(tmp_path_factory):
     write_trial_data(rec.trial, d / "lp-known.mcap")
     rec.trial.metadata["machine_stiffness_kN_per_m"] = "stiff"
     write_trial_data(rec.trial, d / "lp-bad.mcap")
+    # the same step with no spring: the position is the interface's, no stiffness to find
+    rigid = generate(FrictionModel(params={"mu0": 0.1, "A_mu": 0.0011, "B_mu": 0.004, "L_um": 19.2}),
+                     paper_step_protocol(highs=(10.0,), pre_um=150.0), seed=3)
+    write_trial_data(rigid.trial, d / "rigid.mcap")
     return d
 
 
@@ -77,4 +81,13 @@ def test_a_bad_metadata_stiffness_is_named(load_point_log):
     out = load_point_log / "badmeta.csv"
     res, text = _export(load_point_log / "lp-bad.mcap", out, "fit")
     assert res.exit_code == 2 and "machine_stiffness_kN_per_m metadata 'stiff'" in text and "kN/m" in text
+    assert not out.exists()
+
+
+def test_fit_on_a_record_without_compliance_is_refused_not_a_number_on_a_bound(load_point_log):
+    """A position measured at the interface: the fit's stiffness runs off to a bound or to a value
+    its s.e. dwarfs; that is no stiffness, so 'fit' is one error saying so, and no file."""
+    out = load_point_log / "rigid.csv"
+    res, text = _export(load_point_log / "rigid.mcap", out, "fit")
+    assert res.exit_code == 2 and "does not determine" in text and "give the stiffness" in text and "Traceback" not in text, text
     assert not out.exists()

@@ -22,6 +22,7 @@ import numpy as np
 from rig.data import TrialData, positive_number
 
 KN_PER_M_TO_N_PER_UM = 1e-3
+UNDETERMINED_REL_SD = 0.5  # a fitted stiffness whose s.e. exceeds half its value is not a stiffness to correct with
 
 
 def parse_correction(text: str) -> float | None:
@@ -50,8 +51,17 @@ def stiffness_kN_per_m(trial: TrialData, given: float | None) -> tuple[float, st
         raise ValueError(f"{trial.source or 'trial'}: the whole-record fit with a machine stiffness did not "
                          f"converge ({fit.get('reason', 'no finite positive stiffness')}); give the stiffness "
                          "in kN/m instead of 'fit'")
-    return float(k), "whole-record fit (rig identify's, with stiffness)", \
-        (fit.get("err_corr") or {}).get("stiffness_kN_per_m")
+    from rig.model.checks import at_bound
+
+    err = (fit.get("err_corr") or {}).get("stiffness_kN_per_m")
+    side = at_bound("stiffness_kN_per_m", float(k))
+    vague = err is not None and math.isfinite(err) and err > UNDETERMINED_REL_SD * k
+    if side is not None or vague:  # the record does not determine a stiffness (none to correct)
+        how = f"on its {side} bound" if side else f"at {k:.3g} ± {err:.3g} kN/m"
+        raise ValueError(f"{trial.source or 'trial'}: the whole-record fit put the machine stiffness {how}: "
+                         "this record does not determine one (a position measured at the interface has no "
+                         "compliance to correct); give the stiffness in kN/m instead of 'fit'")
+    return float(k), "whole-record fit (rig identify's, with stiffness)", err
 
 
 def interface_slip_um(position_um, friction_N, k_kN_per_m: float) -> np.ndarray:
