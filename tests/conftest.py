@@ -10,16 +10,6 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
 
 
-def out_text(res) -> str:
-    """A CliRunner result's stdout and (when captured apart) stderr together."""
-    text = res.output
-    try:
-        text += res.stderr
-    except (ValueError, AttributeError):
-        pass
-    return text
-
-
 @pytest.fixture(scope="session")
 def repo_root() -> Path:
     return REPO
@@ -36,3 +26,4 @@ def real_data_dir() -> Path:
     if not d.is_dir():
         pytest.skip(f"shared real data not found at {d}")
     return d
+
