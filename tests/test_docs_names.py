@@ -195,7 +195,10 @@ def _check_path(span: str) -> str | None:
     else:
         f = ROOT / span
         if not f.exists() and span.startswith("rig/") is False:
-            for alt in (ROOT / "docs" / span, ROOT / "rig" / span):
+            # a docs-relative link; a rig/ subpath; a test file named by its file, wherever under
+            # tests/ the suite's layout (tests/unit/<package>/, tests/system/) has put it
+            moved = list((ROOT / "tests").rglob(Path(span).name)) if span.startswith("tests/test_") else []
+            for alt in (ROOT / "docs" / span, ROOT / "rig" / span, *moved):
                 if alt.exists():
                     f = alt
         if not f.exists():
