@@ -36,6 +36,7 @@ CSV_VERSION = "1"
 REQUIRED_COLUMNS = ("time_s", "position_um", "friction_N")
 OPTIONAL_COLUMNS = ("normal_1_N", "normal_2_N", "position_ref_um", "valve_cmd")
 STANDARD_COLUMNS = REQUIRED_COLUMNS + OPTIONAL_COLUMNS
+POSITION_SOURCES = ("on_sample", "load_point")  # measured-data.md: where position_um is measured
 
 
 class DataFormatError(ValueError):
@@ -100,6 +101,14 @@ class TrialData:
     @property
     def operator(self) -> str | None:
         return self.metadata.get("operator") or None
+
+    @property
+    def is_load_point(self) -> bool:
+        """``position_source: load_point`` (measured-data.md): the position is measured at the
+        actuator or load point, so the machine's compliance lies between it and the interface.
+        The one rule identify and diagnose use; any other value (absent, ``on_sample``, unknown:
+        a warning on reading) is on the sample."""
+        return str(self.metadata.get("position_source", "on_sample")).strip() == "load_point"
 
     @property
     def has_normals(self) -> bool:
@@ -205,6 +214,9 @@ def _plain_ascii(text: str) -> bool:
     return text.isascii() and "_" not in text
 
 
+SPEC_LAYOUT = "../shared/specs/measured-data.md, section \"Layout\""
+
+
 def read_csv(path: str | os.PathLike, column_map: dict[str, str] | None = None,
              scale: dict[str, float] | None = None) -> TrialData:
     """Read a measured-data CSV (version 1). Raises :class:`DataFormatError` on bad input.
@@ -218,6 +230,24 @@ def read_csv(path: str | os.PathLike, column_map: dict[str, str] | None = None,
     (units: mm -> µm is 1000) after reading.
     """
     path = Path(path)
+    lines, ends_with_newline = _decoded_lines(path)
+    lines, magic = _checked_magic(path, lines, column_map)
+    metadata, i = _metadata(path, lines)
+    names, header_lineno = _header(path, lines, i, column_map, magic)
+    cols, extra, row_lines, file_warnings = _data_rows(path, lines[i + 1:], names, header_lineno,
+                                                       ends_with_newline)
+    _validate_rows(path, cols, row_lines)
+    _apply_scale(path, cols, extra, scale, names, header_lineno)
+    return TrialData(
+        time_s=cols["time_s"], position_um=cols["position_um"], friction_N=cols["friction_N"],
+        normal_1_N=cols.get("normal_1_N"), normal_2_N=cols.get("normal_2_N"),
+        position_ref_um=cols.get("position_ref_um"), valve_cmd=cols.get("valve_cmd"),
+        extra=extra, metadata=metadata, source=str(path), warnings=file_warnings,
+    )
+
+
+def _decoded_lines(path: Path) -> tuple[list[str], bool]:
+    """The file's lines (UTF-8, BOM dropped) and whether it ends with a line break."""
     try:
         raw = path.read_bytes()
     except OSError as exc:
@@ -227,18 +257,36 @@ def read_csv(path: str | os.PathLike, column_map: dict[str, str] | None = None,
     except UnicodeDecodeError as exc:
         line = raw[: exc.start].count(b"\n") + 1
         raise DataFormatError(path, line, "not valid UTF-8") from None
-    ends_with_newline = text.endswith("\n") or text.endswith("\r")
     lines = text.splitlines()
     if not lines:
         raise DataFormatError(path, 1, "empty file (expected '# rig-trial-csv: 1' on the first line)")
-    first = lines[0].strip()
-    magic = first.startswith("#") and first.lstrip("#").strip().replace(" ", "") == f"{CSV_MAGIC}:{CSV_VERSION}"
-    if column_map is not None and not magic:
-        lines = [f"# {CSV_MAGIC}: {CSV_VERSION}"] + lines  # a lab's own file: line numbers below shift by one
-        first = lines[0]
-    if not first.startswith("#") or first.lstrip("#").strip().replace(" ", "") != f"{CSV_MAGIC}:{CSV_VERSION}":
-        raise DataFormatError(path, 1, f"first line must be '# {CSV_MAGIC}: {CSV_VERSION}', found {lines[0][:60]!r}")
+    return lines, text.endswith("\n") or text.endswith("\r")
 
+
+def _is_magic(line: str) -> bool:
+    first = line.strip()
+    return first.startswith("#") and first.lstrip("#").strip().replace(" ", "") == f"{CSV_MAGIC}:{CSV_VERSION}"
+
+
+def _checked_magic(path: Path, lines: list[str], column_map) -> tuple[list[str], bool]:
+    """The lines with the format's first line (supplied for a ``--map`` file that lacks it: line
+    numbers below then shift by one), and whether the file had it. Without it and without
+    ``--map``: one error pointing at the spec's layout and at ``rig import --map``."""
+    magic = _is_magic(lines[0])
+    if magic:
+        return lines, True
+    if column_map is not None:
+        return [f"# {CSV_MAGIC}: {CSV_VERSION}"] + lines, False
+    raise DataFormatError(
+        path, 1, f"first line must be '# {CSV_MAGIC}: {CSV_VERSION}', found {lines[0][:60]!r} "
+                 f"(the format: {SPEC_LAYOUT}; a lab's own CSV: rig import {path.name} -o OUT.mcap "
+                 "--map time_s=COLUMN,position_um=COLUMN,friction_N=COLUMN)")
+
+
+def _metadata(path: Path, lines: list[str]) -> tuple[dict[str, str], int]:
+    """The ``# key: value`` lines after the first (free text joins ``comment``) and the index of
+    the line after them; a bad ``normal_force_N`` is an error, an unknown ``position_source`` a
+    warning."""
     metadata: dict[str, str] = {}
     meta_line: dict[str, int] = {}
     i = 1
@@ -252,16 +300,21 @@ def read_csv(path: str | os.PathLike, column_map: dict[str, str] | None = None,
             metadata.setdefault("comment", "")
             metadata["comment"] = (metadata["comment"] + " " + body).strip()
         i += 1
-    if "normal_force_N" in metadata:
-        v = parse_number(metadata["normal_force_N"])
-        if v is None or not math.isfinite(v) or v <= 0:
-            raise DataFormatError(path, meta_line["normal_force_N"],
-                                  f"normal_force_N metadata must be a positive number of newtons, found "
-                                  f"{metadata['normal_force_N']!r}")
-    if metadata.get("position_source", "on_sample") not in ("on_sample", "load_point"):
+    if "normal_force_N" in metadata and positive_number(metadata["normal_force_N"]) is None:
+        raise DataFormatError(path, meta_line["normal_force_N"],
+                              f"normal_force_N metadata must be a positive number of newtons, found "
+                              f"{metadata['normal_force_N']!r}")
+    if metadata.get("position_source", "on_sample") not in POSITION_SOURCES:
         msg = (f"{path}, line {meta_line['position_source']}: unknown position_source "
                f"{metadata['position_source']!r} (expected on_sample or load_point); taken as on_sample")
-        warnings.warn(msg, UserWarning, stacklevel=2)
+        warnings.warn(msg, UserWarning, stacklevel=3)
+    return metadata, i
+
+
+def _header(path: Path, lines: list[str], i: int, column_map, magic: bool) -> tuple[list[str], int]:
+    """The column names of the header at ``lines[i]`` (renamed by ``column_map``) and its line
+    number; errors for a missing header, a ``--map`` column the file lacks, duplicate names and
+    missing required columns."""
     if i >= len(lines) or not lines[i].strip():
         raise DataFormatError(path, i + 1, "missing header row (column names) after the metadata lines")
     header_lineno = i + 1
@@ -280,23 +333,60 @@ def read_csv(path: str | os.PathLike, column_map: dict[str, str] | None = None,
     if missing:
         raise DataFormatError(path, header_lineno,
                               f"missing required column(s): {', '.join(missing)} (header has: {', '.join(names)})")
+    return names, header_lineno
 
-    ncol = len(names)
+
+def _data_rows(path: Path, data_lines: list[str], names: list[str], header_lineno: int,
+               ends_with_newline: bool):
+    """The data rows: (standard columns by name, extra columns, each row's line number, warnings).
+    A well-formed block goes through Arrow in one pass; anything irregular through the line
+    parser, which names the line and the fault."""
     std_idx = [j for j, n in enumerate(names) if n in STANDARD_COLUMNS]
     extra_idx = [j for j, n in enumerate(names) if n not in STANDARD_COLUMNS]
-    rows: list[list[float]] = []
-    extra_text: list[list[str]] = []
-    file_warnings: list[str] = []
-    data_lines = lines[i + 1:]
     block = "\n".join(data_lines)
     fast = _plain_ascii(block)
-    row_lines: list[int] = []
     parsed = _parse_block_fast(block, data_lines, names, std_idx, extra_idx) \
         if fast and ends_with_newline and data_lines else None
+    file_warnings: list[str] = []
     if parsed is not None:  # every line well formed: no per-line Python (a 3.6 M-row hour in seconds)
-        rows, extra_text = parsed
+        table, extra_text = parsed
         row_lines = range(header_lineno + 1, header_lineno + 1 + len(data_lines))
-        data_lines = []
+    else:
+        rows, row_texts, row_lines = _parse_lines(path, data_lines, names, std_idx, extra_idx, header_lineno,
+                                                  ends_with_newline, fast, file_warnings)
+        table = np.asarray(rows, dtype=float)
+        extra_text = [[r[c] for r in row_texts] for c in range(len(extra_idx))]
+    if len(row_lines) == 0:
+        raise DataFormatError(path, header_lineno, "empty data: no rows after the header")
+    cols = {names[j]: table[:, c] for c, j in enumerate(std_idx)}
+    extra = {names[j]: _extra_column(extra_text[c]) for c, j in enumerate(extra_idx)}
+    return cols, extra, row_lines, file_warnings
+
+
+def _extra_column(texts: list[str]) -> np.ndarray:
+    """An extra column: floats (empty cells NaN) when every cell is a number, else its strings
+    (text is kept, never an error)."""
+    nums = [parse_number(t) if t else math.nan for t in texts]
+    if all(v is not None for v in nums):
+        return np.asarray(nums, dtype=float)
+    return np.asarray(texts, dtype=str)
+
+
+def _partial_line(path: Path, lineno: int, file_warnings: list[str]) -> None:
+    msg = f"{path}, line {lineno}: trailing partial line ignored (file cut off mid-write)"
+    warnings.warn(msg, PartialLineWarning, stacklevel=5)
+    file_warnings.append(msg)
+
+
+def _parse_lines(path, data_lines, names, std_idx, extra_idx, header_lineno, ends_with_newline, fast,
+                 file_warnings):
+    """The line-by-line parser: (rows of the standard columns, rows of the extra columns' text,
+    line numbers). Names the line and the field of the first fault; a cut-off last line is a
+    :class:`PartialLineWarning`."""
+    ncol = len(names)
+    rows: list[list[float]] = []
+    row_texts: list[list[str]] = []
+    row_lines: list[int] = []
     for k, line in enumerate(data_lines):
         lineno = header_lineno + 1 + k
         if not line.strip():
@@ -305,9 +395,7 @@ def read_csv(path: str | os.PathLike, column_map: dict[str, str] | None = None,
         is_last = k == len(data_lines) - 1
         if len(fields) != ncol:
             if is_last and not ends_with_newline and len(fields) < ncol:
-                msg = f"{path}, line {lineno}: trailing partial line ignored (file cut off mid-write)"
-                warnings.warn(msg, PartialLineWarning, stacklevel=2)
-                file_warnings.append(msg)
+                _partial_line(path, lineno, file_warnings)
                 break
             raise DataFormatError(path, lineno, f"expected {ncol} fields, found {len(fields)}")
         try:
@@ -319,44 +407,41 @@ def read_csv(path: str | os.PathLike, column_map: dict[str, str] | None = None,
         except ValueError:
             if is_last and not ends_with_newline:
                 # a number cut in half can still parse; one that does not is a partial line
-                msg = f"{path}, line {lineno}: trailing partial line ignored (file cut off mid-write)"
-                warnings.warn(msg, PartialLineWarning, stacklevel=2)
-                file_warnings.append(msg)
+                _partial_line(path, lineno, file_warnings)
                 break
-            for j in std_idx:
-                if not fields[j].strip() and names[j] in REQUIRED_COLUMNS:
-                    raise DataFormatError(path, lineno, f"column '{names[j]}': empty value") from None
-                if fields[j].strip():
-                    _parse_float(fields[j], path, lineno, names[j])
-            raise  # pragma: no cover - raised above
+            _raise_field_error(path, lineno, fields, names, std_idx)
         rows.append(values)
-        extra_text.append([fields[j].strip() for j in extra_idx])
+        row_texts.append([fields[j].strip() for j in extra_idx])
         row_lines.append(lineno)
-    if len(rows) == 0:
-        raise DataFormatError(path, header_lineno, "empty data: no rows after the header")
+    return rows, row_texts, row_lines
 
-    table = rows if isinstance(rows, np.ndarray) else np.asarray(rows, dtype=float)
-    cols = {names[j]: table[:, c] for c, j in enumerate(std_idx)}
-    extra: dict[str, np.ndarray] = {}
-    for c, j in enumerate(extra_idx):
-        texts = extra_text[c] if parsed is not None else [r[c] for r in extra_text]
-        nums = [parse_number(t) if t else math.nan for t in texts]
-        if all(v is not None for v in nums):
-            extra[names[j]] = np.asarray(nums, dtype=float)
-        else:  # text: kept as strings, never an error
-            extra[names[j]] = np.asarray(texts, dtype=str)
+
+def _raise_field_error(path, lineno: int, fields: list[str], names: list[str], std_idx: list[int]):
+    """The error for the first bad field of a row: an empty required value or a non-number."""
+    for j in std_idx:
+        if not fields[j].strip() and names[j] in REQUIRED_COLUMNS:
+            raise DataFormatError(path, lineno, f"column '{names[j]}': empty value") from None
+        if fields[j].strip():
+            _parse_float(fields[j], path, lineno, names[j])
+    raise DataFormatError(path, lineno, "unreadable row")  # pragma: no cover - raised above
+
+
+def _validate_rows(path, cols: dict[str, np.ndarray], row_lines) -> None:
+    """Required columns finite, ``time_s`` strictly increasing; the error names the first bad line."""
     for name in REQUIRED_COLUMNS:
         bad = np.flatnonzero(~np.isfinite(cols[name]))
         if bad.size:
             raise DataFormatError(path, row_lines[bad[0]], f"column '{name}': NaN or infinite value")
     t = cols["time_s"]
-    dt = np.diff(t)
-    bad = np.flatnonzero(~(dt > 0))
+    bad = np.flatnonzero(~(np.diff(t) > 0))
     if bad.size:
         j = bad[0] + 1
         raise DataFormatError(path, row_lines[j],
                               f"time_s not strictly increasing ({float(t[j - 1])!r} then {float(t[j])!r})")
 
+
+def _apply_scale(path, cols, extra, scale, names, header_lineno) -> None:
+    """``--scale COLUMN=FACTOR``: multiply a numeric column in place (a lab's units to ours)."""
     for name, factor in (scale or {}).items():
         if name in cols:
             cols[name] = cols[name] * float(factor)
@@ -367,16 +452,6 @@ def read_csv(path: str | os.PathLike, column_map: dict[str, str] | None = None,
                                                        f"(columns: {', '.join(names)})")
     if scale and "time_s" in scale and not float(scale["time_s"]) > 0:
         raise DataFormatError(path, header_lineno, "--scale time_s must be positive (time must increase)")
-
-    def opt(name):
-        return cols.get(name)
-
-    return TrialData(
-        time_s=t, position_um=cols["position_um"], friction_N=cols["friction_N"],
-        normal_1_N=opt("normal_1_N"), normal_2_N=opt("normal_2_N"),
-        position_ref_um=opt("position_ref_um"), valve_cmd=opt("valve_cmd"),
-        extra=extra, metadata=metadata, source=str(path), warnings=file_warnings,
-    )
 
 
 def _parse_block_fast(block: str, data_lines: list[str], names: list[str], std_idx: list[int],

@@ -523,7 +523,7 @@ def fit_whole_record(trial: TrialData, steps: list[Step] | None = None, *, stiff
         v = v_est
         _, in_steps = _segment_velocity(t, x, steps, v_est)
     runs = _runs(steps, t.size)
-    if not stiffness or not _looks_like_load_point(trial):
+    if not stiffness or not trial.is_load_point:
         # the velocity rise of a step (the rig's controller, 0.2-0.5 s) is not the segments' ideal
         # step: it is not compared, as the per-step method leaves it out (rise_guard_s after t*,
         # half of it before); on generated records it biased A by -1.6 of its sd. A load point's
@@ -847,7 +847,7 @@ def identify_trials(trials: list[TrialData], *, use_events: bool = True, velocit
                 init = {"A_mu": float(np.median([r.A_mu for r in good])),
                         "B_mu": float(np.median([r.B_mu for r in good])),
                         "L_um": float(np.median([r.L_um for r in good]))}
-            stiff = (_looks_like_load_point(tr) or _known_stiffness(tr)) if stiffness is None else stiffness
+            stiff = (tr.is_load_point or _known_stiffness(tr)) if stiffness is None else stiffness
             fits = {lw: fit_whole_record(tr, steps, stiffness=stiff, velocity_method=whole_velocity, init=init,
                                          law=lw, detrend=detrend, uncertainty=uncertainty, seed=seed,
                                          progress=progress, profile=True) for lw in laws}
@@ -879,7 +879,7 @@ def identify_trials(trials: list[TrialData], *, use_events: bool = True, velocit
     }
     report["rejected_steps"] = [{"trial": r.trial, "t_s": _r(r.step.t_s), "reason": r.reason}
                                 for g in groups for r in g if not r.ok]
-    lp = [bool(_looks_like_load_point(tr)) for tr in trials]
+    lp = [tr.is_load_point for tr in trials]
     notes = []
     if any(lp):
         notes.append(RIGID_NOTE)
@@ -934,16 +934,6 @@ def _known_stiffness(trial: TrialData) -> bool:
     the measured position and the interface, held in the whole-record fit."""
     v = parse_number(str(trial.metadata.get("machine_stiffness_kN_per_m", "")))
     return v is not None and v > 0
-
-
-def _looks_like_load_point(trial: TrialData) -> bool:
-    """``position_source: load_point`` (measured-data.md) or, in older files, metadata that says so:
-    the machine's compliance lies between the measured position and the interface, so the
-    whole-record fit needs the stiffness."""
-    if str(trial.metadata.get("position_source", "")).strip() == "load_point":
-        return True
-    text = " ".join(str(v) for v in trial.metadata.values()).lower()
-    return "load-point" in text or "load point" in text or "lp_disp" in text
 
 
 RIGID_NOTE = ("the per-step method (eqs. 10-12) assumes a rigid machine: with the position measured at the load "

@@ -28,8 +28,8 @@ _RIG = Path(__file__).resolve().parents[1]
 #: the modules whose numba kernels each command compiles on its first call
 SIM_KERNELS = ("sim/plant.py", "control.py", "model/friction.py", "model/sensors.py", "log/writer.py",
                "log/loopblock.py")
-IDENTIFY_KERNELS = ("kinematics.py", "model/forward.py", "model/loading.py", "model/friction.py",
-                    "model/sensors.py")
+IDENTIFY_KERNELS = ("kinematics/velocity.py", "kinematics/steps.py", "model/forward.py", "model/loading.py",
+                    "model/friction.py", "model/sensors.py")
 
 
 def cold_kernels(modules) -> bool:

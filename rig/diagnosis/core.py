@@ -438,12 +438,6 @@ def _evidence(cause: str, res: FitResult, grid: Grid, info: dict, others: dict[s
 # ---------------------------------------------------------------------------
 # the loop
 # ---------------------------------------------------------------------------
-def is_load_point(trial: TrialData) -> bool:
-    """``position_source: load_point`` (measured-data.md): the machine's compliance lies between
-    the measured position and the interface."""
-    return str(trial.metadata.get("position_source", "on_sample")).strip() == "load_point"
-
-
 def identify_prior(trial: TrialData, steps: list | None = None) -> dict:
     """identify's whole-record fit (rig.analysis.identify.fit_whole_record) as a starting point:
     ``{"A_mu", "B_mu", "L_um"[, "stiffness_kN_per_m"]}``, or {} when the record has no step it
@@ -455,7 +449,7 @@ def identify_prior(trial: TrialData, steps: list | None = None) -> dict:
         steps = detect_steps(trial) if steps is None else steps
         if not steps:
             return {}
-        w = fit_whole_record(trial, steps, stiffness=is_load_point(trial), max_points=6000)
+        w = fit_whole_record(trial, steps, stiffness=trial.is_load_point, max_points=6000)
     except (ValueError, ZeroDivisionError, FloatingPointError, IndexError, np.linalg.LinAlgError):
         return {}
     if not w.get("params"):
@@ -817,7 +811,7 @@ def diagnose(trial: TrialData, baseline: str = "rate_state", progress=None, n_bl
     except (ValueError, IndexError, ZeroDivisionError):
         small, steps = trial, []
     prior = identify_prior(small, steps)
-    load_point = is_load_point(trial) or bool(known)
+    load_point = trial.is_load_point or bool(known)
     if known and prior and "stiffness_kN_per_m" in prior:
         prior["stiffness_kN_per_m"] = known["stiffness_kN_per_m"]
     t_prep = _time.perf_counter() - t0

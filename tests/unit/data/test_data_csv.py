@@ -191,3 +191,28 @@ def test_converted_public_records_load_with_source_and_licence():
         assert "github.com/pgiacomel/steadystate, commit" in tr.metadata["source"]
         assert tr.metadata["licence"].startswith("MIT")
         assert 0.3 < float(np.median(tr.mu)) < 1.0
+
+
+def test_missing_first_line_points_at_the_spec_and_at_map(tmp_path):
+    p = _write(tmp_path, "Time,Displ,Friction\n0,0,1\n0.1,0.2,1\n")
+    with pytest.raises(DataFormatError) as info:
+        read_csv(p)
+    msg = str(info.value)
+    assert info.value.line == 1
+    assert "measured-data.md" in msg and '"Layout"' in msg
+    assert "rig import" in msg and "--map" in msg
+    # the same file read with a map needs no first line
+    tr = read_csv(p, column_map={"time_s": "Time", "position_um": "Displ", "friction_N": "Friction"})
+    np.testing.assert_allclose(tr.position_um, [0.0, 0.2])
+
+
+@pytest.mark.parametrize("meta, expected", [
+    ("# position_source: load_point\n", True),
+    ("# position_source:  load_point \n", True),
+    ("# position_source: on_sample\n# original_units: LP_Disp micron (load-point displacement)\n", False),
+    ("# note: load point displacement\n", False),
+    ("", False),
+])
+def test_is_load_point_is_the_spec_key_only(tmp_path, meta, expected):
+    tr = read_csv(_write(tmp_path, "# rig-trial-csv: 1\n" + meta + "time_s,position_um,friction_N\n0,0,1\n1,1,1\n"))
+    assert tr.is_load_point is expected
