@@ -71,3 +71,12 @@ class Device(Protocol):
     def health(self, now: float) -> DeviceHealth: ...
 
     def close(self) -> None: ...
+
+
+@runtime_checkable
+class DitherChecked(Protocol):
+    """A device that checks the dither reaches its output (the valve): the lowest 500 Hz gain its
+    check judged this run, None while never judged. The loop logs it beside the frame counters."""
+
+    @property
+    def dither_gain_min(self) -> float | None: ...
