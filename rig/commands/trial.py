@@ -325,7 +325,7 @@ def run_command(
         fail(str(exc))
     if lubricant is not None:
         try:
-            recipe.lubricant = lubricant
+            recipe = recipe.with_lubricant(lubricant)
         except ValueError:
             fail(f"--lubricant {lubricant!r}: expected a lubricant name (one line of printable text, "
                  "up to 100 characters)")
