@@ -84,7 +84,7 @@ from typing import Literal
 
 from drivers.canopen_bus import F_ERR, F_EXT, F_RTR
 from drivers.config import CanopenValveConfig
-from drivers.device import DeviceHealth
+from drivers.device import DeviceHealth, release_quietly
 from drivers.errors import DeviceError
 
 DEVICE = "servovalve controller"
@@ -725,10 +725,7 @@ class CanopenValve:
 
     def close(self) -> None:
         if self.bus is not None:
-            try:
-                self.bus.shutdown()
-            except Exception:  # noqa: BLE001
-                pass
+            release_quietly(self.bus.shutdown)
             self.bus = None
 
 
