@@ -29,14 +29,20 @@ from rig.model.loading import D_STIFF, stiff_series, stiff_series_sens
 from rig.model.spec import FrictionModel
 
 
-def cumulative_slip_um(t_s: np.ndarray, v_um_s: np.ndarray) -> np.ndarray:
-    """Accumulated slip distance (µm) at every sample: the trapezoidal integral of the speed
-    |v| point by point, so a reversal adds the distance slid both ways (the one slip integral:
-    the forward model, the diagnosis's trends in slip and its state-length limit use it)."""
+def slip_increments_um(t_s: np.ndarray, v_um_s: np.ndarray) -> np.ndarray:
+    """The slip (µm) of each interval between samples: the trapezoidal integral of the speed |v|
+    point by point, so an interval with a reversal adds the distance slid both ways. The one slip
+    integral: :func:`cumulative_slip_um`, the forward model's memoryless laws, the diagnosis's
+    trends in slip and its state-length limit (the record's total, ``np.sum`` of these) use it."""
     t = np.asarray(t_s, dtype=float)
     speed = np.abs(np.asarray(v_um_s, dtype=float))
-    out = np.zeros_like(t)
-    out[1:] = np.cumsum(0.5 * (speed[1:] + speed[:-1]) * np.diff(t))
+    return 0.5 * (speed[1:] + speed[:-1]) * np.diff(t)
+
+
+def cumulative_slip_um(t_s: np.ndarray, v_um_s: np.ndarray) -> np.ndarray:
+    """Accumulated slip distance (µm) at every sample, from 0 (:func:`slip_increments_um`)."""
+    out = np.zeros(np.shape(t_s))
+    out[1:] = np.cumsum(slip_increments_um(t_s, v_um_s))
     return out
 
 
