@@ -62,7 +62,7 @@ def main() -> int:
             t2 = time.perf_counter_ns()
             t_read[i] = (t1 - t0) / 1e3
             t_write[i] = (t2 - t1) / 1e3
-        probs = v.problem_messages()
+        probs = [msg for _, msg in v.problems()]
         ok = v.safe_stop()
         load1 = os.getloadavg()
     finally:

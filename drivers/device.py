@@ -17,7 +17,7 @@ The interlocks see :class:`DeviceHealth` only, never a driver's internals.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
-from typing import Protocol, runtime_checkable
+from typing import Any, Callable, Protocol, runtime_checkable
 
 
 @dataclass(slots=True)
@@ -71,3 +71,21 @@ class Device(Protocol):
     def health(self, now: float) -> DeviceHealth: ...
 
     def close(self) -> None: ...
+
+
+@runtime_checkable
+class DitherChecked(Protocol):
+    """A device that checks the dither reaches its output (the valve): the lowest 500 Hz gain its
+    check judged this run, None while never judged. The loop logs it beside the frame counters."""
+
+    @property
+    def dither_gain_min(self) -> float | None: ...
+
+
+def release_quietly(release: Callable[[], Any]) -> None:
+    """Call a device's ``close``/``shutdown`` at the end of its life, ignoring what it raises (the
+    port, socket or bus may already be gone; nothing is left to tell the operator)."""
+    try:
+        release()
+    except Exception:  # noqa: BLE001 - SerialException, OSError, python-can and pymodbus errors
+        pass

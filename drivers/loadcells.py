@@ -42,7 +42,7 @@ import struct
 import time
 
 from drivers.config import LoadCellConfig
-from drivers.device import DeviceHealth
+from drivers.device import DeviceHealth, release_quietly
 from drivers.errors import DeviceError
 from drivers.linux import close_quietly, open_tcp_nodelay, recv_available
 
@@ -158,10 +158,7 @@ class LoadCellReader:
     def close(self) -> None:
         self._drop_socket()
         if self._client is not None:
-            try:
-                self._client.close()
-            except Exception:  # noqa: BLE001
-                pass
+            release_quietly(self._client.close)
             self._client = None
 
     # -- reading -------------------------------------------------------------------

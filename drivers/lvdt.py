@@ -34,7 +34,7 @@ import termios
 import time
 
 from drivers.config import LvdtConfig
-from drivers.device import DeviceHealth
+from drivers.device import DeviceHealth, release_quietly
 from drivers.errors import DeviceError
 
 DEVICE = "LVDT conditioner"
@@ -144,10 +144,7 @@ class LvdtReader:
 
     def close(self) -> None:
         if self._ser is not None:
-            try:
-                self._ser.close()
-            except Exception:  # noqa: BLE001
-                pass
+            release_quietly(self._ser.close)
             self._ser = None
 
     def flush_input(self) -> None:

@@ -40,35 +40,31 @@ error (a second set-point within one SYNC period, a counter out of sequence, a
 wrong-length PDO); each of these sends an EMCY. Only the control word's fault-reset
 bit clears the latch, then enable must go low and high again.
 
-Host API (what the real-time loop calls)
-----------------------------------------
+What the real-time loop calls (:class:`rig.hardware.loop.RtLoop`)
+-------------------------------------------------------------------
 ``v = CanopenValve(cfg)`` is a :class:`drivers.device.Device`: ``v.connect()`` (bus, valve
 heartbeat, SDO checks and configuration); ``v.start()`` (NMT start, fault reset, enable, verified by
-TPDO); each tick ``v.read(now)``, then ``v.command``/``v.enable`` and ``v.write(now)`` (RPDO + SYNC,
-+ host heartbeat when due; ``v.send(setpoint, enable, reset)`` underneath: setpoint in [-1, 1],
-saturated, NaN -> 0 and counted); ``v.health(now)`` -> :class:`DeviceHealth` whose ``problems``
-each trip; ``v.safe_stop()`` nulls
-and disables and returns True only when a TPDO (or the valve leaving OPERATIONAL)
-confirms it; ``v.close()``. Frames are packed and unpacked by the pure codec
-(:func:`encode_setpoint`, :func:`encode_sync`, :func:`decode_status`, :class:`StatusFrame`'s bits),
-tested frame by frame without a bus. Nothing here blocks inside ``read``/``write``: frames are
-drained without waiting (on ``rig_unix`` its ``drain_frames()``, elsewhere ``recv(0)``) and
-dispatched on the caller's thread (the status PDO here, the rest to canopen); on ``rig_unix`` the
-set-point PDO and the SYNC go out as one message (``send_frames``).
+TPDO; the explicit reset after a trip, never called again by the loop on its own); each tick
+``v.read(now)``, then ``v.health(now)``: a :class:`DeviceHealth` whose ``problems`` (from
+:meth:`CanopenValve.problems`: foreign/malformed frames, EMCY/fault, watchdog, lost heartbeat, not
+OPERATIONAL/not enabled, stale TPDO, a spool that does not follow its command for
+``follow_time_s``, a spool without the command's 500 Hz dither (:class:`DitherCheck`), non-finite
+set-points) each trip the loop (:mod:`rig.hardware.interlocks`); then ``v.command``/``v.enable``
+and ``v.write(now)`` (RPDO + SYNC, + host heartbeat when due; ``v.send(setpoint, enable, reset)``
+underneath: setpoint in [-1, 1], saturated, NaN -> 0 and counted). On a trip or at the end
+``v.safe_stop()`` nulls and disables and returns True only when a TPDO (or the valve leaving
+OPERATIONAL) confirms it (``v.final_state()`` for the log); ``v.close()``. Frames are packed and
+unpacked by the pure codec (:func:`encode_setpoint`, :func:`encode_sync`, :func:`decode_status`,
+:class:`StatusFrame`'s bits), tested frame by frame without a bus. Nothing here blocks inside
+``read``/``write``: frames are drained without waiting (on ``rig_unix`` its ``drain_frames()``,
+elsewhere ``recv(0)``) and dispatched on the caller's thread (the status PDO here, the rest to
+canopen); on ``rig_unix`` the set-point PDO and the SYNC go out as one message (``send_frames``).
 
-For the loop integrator: per tick ``st = v.read()``; ``probs = v.problems()``; trip on
-any entry of ``probs`` (it covers foreign/malformed frames, EMCY/fault, watchdog,
-lost heartbeat, not OPERATIONAL/not enabled, stale TPDO, a spool that does not
-follow its command for ``follow_time_s``, a spool without the command's 500 Hz dither
-(:class:`DitherCheck`), non-finite set-points); else
-``v.send(cmd)``. On a trip: ``v.safe_stop()`` (returns whether the valve confirmed)
-and never ``start()`` again by itself: ``start()`` is the explicit reset (operator
-action). ``st.spool_actual`` vs ``st.spool_command_echoed`` is the valve's own
-following; ``st.enabled``, ``st.watchdog_tripped``, ``st.nulled``, ``st.fault``,
-``st.reset_required``, ``st.emcy`` are the valve's bits. In the emulated rig, the
-emulator's ``on_sync(spool)`` callback steps the plant (lock step with SYNC); when
-no SYNC arrives (``em.n_sync`` unchanged after ``em.poll``) the plant free-runs with
-``em.spool`` (which the watchdog/heartbeat consumer null).
+``st.spool_actual`` vs ``st.spool_command_echoed`` is the valve's own following; ``st.enabled``,
+``st.watchdog_tripped``, ``st.nulled``, ``st.fault``, ``st.reset_required``, ``st.emcy`` are the
+valve's bits. In the emulated rig, the emulator's ``on_sync(spool)`` callback steps the plant
+(lock step with SYNC); when no SYNC arrives (``em.n_sync`` unchanged after ``em.poll``) the plant
+free-runs with ``em.spool`` (which the watchdog/heartbeat consumer null).
 
 Limits: CAN has no sender address, so a foreign node is detected by what only the
 master sends (NMT, SYNC, RPDO, the host heartbeat), by what only the valve sends
@@ -88,7 +84,7 @@ from typing import Literal
 
 from drivers.canopen_bus import F_ERR, F_EXT, F_RTR
 from drivers.config import CanopenValveConfig
-from drivers.device import DeviceHealth
+from drivers.device import DeviceHealth, release_quietly
 from drivers.errors import DeviceError
 
 DEVICE = "servovalve controller"
@@ -658,14 +654,9 @@ class CanopenValve:
             self._t_follow_bad = None
 
     # -- health and shutdown -------------------------------------------------------------------
-    def problem_messages(self) -> list[str]:
-        """Problems that must trip the loop, each naming the valve (empty list = healthy).
-
-        Call after :meth:`read` (it uses that status)."""
-        return [msg for _, msg in self.problems()]
-
     def problems(self) -> list[tuple[str, str]]:
-        """:meth:`problem_messages` with a trip name for each problem: ``can_foreign_frames``,
+        """Problems that must trip the loop, each ``(trip name, message naming the valve)``; empty:
+        healthy. Call after :meth:`read` (it uses that status). The names: ``can_foreign_frames``,
         ``can_malformed_frames``, ``valve_rejected_frames``, ``valve_counter``, ``valve_fault``,
         ``valve_watchdog``, ``valve_heartbeat``, ``valve_nmt_state``, ``valve_status_stale``,
         ``valve_disabled``, ``valve_following``, ``valve_dither``, ``non_finite_setpoint``."""
@@ -734,10 +725,7 @@ class CanopenValve:
 
     def close(self) -> None:
         if self.bus is not None:
-            try:
-                self.bus.shutdown()
-            except Exception:  # noqa: BLE001
-                pass
+            release_quietly(self.bus.shutdown)
             self.bus = None
 
 

@@ -22,7 +22,7 @@ friction_feedforward_N; the model-based feed-forward of the paper's introduction
 not given.
 
 with v_ref,n the planner's reference velocity: given explicitly
-(:func:`controller_step_v`, ``Controller.step(..., v_ref_um_s=...)``) or, as LinuxCNC
+(:func:`controller_step_v`'s ``v_ref_um_s``) or, as LinuxCNC
 does without a ``command-deriv`` input, the backward difference of the reference
 (x_ref,n - x_ref,n-1)/dt (exact for the planner's piecewise-linear/ramped reference;
 0 at the first tick). ``ff1_N_s_per_um`` is the force per unit reference velocity: for
@@ -43,9 +43,10 @@ force (``dither_reference: full_scale``).
 
 Valve command: v_n = clamp((u_n + d_n) / full_scale_force_N, ±1).
 
-The step is one ``@njit`` function on parameter/state arrays (:func:`controller_step`)
-shared by the numba closed loop of :mod:`rig.sim` and by the Python hardware loop
-through :class:`PID` / :class:`Controller`.
+The step is one ``@njit`` function on parameter/state arrays, :func:`controller_step_v`
+(:func:`pid_step` then :func:`dither_step`), called tick by tick by both loops: the numba
+closed loop of :mod:`rig.sim` (``rig.sim.plant``) and the Python hardware loop
+(:mod:`rig.hardware.loop`).
 """
 
 from __future__ import annotations
@@ -88,7 +89,7 @@ def make_controller_params(kp_N_per_um: float, ki_N_per_um_s: float, kd_N_s_per_
                            bias_N: float = 0.0, full_scale_force_N: float = 1e4, dither_frequency_hz: float = 500.0,
                            dither_amplitude_fraction: float = 0.001, dither_reference: str = "pid_output",
                            dither_smoothing_s: float = 0.05, ff1_N_s_per_um: float = 0.0) -> np.ndarray:
-    """Pack controller parameters (physical units) for :func:`controller_step`."""
+    """Pack controller parameters (physical units) for :func:`controller_step_v`."""
     c = np.zeros(N_CPAR)
     c[C_KP] = kp_N_per_um
     c[C_KI] = ki_N_per_um_s
@@ -117,8 +118,7 @@ def controller_params_from_profile(profile) -> np.ndarray:
     return make_controller_params(
         c.kp_N_per_um, c.ki_N_per_um_s, c.kd_N_s_per_um, profile.dt_s, c.integral_max_N, profile.output_max_N,
         c.error_max_um, c.bias_N, profile.actuator.full_scale_force_N, c.dither_frequency_hz,
-        c.dither_amplitude_fraction, c.dither_reference, c.dither_smoothing_s,
-        getattr(c, "ff1_N_s_per_um", 0.0))
+        c.dither_amplitude_fraction, c.dither_reference, c.dither_smoothing_s, c.ff1_N_s_per_um)
 
 
 CONTROLLER_SWITCHES = ("ff1", "friction_ff")
@@ -212,16 +212,10 @@ def dither_step(c, s, pid_out_N):
 
 
 @njit(cache=True)
-def controller_step(c, s, x_ref_um, x_meas_um):
-    """PID (+ FF1 on the reference's backward difference) + dither -> valve command.
-    Returns (valve_cmd, p_N, i_N, d_N, dither_N)."""
-    return controller_step_v(c, s, x_ref_um, x_meas_um, math.nan)
-
-
-@njit(cache=True)
 def controller_step_v(c, s, x_ref_um, x_meas_um, v_ref_um_s, ff_N=0.0):
-    """:func:`controller_step` with the planner's reference velocity given (µm/s; NaN:
-    backward difference of the reference) and a feed-forward force ``ff_N`` (N)."""
+    """One tick: PID (+ FF1) + dither -> valve command, clamped to ±1. Returns
+    (valve_cmd, p_N, i_N, d_N, dither_N). ``v_ref_um_s``: the planner's reference velocity
+    (µm/s; NaN: the backward difference of the reference); ``ff_N``: a feed-forward force (N)."""
     out, p, i, d = pid_step(c, s, x_ref_um, x_meas_um, v_ref_um_s, ff_N)
     dz = dither_step(c, s, out)
     v = (out + dz) / c[C_FFS]
@@ -230,56 +224,3 @@ def controller_step_v(c, s, x_ref_um, x_meas_um, v_ref_um_s, ff_N=0.0):
     elif v < -1.0:
         v = -1.0
     return v, p, i, d, dz
-
-
-class PID:
-    """Python wrapper of :func:`pid_step` for the hardware loop (state kept in an array)."""
-
-    def __init__(self, kp_N_per_um: float, ki_N_per_um_s: float, kd_N_s_per_um: float, dt_s: float = 1e-3,
-                 integral_max_N: float = 500.0, output_max_N: float = 1e4, error_max_um: float = 1e9,
-                 bias_N: float = 0.0, ff1_N_s_per_um: float = 0.0):
-        self.params = make_controller_params(kp_N_per_um, ki_N_per_um_s, kd_N_s_per_um, dt_s, integral_max_N,
-                                             output_max_N, error_max_um, bias_N, dither_amplitude_fraction=0.0,
-                                             ff1_N_s_per_um=ff1_N_s_per_um)
-        self.state = new_controller_state()
-
-    def reset(self) -> None:
-        self.state[:] = new_controller_state()
-
-    @property
-    def saturated(self) -> bool:
-        return self.state[K_SAT] != 0.0
-
-    def step(self, x_ref_um: float, x_meas_um: float, v_ref_um_s: float | None = None
-             ) -> tuple[float, float, float, float]:
-        """Returns (output_N, p_N, i_N, d_N). ``v_ref_um_s``: the planner's reference
-        velocity for FF1 (None: backward difference of the reference)."""
-        return pid_step(self.params, self.state, float(x_ref_um), float(x_meas_um),
-                        math.nan if v_ref_um_s is None else float(v_ref_um_s))
-
-
-class Controller:
-    """PID + dither + valve scaling, as the hardware loop and the simulated rig use it."""
-
-    def __init__(self, params: np.ndarray):
-        self.params = np.asarray(params, dtype=float).copy()
-        self.state = new_controller_state()
-
-    @classmethod
-    def from_profile(cls, profile) -> "Controller":
-        return cls(controller_params_from_profile(profile))
-
-    def reset(self) -> None:
-        self.state[:] = new_controller_state()
-
-    @property
-    def saturated(self) -> bool:
-        return self.state[K_SAT] != 0.0
-
-    def step(self, x_ref_um: float, x_meas_um: float, v_ref_um_s: float | None = None) -> dict:
-        """One tick: {'valve_cmd', 'pid_p', 'pid_i', 'pid_d', 'dither'} (forces in N).
-        ``v_ref_um_s``: the planner's reference velocity for FF1 (None: backward
-        difference of the reference)."""
-        v, p, i, d, dz = controller_step_v(self.params, self.state, float(x_ref_um), float(x_meas_um),
-                                           math.nan if v_ref_um_s is None else float(v_ref_um_s))
-        return {"valve_cmd": v, "pid_p": p, "pid_i": i, "pid_d": d, "dither": dz}

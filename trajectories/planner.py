@@ -297,30 +297,17 @@ def compile_plan(spec: PlanSpec, limits: RigLimits | None = None) -> Plan:
     divide the loop rate, or a velocity step would start out of steady state.
     """
     lim = limits or RigLimits()
-    for what, rate in spec.log_rates_hz:
-        _check_rate(lim, rate, what)
-    if not lim.stroke_min_um <= lim.initial_position_um <= lim.stroke_max_um:
-        raise PlanError(f"the rig's initial position {lim.initial_position_um:g} µm is outside its stroke "
-                        f"[{lim.stroke_min_um:g}, {lim.stroke_max_um:g}] µm")
-
+    _check_limits(spec, lim)
     b = _Builder(lim.initial_position_um)
     overlays: list = []
     events: list[dict] = []
     segments: list[dict] = []
-
-    seg_list: list = []
-    if spec.start_position_um is not None and abs(spec.start_position_um - lim.initial_position_um) > _EPS_UM:
-        speed = min(100.0, lim.max_speed_um_s)
-        seg_list.append(Move(position_um=spec.start_position_um, speed_um_s=speed,
-                             label="approach start_position_um"))
-    seg_list.extend(spec.segments)
-    offset = 1 if len(seg_list) > len(spec.segments) else 0
-
+    seg_list = _with_approach(spec, lim)
+    offset = len(seg_list) - len(spec.segments)
     for k, seg in enumerate(seg_list):
         index = k - offset  # the spec's segment index (-1 for the implicit approach)
         accel = seg.accel_um_s2 or spec.accel_um_s2
-        kind = seg.kind
-        label = seg.label
+        kind, label = seg.kind, seg.label
 
         def fail(msg: str):
             raise PlanError(msg, segment=index if index >= 0 else None, kind=kind, label=label)
@@ -332,47 +319,17 @@ def compile_plan(spec: PlanSpec, limits: RigLimits | None = None) -> Plan:
         if asked > lim.max_speed_um_s:
             fail(f"speed {asked:g} µm/s exceeds the actuator's maximum {lim.max_speed_um_s:g} µm/s "
                  f"(profile {lim.source}{lim.max_speed_note})")
-
         row0, ov0 = len(b.rows), len(overlays)
         t_start, x_start = b.t, b.x
         events.append({"t_s": t_start, "kind": "segment_start", "segment": index, "segment_kind": kind,
                        "label": label, "x_um": x_start})
         try:
-            if isinstance(seg, RunIn):
-                b.move_to(x_start + seg.distance_um, seg.speed_um_s, accel)
-                b.move_to(x_start, seg.speed_um_s, accel)
-            elif isinstance(seg, Hold):
-                if b.v != 0:
-                    b.ramp(0.0, accel)
-                b.cruise_time(seg.duration_s)
-            elif isinstance(seg, Move):
-                b.move_to(seg.position_um, seg.speed_um_s, accel)
-            elif isinstance(seg, SteppedPass):
-                _stepped_pass(b, seg, accel, index, events, fail)
-            elif isinstance(seg, VelocitySteps):
-                _velocity_steps(b, seg, accel, index, events, fail, spec)
-            elif isinstance(seg, SlideHoldSlide):
-                _slide_hold_slide(b, seg, accel, index, events, fail, spec)
-            elif isinstance(seg, (Square, SineSweep)):
-                _waveform(b, seg, accel, index, events, overlays, fail, spec, lim)
-            else:  # pragma: no cover - the segment union is closed
-                fail("unknown segment kind")
+            _build_segment(b, seg, accel, index, events, overlays, fail, spec, lim)
         except PlanError:
             raise
         except ValueError as exc:  # builder geometry
             fail(str(exc))
-        rows = np.asarray(b.rows[row0:], dtype=float).reshape(-1, 5)
-        if rows.size:
-            x_ends = np.concatenate([rows[:, 2], rows[:, 2] + 0.5 * (rows[:, 3] + rows[:, 4]) * rows[:, 1]])
-            x_min, x_max = float(x_ends.min()), float(x_ends.max())
-            v_max = float(np.abs(rows[:, 3:5]).max())
-        else:
-            x_min = x_max = b.x
-            v_max = 0.0
-        for ov in overlays[ov0:]:
-            amp, base = ov[2].amplitude_um, ov[2].velocity_um_s
-            x_min, x_max = x_min - amp, x_max + amp
-            v_max = max(v_max, base + _overlay_peak_speed(ov))
+        x_min, x_max, v_max = _segment_extent(b, row0, overlays[ov0:])
         if x_max > lim.stroke_max_um + 1e-6 or x_min < lim.stroke_min_um - 1e-6:
             bad = x_max if x_max > lim.stroke_max_um + 1e-6 else x_min
             fail(f"reference reaches {bad:.1f} µm, outside the stroke [{lim.stroke_min_um:g}, "
@@ -386,7 +343,72 @@ def compile_plan(spec: PlanSpec, limits: RigLimits | None = None) -> Plan:
                          "v_max_um_s": v_max})
         if b.t > MAX_PLAN_DURATION_S:
             fail(f"the plan lasts beyond {MAX_PLAN_DURATION_S / 3600:g} h; split it into trials")
+    return _sampled_plan(b, segments, events, overlays, lim)
 
+
+def _check_limits(spec: PlanSpec, lim: RigLimits) -> None:
+    """The log rates divide the loop rate; the rig's initial position is inside its stroke."""
+    for what, rate in spec.log_rates_hz:
+        _check_rate(lim, rate, what)
+    if not lim.stroke_min_um <= lim.initial_position_um <= lim.stroke_max_um:
+        raise PlanError(f"the rig's initial position {lim.initial_position_um:g} µm is outside its stroke "
+                        f"[{lim.stroke_min_um:g}, {lim.stroke_max_um:g}] µm")
+
+
+def _with_approach(spec: PlanSpec, lim: RigLimits) -> list:
+    """The spec's segments, after an implicit move to ``start_position_um`` when it is not where the rig is."""
+    if spec.start_position_um is None or abs(spec.start_position_um - lim.initial_position_um) <= _EPS_UM:
+        return list(spec.segments)
+    speed = min(100.0, lim.max_speed_um_s)
+    return [Move(position_um=spec.start_position_um, speed_um_s=speed, label="approach start_position_um"),
+            *spec.segments]
+
+
+def _build_segment(b: "_Builder", seg, accel: float, index: int, events: list, overlays: list, fail,
+                   spec: PlanSpec, lim: RigLimits) -> None:
+    """Append one segment's phases (and overlays, events) to the builder."""
+    x_start = b.x
+    if isinstance(seg, RunIn):
+        b.move_to(x_start + seg.distance_um, seg.speed_um_s, accel)
+        b.move_to(x_start, seg.speed_um_s, accel)
+    elif isinstance(seg, Hold):
+        if b.v != 0:
+            b.ramp(0.0, accel)
+        b.cruise_time(seg.duration_s)
+    elif isinstance(seg, Move):
+        b.move_to(seg.position_um, seg.speed_um_s, accel)
+    elif isinstance(seg, SteppedPass):
+        _stepped_pass(b, seg, accel, index, events, fail)
+    elif isinstance(seg, VelocitySteps):
+        _velocity_steps(b, seg, accel, index, events, fail, spec)
+    elif isinstance(seg, SlideHoldSlide):
+        _slide_hold_slide(b, seg, accel, index, events, fail, spec)
+    elif isinstance(seg, (Square, SineSweep)):
+        _waveform(b, seg, accel, index, events, overlays, fail, spec, lim)
+    else:  # pragma: no cover - the segment union is closed
+        fail("unknown segment kind")
+
+
+def _segment_extent(b: "_Builder", row0: int, overlays: list) -> tuple[float, float, float]:
+    """Lowest and highest position (µm) and the largest speed (µm/s) of the phases from row ``row0``
+    on, the segment's ``overlays`` (square wave, sine sweep) included."""
+    rows = np.asarray(b.rows[row0:], dtype=float).reshape(-1, 5)
+    if rows.size:
+        x_ends = np.concatenate([rows[:, 2], rows[:, 2] + 0.5 * (rows[:, 3] + rows[:, 4]) * rows[:, 1]])
+        x_min, x_max = float(x_ends.min()), float(x_ends.max())
+        v_max = float(np.abs(rows[:, 3:5]).max())
+    else:
+        x_min = x_max = b.x
+        v_max = 0.0
+    for ov in overlays:
+        amp, base = ov[2].amplitude_um, ov[2].velocity_um_s
+        x_min, x_max = x_min - amp, x_max + amp
+        v_max = max(v_max, base + _overlay_peak_speed(ov))
+    return x_min, x_max, v_max
+
+
+def _sampled_plan(b: "_Builder", segments: list[dict], events: list[dict], overlays: list, lim: RigLimits) -> Plan:
+    """The reference at the loop rate from the builder's phases and the overlays; each segment's tick range."""
     phases = np.asarray(b.rows, dtype=float).reshape(-1, 5)
     n = int(math.floor(b.t * lim.loop_rate_hz + 1e-9)) + 1
     # one extra tick so the final rest position is in the reference

@@ -15,12 +15,12 @@ finished with what was logged and marked ``interrupted``).
 from __future__ import annotations
 
 import datetime
-import math
 import signal
 import sys
 import threading
 import time
 import uuid
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Optional
 
@@ -243,56 +243,80 @@ def _load_friction_model(path: Path):
         fail(f"--friction-model: {exc}")
 
 
+# the options of `rig run` (module level: the command's signature stays one line a parameter)
+_RUN_RECIPE_PATH = typer.Argument(..., help="Recipe YAML (config/recipes/*.yaml).", show_default=False,
+                                metavar="RECIPE")
+_RUN_SIM = typer.Option(False, "--sim", help="Run on the simulated rig (rig.session.sim.SimBackend).")
+_RUN_HARDWARE = typer.Option(None, "--hardware", metavar="PROFILE",
+                             help="Run on the real rig described by this hardware profile YAML "
+                                  "(rig.session.hardware.HardwareBackend).")
+_RUN_LUBRICANT = typer.Option(None, "--lubricant", metavar="NAME",
+                              help="Override the recipe's lubricant: a name the profile maps to a "
+                                   "friction model (dry, paraffin, boundary; its lubricant_map).")
+_RUN_OUT = typer.Option(None, "--out", "-o", metavar="PATH",
+                        help="MCAP file to write (default: a new out/<recipe name>/<UTC start>-"
+                             "<trial id>.mcap per trial); with trials > 1 the files are numbered "
+                             "NAME-01.mcap, NAME-02.mcap, ... An existing file is exit 2.")
+_RUN_OVERWRITE = typer.Option(False, "--overwrite", help="Replace an existing --out file (a trial log is "
+                                                         "never overwritten otherwise).")
+_RUN_SPECIMEN = typer.Option(None, "--specimen", metavar="ID", help="The test piece (specimen) "
+                                                                   "of this trial; overrides the recipe's metadata.")
+_RUN_OPERATOR = typer.Option(None, "--operator", metavar="NAME", help="Who ran the trial.")
+_RUN_NOTE = typer.Option(None, "--note", metavar="TEXT", help="A note for the trial record.")
+_RUN_MD = typer.Option(None, "--md", metavar="KEY=VALUE", help="Any metadata of the lab "
+                                                              "(repeatable); overrides the recipe's metadata block.")
+_RUN_ALLOW_EXPIRED_CALIBRATION = typer.Option(False, "--allow-expired-calibration",
+                                              help="--hardware: run although a calibration is past its "
+                                                   "due date or a shunt check drifted (logged as an event).")
+_RUN_PROFILE_PATH = typer.Option(None, "--profile", metavar="PROFILE",
+                                 help="Rig profile YAML for --sim (default: the recipe's "
+                                      "'profile', else config/rigs/sim.yaml).")
+_RUN_FRICTION_MODEL = typer.Option(None, "--friction-model", metavar="MODEL.yaml",
+                                   help="Friction model YAML (e.g. from `rig diagnose "
+                                        "--model-out`) replacing the profile's lubricant model.")
+_RUN_SEED = typer.Option(None, "--seed", min=0, max=2**32 - 1001, metavar="N",
+                         help="Random seed, 0 or more (default: the recipe's); trial k of "
+                              "several uses seed + k - 1.")
+_RUN_QUIET = typer.Option(False, "--quiet", "-q", help="No progress bar.")
+_RUN_PLAN_ONLY = typer.Option(False, "--plan-only", help="Validate and compile the plan, print its "
+                                                         "segment table, run nothing.")
+_RUN_LIVE = typer.Option(False, "--live", help="Serve the running trial to Foxglove (Open connection -> "
+                                               "Foxglove WebSocket -> ws://127.0.0.1:8765): /log25, /events, "
+                                               "/loop_stats, as in the MCAP (rig.log.live).")
+_RUN_LIVE_PORT = typer.Option(8765, "--live-port", min=0, max=65535, metavar="N",
+                              help="Port of the --live WebSocket server (0: any free port).")
+_RUN_LIVE_HOST = typer.Option("127.0.0.1", "--live-host", metavar="HOST",
+                              help="Address the --live server binds to (0.0.0.0: every interface; the "
+                                   "view has no authentication).")
+_RUN_PACE = typer.Option(None, "--pace", metavar="X",
+                         help="--sim: trial seconds per wall second (1 = real time, 10 = 10x, "
+                              "0 = as fast as possible). Default: 1 with --live, else 0.")
+_RUN_YES = typer.Option(False, "--yes", "-y", help="Start a trial whose log is estimated past "
+                                                   f"{LOG_SIZE_ASK_BYTES / 1e6:.0f} MB without asking.")
+
+
 def run_command(
-    recipe_path: Path = typer.Argument(..., help="Recipe YAML (config/recipes/*.yaml).", show_default=False,
-                                     metavar="RECIPE"),
-    sim: bool = typer.Option(False, "--sim", help="Run on the simulated rig (rig.session.sim.SimBackend)."),
-    hardware: Optional[Path] = typer.Option(None, "--hardware", metavar="PROFILE",
-                                            help="Run on the real rig described by this hardware profile YAML "
-                                                 "(rig.session.hardware.HardwareBackend)."),
-    lubricant: Optional[str] = typer.Option(None, "--lubricant", metavar="NAME",
-                                            help="Override the recipe's lubricant: a name the profile maps to a "
-                                                 "friction model (dry, paraffin, boundary; its lubricant_map)."),
-    out: Optional[Path] = typer.Option(None, "--out", "-o", metavar="PATH",
-                                       help="MCAP file to write (default: a new out/<recipe name>/<UTC start>-"
-                                            "<trial id>.mcap per trial); with trials > 1 the files are numbered "
-                                            "NAME-01.mcap, NAME-02.mcap, ... An existing file is exit 2."),
-    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --out file (a trial log is "
-                                                              "never overwritten otherwise)."),
-    specimen: Optional[str] = typer.Option(None, "--specimen", metavar="ID", help="The test piece (specimen) "
-                                           "of this trial; overrides the recipe's metadata."),
-    operator: Optional[str] = typer.Option(None, "--operator", metavar="NAME", help="Who ran the trial."),
-    note: Optional[str] = typer.Option(None, "--note", metavar="TEXT", help="A note for the trial record."),
-    md: Optional[list[str]] = typer.Option(None, "--md", metavar="KEY=VALUE", help="Any metadata of the lab "
-                                           "(repeatable); overrides the recipe's metadata block."),
-    allow_expired_calibration: bool = typer.Option(False, "--allow-expired-calibration",
-                                                   help="--hardware: run although a calibration is past its "
-                                                        "due date or a shunt check drifted (logged as an event)."),
-    profile_path: Optional[Path] = typer.Option(None, "--profile", metavar="PROFILE",
-                                                help="Rig profile YAML for --sim (default: the recipe's "
-                                                     "'profile', else config/rigs/sim.yaml)."),
-    friction_model: Optional[Path] = typer.Option(None, "--friction-model", metavar="MODEL.yaml",
-                                                  help="Friction model YAML (e.g. from `rig diagnose "
-                                                       "--model-out`) replacing the profile's lubricant model."),
-    seed: Optional[int] = typer.Option(None, "--seed", min=0, max=2**32 - 1001, metavar="N",
-                                       help="Random seed, 0 or more (default: the recipe's); trial k of "
-                                            "several uses seed + k - 1."),
-    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
-    plan_only: bool = typer.Option(False, "--plan-only", help="Validate and compile the plan, print its "
-                                                              "segment table, run nothing."),
-    live: bool = typer.Option(False, "--live", help="Serve the running trial to Foxglove (Open connection -> "
-                                                    "Foxglove WebSocket -> ws://127.0.0.1:8765): /log25, /events, "
-                                                    "/loop_stats, as in the MCAP (rig.log.live)."),
-    live_port: int = typer.Option(8765, "--live-port", min=0, max=65535, metavar="N",
-                                  help="Port of the --live WebSocket server (0: any free port)."),
-    live_host: str = typer.Option("127.0.0.1", "--live-host", metavar="HOST",
-                                  help="Address the --live server binds to (0.0.0.0: every interface; the "
-                                       "view has no authentication)."),
-    pace: Optional[float] = typer.Option(None, "--pace", metavar="X",
-                                         help="--sim: trial seconds per wall second (1 = real time, 10 = 10x, "
-                                              "0 = as fast as possible). Default: 1 with --live, else 0."),
-    yes: bool = typer.Option(False, "--yes", "-y", help="Start a trial whose log is estimated past "
-                                                        f"{LOG_SIZE_ASK_BYTES / 1e6:.0f} MB without asking."),
+    recipe_path: Path = _RUN_RECIPE_PATH,
+    sim: bool = _RUN_SIM,
+    hardware: Optional[Path] = _RUN_HARDWARE,
+    lubricant: Optional[str] = _RUN_LUBRICANT,
+    out: Optional[Path] = _RUN_OUT,
+    overwrite: bool = _RUN_OVERWRITE,
+    specimen: Optional[str] = _RUN_SPECIMEN,
+    operator: Optional[str] = _RUN_OPERATOR,
+    note: Optional[str] = _RUN_NOTE,
+    md: Optional[list[str]] = _RUN_MD,
+    allow_expired_calibration: bool = _RUN_ALLOW_EXPIRED_CALIBRATION,
+    profile_path: Optional[Path] = _RUN_PROFILE_PATH,
+    friction_model: Optional[Path] = _RUN_FRICTION_MODEL,
+    seed: Optional[int] = _RUN_SEED,
+    quiet: bool = _RUN_QUIET,
+    plan_only: bool = _RUN_PLAN_ONLY,
+    live: bool = _RUN_LIVE,
+    live_port: int = _RUN_LIVE_PORT,
+    live_host: str = _RUN_LIVE_HOST,
+    pace: Optional[float] = _RUN_PACE,
+    yes: bool = _RUN_YES,
 ):
     """Run a trial recipe on the simulated (--sim) or real (--hardware PROFILE) rig; log it to MCAP.
 
@@ -305,34 +329,121 @@ def run_command(
 
     Exit status: 0 done; 2 bad input (nothing written); 1 failure while running; 130 interrupted.
     """
-    from rig.config.recipe import RecipeError, compile_recipe, load_recipe
-    from trajectories import PlanError
+    pace = _check_flags(sim, hardware, pace, live, out, plan_only)
+    inp = _resolve_inputs(recipe_path, lubricant, hardware, profile_path, friction_model,
+                          _metadata_flags(specimen, operator, note, md or []), plan_only)
+    if plan_only:
+        _print_plan(inp)
+        return
+    hw = _hardware_config(inp)
+    paths = _output_paths(out, overwrite, inp.recipe.trials)
+    calib_events = _check_calibration(hw, allow_expired_calibration) if hw is not None else []
+    view = _start_live(inp, live, live_host, live_port, pace) if live else None
+    base_seed = inp.recipe.seed if seed is None else seed
+    if base_seed + len(paths) - 1 > 2**32 - 1:
+        fail(f"--seed {seed}: seed + trials - 1 must stay below 2**32")
+    _check_size(estimate_log(inp.plan, inp.recipe, hw is not None), len(paths),
+                out or Path("out") / inp.recipe.name / "x.mcap", yes, hw is not None)
+    _run_trials(inp, hw, paths, base_seed, calib_events, view, overwrite=overwrite, quiet=quiet, pace=pace,
+                allow_expired_calibration=allow_expired_calibration)
 
+
+def _run_trials(inp: "_Inputs", hw, paths: list, base_seed: int, calib_events: list, view, *, overwrite: bool,
+                quiet: bool, pace: float, allow_expired_calibration: bool) -> None:
+    """Every trial of the recipe, one log each (trial k: seed + k - 1); a signal between two trials
+    starts no further one; the emulated devices (--hardware) are new for every trial."""
+    from rig.session.logfile import git_describe
+
+    git_commit = git_describe()
+    with _SignalNote() as sig_note, _Emulators() as emulators:
+        for k, path in enumerate(paths):
+            if sig_note.caught:
+                err_console.print(f"interrupted ({sig_note.caught[0]}) before trial {k + 1}: not started",
+                                  markup=False)
+                raise typer.Exit(EXIT_INTERRUPTED)
+            trial_seed = base_seed + k
+            uid = str(uuid.uuid4())
+            path = path or default_trial_path(inp.recipe.name, uid)
+            meta = _trial_metadata(inp, hw, uid=uid, seed=trial_seed, k=k, n=len(paths), git_commit=git_commit)
+            emulators.stop()
+            events = list(calib_events)
+            emu = None
+            if hw is not None:
+                # the emulated devices are started here (not by the backend) so that the shunt check of the
+                # load cells runs against them before anything moves
+                emu = emulators.start(hw, inp.profile, lubricant=inp.recipe.lubricant if inp.lub_key else None,
+                                      normal_force_N=inp.recipe.normal_force_N, seed=trial_seed)
+                if k == 0:
+                    calib_events = events = events + _check_shunt(emu.hw if emu is not None else hw,
+                                                                  allow_expired_calibration)
+            backend = _make_backend(inp, hw, emu, trial_seed, k, pace)
+            title = f"trial {k + 1}/{len(paths)} " if len(paths) > 1 else ""
+            if overwrite and (path.exists() or path.is_symlink()):  # only now: every check before has passed
+                try:
+                    path.unlink()
+                except OSError as exc:
+                    fail(f"--overwrite: cannot remove {path}: {exc.strerror or exc}", EXIT_FAILURE)
+            result = _run_one(inp, path, backend, meta, title, quiet, trial_seed, _on_open(view, events))
+            _report(result, path, k, sig_note)
+
+
+@dataclass
+class _Inputs:
+    """What `rig run` resolved from its arguments before anything moves."""
+
+    recipe: Any                 # the recipe, with --lubricant applied
+    recipe_path: Path
+    profile: Any                # the rig profile, and its path
+    ppath: Path
+    fm: Any                     # the friction model of --friction-model (None: the profile's), its path
+    fm_path: Path | None
+    lub_key: str | None         # the profile's key of the recipe's lubricant (None: not mapped)
+    plan: Any                   # the compiled plan
+    trial_md: dict              # the trial's metadata: the recipe's, then the flags'
+    hardware: Path | None       # --hardware's profile (None: --sim)
+
+
+def _check_flags(sim: bool, hardware: Path | None, pace: float | None, live: bool, out: Path | None,
+                 plan_only: bool) -> float:
+    """The flags that need no file: exit 2 naming the flag. Returns the pace (default: 1 with --live)."""
     if sim == (hardware is not None) and not plan_only:
         fail("choose exactly one of --sim or --hardware PROFILE")
     if pace is not None and not (pace >= 0 and pace < float("inf")):
         fail(f"--pace {pace:g}: expected a number >= 0 (1 = real time, 0 = as fast as possible)")
     if hardware is not None and pace not in (None, 1.0):
         fail(f"--pace {pace:g}: the hardware runs in real time (--pace is for --sim)")
-    if pace is None:
-        pace = 1.0 if live else 0.0
     if out is not None:
         check_output_path(out, "--out", (".mcap",))
-    flags_md = _metadata_flags(specimen, operator, note, md or [])
+    return (1.0 if live else 0.0) if pace is None else pace
+
+
+def _load_recipe(recipe_path: Path, lubricant: str | None):
+    """The recipe, on ``--lubricant`` when given (its wording follows: :meth:`Recipe.with_lubricant`)."""
+    from rig.config.recipe import RecipeError, load_recipe
+
     try:
         recipe = load_recipe(recipe_path)
     except RecipeError as exc:
         fail(str(exc))
-    if lubricant is not None:
-        try:
-            recipe.lubricant = lubricant
-        except ValueError:
-            fail(f"--lubricant {lubricant!r}: expected a lubricant name (one line of printable text, "
-                 "up to 100 characters)")
-    trial_md = {**recipe.metadata, **flags_md}
+    if lubricant is None:
+        return recipe
+    try:
+        return recipe.with_lubricant(lubricant)
+    except ValueError:
+        fail(f"--lubricant {lubricant!r}: expected a lubricant name (one line of printable text, "
+             "up to 100 characters)")
 
+
+def _resolve_inputs(recipe_path: Path, lubricant: str | None, hardware: Path | None, profile_path: Path | None,
+                    friction_model: Path | None, flags_md: dict, plan_only: bool) -> _Inputs:
+    """Recipe, profile, required metadata, friction model and the compiled plan: every check before
+    anything moves (exit 2 naming the file and what is wrong)."""
     from rig.config.profile import ProfileError, default_profile_path, load_profile
+    from rig.config.recipe import compile_recipe
+    from trajectories import PlanError
 
+    recipe = _load_recipe(recipe_path, lubricant)
+    trial_md = {**recipe.metadata, **flags_md}
     ppath = hardware if hardware is not None else (profile_path or recipe.profile_path() or default_profile_path())
     try:
         profile = load_profile(ppath)
@@ -365,129 +476,132 @@ def run_command(
             note_ff = "; friction feed-forward off"
         warn(f"lubricant {recipe.lubricant!r} is not mapped to a friction model in {ppath}: run-ups sized for the "
              f"longest slip length the profile knows{note_ff}")
-    if plan_only:
-        typer.echo(plan.summary())
-        est = estimate_log(plan, recipe, hardware is not None)
-        typer.echo(f"estimate: about {est['log_bytes'] * recipe.trials / 1e6:,.1f} MB of log for "
-                   f"{recipe.trials} trial(s) of {_human_s(est['duration_s'])}"
-                   + ("" if hardware is not None else f"; about {_human_s(est['wall_s'])} each on the simulated rig"))
-        return
-    if hardware is not None:
-        from drivers.config import HardwareConfigError, hardware_of_profile
-        from rig.session.hardware import HardwareBackend
+    return _Inputs(recipe=recipe, recipe_path=recipe_path, profile=profile, ppath=ppath, fm=fm,
+                   fm_path=friction_model, lub_key=lub_key, plan=plan, trial_md=trial_md, hardware=hardware)
 
-        try:
-            hw = hardware_of_profile(profile, where=str(hardware))
-        except HardwareConfigError as exc:
-            fail(str(exc))
 
-    from rig.session.logfile import git_describe, run_to_log
+def _print_plan(inp: _Inputs) -> None:
+    """--plan-only: the segment table and the log's estimate."""
+    typer.echo(inp.plan.summary())
+    hardware = inp.hardware is not None
+    est = estimate_log(inp.plan, inp.recipe, hardware)
+    typer.echo(f"estimate: about {est['log_bytes'] * inp.recipe.trials / 1e6:,.1f} MB of log for "
+               f"{inp.recipe.trials} trial(s) of {_human_s(est['duration_s'])}"
+               + ("" if hardware else f"; about {_human_s(est['wall_s'])} each on the simulated rig"))
+
+
+def _hardware_config(inp: _Inputs):
+    """The profile's typed hardware section for --hardware (exit 2 naming the field), None for --sim."""
+    if inp.hardware is None:
+        return None
+    from drivers.config import HardwareConfigError, hardware_of_profile
+
+    try:
+        return hardware_of_profile(inp.profile, where=str(inp.hardware))
+    except HardwareConfigError as exc:
+        fail(str(exc))
+
+
+def _output_paths(out: Path | None, overwrite: bool, trials: int) -> list[Path | None]:
+    """One log path per trial (None: the default, new per trial); an existing --out is exit 2 unless
+    --overwrite."""
+    if out is None:
+        return [None] * trials
+    paths: list[Path | None] = _trial_paths(out, trials)
+    taken = [p for p in paths if p.exists() or p.is_symlink()]
+    if taken and not overwrite:
+        fail(f"--out {taken[0]}: exists; a trial log is never overwritten (--overwrite replaces it, or give "
+             "another name; without --out each trial gets a new file)")
+    return paths
+
+
+def _start_live(inp: _Inputs, live: bool, host: str, port: int, pace: float):
+    """--live: the Foxglove view, closed when the command ends (a port in use: exit 1)."""
+    from rig.log.live import LiveView, LiveViewError
+
+    try:
+        view = LiveView(host, port, name=f"rig run {inp.recipe.name}")
+    except LiveViewError as exc:
+        fail(f"--live: {exc}", EXIT_FAILURE)
+    pace_txt = "" if inp.hardware is not None else (f", pace {pace:g}x" if pace > 0 else ", unpaced")
+    err_console.print(f"live view: {view.url} (Foxglove: Open connection -> Foxglove WebSocket; "
+                      f"layout config/foxglove/rig-trial.json{pace_txt})", highlight=False, markup=False)
+    _close_at_exit(view)
+    return view
+
+
+def _trial_metadata(inp: _Inputs, hw, *, uid: str, seed: int, k: int, n: int, git_commit: str) -> dict:
+    """The trial record's metadata (docs/trial.md): who and what, the recipe, profile, model, seed."""
+    recipe = inp.recipe
+    meta = {"trial_uid": uid, "recipe": recipe.name, "recipe_file": str(inp.recipe_path),
+            "lubricant": recipe.lubricant, "normal_force_N": recipe.normal_force_N, "seed": seed, "trial": k + 1,
+            "trials": n, "profile": str(inp.ppath), "profile_name": inp.profile.name,
+            "backend": "hardware" if hw is not None else "sim",
+            "friction_model": str(inp.fm_path) if inp.fm_path else f"profile:{recipe.lubricant}",
+            "plan_duration_s": inp.plan.duration_s, "git_commit": git_commit}
+    if inp.fm is not None:
+        meta["friction_model_json"] = inp.fm.model_dump_json()
+    if inp.lub_key is not None and inp.lub_key != recipe.lubricant:
+        meta["lubricant_model"] = inp.lub_key
+    meta.update(inp.trial_md)
+    if hw is not None:
+        meta["calibration"] = calibration_snapshot(hw)
+    return meta
+
+
+def _make_backend(inp: _Inputs, hw, emu, seed: int, k: int, pace: float):
+    """The trial's backend: the hardware's (``hw``, the emulated devices ``emu``) or the simulated rig's."""
+    from rig.session.hardware import HardwareBackend
     from rig.session.sim import SimBackend
 
-    if out is not None:
-        paths: list[Path | None] = _trial_paths(out, recipe.trials)
-        taken = [p for p in paths if p.exists() or p.is_symlink()]
-        if taken and not overwrite:
-            fail(f"--out {taken[0]}: exists; a trial log is never overwritten (--overwrite replaces it, or give "
-                 "another name; without --out each trial gets a new file)")
-    else:
-        paths = [None] * recipe.trials
-    calib_events = _check_calibration(hw, allow_expired_calibration) if hardware is not None else []
-    view = None
-    if live:
-        from rig.log.live import LiveView, LiveViewError
+    recipe = inp.recipe
+    try:
+        if hw is not None:
+            return HardwareBackend(hw, inp.profile, lubricant=recipe.lubricant if inp.lub_key else None,
+                                   normal_force_N=recipe.normal_force_N, seed=seed, emulator=emu)
+        model = inp.fm if inp.fm is not None else inp.profile.friction_model(recipe.lubricant)
+        block_ticks = max(1, int(round(recipe.log.block_s * inp.plan.loop_rate_hz)))
+        return SimBackend(inp.profile, model, recipe.normal_force_N, seed, block_ticks=block_ticks, pace=pace)
+    except ValueError as exc:  # e.g. a seed numpy cannot take: bad input, nothing written yet
+        fail(f"{inp.recipe_path}: trial {k + 1} (seed {seed}): {exc}")
 
-        try:
-            view = LiveView(live_host, live_port, name=f"rig run {recipe.name}")
-        except LiveViewError as exc:
-            fail(f"--live: {exc}", EXIT_FAILURE)
-        pace_txt = "" if hardware is not None else (f", pace {pace:g}x" if pace > 0 else ", unpaced")
-        err_console.print(f"live view: {view.url} (Foxglove: Open connection -> Foxglove WebSocket; "
-                          f"layout config/foxglove/rig-trial.json{pace_txt})", highlight=False, markup=False)
-        _close_at_exit(view)
-    base_seed = recipe.seed if seed is None else seed
-    if base_seed + len(paths) - 1 > 2**32 - 1:
-        fail(f"--seed {seed}: seed + trials - 1 must stay below 2**32")
-    _check_size(estimate_log(plan, recipe, hardware is not None), len(paths),
-                out or Path("out") / recipe.name / "x.mcap", yes, hardware is not None)
-    git_commit = git_describe()
-    block_ticks = max(1, int(round(recipe.log.block_s * plan.loop_rate_hz)))
-    with _SignalNote() as note, _Emulators() as emulators:
-        for k, path in enumerate(paths):
-            if note.caught:
-                err_console.print(f"interrupted ({note.caught[0]}) before trial {k + 1}: not started",
-                                  markup=False)
-                raise typer.Exit(EXIT_INTERRUPTED)
-            trial_seed = base_seed + k
-            uid = str(uuid.uuid4())
-            if path is None:
-                path = default_trial_path(recipe.name, uid)
-            meta = {"trial_uid": uid, "recipe": recipe.name, "recipe_file": str(recipe_path), "lubricant": recipe.lubricant,
-                    "normal_force_N": recipe.normal_force_N, "seed": trial_seed, "trial": k + 1,
-                    "trials": len(paths), "profile": str(ppath), "profile_name": profile.name,
-                    "backend": "hardware" if hardware is not None else "sim",
-                    "friction_model": str(friction_model) if friction_model else f"profile:{recipe.lubricant}",
-                    "plan_duration_s": plan.duration_s, "git_commit": git_commit}
-            if fm is not None:
-                meta["friction_model_json"] = fm.model_dump_json()
-            if lub_key is not None and lub_key != recipe.lubricant:
-                meta["lubricant_model"] = lub_key
-            meta.update(trial_md)
-            if hardware is not None:
-                meta["calibration"] = calibration_snapshot(hw)
-            emulators.stop()
-            events = list(calib_events)
-            if hardware is not None:
-                # the emulated devices are started here (not by the backend) so that the shunt check of the
-                # load cells runs against them before anything moves
-                emu = emulators.start(hw, profile, lubricant=recipe.lubricant if lub_key else None,
-                                      normal_force_N=recipe.normal_force_N, seed=trial_seed)
-                if k == 0:
-                    calib_events = events = events + _check_shunt(emu.hw if emu is not None else hw,
-                                                                  allow_expired_calibration)
-            try:
-                if hardware is not None:
-                    backend = HardwareBackend(hw, profile, lubricant=recipe.lubricant if lub_key else None,
-                                              normal_force_N=recipe.normal_force_N, seed=trial_seed, emulator=emu)
-                else:
-                    backend = SimBackend(profile, fm if fm is not None else profile.friction_model(recipe.lubricant),
-                                         recipe.normal_force_N, trial_seed, block_ticks=block_ticks, pace=pace)
-            except ValueError as exc:  # e.g. a seed numpy cannot take: bad input, nothing written yet
-                fail(f"{recipe_path}: trial {k + 1} (seed {trial_seed}): {exc}")
-            title = f"trial {k + 1}/{len(paths)} " if len(paths) > 1 else ""
-            if overwrite and (path.exists() or path.is_symlink()):  # only now: every check before has passed
-                try:
-                    path.unlink()
-                except OSError as exc:
-                    fail(f"--overwrite: cannot remove {path}: {exc.strerror or exc}", EXIT_FAILURE)
-            try:
-                with TrialProgress(plan, title=title, enabled=not quiet) as prog:
-                    result = run_to_log(path, plan, recipe, profile, backend, meta, progress=prog,
-                                        echo=lambda text: err_console.print(text, highlight=False, markup=False),
-                                        trial_fields={"normal_force_N": recipe.normal_force_N,
-                                                      "seed": trial_seed},
-                                        on_open=_on_open(view, events))
-            except FileExistsError:
-                fail(f"{path}: appeared while the trial was being prepared; a trial log is never overwritten",
-                     EXIT_FAILURE)
-            except OSError as exc:
-                fail(f"cannot write {path}: {exc.strerror or exc}", EXIT_FAILURE)
-            if result.close_error:
-                fail(f"cannot finish {path}: {result.close_error}; `rig recover {path} --out FIXED.mcap` keeps "
-                     f"what reached the disk", EXIT_FAILURE)
-            if result.status == "failed":
-                err_console.print(f"[bold red]error:[/] trial {k + 1} failed: {result.reason}", highlight=False)
-            console.print(_summary_table(result, path))
-            if result.status == "interrupted":
-                err_console.print(f"interrupted: {path} holds what was logged (status 'interrupted')",
-                                  markup=False)
-                raise typer.Exit(EXIT_INTERRUPTED)
-            if result.status == "failed":
-                raise typer.Exit(EXIT_FAILURE)
-            if note.caught:  # arrived while the log was being opened or finished: the trial itself completed
-                err_console.print(f"interrupted ({note.caught[0]}) while {path} was being finished: it holds the "
-                                  "complete trial (status 'completed'); no further trial started", markup=False)
-                raise typer.Exit(EXIT_INTERRUPTED)
+
+def _run_one(inp: _Inputs, path: Path, backend, meta: dict, title: str, quiet: bool, seed: int, on_open):
+    """One trial into ``path`` with the progress bar; a log that cannot be written or finished is exit 1."""
+    from rig.session.logfile import run_to_log
+
+    try:
+        with TrialProgress(inp.plan, title=title, enabled=not quiet) as prog:
+            result = run_to_log(path, inp.plan, inp.recipe, inp.profile, backend, meta, progress=prog,
+                                echo=lambda text: err_console.print(text, highlight=False, markup=False),
+                                trial_fields={"normal_force_N": inp.recipe.normal_force_N, "seed": seed},
+                                on_open=on_open)
+    except FileExistsError:
+        fail(f"{path}: appeared while the trial was being prepared; a trial log is never overwritten",
+             EXIT_FAILURE)
+    except OSError as exc:
+        fail(f"cannot write {path}: {exc.strerror or exc}", EXIT_FAILURE)
+    if result.close_error:
+        fail(f"cannot finish {path}: {result.close_error}; `rig recover {path} --out FIXED.mcap` keeps "
+             f"what reached the disk", EXIT_FAILURE)
+    return result
+
+
+def _report(result, path: Path, k: int, sig_note: "_SignalNote") -> None:
+    """The trial's summary table; a failed trial is exit 1, an interrupted one (or a signal while its log
+    was finished) exit 130."""
+    if result.status == "failed":
+        err_console.print(f"[bold red]error:[/] trial {k + 1} failed: {result.reason}", highlight=False)
+    console.print(_summary_table(result, path))
+    if result.status == "interrupted":
+        err_console.print(f"interrupted: {path} holds what was logged (status 'interrupted')", markup=False)
+        raise typer.Exit(EXIT_INTERRUPTED)
+    if result.status == "failed":
+        raise typer.Exit(EXIT_FAILURE)
+    if sig_note.caught:  # arrived while the log was being opened or finished: the trial itself completed
+        err_console.print(f"interrupted ({sig_note.caught[0]}) while {path} was being finished: it holds the "
+                          "complete trial (status 'completed'); no further trial started", markup=False)
+        raise typer.Exit(EXIT_INTERRUPTED)
 
 
 def default_trial_path(recipe_name: str, uid: str, when: datetime.datetime | None = None) -> Path:

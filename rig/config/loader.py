@@ -27,8 +27,11 @@ file) and deep-merges this file over it: mappings merge key by key, anything els
 from __future__ import annotations
 
 import json
+import difflib
 import os
 import re
+import types
+import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
@@ -346,13 +349,65 @@ def _clean_loc(data: Any, loc: Loc, missing: bool) -> Loc:
     return tuple(out)
 
 
-def _describe(err: dict) -> str:
+def _members(t: Any) -> list:
+    """The types a field annotation can hold: Annotated and Optional/Union unwrapped."""
+    origin = typing.get_origin(t)
+    if origin is typing.Annotated:
+        return _members(typing.get_args(t)[0])
+    if origin in (typing.Union, types.UnionType):
+        return [m for a in typing.get_args(t) for m in _members(a)]
+    return [t]
+
+
+def _step(t: Any, part: Any) -> list:
+    """The types one part of a pydantic error's ``loc`` leads to from type ``t``: a model's field, a
+    list's item, a mapping's value, or (a union tag) the member whose ``kind`` is that tag."""
+    out = []
+    for m in _members(t):
+        origin, args = typing.get_origin(m), typing.get_args(m)
+        if isinstance(m, type) and issubclass(m, BaseModel):
+            if isinstance(part, str) and part in m.model_fields:
+                out.append(m.model_fields[part].annotation)
+            kind = m.model_fields.get("kind")
+            if kind is not None and part in typing.get_args(kind.annotation):
+                out.append(m)
+        elif origin in (list, tuple) and isinstance(part, int) and args:
+            out.append(args[0])
+        elif origin is dict and isinstance(part, str) and len(args) == 2:
+            out.append(args[1])
+    return out
+
+
+def _known_fields(model: type[BaseModel], loc: Loc) -> list[str]:
+    """The field names of the model that the pydantic error location ``loc`` (its last part, the
+    unknown key, left out) points into; [] when it cannot be told."""
+    types_ = [model]
+    for part in loc[:-1]:
+        types_ = [n for t in types_ for n in _step(t, part)]
+    for t in types_:
+        for m in _members(t):
+            if isinstance(m, type) and issubclass(m, BaseModel):
+                return list(m.model_fields)
+    return []
+
+
+def _did_you_mean(word: Any, choices) -> str:
+    """``; did you mean 'x'?`` for the closest of ``choices`` to ``word`` (difflib), else ''."""
+    close = difflib.get_close_matches(str(word), [str(c) for c in choices], n=1, cutoff=0.6)
+    return f"; did you mean {close[0]!r}?" if close else ""
+
+
+def _describe(err: dict, model: type[BaseModel] | None = None) -> str:
     typ = err["type"]
     if typ == "missing":
         return "required field is missing"
     if typ == "extra_forbidden":
-        return "unknown field (check the spelling and the unit in the name)"
+        hint = _did_you_mean(err["loc"][-1], _known_fields(model, tuple(err["loc"]))) if model else ""
+        return "unknown field (check the spelling and the unit in the name)" + hint
     msg = err["msg"]
+    if typ == "union_tag_invalid":
+        ctx = err.get("ctx") or {}
+        msg += _did_you_mean(ctx.get("tag", ""), re.findall(r"'([^']*)'", str(ctx.get("expected_tags", ""))))
     if typ == "field_check":
         return msg
     if "input" in err and typ != "union_tag_invalid" and not isinstance(err["input"], (dict, list)):
@@ -384,12 +439,12 @@ def validate(model: type[M], doc: YamlDoc, *, root: Loc = (), error: type[Config
             return loc, doc.location(loc)
 
         loc, at = place(errors[0])
-        msg = _describe(errors[0])
+        msg = _describe(errors[0], model)
         if len(errors) > 1:
             others = []
             for e in errors[1:4]:
                 l2, at2 = place(e)
-                others.append(f"{fmt_loc(l2) or '<top level>'} (line {at2.line}): {_describe(e)}")
+                others.append(f"{fmt_loc(l2) or '<top level>'} (line {at2.line}): {_describe(e, model)}")
             msg += "; also: " + "; ".join(others)
             if len(errors) > 4:
                 msg += f"; and {len(errors) - 4} more"

@@ -16,8 +16,10 @@ Sections (docs/sim.md, docs/hardware.md):
   0.1 % of the PID output (section 3).
 * ``servovalve``, ``actuator``, ``fixture``, ``normal``, ``sensors``, ``stroke``: the
   plant (simulated by :mod:`rig.sim.plant`, documented in docs/sim.md).
-* ``lubricants``: per-lubricant friction parameters, Table 2 means for A, B, L; the paper
-  gives no ``mu0``, so the values here are assumptions. ``lubricant_map``: a lab's own
+* ``lubricants``: per-lubricant friction parameters. ``A_mu``, ``B_mu``, ``L_um`` left out of a
+  lubricant named as in Table 2 are Table 2's means, read by name from
+  :data:`rig.model.paper.TABLE2` (the one place Table 2 is written); the paper gives no
+  ``mu0``, so each profile states its own (an assumption). ``lubricant_map``: a lab's own
   lubricant names (a recipe's free ``lubricant``) mapped to one of ``lubricants``.
 * ``required_metadata``: keys every trial must record (e.g. ``[specimen, operator]``):
   ``rig run`` refuses, exit 2, before anything moves when one is missing.
@@ -33,10 +35,11 @@ import os
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 
 from drivers.config import HardwareConfig
 from rig.config.loader import ConfigError, StrictModel, expect_kind, field_error, read_yaml, validate
+from rig.model.paper import TABLE2, k_cr_eq13_N_per_um
 from rig.model.spec import FrictionModel
 from trajectories import DEFAULT_MAX_SPEED_UM_S, RigLimits
 
@@ -182,13 +185,26 @@ class LubricantParams(StrictModel):
     L_um: float = Field(gt=0, le=1e5, description="characteristic slip length (Table 2: 19-65 µm)")
 
 
+# mu0 at V0 = 1 µm/s of each Table 2 lubricant: assumed (the paper gives none)
+_DEFAULT_MU0 = {"dry": 0.15, "paraffin": 0.12, "boundary": 0.10}
+# paraffin's A: Table 2 has 0.0* ("less than the noise level of the load cell"); 2e-4 gives a
+# jump 2 N A ln 10 = 0.09 N, under the ±0.25 N noise, while A = 0 exactly leaves the interface
+# without a direct effect and the loop's noise then drives jerky micro-slip (docs/sim.md)
+_DEFAULT_OVERRIDES = {"paraffin": {"A_mu": 2e-4}}
+
+
+def table2_lubricant(name: str, entry: dict) -> dict:
+    """A profile's lubricant entry with the Table 2 means (``A_mu``, ``B_mu``, ``L_um``) it leaves
+    out filled in by name from :data:`rig.model.paper.TABLE2`; an entry of another name, or
+    not a mapping, is returned as it is (validation then names what is missing)."""
+    if name not in TABLE2 or not isinstance(entry, dict):
+        return entry
+    return {k: mean for k, (mean, _sd) in TABLE2[name].items() if k != "k_cr_kN_per_m"} | entry
+
+
 def _default_lubricants() -> dict[str, LubricantParams]:
-    return {
-        "dry": LubricantParams(mu0=0.15, A_mu=2.8e-3, B_mu=9.4e-3, L_um=64.7),
-        # Table 2: A = 0.0* (below the load-cell noise); 2e-4 keeps a direct effect (docs/sim.md)
-        "paraffin": LubricantParams(mu0=0.12, A_mu=2e-4, B_mu=11.1e-3, L_um=22.4),
-        "boundary": LubricantParams(mu0=0.10, A_mu=1.1e-3, B_mu=4.0e-3, L_um=19.2),
-    }
+    return {name: LubricantParams(**table2_lubricant(name, {"mu0": mu0} | _DEFAULT_OVERRIDES.get(name, {})))
+            for name, mu0 in _DEFAULT_MU0.items()}
 
 
 class SimConfig(StrictModel):
@@ -220,6 +236,13 @@ class RigProfile(StrictModel):
                                                                          "(e.g. specimen, operator)")
     sim: SimConfig = Field(default_factory=SimConfig)
     hardware: HardwareConfig | None = None
+
+    @field_validator("lubricants", mode="before")
+    @classmethod
+    def _table2_by_name(cls, value):
+        if not isinstance(value, dict):
+            return value
+        return {name: table2_lubricant(name, entry) for name, entry in value.items()}
 
     @model_validator(mode="after")
     def _cross_checks(self):
@@ -300,7 +323,7 @@ class RigProfile(StrictModel):
         """
         lp = self.lubricant_params(lubricant)
         n = self.normal.nominal_force_N * (2.0 if total else 1.0)
-        return (lp.B_mu - lp.A_mu) * n / lp.L_um
+        return k_cr_eq13_N_per_um(lp.A_mu, lp.B_mu, lp.L_um, n)
 
 
 def load_profile(path: str | os.PathLike) -> RigProfile:

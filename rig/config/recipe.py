@@ -43,6 +43,7 @@ for a rig profile.
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 from typing import Annotated, Literal, Union
 
@@ -348,6 +349,24 @@ class Recipe(StrictModel):
 
     def to_yaml(self) -> str:
         return yaml.safe_dump(self.model_dump(mode="json", exclude_none=True), sort_keys=False)
+
+    def with_lubricant(self, lubricant: str) -> "Recipe":
+        """A copy of this recipe on another lubricant (``rig run --lubricant``). The recipe's own
+        lubricant named as a word in its ``description`` or a segment's ``label`` (``boundary
+        steps``) becomes the lubricant actually used, so that the progress bar, the events and the
+        log's recipe say what runs. ValueError: not a lubricant name."""
+        out = self.model_copy(deep=True)
+        old = self.lubricant
+        out.lubricant = lubricant  # validated (validate_assignment)
+        if lubricant == old:
+            return out
+        word = re.compile(rf"(?<![\w-]){re.escape(old)}(?![\w-])")
+        if out.description:
+            out.description = word.sub(lubricant, out.description)
+        for seg in out.segments:
+            if seg.label:
+                seg.label = word.sub(lubricant, seg.label)
+        return out
 
 
 # ---------------------------------------------------------------------------

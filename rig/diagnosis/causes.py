@@ -28,6 +28,7 @@ from typing import Callable
 
 import numpy as np
 
+from rig.model.forward import cumulative_slip_um
 from rig.model.spec import EXT_PARAMS
 
 from .prep import Grid
@@ -40,9 +41,7 @@ MIN_OPPOSITE_STATE_RATIO = 3.0
 
 def slip_of(grid: Grid) -> np.ndarray:
     """Accumulated slip (µm) at every bin."""
-    s = np.zeros_like(grid.t)
-    s[1:] = np.cumsum(0.5 * np.abs(grid.v[1:] + grid.v[:-1]) * np.diff(grid.t))
-    return s
+    return cumulative_slip_um(grid.t, grid.v)
 
 
 def speeds(grid: Grid) -> tuple[float, float]:

@@ -38,6 +38,7 @@ from scipy.ndimage import minimum_filter1d, uniform_filter1d
 
 from rig.data import TrialData
 from rig.kinematics import edge_preserving_line
+from rig.model.forward import slip_increments_um
 
 KIN_DT_MIN_S = 0.01
 V_SLIDE_MIN_UM_S = 0.1
@@ -143,8 +144,7 @@ class Grid:
         """Longest slip-law state distance the record can tell from a drift: half its slip (µm).
         A state whose transient outlasts the record is a linear trend in slip (a one-state fit to
         the basalt record ran to L = 1e5 µm, B = -0.17: a drift, not a memory)."""
-        s = float(np.sum(0.5 * np.abs(self.v[1:] + self.v[:-1]) * np.diff(self.t)))
-        return 0.5 * s
+        return 0.5 * float(np.sum(slip_increments_um(self.t, self.v)))
 
     def holdout_mask(self) -> np.ndarray:
         return ((self.block % 2) == 1) & self.sliding

@@ -304,6 +304,8 @@ def _stop_process(proc, conn) -> None:
 # -- its own process -------------------------------------------------------------------
 
 def _emulator_main(hw_dict, profile, lubricant, normal_force_N, seed, conn, plant_kind):
+    """The emulator process: build and start the emulated rig, say ``ready`` (or ``error``), serve the
+    parent's requests between steps until ``stop``, SIGTERM or the parent's end."""
     import logging
     import sys
 
@@ -319,24 +321,8 @@ def _emulator_main(hw_dict, profile, lubricant, normal_force_N, seed, conn, plan
 
     signal.signal(signal.SIGTERM, _term)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    if hw.emulators.cpu is not None:  # before the Modbus server process is started: it inherits it
-        try:
-            os.sched_setaffinity(0, {hw.emulators.cpu})
-        except (OSError, AttributeError):
-            pass
     try:
-        if plant_kind == "integrator":
-            plant = IntegratorPlant()
-        else:
-            plant = sim_plant(profile, lubricant, normal_force_N, seed)
-            plant.plant_step(0.0)  # compile (numba) before serving
-        rig = EmulatedRig(hw, plant, 1.0 / _rate_of(profile), modbus_process=True)
-        if hw.emulators.sched_fifo:
-            try:
-                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(hw.emulators.priority))
-            except (OSError, AttributeError):
-                pass
-        rig.start()
+        rig = _start_emulated_rig(hw, profile, lubricant, normal_force_N, seed, plant_kind)
     except BaseException as exc:  # noqa: BLE001
         conn.send(("error", str(exc) if isinstance(exc, (EmulatorError, RuntimeError))
                    else f"{type(exc).__name__}: {exc}"))
@@ -354,30 +340,10 @@ def _emulator_main(hw_dict, profile, lubricant, normal_force_N, seed, conn, plan
             except EOFError:
                 stop["flag"] = True
                 return
-            op = req[0]
-            if op == "inject":
-                rig.inject(*req[1:])
-                conn.send(("ok", None))
-            elif op == "stats":
-                conn.send(("stats", {"steps": rig.steps, "lock_steps": rig.lock_steps,
-                                     "free_steps": rig.free_steps, "last": rig.last,
-                                     "valve_enabled": rig.valve.enabled,
-                                     "valve_output": rig.valve.spool,
-                                     "valve_watchdog": bool(rig.valve.latched & SW_WATCHDOG),
-                                     "valve": rig.valve.stats(), "t_valve_disabled": rig.t_disabled,
-                                     "n_setpoints": rig.valve.n_setpoints,
-                                     "modbus_requests": rig.modbus_requests(),
-                                     "lvdt_sent": rig.lvdt.sent, "max_gap_s": rig.max_gap_s,
-                                     "gaps_over_5ms": rig.gaps_over_5ms,
-                                     "lvdt_overflow": rig.lvdt.overflow,
-                                     "safety": rig.io.snapshot() if rig.io is not None else None}))
-            elif op == "reset":
-                x0, v0 = req[1], req[2]
-                rig.plant.reset(x0, v0)
-                rig.step(0.0)
-                conn.send(("ok", None))
-            elif op == "stop":
+            if req[0] == "stop":
                 stop["flag"] = True
+            else:
+                _serve_request(rig, req, conn)
 
     try:
         rig.run(should_stop=lambda: stop["flag"], on_idle=on_idle)
@@ -387,6 +353,55 @@ def _emulator_main(hw_dict, profile, lubricant, normal_force_N, seed, conn, plan
             conn.send(("stopped", None))
         except Exception:  # noqa: BLE001
             pass
+
+
+def _start_emulated_rig(hw, profile, lubricant, normal_force_N, seed, plant_kind) -> "EmulatedRig":
+    """The emulated rig on its CPU (``emulators.cpu``, inherited by the Modbus server process) and at
+    SCHED_FIFO when the profile asks (both best effort), its plant compiled, started."""
+    if hw.emulators.cpu is not None:  # before the Modbus server process is started: it inherits it
+        try:
+            os.sched_setaffinity(0, {hw.emulators.cpu})
+        except (OSError, AttributeError):
+            pass
+    if plant_kind == "integrator":
+        plant = IntegratorPlant()
+    else:
+        plant = sim_plant(profile, lubricant, normal_force_N, seed)
+        plant.plant_step(0.0)  # compile (numba) before serving
+    rig = EmulatedRig(hw, plant, 1.0 / _rate_of(profile), modbus_process=True)
+    if hw.emulators.sched_fifo:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(hw.emulators.priority))
+        except (OSError, AttributeError):
+            pass
+    rig.start()
+    return rig
+
+
+def _serve_request(rig: "EmulatedRig", req: tuple, conn) -> None:
+    """One request of the parent process: ``inject`` a fault, ``stats``, ``reset`` the plant."""
+    op = req[0]
+    if op == "inject":
+        rig.inject(*req[1:])
+        conn.send(("ok", None))
+    elif op == "stats":
+        conn.send(("stats", {"steps": rig.steps, "lock_steps": rig.lock_steps,
+                             "free_steps": rig.free_steps, "last": rig.last,
+                             "valve_enabled": rig.valve.enabled,
+                             "valve_output": rig.valve.spool,
+                             "valve_watchdog": bool(rig.valve.latched & SW_WATCHDOG),
+                             "valve": rig.valve.stats(), "t_valve_disabled": rig.t_disabled,
+                             "n_setpoints": rig.valve.n_setpoints,
+                             "modbus_requests": rig.modbus_requests(),
+                             "lvdt_sent": rig.lvdt.sent, "max_gap_s": rig.max_gap_s,
+                             "gaps_over_5ms": rig.gaps_over_5ms,
+                             "lvdt_overflow": rig.lvdt.overflow,
+                             "safety": rig.io.snapshot() if rig.io is not None else None}))
+    elif op == "reset":
+        x0, v0 = req[1], req[2]
+        rig.plant.reset(x0, v0)
+        rig.step(0.0)
+        conn.send(("ok", None))
 
 
 def _rate_of(profile) -> float:

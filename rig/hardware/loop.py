@@ -7,7 +7,7 @@ Dunlap 1995, section 3 and Fig. 4):
    request, the valve's status frames; :mod:`rig.hardware.devices`);
 2. **update**: the interlocks over the process values and each device's
    :class:`drivers.device.DeviceHealth`, then the controller
-   (:func:`rig.control.controller_step`: PID on x_ref - x + 500 Hz dither,
+   (:func:`rig.control.controller_step_v`: PID on x_ref - x + 500 Hz dither,
    command = demand / full-scale force);
 3. **write**: every device's ``write(now)`` (the valve's setpoint; its enable; the safety chain's
    amplifier enable and tick count);
@@ -55,6 +55,7 @@ from enum import Enum
 import numpy as np
 
 from drivers.config import parse_hardware
+from drivers.device import DitherChecked
 from drivers.errors import DeviceError
 from rig.control import apply_switches, controller_params_from_profile, controller_step_v, new_controller_state
 from rig.hardware.devices import build_devices, wait_for_data
@@ -150,7 +151,7 @@ def _device_counters(devices) -> dict:
         out[f"{d.name}_frames_bad"] = h.frames_bad
         out[f"{d.name}_frames_lost"] = h.frames_lost
         out[f"{d.name}_errors"] = h.errors
-        gain = getattr(d, "dither_gain_min", None)
+        gain = d.dither_gain_min if isinstance(d, DitherChecked) else None
         if gain is not None:
             out[f"{d.name}_dither_gain_min"] = gain  # the margin of the valve's dither check (trips < min)
     return out

@@ -1,7 +1,7 @@
 """Kinematics of a quantized, noisy LVDT position record (µm, s): two topics.
 
 * :mod:`rig.kinematics.velocity` - velocity estimators (the paper's, local polynomial,
-  slip-windowed), accumulated slip, velocity changes, the edge-preserving line.
+  slip-windowed), velocity changes, the edge-preserving line.
 * :mod:`rig.kinematics.steps` - velocity steps (from events or the data), the operator's
   pause intervals.
 
@@ -17,7 +17,6 @@ from rig.kinematics.steps import (
     pause_intervals,
 )
 from rig.kinematics.velocity import (
-    cumulative_slip_um,
     edge_preserving_line,
     estimate_velocity,
     median_dt,
@@ -29,6 +28,6 @@ from rig.kinematics.velocity import (
 
 __all__ = [
     "VELOCITY_KEYS", "Step", "clip_steps_to_pauses", "detect_steps", "line_fit", "pause_intervals",
-    "cumulative_slip_um", "edge_preserving_line", "estimate_velocity", "median_dt", "velocity_changes",
+    "edge_preserving_line", "estimate_velocity", "median_dt", "velocity_changes",
     "velocity_for_steps", "velocity_local_poly", "velocity_paper",
 ]

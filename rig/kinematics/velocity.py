@@ -169,15 +169,6 @@ def estimate_velocity(t_s: np.ndarray, x_um: np.ndarray, method: str = "local_po
     raise ValueError(f"unknown velocity method {method!r} (paper, local_poly)")
 
 
-def cumulative_slip_um(t_s: np.ndarray, v_um_s: np.ndarray) -> np.ndarray:
-    """Accumulated slip distance (µm), the trapezoidal integral of |v|."""
-    t = np.asarray(t_s, dtype=float)
-    v = np.abs(np.asarray(v_um_s, dtype=float))
-    out = np.zeros_like(t)
-    out[1:] = np.cumsum(0.5 * (v[1:] + v[:-1]) * np.diff(t))
-    return out
-
-
 def median_dt(t_s: np.ndarray) -> float:
     d = np.diff(np.asarray(t_s, dtype=float))
     return float(np.median(d)) if d.size else math.nan

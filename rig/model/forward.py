@@ -29,6 +29,23 @@ from rig.model.loading import D_STIFF, stiff_series, stiff_series_sens
 from rig.model.spec import FrictionModel
 
 
+def slip_increments_um(t_s: np.ndarray, v_um_s: np.ndarray) -> np.ndarray:
+    """The slip (µm) of each interval between samples: the trapezoidal integral of the speed |v|
+    point by point, so an interval with a reversal adds the distance slid both ways. The one slip
+    integral: :func:`cumulative_slip_um`, the forward model's memoryless laws, the diagnosis's
+    trends in slip and its state-length limit (the record's total, ``np.sum`` of these) use it."""
+    t = np.asarray(t_s, dtype=float)
+    speed = np.abs(np.asarray(v_um_s, dtype=float))
+    return 0.5 * (speed[1:] + speed[:-1]) * np.diff(t)
+
+
+def cumulative_slip_um(t_s: np.ndarray, v_um_s: np.ndarray) -> np.ndarray:
+    """Accumulated slip distance (µm) at every sample, from 0 (:func:`slip_increments_um`)."""
+    out = np.zeros(np.shape(t_s))
+    out[1:] = np.cumsum(slip_increments_um(t_s, v_um_s))
+    return out
+
+
 @njit(cache=True)
 def _memoryless_series(p, v, x, slip):
     """mu_ss(v) of a memoryless (steady_state) law with the periodic/wear terms via mu_of."""
@@ -83,8 +100,7 @@ def predict_force(model: FrictionModel, t_s: np.ndarray, x_um: np.ndarray, v_um_
     elif p[P_STATE_ON] > 0.5 or p[P_B2] != 0.0:
         F = mu_series(p, t, v_eff, x, float(v_init_um_s)) * nfac
     else:
-        slip = np.zeros_like(t)
-        slip[1:] = np.cumsum(0.5 * np.abs(v_eff[1:] + v_eff[:-1]) * np.diff(t))
+        slip = cumulative_slip_um(t, v_eff)
         F = _memoryless_series(p, np.maximum(v_eff, 1e-6) if np.all(v_eff > -1e-9) else v_eff, x, slip) * nfac
     if "sensor_lag" in ext:
         F = sensors.lowpass_uneven(t, F, model.get("tau_s"))

@@ -278,6 +278,21 @@ def init_state_sens(p, v_init_um_s, dv_init, cols, dth, dth2):
     return th, th2
 
 
+@njit(cache=True, inline="always")
+def _slip_law_sens(dth, cols, e, lv, th, thss, dslip, l_um, col_b, col_l):
+    """One interval of a slip-law state's sensitivities, in place: theta' = th_ss + (theta - th_ss) E
+    (eq. 6, E = exp(-dslip / L), th_ss = -B ln(v/V0) = -B ``lv``) gives dtheta'/dq = E dtheta/dq
+    + (1 - E) dth_ss/dq [q = B: ``col_b``] + (theta - th_ss) E dslip / L^2 [q = L: ``col_l``]."""
+    for j in range(cols.shape[0]):
+        c = cols[j]
+        d = dth[j] * e
+        if c == col_b:
+            d += -lv * (1.0 - e)
+        elif c == col_l:
+            d += (th - thss) * e * dslip / (l_um * l_um)
+        dth[j] = d
+
+
 @njit(cache=True)
 def mu_series_sens(p, t_s, v_um_s, x_um, v_init_um_s, cols):
     """:func:`mu_series` (the same numbers) and its exact derivatives d mu / d p[cols[j]].
@@ -322,27 +337,13 @@ def mu_series_sens(p, t_s, v_um_s, x_um, v_init_um_s, cols):
                 if on:
                     e = math.exp(-dslip / l_um)
                     thss = -b * lv
-                    for j in range(m):
-                        c = cols[j]
-                        d = dth[j] * e
-                        if c == P_B:
-                            d += -lv * (1.0 - e)
-                        elif c == P_L:
-                            d += (th - thss) * e * dslip / (l_um * l_um)
-                        dth[j] = d
+                    _slip_law_sens(dth, cols, e, lv, th, thss, dslip, l_um, P_B, P_L)
                     if b != 0.0:
                         th = thss + (th - thss) * math.exp(-dslip / l_um)
                 if b2 != 0.0:
                     e2 = math.exp(-dslip / l2)
                     thss2 = -b2 * lv
-                    for j in range(m):
-                        c = cols[j]
-                        d = dth2[j] * e2
-                        if c == P_B2:
-                            d += -lv * (1.0 - e2)
-                        elif c == P_L2:
-                            d += (th2 - thss2) * e2 * dslip / (l2 * l2)
-                        dth2[j] = d
+                    _slip_law_sens(dth2, cols, e2, lv, th2, thss2, dslip, l2, P_B2, P_L2)
                     th2 = thss2 + (th2 - thss2) * math.exp(-dslip / l2)
             slip += dslip
         v = v_um_s[i]

@@ -48,6 +48,21 @@ def lvdt_to_interface_compliance_um_per_N(fixture_compliance_um_per_N: float,
 VS = 1e-3  # µm/s, scale of the signed velocity variable of the stiffness solver
 
 
+@njit(cache=True, inline="always")
+def _bracketed_newton(u, g, dg, lo, hi):
+    """One step of the spring balance's root finder on an increasing g(u) (the root is unique): the
+    bracket (lo, hi) shrunk by the sign of g(u), then the next u, a Newton step inside it, else
+    bisection (the slope ``dg`` not positive, or the step leaving the bracket). Returns (u, lo, hi)."""
+    if g > 0.0:
+        hi = u
+    else:
+        lo = u
+    un = u - g / dg if dg > 0.0 else 0.5 * (lo + hi)
+    if not (un > lo and un < hi):
+        un = 0.5 * (lo + hi)
+    return un, lo, hi
+
+
 @njit(cache=True)
 def stiff_series(p, t, x, v, nfac, k, v_init):
     """Friction force with a spring ``k`` (N/µm) between the LVDT position ``x`` and the interface."""
@@ -82,10 +97,6 @@ def stiff_series(p, t, x, v, nfac, k, v_init):
             g = mu_of(p, s2, vv, xi + vv * dt) * nfac[i] + k * vv * dt - rhs
             if abs(g) < 1e-12 * (1.0 + abs(rhs)):
                 break
-            if g > 0.0:
-                hi = u
-            else:
-                lo = u
             du = 1e-6
             vv2 = VS * math.sinh(u + du)
             for q in range(N_STATE):
@@ -93,9 +104,7 @@ def stiff_series(p, t, x, v, nfac, k, v_init):
             advance_state(p, s2, vv2, dt)
             g2 = mu_of(p, s2, vv2, xi + vv2 * dt) * nfac[i] + k * vv2 * dt - rhs
             dg = (g2 - g) / du
-            un = u - g / dg if dg > 0.0 else 0.5 * (lo + hi)
-            if not (un > lo and un < hi):
-                un = 0.5 * (lo + hi)
+            un, lo, hi = _bracketed_newton(u, g, dg, lo, hi)
             if hi - lo < 1e-13:
                 break
             u = un
@@ -275,14 +284,8 @@ def stiff_series_sens(p, t, x, v, nfac, k, v_init, cols):
             g = r[0] - rhs
             if abs(g) < 1e-12 * (1.0 + abs(rhs)):
                 break
-            if g > 0.0:
-                hi = u
-            else:
-                lo = u
             dg = r[1] * VS * math.cosh(u)
-            un = u - g / dg if dg > 0.0 else 0.5 * (lo + hi)
-            if not (un > lo and un < hi):
-                un = 0.5 * (lo + hi)
+            un, lo, hi = _bracketed_newton(u, g, dg, lo, hi)
             if hi - lo < 1e-13:
                 break
             u = un

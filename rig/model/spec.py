@@ -34,13 +34,6 @@ CATALOGUE = (
     "normal_force_variation", "slip_wear_drift", "force_offset_drift", "position_periodic",
     "finite_stiffness",
 )
-EXTENSIONS = CATALOGUE
-
-# where each extension acts
-FRICTION_LAW_EXTENSIONS = ("frictional_memory", "second_state_variable", "aging_law", "slip_wear_drift",
-                           "position_periodic")
-LOADING_EXTENSIONS = ("finite_stiffness",)
-SENSOR_EXTENSIONS = ("time_delay", "sensor_lag", "force_offset_drift", "normal_force_variation")
 
 # the parameters each extension adds (catalogue names/units); frictional_memory replaces c_mu
 EXT_PARAMS = {

@@ -3,7 +3,8 @@
 * :mod:`rig.session.core`: :class:`TrialSession` (plan scheduling, events and
   blocks to the log, statistics every second, the stop state machine), the
   :class:`Backend` protocol and what a backend sends (:class:`Block`,
-  :class:`Event`, :class:`Ending`);
+  :class:`Event`, :class:`Ending`, its :class:`Outcome`), the :class:`TrialWriter`
+  protocol and the small capability protocols of a backend or a writer;
 * :mod:`rig.session.sim`: :class:`SimBackend` (the simulated rig) and
   :func:`simulate` (a recipe or plan on the simulated rig, in memory);
 * :mod:`rig.session.hardware`: :class:`HardwareBackend` (the 1 kHz loop process of
@@ -13,10 +14,11 @@
 """
 
 from rig.session.core import (
-    Backend, BackendError, Block, BlockFigures, Cause, Ending, Event, Phase, StopMachine, TrialResult,
-    TrialSession, run_trial,
+    Anchored, Backend, BackendError, Block, BlockFigures, Ending, Event, FailStoppable, FlushPaced, LoggerWatched,
+    Outcome, Pausable, Phase, StopMachine, TrialResult, TrialSession, TrialWriter, run_trial,
 )
 from rig.session.memory import MemoryLog
 
-__all__ = ["Backend", "BackendError", "Block", "BlockFigures", "Cause", "Ending", "Event", "MemoryLog", "Phase",
-           "StopMachine", "TrialResult", "TrialSession", "run_trial"]
+__all__ = ["Anchored", "Backend", "BackendError", "Block", "BlockFigures", "Ending", "Event", "FailStoppable",
+           "FlushPaced", "LoggerWatched", "MemoryLog", "Outcome", "Pausable", "Phase", "StopMachine", "TrialResult",
+           "TrialSession", "TrialWriter", "run_trial"]

@@ -17,18 +17,19 @@ backend (the simulated rig, :class:`rig.session.sim.SimBackend`; the hardware,
   backend still sends (the hardware holds position, then nulls and disables
   the valve) until the backend says it is safe. A third signal insists (the
   hardware loop is terminated; the valve controller's watchdog nulls the valve).
-* closes the log with the status: ``completed``, ``interrupted`` or ``failed``;
+* closes the log with the status: ``completed``, ``interrupted`` or ``failed`` (one
+  :class:`Outcome` decides the status and the logged cause);
 * passes the operator's pause and resume (SIGUSR1, `rig pause` / `rig resume`:
   :class:`rig.session.pausing.PauseControl`) to a backend that can pause, and
   schedules the plan's events later by the time a pause added (``pause`` ...
   ``runup_done`` events of the backend), so that each is logged when it happens.
 
-The writer needs only ``schedule_events``, ``event``, ``write_block``,
-``loop_stats``, ``warm_up()`` (load what the first block needs, before the
-backend starts), ``failure()`` (the exception that stopped it, or None; asked
-every 5 ms by a monitor thread) and ``close(status, timeout_s=..., **summary)``
-(never longer than ``timeout_s``) (:class:`rig.log.TrialLogWriter`, or
-:class:`rig.session.memory.MemoryLog`).
+The writer is a :class:`TrialWriter` (:class:`rig.log.TrialLogWriter`, or
+:class:`rig.session.memory.MemoryLog`). What a backend or a writer can do beyond
+that is a small capability protocol, asked with ``isinstance``: :class:`Pausable`,
+:class:`LoggerWatched` (``block_logged``, ``heartbeat``), :class:`FailStoppable`
+(``fail_stop``), :class:`FlushPaced` (``log_flush_interval_s``) and, of a writer,
+:class:`Anchored` (``anchor``).
 """
 
 from __future__ import annotations
@@ -95,24 +96,49 @@ class Event:
     data: dict = field(default_factory=dict)
 
 
+class Outcome(str, Enum):
+    """How a run ended: the one vocabulary of a trial's end.
+
+    A backend's :class:`Ending`, the stop state machine's cause and the log's status are
+    all this; the strings the log and the CLI show are its :attr:`value` (``trial_failed``'s
+    ``status``), :attr:`cause` (``stop_state``'s and the summary's ``stop_cause``) and
+    :attr:`status` (the log's status)."""
+
+    COMPLETED = "completed"   # the plan ran to its end
+    STOPPED = "stopped"       # a stop that was asked for: the operator (Ctrl-C, SIGTERM, SIGHUP)
+    TRIPPED = "tripped"       # an interlock
+    FAILED = "failed"         # a device, the loop process, the session itself (its log)
+
+    @property
+    def cause(self) -> str:
+        """The stop's cause as logged: ``end_of_plan``, ``operator``, ``trip`` or ``failure``."""
+        return {"completed": "end_of_plan", "stopped": "operator", "tripped": "trip"}.get(self.value, "failure")
+
+    @property
+    def status(self) -> str:
+        """The log's status: ``completed``, ``interrupted`` (an operator's stop) or ``failed``."""
+        return {"completed": "completed", "stopped": "interrupted"}.get(self.value, "failed")
+
+
 @dataclass
 class Ending:
     """How the backend's run ended.
 
-    ``outcome``: ``completed`` (the plan ran to its end), ``stopped`` (a stop
-    that was asked for), ``tripped`` (an interlock), ``failed`` (a device or
-    process failure). ``safe``: the backend left its actuator safe (nulled,
-    disabled), or has none. ``message``: one line for the operator.
+    ``outcome``: an :class:`Outcome` (a string of one is accepted). ``safe``: the backend left
+    its actuator safe (nulled, disabled), or has none. ``message``: one line for the operator.
     ``final_stats``: the backend's whole-trial statistics (logged once, with
     ``final: true``); ``report``: text for the operator (e.g. loop timing).
     """
 
-    outcome: str
+    outcome: Outcome
     message: str = ""
     safe: bool = True
     summary: dict = field(default_factory=dict)
     final_stats: dict | None = None
     report: str = ""
+
+    def __post_init__(self):
+        self.outcome = Outcome(self.outcome)
 
 
 class BackendError(RuntimeError):
@@ -150,6 +176,83 @@ class Backend(Protocol):
     def close(self) -> None: ...
 
 
+# Capabilities a backend may have beyond :class:`Backend` (Bluesky's manner: one small protocol
+# each, asked with isinstance, never a getattr probe)
+
+@runtime_checkable
+class Pausable(Protocol):
+    """Holds at the plan's next safe point and runs up again (the operator's pause)."""
+
+    def pause(self, realtime: bool = True) -> None: ...
+
+    def resume(self) -> None: ...
+
+
+@runtime_checkable
+class LoggerWatched(Protocol):
+    """Trips when the logger stops taking blocks (``block_logged`` after every logged block) or
+    stops beating (``heartbeat``, every few ms from the session's monitor thread, at
+    ``heartbeat_priority`` SCHED_FIFO when permitted; None: the thread's own)."""
+
+    heartbeat_priority: int | None
+
+    def block_logged(self) -> None: ...
+
+    def heartbeat(self) -> None: ...
+
+
+@runtime_checkable
+class FailStoppable(Protocol):
+    """Stops at once, without a hold, when the session fails (its log): from any thread."""
+
+    def fail_stop(self, reason: str) -> None: ...
+
+
+@runtime_checkable
+class FlushPaced(Protocol):
+    """Says how often (wall-clock seconds) its trial's log is flushed and fsync'd."""
+
+    log_flush_interval_s: float
+
+
+# ---------------------------------------------------------------------------
+# What the log writer does
+# ---------------------------------------------------------------------------
+
+@runtime_checkable
+class TrialWriter(Protocol):
+    """Where a session logs one trial (:class:`rig.log.TrialLogWriter`, :class:`rig.session.memory.MemoryLog`).
+
+    ``schedule_events(events)``: planned events (dicts with ``t_s`` and ``kind``), logged once a
+    block reaches their time; ``event(t_s, kind, **data)``; ``write_block(block)`` (a dict of
+    equal-length arrays with ``t_s``); ``loop_stats(t_s, stats)``; ``warm_up()``: load what the
+    first block needs, before the backend starts; ``failure()``: the exception that stopped it,
+    or None (asked every 5 ms by a monitor thread); ``close(status, timeout_s=..., **summary)``:
+    finish the log with the status (an :attr:`Outcome.status`), never longer than ``timeout_s``.
+    """
+
+    def schedule_events(self, events) -> None: ...
+
+    def event(self, t_s: float, kind: str, **data: Any) -> None: ...
+
+    def write_block(self, block: dict) -> None: ...
+
+    def loop_stats(self, t_s: float, stats: dict) -> None: ...
+
+    def warm_up(self) -> None: ...
+
+    def failure(self) -> BaseException | None: ...
+
+    def close(self, status: str = "completed", *, timeout_s: float | None = None, **summary: Any) -> None: ...
+
+
+@runtime_checkable
+class Anchored(Protocol):
+    """A writer whose log keeps the wall-clock time of the samples (:meth:`rig.log.TrialLogWriter.anchor`)."""
+
+    def anchor(self, t_s: float, wall_ns: int) -> None: ...
+
+
 # ---------------------------------------------------------------------------
 # Stopping
 # ---------------------------------------------------------------------------
@@ -159,13 +262,6 @@ class Phase(str, Enum):
     STOPPING = "stopping"   # a stop was asked for (or the backend ended); not yet safe
     SAFE = "safe"           # the backend reports its actuator safe (nulled, disabled)
     DONE = "done"           # log closed
-
-
-class Cause(str, Enum):
-    END_OF_PLAN = "end_of_plan"
-    OPERATOR = "operator"     # Ctrl-C, SIGTERM, SIGHUP
-    TRIP = "trip"             # an interlock
-    FAILURE = "failure"       # a device, the loop process, the session itself
 
 
 _ALLOWED = {
@@ -179,12 +275,13 @@ _ALLOWED = {
 class StopMachine:
     """RUNNING -> STOPPING -> SAFE -> DONE, with the first reason given (later ones are counted).
 
-    ``history`` keeps ``(phase, reason, monotonic time)`` of every transition.
+    ``history`` keeps ``(phase, reason, monotonic time)`` of every transition. Its state is
+    changed only through its methods (:meth:`request`, :meth:`overrule`, :meth:`safe`, :meth:`done`).
     """
 
     def __init__(self):
         self.phase = Phase.RUNNING
-        self.cause: Cause | None = None
+        self.outcome: Outcome | None = None
         self.reason = ""
         self.requests = 0
         self.history: list[tuple[Phase, str, float]] = [(Phase.RUNNING, "", time.monotonic())]
@@ -195,14 +292,25 @@ class StopMachine:
         self.phase = phase
         self.history.append((phase, reason, time.monotonic()))
 
-    def request(self, cause: Cause, reason: str) -> bool:
-        """A stop is asked for; True if this is the first request (RUNNING -> STOPPING)."""
+    def request(self, outcome: Outcome, reason: str) -> bool:
+        """A stop is asked for, ending the run with ``outcome``; True if this is the first request
+        (RUNNING -> STOPPING)."""
         self.requests += 1
         if self.phase is not Phase.RUNNING:
             return False
-        self.cause, self.reason = cause, reason
+        self.outcome, self.reason = Outcome(outcome), reason
         self._go(Phase.STOPPING, reason)
         return True
+
+    def overrule(self, outcome: Outcome, reason: str) -> None:
+        """A trip or a failure after the stop was asked for (during an operator's stop; the log
+        could not be finished): the trial failed, for this reason. Only before DONE."""
+        outcome = Outcome(outcome)
+        if outcome not in (Outcome.TRIPPED, Outcome.FAILED):
+            raise ValueError(f"stop state machine: only a trip or a failure overrules a stop, not {outcome.value}")
+        if self.phase in (Phase.RUNNING, Phase.DONE):
+            raise RuntimeError(f"stop state machine: nothing to overrule in {self.phase.value}")
+        self.outcome, self.reason = outcome, reason
 
     def safe(self, detail: str = "") -> None:
         self._go(Phase.SAFE, detail)
@@ -212,12 +320,13 @@ class StopMachine:
 
     @property
     def status(self) -> str:
-        """The log's status: completed, interrupted or failed."""
-        if self.cause is Cause.END_OF_PLAN:
-            return "completed"
-        if self.cause is Cause.OPERATOR:
-            return "interrupted"
-        return "failed"
+        """The log's status: completed, interrupted or failed (:attr:`Outcome.status`)."""
+        return "failed" if self.outcome is None else self.outcome.status
+
+    @property
+    def cause(self) -> str | None:
+        """The stop's cause as logged (:attr:`Outcome.cause`), None while running."""
+        return None if self.outcome is None else self.outcome.cause
 
 
 # ---------------------------------------------------------------------------
@@ -314,8 +423,7 @@ class BlockFigures:
 
 @dataclass
 class TrialResult:
-    status: str                 # completed | interrupted | failed
-    cause: str                  # end_of_plan | operator | trip | failure
+    outcome: Outcome            # how the trial ended (status and cause below are its strings)
     reason: str                 # one line: why it stopped
     ticks: int
     duration_s: float           # trial time of the last logged sample
@@ -325,6 +433,16 @@ class TrialResult:
     safe: bool                  # the backend ended safe
     close_error: str | None = None  # the log could not be finished (e.g. disk full)
     history: list = field(default_factory=list)
+
+    @property
+    def status(self) -> str:
+        """completed | interrupted | failed"""
+        return self.outcome.status
+
+    @property
+    def cause(self) -> str:
+        """end_of_plan | operator | trip | failure"""
+        return self.outcome.cause
 
     @property
     def summary(self) -> dict:
@@ -392,14 +510,14 @@ class _WriterMonitor:
         s = self.s
         if s.writer_failure is None:
             s.writer_failure = reason
-            fail = getattr(s.backend, "fail_stop", None)
-            if fail is not None:
-                fail(reason)
+            if isinstance(s.backend, FailStoppable):
+                s.backend.fail_stop(reason)
 
     def _run(self) -> None:
         s = self.s
-        beat = getattr(s.backend, "heartbeat", None)
-        prio = getattr(s.backend, "heartbeat_priority", None)
+        watched = isinstance(s.backend, LoggerWatched)
+        beat = s.backend.heartbeat if watched else None
+        prio = s.backend.heartbeat_priority if watched else None
         if beat is not None and prio:
             try:  # the heartbeat must not wait behind the machine's other work (this thread only)
                 import os
@@ -435,7 +553,7 @@ class TrialSession:
     SIGINT/SIGTERM/SIGHUP handlers for the run (main thread only).
     """
 
-    def __init__(self, plan, backend: Backend, writer, *, progress: Callable[[float], Any] | None = None,
+    def __init__(self, plan, backend: Backend, writer: TrialWriter, *, progress: Callable[[float], Any] | None = None,
                  echo: Callable[[str], Any] = _noop, stats_every_s: float = 1.0,
                  trial_fields: dict | None = None, handle_signals: bool = True, pause=None):
         self.plan = plan
@@ -454,26 +572,26 @@ class TrialSession:
         self.writer_failure: str | None = None
         self.close_timeout_s = 10.0  # finishing the log never hangs longer (a dead disk): rig recover
         # the operator's pause (rig.session.pausing.PauseControl): by default where signals are handled
-        if pause is None and handle_signals and hasattr(backend, "pause"):
+        if pause is None and handle_signals and isinstance(backend, Pausable):
             from rig.session.pausing import PauseControl
 
             pause = PauseControl()
-        self.pause = pause if hasattr(backend, "pause") else None
+        self.pause = pause if isinstance(backend, Pausable) else None
         self._planned = sorted((dict(e) for e in getattr(plan, "events", []) or []), key=lambda e: e["t_s"])
         self._plan_shift_s = 0.0       # trial time - plan time of the events after the last pause
         self._plan_shift_um = 0.0      # and the position the run-ups added
         self._plan_frozen_s = None     # plan time from which events wait for the run-up to end
 
     # -- stop requests ---------------------------------------------------------
-    def request_stop(self, cause: Cause, reason: str) -> None:
-        first = self.stop.request(cause, reason)
-        if cause is Cause.OPERATOR:
+    def request_stop(self, outcome: Outcome, reason: str) -> None:
+        first = self.stop.request(outcome, reason)
+        if outcome is Outcome.STOPPED:
             self.backend.request_stop(reason, insist=self.stop.requests >= 3)
         elif first:
             self.backend.request_stop(reason)
         if first:
             self.writer.event(self.figures.last_t_s, "stop_state", state=Phase.STOPPING.value,
-                              cause=cause.value, reason=reason)
+                              cause=outcome.cause, reason=reason)
 
     def _on_signal(self, signum, _frame) -> None:
         # only note it here: the run loop turns it into a stop request between two messages
@@ -503,8 +621,8 @@ class TrialSession:
         handled = 0  # signals turned into stop requests
         old = self._install_signals()
         w.warm_up()  # numba & co. compiled/loaded now: the first second of the run is as durable as the rest
-        self._logged = getattr(backend, "block_logged", None)
-        anchor = getattr(w, "anchor", None)  # the log's clock: the wall-clock time of the samples
+        self._logged = backend.block_logged if isinstance(backend, LoggerWatched) else None
+        anchor = w.anchor if isinstance(w, Anchored) else None  # the log's clock: the samples' wall-clock time
         monitor = _WriterMonitor(self, poll_s=0.005)
         try:
             try:
@@ -517,7 +635,7 @@ class TrialSession:
                         while handled < len(self._signals):
                             name = self._signals[handled]
                             handled += 1
-                            self.request_stop(Cause.OPERATOR, f"operator abort ({name})")
+                            self.request_stop(Outcome.STOPPED, f"operator abort ({name})")
                         if self.pause is not None and self.stop.phase is Phase.RUNNING:
                             self.pause.apply(backend, self.figures.last_t_s)
                         msg = backend.receive()
@@ -551,10 +669,10 @@ class TrialSession:
                     except KeyboardInterrupt:
                         self._signals.append("KeyboardInterrupt")
                         handled = len(self._signals)
-                        self.request_stop(Cause.OPERATOR, "operator abort (Ctrl-C)")
+                        self.request_stop(Outcome.STOPPED, "operator abort (Ctrl-C)")
                 ending = backend.finish()
             except BackendError as exc:
-                ending = Ending("failed", str(exc), safe=True)
+                ending = Ending(Outcome.FAILED, str(exc), safe=True)
             except Exception as exc:  # noqa: BLE001 - a failure while running (e.g. the log): stop the backend
                 ending = self._fail_stop(f"{type(exc).__name__}: {exc}")
         finally:
@@ -603,10 +721,10 @@ class TrialSession:
     def _fail_stop(self, reason: str, drain_s: float = 2.0) -> Ending:
         """The session itself failed (its writer, its progress): ask the backend for a stop, let it
         reach its safe state (its messages are dropped: the log may be what failed), say how it ended."""
-        self.stop.request(Cause.FAILURE, reason)
+        self.stop.request(Outcome.FAILED, reason)
         try:
-            fail = getattr(self.backend, "fail_stop", None)
-            (fail or self.backend.request_stop)(reason)
+            be = self.backend
+            (be.fail_stop if isinstance(be, FailStoppable) else be.request_stop)(reason)
             t_end = time.monotonic() + drain_s
             while time.monotonic() < t_end and self.backend.receive() is not None:
                 pass
@@ -614,8 +732,8 @@ class TrialSession:
                 self.backend.request_stop(reason, insist=True)
             got = self.backend.finish()
         except Exception as exc:  # noqa: BLE001
-            return Ending("failed", f"{reason}; stopping the backend failed: {exc}", safe=False)
-        return Ending("failed", reason, safe=got.safe, summary=got.summary, final_stats=got.final_stats,
+            return Ending(Outcome.FAILED, f"{reason}; stopping the backend failed: {exc}", safe=False)
+        return Ending(Outcome.FAILED, reason, safe=got.safe, summary=got.summary, final_stats=got.final_stats,
                       report=got.report)
 
     def _end(self, ending: Ending, wall_s: float) -> TrialResult:
@@ -625,13 +743,10 @@ class TrialSession:
         w = _Guarded(self.writer, log_errors)  # after a failure of the log, the rest is best effort
         # how it ended decides the cause unless a stop was already asked for
         if sm.phase is Phase.RUNNING:
-            cause = {"completed": Cause.END_OF_PLAN, "stopped": Cause.OPERATOR,
-                     "tripped": Cause.TRIP}.get(ending.outcome, Cause.FAILURE)
-            sm.request(cause, ending.message or ending.outcome)
-            w.event(t_last, "stop_state", state=Phase.STOPPING.value, cause=cause.value, reason=sm.reason)
-        elif ending.outcome in ("tripped", "failed"):
-            # a trip or a failure during an operator stop: the trial failed
-            sm.cause, sm.reason = (Cause.TRIP if ending.outcome == "tripped" else Cause.FAILURE), ending.message
+            sm.request(ending.outcome, ending.message or ending.outcome.value)
+            w.event(t_last, "stop_state", state=Phase.STOPPING.value, cause=sm.cause, reason=sm.reason)
+        elif ending.outcome in (Outcome.TRIPPED, Outcome.FAILED):
+            sm.overrule(ending.outcome, ending.message)  # a trip or a failure during an operator stop
         try:
             self._schedule_planned()  # what is left of the plan (the writer logs those the blocks reached)
         except Exception as exc:  # noqa: BLE001
@@ -650,28 +765,29 @@ class TrialSession:
             w.event(t_last, "interrupted", reason=f"operator abort ({sig})" if sig != "KeyboardInterrupt"
                     else "KeyboardInterrupt (Ctrl-C)")
         elif status == "failed":
-            w.event(t_last, "trial_failed", status=ending.outcome, message=sm.reason)
+            w.event(t_last, "trial_failed", status=ending.outcome.value, message=sm.reason)
         close_error = "; ".join(log_errors) or None
         try:
             self.writer.close(status, timeout_s=self.close_timeout_s, wall_s=wall_s, ticks_per_s=fig.ticks / wall_s if wall_s > 0 else 0.0,
                               realtime_factor=t_last / wall_s if wall_s > 0 else 0.0,
                               tracking_error_rms_um=fig.tracking_error_rms_um, mean_friction_N=fig.mean_friction_N,
                               mean_abs_friction_N=fig.mean_abs_friction_N, stop_reason=sm.reason,
-                              stop_cause=sm.cause.value)
+                              stop_cause=sm.cause)
         except Exception as exc:  # noqa: BLE001 - e.g. disk full: the file cannot be finished
             close_error = f"{type(exc).__name__}: {exc}"
         if close_error and sm.status == "completed":
-            sm.cause, sm.reason = Cause.FAILURE, f"the log could not be finished: {close_error}"
+            sm.overrule(Outcome.FAILED, f"the log could not be finished: {close_error}")
         sm.done()
-        return TrialResult(status=sm.status, cause=sm.cause.value, reason=sm.reason, ticks=fig.ticks,
+        return TrialResult(outcome=sm.outcome, reason=sm.reason, ticks=fig.ticks,
                            duration_s=t_last, wall_s=wall_s, figures=fig, ending=ending, safe=ending.safe,
                            close_error=close_error, history=list(sm.history))
 
 
-def run_trial(plan, backend: Backend, writer, **kw) -> TrialResult:
+def run_trial(plan, backend: Backend, writer: TrialWriter, **kw) -> TrialResult:
     """``TrialSession(plan, backend, writer, **kw).run()``."""
     return TrialSession(plan, backend, writer, **kw).run()
 
 
-__all__ = ["Backend", "BackendError", "Block", "BlockFigures", "Cause", "Ending", "Event", "Phase",
-           "StopMachine", "TrialResult", "TrialSession", "run_trial", "writer_failure"]
+__all__ = ["Anchored", "Backend", "BackendError", "Block", "BlockFigures", "Ending", "Event", "FailStoppable",
+           "FlushPaced", "LoggerWatched", "Outcome", "Pausable", "Phase", "StopMachine", "TrialResult",
+           "TrialSession", "TrialWriter", "run_trial", "writer_failure"]

@@ -29,7 +29,7 @@ from drivers.config import HardwareConfig
 from rig.hardware.emulated import EmulatorError, start_emulator_process
 from rig.hardware.loop import ABORT_FAIL, ABORT_OPERATOR, loop_main
 from rig.hardware.timing import TimingStats, format_stats
-from rig.session.core import BackendError, Block, Ending, Event
+from rig.session.core import BackendError, Block, Ending, Event, Outcome
 from rig.session.pausing import pause_options
 from rig.model.feedforward import friction_feedforward_for_plan, initial_velocity_um_s
 
@@ -255,7 +255,8 @@ class HardwareBackend:
         s["realtime"] = self._realtime
         s["skips"] = list(self.skips)
         status = s.get("status")
-        outcome = {"completed": "completed", "aborted": "stopped", "tripped": "tripped"}.get(status, "failed")
+        outcome = {"completed": Outcome.COMPLETED, "aborted": Outcome.STOPPED,
+                   "tripped": Outcome.TRIPPED}.get(status, Outcome.FAILED)
         vf = s.get("valve_final") or {}
         # safe: the loop reached its safe state and the valve confirms it is disabled (a dead loop or a
         # silent valve cannot confirm anything: the valve controller's watchdog is what nulls it then)

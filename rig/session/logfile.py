@@ -6,7 +6,7 @@ import subprocess
 from pathlib import Path
 from typing import Any, Callable
 
-from rig.session.core import Backend, TrialResult, run_trial
+from rig.session.core import Backend, FlushPaced, TrialResult, run_trial
 
 
 def git_describe() -> str:
@@ -45,7 +45,7 @@ def run_to_log(path: Path, plan, recipe, profile, backend: Backend, metadata: di
     # the backend says how often its log is flushed and fsync'd (HardwareBackend: 0.5 s of wall time,
     # so a crashed logger loses at most about half a second; a simulated trial: every second)
     writer = open_log(path, plan, recipe, profile, metadata,
-                      flush_interval_s=getattr(backend, "log_flush_interval_s", 1.0))
+                      flush_interval_s=backend.log_flush_interval_s if isinstance(backend, FlushPaced) else 1.0)
     if on_open is not None:
         on_open(writer)
     fields = {"recipe": recipe.name, "lubricant": recipe.lubricant}

@@ -13,7 +13,7 @@ from __future__ import annotations
 import math
 import time
 
-from rig.session.core import Block, Ending, Event, TrialResult, run_trial
+from rig.session.core import Block, Ending, Event, Outcome, TrialResult, run_trial
 from rig.session.memory import MemoryLog
 from rig.session.pausing import pausable_reference
 from rig.sim import SimRig
@@ -172,10 +172,10 @@ class SimBackend:
 
     def finish(self) -> Ending:
         if self._trip is not None:
-            return Ending("tripped", f"INTERLOCK pause_timeout: {self._trip}")
+            return Ending(Outcome.TRIPPED, f"INTERLOCK pause_timeout: {self._trip}")
         if self._stop is not None:
-            return Ending("stopped", self._stop)
-        return Ending("completed")
+            return Ending(Outcome.STOPPED, self._stop)
+        return Ending(Outcome.COMPLETED)
 
     def close(self) -> None:
         self._blocks = None

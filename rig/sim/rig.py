@@ -54,6 +54,17 @@ NOISE_PAGE_TICKS = 65536
 def build_plant_params(profile: RigProfile, model: FrictionModel, normal_force_N: float | None = None) -> np.ndarray:
     """Pack the profile (and the model's sensor/fixture extensions) for the numba plant."""
     q = np.zeros(pl.N_QPAR)
+    _pack_hydraulics(q, profile, model)
+    _pack_normal(q, profile, normal_force_N)
+    q[pl.Q_XORG] = profile.stroke.home_um
+    _pack_sensors(q, profile, model)
+    _pack_interface(q, profile, model)
+    return q
+
+
+def _pack_hydraulics(q: np.ndarray, profile: RigProfile, model: FrictionModel) -> None:
+    """Time steps, servovalve, actuator, fixture compliances and the inverse of the trapezoidal step's
+    matrix of (pressure force, velocity, spring force) (docs/sim.md)."""
     dt = profile.dt_s
     nsub = profile.sim.substeps
     h = dt / nsub
@@ -88,6 +99,10 @@ def build_plant_params(profile: RigProfile, model: FrictionModel, normal_force_N
     Kinv = np.linalg.inv(K)
     q[pl.Q_K:pl.Q_K + 9] = Kinv.ravel()
     q[pl.Q_QV:pl.Q_QV + 3] = Kinv[:, 2] * (-h * km)
+
+
+def _pack_normal(q: np.ndarray, profile: RigProfile, normal_force_N: float | None) -> None:
+    """The riders' normal forces (N): nominal (the trial's, else the profile's), offsets, springs, faces."""
     nm = profile.normal
     n_nom = nm.nominal_force_N if normal_force_N is None else float(normal_force_N)
     q[pl.Q_N10] = n_nom * (1.0 + nm.rider_offset_fraction[0])
@@ -97,7 +112,11 @@ def build_plant_params(profile: RigProfile, model: FrictionModel, normal_force_N
     q[pl.Q_WA1], q[pl.Q_WA2] = nm.face_waviness_amplitude_um
     q[pl.Q_WL1], q[pl.Q_WL2] = nm.face_waviness_wavelength_um
     q[pl.Q_WP1], q[pl.Q_WP2] = nm.face_waviness_phase_rad
-    q[pl.Q_XORG] = profile.stroke.home_um
+
+
+def _pack_sensors(q: np.ndarray, profile: RigProfile, model: FrictionModel) -> None:
+    """The LVDT's and the load cells' chains, and the model's sensor_lag and force_offset_drift."""
+    dt = profile.dt_s
     s = profile.sensors
     q[pl.Q_LV_Q] = s.lvdt.quantization_um
     q[pl.Q_LV_MIN] = s.lvdt.min_um
@@ -120,19 +139,22 @@ def build_plant_params(profile: RigProfile, model: FrictionModel, normal_force_N
         q[pl.Q_SL_A], q[pl.Q_SL_G] = lowpass_coefficients(dt, tau_s)
     if "force_offset_drift" in model.extensions:
         q[pl.Q_DRIFT] = model.get("rate_N_per_s", 0.0)
-    # memoryless (steady_state) models with a delay or a negative slope need inertia at the
-    # interface (eq. 9 of Hess & Soom has it); a positive slope alone is well posed massless
+
+
+def _pack_interface(q: np.ndarray, profile: RigProfile, model: FrictionModel) -> None:
+    """A memoryless (steady_state) model with a delay or a negative slope needs inertia at the
+    interface (eq. 9 of Hess & Soom has it); a positive slope alone is well posed massless."""
+    dt = profile.dt_s
     steady = not model.has_state
     delayed = "time_delay" in model.extensions
     if delayed and not steady:
         warnings.warn("time_delay applies to a steady_state baseline only (diagnosis.md); ignored for rate_state",
-                      stacklevel=3)
+                      stacklevel=4)
         delayed = False
     use_mass = steady and (delayed or model.get("c_mu") <= 0.0)
     q[pl.Q_STEADY] = 1.0 if use_mass else 0.0
     q[pl.Q_DELAY] = max(1, int(round(model.get("delay_s", 0.0) / dt))) if delayed else 0
-    q[pl.Q_MIH] = profile.sim.interface_mass_kg * 1e-6 / h
-    return q
+    q[pl.Q_MIH] = profile.sim.interface_mass_kg * 1e-6 / (dt / profile.sim.substeps)
 
 
 class SimRig:

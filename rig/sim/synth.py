@@ -249,21 +249,8 @@ class SynthSpec:
 def make_record(spec: SynthSpec) -> tuple[TrialData, dict]:
     """A synthetic trial and its truth ``{"baseline", "extensions", "params"}``."""
     rng = np.random.default_rng(spec.seed)
-    if isinstance(spec.protocol, str):
-        if spec.protocol == "paper":
-            hold = max(20.0, spec.duration_s / 13.0)
-            segs = protocol_paper(1, hold)
-            # repeat to fill the duration
-            total = sum(d for d, _ in segs)
-            reps = max(1, int(round(spec.duration_s / total)))
-            segs = protocol_paper(reps, hold)
-        elif spec.protocol == "varied":
-            segs = protocol_varied(rng, spec.duration_s)
-        else:
-            raise ValueError(f"unknown protocol {spec.protocol!r} (paper, varied)")
-    else:
-        segs = list(spec.protocol)
     pre = 20.0  # pre-roll at the first velocity, cut off: the record starts in steady sliding
+    segs = _protocol_segments(spec, rng)
     segs = [(pre, segs[0][1])] + segs
     T = sum(d for d, _ in segs)
     dt = LOOP_DT_S
@@ -275,7 +262,48 @@ def make_record(spec: SynthSpec) -> tuple[TrialData, dict]:
     x_ref = np.concatenate([[0.0], np.cumsum(0.5 * (v_ref[1:] + v_ref[:-1]) * dt)])
     x_true = _servo(tf, x_ref, spec.servo_tau_s)
     v_true = np.gradient(x_true, tf)
-    # normal forces (true)
+    N1, N2 = _normal_forces(spec, tf, T, rng)
+    exts, params = list(spec.effects), _truth_params(spec)
+    # friction always scales with the true normal force
+    ext_sim = [e for e in exts if e != "normal_force_variation"] + ["normal_force_variation"]
+    F_true = predict_force(as_model(spec.baseline, ext_sim, params), tf, x_true, v_true, N1 + N2, N_NOM_N,
+                           v_init_um_s=segs[0][1])
+    # sampling (after the pre-roll; the record's clock starts at 0)
+    cut = tf >= pre
+    tf, x_true, x_ref, F_true, N1, N2 = (a[cut] for a in (tf, x_true, x_ref, F_true, N1, N2))
+    tf = tf - pre
+    x0 = x_ref[0]
+    x_true, x_ref = x_true - x0, x_ref - x0
+    ts = _sample_times(spec, T - pre, float(tf[-1]), rng)
+    chain = SensorChain.from_profile(spec.profile, spec.noise_scale)
+    xm, Fm, n1, n2 = measure(tf, x_true, F_true, N1, N2, ts, chain, rng)
+    truth = {"baseline": spec.baseline, "extensions": [e for e in exts], "params": params}
+    meta = {"normal_force_N": f"{N_NOM_N:g}", "lubricant": "boundary", "synthetic": "rig.sim.synth",
+            "truth": json.dumps(truth, sort_keys=True), "seed": str(spec.seed)}
+    trial = TrialData(time_s=ts, position_um=xm, friction_N=Fm, normal_1_N=n1, normal_2_N=n2,
+                      position_ref_um=np.interp(ts, tf, x_ref) if spec.with_ref else None, metadata=meta,
+                      source=f"synth(seed={spec.seed})")
+    return trial, truth
+
+
+def _protocol_segments(spec: SynthSpec, rng: np.random.Generator) -> list[tuple[float, float]]:
+    """The (duration s, velocity µm/s) segments of the spec's protocol: ``paper`` (repeated to fill
+    the duration), ``varied`` (random) or the list given."""
+    if not isinstance(spec.protocol, str):
+        return list(spec.protocol)
+    if spec.protocol == "paper":
+        hold = max(20.0, spec.duration_s / 13.0)
+        total = sum(d for d, _ in protocol_paper(1, hold))
+        return protocol_paper(max(1, int(round(spec.duration_s / total))), hold)  # repeated to fill the duration
+    if spec.protocol == "varied":
+        return protocol_varied(rng, spec.duration_s)
+    raise ValueError(f"unknown protocol {spec.protocol!r} (paper, varied)")
+
+
+def _normal_forces(spec: SynthSpec, tf: np.ndarray, T: float, rng: np.random.Generator
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """The true normal force on each rider (N): nominal, or varying (``normal_variation``; the
+    ``normal_force_variation`` effect's default) in a sine of random phase plus a drift."""
     N1 = np.full(tf.shape, N_NOM_N)
     N2 = np.full(tf.shape, N_NOM_N)
     nv = dict(spec.normal_variation)
@@ -289,25 +317,23 @@ def make_record(spec: SynthSpec) -> tuple[TrialData, dict]:
         mod = a * np.sin(2 * math.pi * tf / P + ph) + d * (tf / T)
         N1 = N1 * (1 + mod)
         N2 = N2 * (1 + 0.8 * mod)
-    exts = list(spec.effects)
+    return N1, N2
+
+
+def _truth_params(spec: SynthSpec) -> dict:
+    """The true parameters: the spec's, each effect's; a steady_state baseline's slope c_mu = A - B."""
     params = dict(spec.params)
-    for e, pe in spec.effects.items():
+    for pe in spec.effects.values():
         params.update(pe)
-    if spec.baseline == "steady_state" and "frictional_memory" not in exts:
+    if spec.baseline == "steady_state" and "frictional_memory" not in spec.effects:
         params.setdefault("c_mu", params.get("A_mu", 0.0011) - params.get("B_mu", 0.004))
         for k in ("A_mu", "B_mu", "L_um"):
             params.pop(k, None)
-    # friction always scales with the true normal force
-    ext_sim = [e for e in exts if e != "normal_force_variation"] + ["normal_force_variation"]
-    F_true = predict_force(as_model(spec.baseline, ext_sim, params), tf, x_true, v_true, N1 + N2, N_NOM_N,
-                           v_init_um_s=segs[0][1])
-    # sampling (after the pre-roll; the record's clock starts at 0)
-    cut = tf >= pre
-    tf, x_true, x_ref, F_true, N1, N2 = (a[cut] for a in (tf, x_true, x_ref, F_true, N1, N2))
-    tf = tf - pre
-    x0 = x_ref[0]
-    x_true, x_ref = x_true - x0, x_ref - x0
-    T = T - pre
+    return params
+
+
+def _sample_times(spec: SynthSpec, T: float, t_end_s: float, rng: np.random.Generator) -> np.ndarray:
+    """The record's sample times over ``T`` seconds: the spec's rate, with jitter and gaps."""
     n_s = int(T * spec.rate_hz)
     ts = (np.arange(n_s) + 0.5) / spec.rate_hz
     if spec.jitter > 0:
@@ -317,21 +343,8 @@ def make_record(spec: SynthSpec) -> tuple[TrialData, dict]:
     for _ in range(spec.gaps):
         g0 = rng.uniform(0.1 * T, 0.9 * T)
         keep &= ~((ts > g0) & (ts < g0 + rng.uniform(1.0, 3.0)))
-    ts = ts[keep & (ts < tf[-1])]
-    ts = ts[np.concatenate([[True], np.diff(ts) > 0])]
-
-    def at(y):
-        return np.interp(ts, tf, y)
-
-    chain = SensorChain.from_profile(spec.profile, spec.noise_scale)
-    xm, Fm, n1, n2 = measure(tf, x_true, F_true, N1, N2, ts, chain, rng)
-    truth = {"baseline": spec.baseline, "extensions": [e for e in exts], "params": params}
-    meta = {"normal_force_N": f"{N_NOM_N:g}", "lubricant": "boundary", "synthetic": "rig.sim.synth",
-            "truth": json.dumps(truth, sort_keys=True), "seed": str(spec.seed)}
-    trial = TrialData(time_s=ts, position_um=xm, friction_N=Fm, normal_1_N=n1, normal_2_N=n2,
-                      position_ref_um=at(x_ref) if spec.with_ref else None, metadata=meta,
-                      source=f"synth(seed={spec.seed})")
-    return trial, truth
+    ts = ts[keep & (ts < t_end_s)]
+    return ts[np.concatenate([[True], np.diff(ts) > 0])]
 
 
 # plausible sizes of every catalogue effect (random within these ranges)

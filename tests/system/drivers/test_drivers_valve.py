@@ -224,7 +224,7 @@ def test_nmt_start_required_then_follows(inproc):
     v.start()
     assert em.nmt_state == "OPERATIONAL" and em.enabled
     st = _until(lambda: abs(v.read().spool_actual - 0.5) < 1e-3, every=lambda: v.send(0.5))
-    assert st and v.problem_messages() == []
+    assert st and [msg for _, msg in v.problems()] == []
     st = v.read()
     assert st.operational and st.enabled and not st.nulled and st.counter_errors == 0
     assert v.safe_stop() is True
@@ -245,7 +245,7 @@ def test_heartbeat_loss_nulls_and_leaves_operational(inproc):
     assert em.latched & SW_HEARTBEAT_LOST and EMCY_HEARTBEAT in em.emcy_sent
     st = _until(lambda: (s := v.read()).nmt_state == "PRE-OPERATIONAL" and s, 3.0)
     assert st and (EMCY_HEARTBEAT, 1) in st.emcy
-    assert any("not OPERATIONAL" in p for p in v.problem_messages())
+    assert any("not OPERATIONAL" in p for p in [msg for _, msg in v.problems()])
     # set-points alone do not bring it back; an explicit start (NMT + fault reset + enable) does
     _ticks(v, 20, 0.4)
     assert em.spool == 0.0
@@ -276,11 +276,11 @@ def test_silent_valve_is_unhealthy(inproc):
     v.connect()
     v.start()
     _ticks(v, 5, 0.1)
-    assert v.problem_messages() == []
+    assert [msg for _, msg in v.problems()] == []
     em.inject("silent")
     def both():
         v.read()
-        h = v.problem_messages()
+        h = [msg for _, msg in v.problems()]
         return any("no heartbeat" in p for p in h) and any("no status PDO" in p for p in h)
 
     assert _until(both, 5.0, every=lambda: v.send(0.1))
@@ -294,7 +294,7 @@ def test_emcy_on_fault_and_reset_required(inproc):
     em.inject("fault")
     st = _until(lambda: (s := v.read()).fault and s.emcy and s, 3.0, every=lambda: v.send(0.3))
     assert st and (EMCY_DEVICE_HW, 1) in st.emcy and st.spool_actual == 0.0 and not st.enabled
-    assert any("reports a fault" in p and "0x5000" in p for p in v.problem_messages())
+    assert any("reports a fault" in p and "0x5000" in p for p in [msg for _, msg in v.problems()])
     em.inject("fault", None)
     st = _ticks(v, 30, 0.3)          # the cause is gone, enable is still set: stays off
     assert not st.enabled and st.reset_required and em.spool == 0.0
@@ -343,7 +343,7 @@ def test_valve_not_following_is_unhealthy_within_100_ticks(fault):
         ticks = 0
         while ticks < 1000:
             v.read()
-            if any("does not follow" in p for p in v.problem_messages()):
+            if any("does not follow" in p for p in [msg for _, msg in v.problems()]):
                 break
             v.send(-0.3)
             ticks += 1
@@ -376,7 +376,7 @@ def test_valve_ignoring_small_setpoints_is_caught_by_its_dither_within_100_ticks
         emu.em.inject("spool_noise", 2.0)
         for k in range(400):
             v.read()
-            assert v.problem_messages() == [], (k, v.problem_messages())
+            assert [msg for _, msg in v.problems()] == [], (k, [msg for _, msg in v.problems()])
             v.send(_dithered(k))
             time.sleep(0.001)
         assert 0.1 < v.dither.min_gain_seen < 1.0 and v.dither.command_amp > 15   # it was judged
@@ -405,7 +405,7 @@ def test_nan_setpoint_is_sent_as_null_and_reported(inproc):
     _ticks(v, 5, 0.3)
     _ticks(v, 5, float("nan"))
     assert em.spool == 0.0 and not em.enabled
-    assert any("non-finite" in p for p in v.problem_messages())
+    assert any("non-finite" in p for p in [msg for _, msg in v.problems()])
 
 
 def _raw(channel):
@@ -428,10 +428,10 @@ def test_foreign_frame_detected(inproc, kind):
     v.connect()
     v.start()
     _ticks(v, 10, 0.1)
-    assert v.problem_messages() == []
+    assert [msg for _, msg in v.problems()] == []
     _while_ticking(v, 0.1, send_foreign, cfg.channel, kind, NODE, counter=v._counter + 2,
                    sync_count=v._sync_count % 240 + 2)
-    probs = _until(lambda: (v.read(), v.problem_messages())[1], 3.0, every=lambda: v.send(0.1))
+    probs = _until(lambda: (v.read(), [msg for _, msg in v.problems()])[1], 3.0, every=lambda: v.send(0.1))
     assert any("foreign CAN frames" in p for p in probs), probs
     if kind == "rpdo":   # the valve saw two set-points in one SYNC period or a broken sequence
         assert _until(lambda: em.latched & SW_PROTOCOL, 3.0, every=lambda: v.send(0.1))
@@ -465,7 +465,7 @@ def test_foreign_sdo_cannot_disable_the_heartbeat_consumer(inproc):
             node.sdo[0x1016][1].raw = 0
         assert em._consumer_s == consumer
         assert _until(lambda: 0x603 in (v.read(), v.foreign_ids)[1], 3.0, every=lambda: v.send(0.1))
-        assert any("foreign CAN frames" in p and "0x603" in p for p in v.problem_messages())
+        assert any("foreign CAN frames" in p and "0x603" in p for p in [msg for _, msg in v.problems()])
     finally:
         stop.set()
         th.join(2)
@@ -483,7 +483,7 @@ def test_two_rigs_on_one_channel_detected():
         _ticks(v1, 5)
         v2.connect()
         _ticks(v2, 5)
-        probs = _until(lambda: (v1.read(), v1.problem_messages())[1], 3.0, every=lambda: v1.send(0.1))
+        probs = _until(lambda: (v1.read(), [msg for _, msg in v1.problems()])[1], 3.0, every=lambda: v1.send(0.1))
         assert any("foreign CAN frames" in p for p in probs)
     finally:
         for x in (v1, v2, e1, e2):
@@ -519,14 +519,14 @@ def test_malformed_frames_never_crash(xproc):
     v.start()
     _ticks(v, 10, 0.2)
     _while_ticking(v, 0.2, send_malformed, cfg.channel, NODE, cfg.host_node_id)
-    probs = _until(lambda: (v.read(), v.problem_messages())[1], 3.0, every=lambda: v.send(0.2))
+    probs = _until(lambda: (v.read(), [msg for _, msg in v.problems()])[1], 3.0, every=lambda: v.send(0.2))
     assert probs
     st = emu.stats()                                # the emulator process is alive and answers
     assert emu.p.poll() is None and st["bus_malformed"] >= 5 and st["rejected"] >= 4
     assert st["latched"] & SW_PROTOCOL and st["spool"] == 0.0   # wrong-length set-point nulls
     st_h = v.read()
-    assert st_h.malformed_frames >= 1 and any("malformed" in p for p in v.problem_messages())
-    assert _until(lambda: any("rejected" in p for p in (v.read(), v.problem_messages())[1]), 3.0,
+    assert st_h.malformed_frames >= 1 and any("malformed" in p for p in [msg for _, msg in v.problems()])
+    assert _until(lambda: any("rejected" in p for p in (v.read(), [msg for _, msg in v.problems()])[1]), 3.0,
                   every=lambda: v.send(0.2))
     v.start()                                       # and it recovers by the explicit reset
     assert _drive(v, 0.2, lambda: v.read().enabled and abs(emu.stats()["spool"] - 0.2) < 1e-3)
@@ -537,7 +537,7 @@ def test_cross_process_follow_fault_and_heartbeat_loss(xproc):
     v.connect()
     v.start()
     assert _until(lambda: abs(v.read().spool_actual - 0.25) < 1e-3, 5.0, every=lambda: v.send(0.25))
-    assert v.problem_messages() == []
+    assert [msg for _, msg in v.problems()] == []
     emu.cmd("inject fault")
     st = _until(lambda: (s := v.read()).fault and s.emcy and s, 5.0, every=lambda: v.send(0.25))
     assert st and (EMCY_DEVICE_HW, 1) in st.emcy and st.spool_actual == 0.0
@@ -558,8 +558,8 @@ def test_cross_process_intruder_detected(xproc):
     _ticks(v, 10, 0.2)
     _while_ticking_proc(v, 0.2, [sys.executable, "-m", "drivers.emulators.valve_controller", "--channel",
                                  cfg.channel, "--node-id", str(NODE), "--send-foreign", "rpdo"])
-    probs = _until(lambda: any("foreign" in p for p in (v.read(), v.problem_messages())[1]), 5.0, every=lambda: v.send(0.2))
-    assert probs, v.problem_messages()
+    probs = _until(lambda: any("foreign" in p for p in (v.read(), [msg for _, msg in v.problems()])[1]), 5.0, every=lambda: v.send(0.2))
+    assert probs, [msg for _, msg in v.problems()]
     assert _until(lambda: emu.stats()["latched"] & SW_PROTOCOL, 5.0)
     assert emu.stats()["spool"] == 0.0
 

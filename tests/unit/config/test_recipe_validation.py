@@ -198,3 +198,36 @@ def test_cli_refuses_before_writing(tmp_path, monkeypatch):
 def test_strict_types_still_take_ints_for_floats_and_lists_for_tuples(tmp_path):
     r = load_recipe(write(tmp_path, GOOD))
     assert isinstance(r.normal_force_N, float) and r.normal_force_N == 100.0
+
+
+@pytest.mark.parametrize("old, new, field, hint", [
+    ("  - kind: hold\n", "  - kind: hlod\n", "segments[0]", "did you mean 'hold'?"),
+    ("    duration_s: 1\n", "    duraton_s: 1\n", "segments[0].duraton_s", "did you mean 'duration_s'?"),
+    ("        v2_um_s: 2\n", "        v2_um_s: 2\n        slip_befor_um: 30\n",
+     "segments[1].steps[0].slip_befor_um", "did you mean 'slip_before_um'?"),
+    ("normal_force_N: 100\n", "normal_force: 100\n", "normal_force", "did you mean 'normal_force_N'?"),
+])
+def test_a_typo_gets_did_you_mean_in_its_one_error(tmp_path, old, new, field, hint):
+    with pytest.raises(RecipeError) as ei:
+        load_recipe(write(tmp_path, GOOD.replace(old, new)))
+    assert f"{field}" in str(ei.value) and f"{hint}" in str(ei.value)  # first, or among the "also:" list
+
+
+def test_no_did_you_mean_without_a_close_name(tmp_path):
+    with pytest.raises(RecipeError) as ei:
+        load_recipe(write(tmp_path, GOOD.replace("    duration_s: 1\n", "    duration_s: 1\n    zzz: 1\n")))
+    assert ei.value.field == "segments[0].zzz" and "did you mean" not in str(ei.value)
+
+
+def test_another_lubricant_renames_the_recipes_wording(tmp_path):
+    """`rig run --lubricant dry` on a recipe written for boundary: its description and labels say dry."""
+    text = GOOD.replace("name: t\n", "name: t\ndescription: Steps on the boundary lubricant (stability boundary-ish)\n")
+    text = text.replace("    duration_s: 1\n", "    duration_s: 1\n    label: boundary settle\n")
+    r = load_recipe(write(tmp_path, text))
+    d = r.with_lubricant("dry")
+    assert (d.lubricant, d.segments[0].label) == ("dry", "dry settle")
+    assert d.description == "Steps on the dry lubricant (stability boundary-ish)"  # a word, not a part of one
+    assert (r.lubricant, r.segments[0].label) == ("boundary", "boundary settle")  # the original is unchanged
+    assert d.source_text == r.source_text
+    with pytest.raises(ValueError):
+        r.with_lubricant("bad\nname")

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from rig.model.paper import TABLE2
-from rig.config.profile import ProfileError, RigProfile, load_profile
+from rig.config.profile import ProfileError, RigProfile, default_profile_path, load_profile
 from trajectories import RigLimits
 
 
@@ -197,3 +197,19 @@ def test_plan_limits_from_profile(tmp_path):
     assert isinstance(lim, RigLimits)
     assert (lim.stroke_min_um, lim.stroke_max_um, lim.initial_position_um, lim.max_speed_um_s) == (0, 3000, 700, 300)
     assert lim.max_speed_note == ""
+
+
+def test_lubricants_read_table2_by_name(tmp_path):
+    """Table 2 is written once (rig/model/paper.py): a profile's lubricant named as in Table 2
+    takes its A, B, L from there unless it gives them; the defaults are the shipped sim.yaml's;
+    another name must give all three (the error names the field and the line)."""
+    f = _write(tmp_path, "lubricants:\n  boundary: {mu0: 0.1}\n  paraffin: {mu0: 0.12, A_mu: 0.0003}\n")
+    p = load_profile(f)
+    assert p.lubricants["boundary"].B_mu == TABLE2["boundary"]["B_mu"][0]
+    assert p.lubricants["boundary"].L_um == TABLE2["boundary"]["L_um"][0]
+    assert p.lubricants["paraffin"].A_mu == 3e-4 and p.lubricants["paraffin"].L_um == TABLE2["paraffin"]["L_um"][0]
+    assert RigProfile().lubricants == load_profile(default_profile_path()).lubricants
+    f = _write(tmp_path, "lubricants:\n  grease: {mu0: 0.1, A_mu: 0.001}\n")
+    with pytest.raises(ProfileError) as ei:
+        load_profile(f)
+    assert ei.value.field in ("lubricants.grease.B_mu", "lubricants.grease.L_um") and ei.value.line == 2

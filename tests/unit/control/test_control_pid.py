@@ -2,15 +2,34 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
-from rig.control import PID, Controller, controller_step, make_controller_params, new_controller_state
+from rig.control import K_SAT, controller_step_v, make_controller_params, new_controller_state, pid_step
+
+
+class _Pid:
+    """The loop's PID kernel (:func:`rig.control.pid_step`) on its parameter and state arrays,
+    without dither: what the tests drive tick by tick."""
+
+    def __init__(self, kp, ki, kd, dt_s=1e-3, integral_max_N=500.0, output_max_N=1e4, ff1_N_s_per_um=0.0):
+        self.c = make_controller_params(kp, ki, kd, dt_s, integral_max_N, output_max_N, 1e9,
+                                        dither_amplitude_fraction=0.0, ff1_N_s_per_um=ff1_N_s_per_um)
+        self.s = new_controller_state()
+
+    def step(self, x_ref_um, x_meas_um, v_ref_um_s=math.nan):
+        return pid_step(self.c, self.s, x_ref_um, x_meas_um, v_ref_um_s)
+
+    @property
+    def saturated(self):
+        return self.s[K_SAT] != 0.0
 
 
 def test_pid_terms_hand_computed():
     # kp = 2 N/µm, ki = 10 N/(µm s), kd = 0.01 N s/µm, dt = 1 ms
-    pid = PID(2.0, 10.0, 0.01, dt_s=1e-3, integral_max_N=1e6, output_max_N=1e6)
+    pid = _Pid(2.0, 10.0, 0.01, dt_s=1e-3, integral_max_N=1e6, output_max_N=1e6)
     errors = [1.0, 3.0, -2.0, 0.5]
     outs = [pid.step(e, 0.0) for e in errors]
     # tick 0: P = 2, I = 0 (no prior errors), D = 0 (no previous error)
@@ -25,13 +44,13 @@ def test_pid_terms_hand_computed():
 
 
 def test_pid_measured_position_sign():
-    pid = PID(1.0, 0.0, 0.0)
+    pid = _Pid(1.0, 0.0, 0.0)
     out, p, i, d = pid.step(10.0, 7.5)  # error = ref - measured = 2.5 µm
     assert p == pytest.approx(2.5) and out == pytest.approx(2.5)
 
 
 def test_pid_output_clamp_and_saturated_flag():
-    pid = PID(100.0, 0.0, 0.0, output_max_N=50.0)
+    pid = _Pid(100.0, 0.0, 0.0, output_max_N=50.0)
     out, p, _, _ = pid.step(1.0, 0.0)
     assert p == pytest.approx(100.0)
     assert out == pytest.approx(50.0) and pid.saturated
@@ -42,7 +61,7 @@ def test_pid_output_clamp_and_saturated_flag():
 
 
 def test_pid_anti_windup_stops_integrating_while_saturated():
-    pid = PID(10.0, 100.0, 0.0, dt_s=1e-3, output_max_N=5.0, integral_max_N=1e6)
+    pid = _Pid(10.0, 100.0, 0.0, dt_s=1e-3, output_max_N=5.0, integral_max_N=1e6)
     for _ in range(1000):
         pid.step(1.0, 0.0)  # P alone (10 N) saturates: the integral must not grow
     _, _, i_sat, _ = pid.step(1.0, 0.0)
@@ -53,32 +72,24 @@ def test_pid_anti_windup_stops_integrating_while_saturated():
     _, _, i2, _ = pid.step(-0.1, 0.0)
     assert i2 == pytest.approx(-100.0 * 1e-3 * 0.1)
     # unsaturated, the integral after 1001 prior errors is 100 * 1e-3 * 1001
-    free = PID(10.0, 100.0, 0.0, dt_s=1e-3, output_max_N=1e9, integral_max_N=1e9)
+    free = _Pid(10.0, 100.0, 0.0, dt_s=1e-3, output_max_N=1e9, integral_max_N=1e9)
     for _ in range(1001):
         free.step(1.0, 0.0)
     assert free.step(1.0, 0.0)[2] == pytest.approx(100.0 * 1e-3 * 1001)
 
 
 def test_pid_integral_clamp():
-    pid = PID(0.0, 1000.0, 0.0, dt_s=1e-3, integral_max_N=3.0, output_max_N=1e9)
+    pid = _Pid(0.0, 1000.0, 0.0, dt_s=1e-3, integral_max_N=3.0, output_max_N=1e9)
     for _ in range(100):
         out, _, i, _ = pid.step(1.0, 0.0)
     assert i == pytest.approx(3.0) and out == pytest.approx(3.0)
-
-
-def test_pid_reset():
-    pid = PID(1.0, 1.0, 1.0)
-    for _ in range(5):
-        pid.step(1.0, 0.0)
-    pid.reset()
-    assert pid.step(2.0, 0.0) == pytest.approx((2.0, 2.0, 0.0, 0.0))
 
 
 def _run_controller(c, n, err_fn):
     s = new_controller_state()
     out = np.empty((n, 5))
     for k in range(n):
-        out[k] = controller_step(c, s, err_fn(k), 0.0)
+        out[k] = controller_step_v(c, s, err_fn(k), 0.0, math.nan)
     return out
 
 
@@ -114,25 +125,14 @@ def test_dither_full_scale_mode_and_valve_saturation():
     assert np.all(sat[:, 0] == 1.0)
 
 
-def test_controller_wrapper_matches_kernel():
-    c = make_controller_params(0.5, 5.0, 0.003, 1e-3)
-    ctl = Controller(c)
-    s = new_controller_state()
-    rng = np.random.default_rng(0)
-    for e in rng.normal(size=50):
-        d = ctl.step(e, 0.0)
-        ref = controller_step(c, s, e, 0.0)
-        assert (d["valve_cmd"], d["pid_p"], d["pid_i"], d["pid_d"], d["dither"]) == ref
-
-
 def test_ff1_velocity_feed_forward_hand_computed():
     """FF1 (LinuxCNC): ff1 x reference velocity, the backward difference of the reference
     unless the planner's velocity is given; 0 at the first tick; off by default."""
-    pid = PID(0.0, 0.0, 0.0, dt_s=1e-3, ff1_N_s_per_um=0.05)
+    pid = _Pid(0.0, 0.0, 0.0, dt_s=1e-3, ff1_N_s_per_um=0.05)
     assert pid.step(100.0, 100.0)[0] == pytest.approx(0.0)          # first tick: no velocity yet
     assert pid.step(100.002, 100.002)[0] == pytest.approx(0.05 * 2.0)  # 2 µm/s ramp
     assert pid.step(100.004, 100.004, v_ref_um_s=10.0)[0] == pytest.approx(0.5)  # planner's velocity
-    off = PID(0.0, 0.0, 0.0, dt_s=1e-3)
+    off = _Pid(0.0, 0.0, 0.0, dt_s=1e-3)
     off.step(100.0, 100.0)
     assert off.step(100.002, 100.002)[0] == 0.0
     with pytest.raises(ValueError, match="ff1"):
@@ -147,8 +147,8 @@ def test_ff1_from_the_profile_reaches_the_controller():
     assert controller_params_from_profile(prof)[C_FF1] == 0.02  # sim.yaml: FF1 = k_h tau_L
     prof = prof.model_copy(update={"controller": prof.controller.model_copy(update={"ff1_N_s_per_um": 0.05})})
     assert controller_params_from_profile(prof)[C_FF1] == 0.05
-    c = Controller.from_profile(prof)
-    c.step(500.0, 500.0)
-    d = c.step(500.001, 500.001)
+    c, s = controller_params_from_profile(prof), new_controller_state()
+    controller_step_v(c, s, 500.0, 500.0, math.nan)
+    valve, _p, _i, _d, dither = controller_step_v(c, s, 500.001, 500.001, math.nan)
     # valve = (bias + ff1 x 1 µm/s + dither) / full scale
-    assert d["valve_cmd"] * prof.actuator.full_scale_force_N == pytest.approx(0.05 + d["dither"], abs=1e-9)
+    assert valve * prof.actuator.full_scale_force_N == pytest.approx(0.05 + dither, abs=1e-9)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from rig.kinematics import cumulative_slip_um, velocity_for_steps, velocity_local_poly, velocity_paper
+from rig.kinematics import velocity_for_steps, velocity_local_poly, velocity_paper
 
 
 Q_UM = 0.076  # LVDT quantization step (paper, section 3)
@@ -44,11 +44,14 @@ def test_adaptive_window_tracks_both_speeds_and_uneven_sampling():
 
 
 def test_cumulative_slip_is_the_integral_of_speed():
+    from rig.model.forward import cumulative_slip_um
     t = np.linspace(0, 10, 1001)
     v = np.where(t < 5, 2.0, -3.0)
     s = cumulative_slip_um(t, v)
     assert abs(s[-1] - (2 * 5 + 3 * 5)) < 0.1
     assert np.all(np.diff(s) >= 0)
+    # point by point across a reversal: +1 then -1 slides 1 µm, where |mean v| would give 0
+    assert cumulative_slip_um([0.0, 1.0], [1.0, -1.0])[-1] == 1.0
 
 
 def test_velocity_changes_finds_each_step_once():

@@ -11,16 +11,20 @@ import pytest
 
 from rig.config.profile import load_profile
 from rig.config.recipe import load_recipe
-from rig.session import Block, Cause, Ending, Event, MemoryLog, Phase, StopMachine, run_trial
+from rig.session import (
+    Anchored, Backend, Block, Ending, Event, FailStoppable, LoggerWatched, MemoryLog, Outcome, Pausable, Phase, StopMachine,
+    TrialWriter, run_trial,
+)
 from rig.session.sim import SimBackend, simulate
 from rig.config.recipe import compile_recipe
 
 
 def test_stop_machine_order_and_first_reason_wins():
     sm = StopMachine()
-    assert sm.request(Cause.OPERATOR, "operator abort (SIGINT)")
-    assert not sm.request(Cause.TRIP, "later")  # counted, the first reason stays
+    assert sm.request(Outcome.STOPPED, "operator abort (SIGINT)")
+    assert not sm.request(Outcome.TRIPPED, "later")  # counted, the first reason stays
     assert sm.requests == 2 and sm.reason == "operator abort (SIGINT)" and sm.status == "interrupted"
+    assert sm.cause == "operator"
     with pytest.raises(RuntimeError, match="stopping -> stopping|not allowed"):
         sm._go(Phase.STOPPING)
     sm.safe()
@@ -30,6 +34,58 @@ def test_stop_machine_order_and_first_reason_wins():
     assert [h[0] for h in sm.history] == [Phase.RUNNING, Phase.STOPPING, Phase.SAFE, Phase.DONE]
     with pytest.raises(RuntimeError):
         StopMachine().safe()  # SAFE only after STOPPING
+
+
+def test_one_outcome_gives_the_logged_strings():
+    """The log's status and cause and trial_failed's status are one Outcome's strings (they must
+    not change: the MCAP metadata and the CLI's JSON show them)."""
+    table = {o: (o.value, o.status, o.cause) for o in Outcome}
+    assert table == {Outcome.COMPLETED: ("completed", "completed", "end_of_plan"),
+                     Outcome.STOPPED: ("stopped", "interrupted", "operator"),
+                     Outcome.TRIPPED: ("tripped", "failed", "trip"),
+                     Outcome.FAILED: ("failed", "failed", "failure")}
+    assert Ending("tripped").outcome is Outcome.TRIPPED
+    with pytest.raises(ValueError):
+        Ending("aborted")  # not an outcome
+
+
+def test_stop_machine_is_overruled_only_by_a_trip_or_a_failure():
+    sm = StopMachine()
+    with pytest.raises(RuntimeError, match="nothing to overrule"):
+        sm.overrule(Outcome.FAILED, "too early")
+    sm.request(Outcome.STOPPED, "operator abort (SIGTERM)")
+    with pytest.raises(ValueError, match="only a trip or a failure"):
+        sm.overrule(Outcome.COMPLETED, "no")
+    sm.overrule(Outcome.TRIPPED, "INTERLOCK stroke_limit")
+    assert (sm.status, sm.cause, sm.reason) == ("failed", "trip", "INTERLOCK stroke_limit")
+    sm.safe()
+    sm.done()
+    with pytest.raises(RuntimeError, match="nothing to overrule"):
+        sm.overrule(Outcome.FAILED, "after the end")
+
+
+def test_writers_and_backends_satisfy_their_protocols(tmp_path):
+    """The writer contract is a Protocol: the MCAP writer and the memory log both satisfy it, and
+    the backends' capabilities are the small protocols the session asks with isinstance."""
+    from rig.log import TrialLogWriter
+    from rig.session.hardware import HardwareBackend
+    from rig.session.sim import SimBackend
+
+    assert isinstance(MemoryLog(), TrialWriter) and not isinstance(MemoryLog(), Anchored)
+    w = TrialLogWriter(tmp_path / "t.mcap", threaded=False, fsync=False)
+    try:
+        assert isinstance(w, TrialWriter) and isinstance(w, Anchored)
+    finally:
+        w.close("completed")
+    assert not isinstance(object(), TrialWriter)
+    for cls in (SimBackend, HardwareBackend):
+        assert all(hasattr(cls, m) for m in ("describe", "start", "receive", "request_stop", "stats_window",
+                                             "finish", "close"))
+    # capabilities, read off the classes' members (an instance needs a rig or devices)
+    assert {"pause", "resume"} <= set(dir(SimBackend)) and {"pause", "resume"} <= set(dir(HardwareBackend))
+    assert {"block_logged", "heartbeat", "heartbeat_priority", "fail_stop"} <= set(dir(HardwareBackend))
+    assert not isinstance(ScriptedBackend(1), (Pausable, LoggerWatched, FailStoppable))
+    assert isinstance(ScriptedBackend(1), Backend)
 
 
 class ScriptedBackend:

@@ -262,5 +262,6 @@ def test_rig_run_refuses_a_step_out_of_steady_state(repo_root, tmp_path):
     res = CliRunner().invoke(app, ["run", str(old), "--sim", "--lubricant", "dry", "--plan-only"])
     assert res.exit_code == 2
     text = " ".join(res.output.split())
-    assert "segment 2 (velocity_steps 'boundary steps')" in text and "out of steady state" in text
+    # the recipe's "boundary steps" says the lubricant actually used (--lubricant dry)
+    assert "segment 2 (velocity_steps 'dry steps')" in text and "out of steady state" in text
     assert "Traceback" not in text
