@@ -1,4 +1,4 @@
-"""Shared test fixtures: repository paths and the shared data folder."""
+"""Shared test fixtures: repository paths, the shared data folder, and a damaged copy of a log."""
 
 from __future__ import annotations
 
@@ -27,3 +27,23 @@ def real_data_dir() -> Path:
         pytest.skip(f"shared real data not found at {d}")
     return d
 
+
+def _corrupt_middle_chunk(src: Path, dst: Path, nbytes: int = 64):
+    """Flip ``nbytes`` bytes in the data of the chunk one third into the file; returns that chunk's index."""
+    from mcap.reader import make_reader
+
+    with open(src, "rb") as fh:
+        chunks = make_reader(fh).get_summary().chunk_indexes
+    victim = min(chunks, key=lambda c: abs(c.chunk_start_offset - src.stat().st_size / 3))
+    data = bytearray(src.read_bytes())
+    at = victim.chunk_start_offset + victim.chunk_length - victim.compressed_size // 2 - nbytes
+    for i in range(at, at + nbytes):
+        data[i] ^= 0xFF
+    dst.write_bytes(bytes(data))
+    return victim
+
+
+@pytest.fixture(scope="session")
+def corrupt_middle_chunk():
+    """``corrupt_middle_chunk(src, dst, nbytes=64)``: a copy of an MCAP with one chunk's data flipped."""
+    return _corrupt_middle_chunk

@@ -21,20 +21,18 @@ from mcap.reader import make_reader
 from typer.testing import CliRunner
 
 from rig.cli import app
+from rig.config.profile import load_profile
+from rig.config.recipe import compile_recipe, load_recipe
 from rig.log import EVENTS_TOPIC, LOG25_TOPIC, STATS_TOPIC, TrialLogWriter
 from rig.log.live import LiveView
-
+from rig.session.sim import SimBackend
 
 websockets = pytest.importorskip("websockets")
-
 from websockets.asyncio.client import connect  # noqa: E402
-
 
 # foxglove-sdk >= 0.x names the protocol "foxglove.sdk.v1": the same messages as foxglove.websocket.v1
 # under a new name (its server refuses the old name); the client offers both.
 SUBPROTOCOLS = ["foxglove.sdk.v1", "foxglove.websocket.v1"]
-
-
 TOPICS = (LOG25_TOPIC, EVENTS_TOPIC, STATS_TOPIC)
 
 
@@ -177,6 +175,31 @@ def test_live_run_streams_what_the_log_holds(repo_root, tmp_path):
     assert stats, "no loop statistics received"
     for log_time, m in stats:
         assert m in logged[STATS_TOPIC].get(log_time, []), m
+
+
+def test_sim_pace_waits_and_keeps_the_data(repo_root):
+    """--pace 4: the trial takes at least duration / 4 of wall time; the samples are those of an unpaced run."""
+    profile = load_profile(repo_root / "config" / "rigs" / "sim.yaml")
+    recipe = load_recipe(repo_root / "config" / "recipes" / "smoke.yaml")
+    plan = compile_recipe(recipe, profile)
+    fm = profile.friction_model(recipe.lubricant)
+
+    def run(pace):
+        b = SimBackend(profile, fm, recipe.normal_force_N, 7, block_ticks=1000, pace=pace)
+        b.start(plan)
+        t0 = time.monotonic()
+        blocks = []
+        while (blk := b.receive()) is not None:
+            blocks.append(blk.data["position_um"].copy())
+        return time.monotonic() - t0, blocks
+
+    wall_fast, fast = run(0.0)
+    wall_paced, paced = run(4.0)
+    assert wall_paced >= plan.duration_s / 4 * 0.95
+    assert max(b.size for b in paced) == 400  # blocks of 0.1 s of wall time: 0.4 s of trial at 4x
+    np.testing.assert_array_equal(np.concatenate(fast), np.concatenate(paced))
+    with pytest.raises(ValueError, match="pace"):
+        SimBackend(profile, fm, 100.0, 7, pace=-1)
 
 
 def test_a_stalled_viewer_does_not_hold_up_the_log(tmp_path):

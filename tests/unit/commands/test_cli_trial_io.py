@@ -210,9 +210,7 @@ def test_export_reads_v1_logs():
         assert len(read_csv(out)) == 1678
 
 
-def test_corrupt_chunk_warns_in_export_and_info_and_fails_strict(small_log, tmp_path):
-    from test_log_mcap import corrupt_middle_chunk
-
+def test_corrupt_chunk_warns_in_export_and_info_and_fails_strict(small_log, tmp_path, corrupt_middle_chunk):
     bad = tmp_path / "bad.mcap"
     corrupt_middle_chunk(small_log, bad)
     csv = tmp_path / "b.csv"

@@ -251,20 +251,7 @@ def test_mcap_reader_validates_every_chunk_crc(tmp_path, compression):
     assert len(read_trial(path, "raw")) == 4000
 
 
-def corrupt_middle_chunk(src: Path, dst: Path, nbytes: int = 64):
-    """Flip ``nbytes`` bytes in the data of the chunk one third into the file; returns that chunk's index."""
-    with open(src, "rb") as fh:
-        chunks = make_reader(fh).get_summary().chunk_indexes
-    victim = min(chunks, key=lambda c: abs(c.chunk_start_offset - src.stat().st_size / 3))
-    data = bytearray(src.read_bytes())
-    at = victim.chunk_start_offset + victim.chunk_length - victim.compressed_size // 2 - nbytes
-    for i in range(at, at + nbytes):
-        data[i] ^= 0xFF
-    dst.write_bytes(bytes(data))
-    return victim
-
-
-def test_corrupt_chunk_is_named_skipped_and_never_carried_forward(tmp_path):
+def test_corrupt_chunk_is_named_skipped_and_never_carried_forward(tmp_path, corrupt_middle_chunk):
     blocks = make_blocks(60)
     good = tmp_path / "good.mcap"
     write_log(good, blocks, chunk_size=20_000).close()
