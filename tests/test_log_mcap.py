@@ -124,8 +124,8 @@ def test_layout_schemas_chunks_index_epoch_log_time(tmp_path):
         from google.protobuf import descriptor_pb2
         fds = descriptor_pb2.FileDescriptorSet.FromString(sch.data)
         names = {f.name for f in fds.file[0].message_type[0].field}
-        assert {"t_s", "position_nm", "position_ref_um", "friction_mN", "normal_1_mN", "normal_2_mN",
-                "valve_cmd_per_32767", "pid_p_mN", "pid_i_uN", "pid_d_N", "dither_uN"} <= names
+        assert {"t_s", "position_nm", "position_ref_um", "friction_cN", "normal_1_cN", "normal_2_cN",
+                "valve_cmd_per_32767", "pid_p_mN", "pid_i_mN", "pid_d_N", "dither_uN"} <= names
         rig_cols = {c[0]: c for c in json.loads(raw.metadata["rig_columns"])}
         assert rig_cols["position_um"][2:] == ["position_nm", "sint64", 1e-3, 0.076, 0.0]
         assert raw.metadata["json_twin"] == LOG25_TOPIC
@@ -473,8 +473,8 @@ def test_foxglove_layout_plots_only_fields_the_log_has():
             assert cfg["topicPath"] == EVENTS_TOPIC
     for want in ("/log25.position_um", "/log25.position_ref_um", "/log25.friction_N", "/log25.normal_1_N",
                  "/log25.normal_2_N", "/log25.valve_cmd", "/loop_stats.late_p99_us", "/raw.position_nm[:]",
-                 "/raw.position_ref_um[:]", "/raw.friction_mN[:]", "/raw.normal_1_mN[:]", "/raw.normal_2_mN[:]",
-                 "/raw.valve_cmd_per_32767[:]", "/raw.pid_p_mN[:]", "/raw.pid_i_uN[:]", "/raw.pid_d_N[:]",
+                 "/raw.position_ref_um[:]", "/raw.friction_cN[:]", "/raw.normal_1_cN[:]", "/raw.normal_2_cN[:]",
+                 "/raw.valve_cmd_per_32767[:]", "/raw.pid_p_mN[:]", "/raw.pid_i_mN[:]", "/raw.pid_d_N[:]",
                  "/raw.dither_uN[:]", "/raw.spool_per_32767[:]"):
         assert want in paths
 

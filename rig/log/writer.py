@@ -619,7 +619,9 @@ class TrialLogWriter:
         if f is None:
             col = self._enc.column(name)
             f = "%r"
-            if name == "mu" and self._raw_columns == "device":
+            if name == "t_s" and self._raw_columns == "device":
+                f = "%.6f"  # 1 µs: the centre of a block of ticks, without float64's tail digits
+            elif name == "mu" and self._raw_columns == "device":
                 f = "%.6g"
             elif name != "t_s" and np.dtype(col.dtype).kind == "i" and col.offset == 0.0:
                 f = "%.9g"  # e.g. the valve's k/32767
