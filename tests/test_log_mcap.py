@@ -16,6 +16,7 @@ from mcap.reader import make_reader
 from rig.data import DataFormatError
 from rig.log import (BLOCK_KEYS, EVENTS_TOPIC, LOG25_TOPIC, RAW_TOPIC, STATS_TOPIC,
                      LogDamageWarning, TrialLogWriter, read_metadata, read_trial, recover, trial_info)
+from rig.log.figures import BlockFigures
 from rig.log.schemas import DEVICE_COLUMNS, decode_v2
 
 V1_FILE = Path(__file__).parent / "data" / "v1-sim-1khz.mcap"
@@ -215,8 +216,10 @@ def test_mu_on_log25_is_null_where_normals_sum_to_zero(tmp_path):
     with open(path, "rb") as fh:
         rows = [json.loads(m.data) for _, _, m in make_reader(fh).iter_messages(topics=[LOG25_TOPIC])]
     assert rows and all(r["mu"] is None for r in rows)
-    assert np.isnan(w.mean_mu)
     assert np.isnan(read_trial(path).mu).all()
+    fig = BlockFigures()
+    fig.add(blk)
+    assert np.isnan(fig.mean_mu) and fig.mean_friction_N == pytest.approx(np.mean(blk["friction_N"]))
 
 
 def test_v1_log_from_the_previous_writer_still_reads():

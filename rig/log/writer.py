@@ -49,51 +49,6 @@ _COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none"
                 "": CompressionType.NONE}
 
 
-def _block_stats_py(ref, pos, f, n1, n2, valve, acc):  # pragma: no cover - compiled
-    """Accumulate a block's summary figures into ``acc`` (non-finite samples skipped):
-    [sum (ref-pos)^2, max |ref-pos|, n, sum f, sum |f|, n_f, sum f/(n1+n2), n |valve| >= 1, n_mu]."""
-    if ref.size == pos.size:
-        for i in range(ref.size):
-            e = ref[i] - pos[i]
-            if math.isfinite(e):
-                acc[0] += e * e
-                ae = abs(e)
-                if ae > acc[1]:
-                    acc[1] = ae
-                acc[2] += 1.0
-    with_n = n1.size == f.size and n2.size == f.size
-    for i in range(f.size):
-        fi = f[i]
-        if math.isfinite(fi):
-            acc[3] += fi
-            acc[4] += abs(fi)
-            acc[5] += 1.0
-            if with_n:
-                nn = n1[i] + n2[i]
-                if nn != 0.0:
-                    mu = fi / nn
-                    if math.isfinite(mu):
-                        acc[6] += mu
-                        acc[8] += 1.0
-    for i in range(valve.size):
-        if abs(valve[i]) >= 1.0:
-            acc[7] += 1.0
-
-
-_block_stats_jit = None
-
-
-def _block_stats(ref, pos, f, n1, n2, valve, acc) -> None:
-    """numba-compiled :func:`_block_stats_py` (compiled on first use, so reading a log needs no numba)."""
-    global _block_stats_jit
-    if _block_stats_jit is None:
-        from numba import njit
-
-        _block_stats_jit = njit(cache=True)(_block_stats_py)
-    _block_stats_jit(ref, pos, f, n1, n2, valve, acc)
-
-
-_EMPTY = np.zeros(0)
 
 
 class _Sink:
@@ -383,7 +338,6 @@ class TrialLogWriter:
         self._pending: list[dict] = []
         self._listeners: list[Callable[[str, dict], None]] = []
         self.listener_errors: list[str] = []
-        self._stats_acc = np.zeros(9)
         started = _dt.datetime.fromtimestamp(self.start_time_ns / 1e9, _dt.timezone.utc)
         trial = {"software_version": __version__, "started_utc": started.isoformat(),
                  "start_time_ns": self.start_time_ns, "log_time": "unix_ns",
@@ -419,11 +373,9 @@ class TrialLogWriter:
         return self._sink.failure() if self._threaded else None
 
     def warm_up(self) -> None:
-        """Load and compile now what writing a block needs (numba and its cache for the running
-        figures), so that the first block of a run is written as fast as the rest: call before a
-        real-time loop starts."""
-        acc = np.zeros_like(self._stats_acc)
-        _block_stats(_EMPTY, _EMPTY, _EMPTY, _EMPTY, _EMPTY, _EMPTY, acc)
+        """Load and compile now what writing a block needs (numba and its cache for the /raw encoder),
+        so that the first block of a run is written as fast as the rest: call before a real-time loop
+        starts."""
         _loopblock.warm_up()
 
     # -- listeners (live view hook) --------------------------------------------
@@ -567,7 +519,6 @@ class TrialLogWriter:
             self._emit_log25(dec)
         self.ticks += n
         self.last_t_s = float(t[-1])
-        self._running_stats(arrays)
         if self._pending and self._pending[0]["t_s"] <= self.last_t_s + 0.5 / self.loop_rate_hz:
             self._emit_pending(self.last_t_s + 0.5 / self.loop_rate_hz)
         self._send()
@@ -632,41 +583,6 @@ class TrialLogWriter:
                         break
             self._dec_fmt[name] = f
         return f
-
-    def _running_stats(self, a: dict[str, np.ndarray]) -> None:
-        e = _EMPTY
-        _block_stats(a.get("position_ref_um", e), a.get("position_um", e), a.get("friction_N", e),
-                     a.get("normal_1_N", e), a.get("normal_2_N", e), a.get("valve_cmd", e), self._stats_acc)
-
-    # the running figures, read from the accumulator (see _block_stats)
-    sum_err2_um2 = property(lambda self: float(self._stats_acc[0]))
-    max_abs_err_um = property(lambda self: float(self._stats_acc[1]))
-    n_err = property(lambda self: int(self._stats_acc[2]))
-    sum_friction_N = property(lambda self: float(self._stats_acc[3]))
-    sum_abs_friction_N = property(lambda self: float(self._stats_acc[4]))
-    n_friction = property(lambda self: int(self._stats_acc[5]))
-    sum_mu = property(lambda self: float(self._stats_acc[6]))
-    n_valve_saturated = property(lambda self: int(self._stats_acc[7]))
-
-    @property
-    def tracking_error_rms_um(self) -> float:
-        """RMS of position_ref_um - position_um over everything logged (µm)."""
-        return math.sqrt(self.sum_err2_um2 / self.n_err) if self.n_err else float("nan")
-
-    @property
-    def mean_friction_N(self) -> float:
-        return self.sum_friction_N / self.n_friction if self.n_friction else float("nan")
-
-    @property
-    def mean_abs_friction_N(self) -> float:
-        """Mean |friction| (N): the sliding friction level whatever the direction."""
-        return self.sum_abs_friction_N / self.n_friction if self.n_friction else float("nan")
-
-    @property
-    def mean_mu(self) -> float:
-        """Mean friction / (normal_1 + normal_2) over the samples where it is defined (NaN if none)."""
-        n = self._stats_acc[8]
-        return float(self._stats_acc[6] / n) if n else float("nan")
 
     def schedule_events(self, events: Iterable[dict]) -> None:
         """Queue planned events (``{t_s, kind, ...}``); each is logged once a block reaches its time."""
