@@ -51,6 +51,30 @@ _COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none"
 
 
 
+_MI: dict = {}
+
+
+def _message_index_class():
+    """``mcap``'s MessageIndex record, its records written in one call (the Writer writes them
+    with two ``write8`` calls per message: a quarter of the writer's time on the 25 Hz channel)."""
+    cls = _MI.get("cls")
+    if cls is not None:
+        return cls
+    from mcap.opcode import Opcode
+    from mcap.records import MessageIndex
+
+    class _MessageIndex(MessageIndex):
+        def write(self, stream) -> None:
+            stream.start_record(Opcode.MESSAGE_INDEX)
+            stream.write2(self.channel_id)
+            stream.write4(len(self.records) * 16)
+            stream.write(np.array(self.records, dtype="<u8").tobytes() if self.records else b"")
+            stream.finish_record()
+
+    _MI["cls"] = _MessageIndex
+    return _MessageIndex
+
+
 class _Sink:
     """Owns the ``mcap`` Writer and the file: messages, metadata, flush (+fsync), finish."""
 
@@ -89,9 +113,8 @@ class _Sink:
         """What ``Writer.add_message`` does for each message (statistics, the chunk's message index, the
         record), without a record object per message; the chunk is closed when it passes the chunk size,
         as the Writer does."""
-        from mcap.records import MessageIndex
-
         w = self.w
+        _MessageIndex = _message_index_class()
         stats = w._Writer__statistics
         counts = stats.channel_message_counts
         limit = w._Writer__chunk_size
@@ -109,7 +132,7 @@ class _Sink:
                 i += 1
                 mi = idx.get(cid)
                 if mi is None:
-                    mi = idx[cid] = MessageIndex(channel_id=cid, records=[])
+                    mi = idx[cid] = _MessageIndex(channel_id=cid, records=[])
                 mi.records.append((ns, pos))
                 head = pack(5, 22 + len(data), cid, seq, ns, ns)
                 parts.append(head)
@@ -513,10 +536,7 @@ class TrialLogWriter:
                 self._add(RAW_TOPIC, t0, self._raw_enc.encode(raw, t0))
         # decimated per-sample channel: block means of the device values over each interval of
         # _dec_every ticks counted from the trial's first (rig.log.decimate: the anti-aliased 25 Hz log)
-        names = [nm for nm in SAMPLE_FIELDS[:-1] if nm in arrays]
-        dec = self._dec.push({nm: self._on_grid(nm, arrays[nm]) for nm in names})
-        if dec is not None:
-            self._emit_log25(dec)
+        self._decimate(arrays)
         self.ticks += n
         self.last_t_s = float(t[-1])
         if self._pending and self._pending[0]["t_s"] <= self.last_t_s + 0.5 / self.loop_rate_hz:
@@ -525,44 +545,62 @@ class TrialLogWriter:
         if time.monotonic() - self._last_flush >= self.flush_interval_s:
             self.flush()
 
-    def _emit_log25(self, cols: dict[str, np.ndarray]) -> None:
-        """Write decimated samples (block means, see rig.log.decimate) as /log25 messages."""
-        names = list(cols)
-        if "normal_1_N" in cols and "normal_2_N" in cols:
-            nn = cols["normal_1_N"] + cols["normal_2_N"]
+    _dec_plan: tuple | None = None
+
+    def _decimate(self, arrays: dict[str, np.ndarray]) -> None:
+        """The /log25 samples of a block: the device columns on their /raw grid (integer count times the
+        scale), stacked, and block means over each interval (:class:`rig.log.decimate.BlockMean`), in a
+        few numpy calls per block."""
+        if self._dec_plan is None:
+            names = tuple(nm for nm in SAMPLE_FIELDS[:-1] if nm in arrays)
+            cols = [self._enc.column(nm) for nm in names]
+            grid = [i for i, (nm, c) in enumerate(zip(names, cols)) if nm != "t_s" and np.dtype(c.dtype).kind == "i"]
+            self._dec_plan = (names, grid, np.array([[cols[i].offset] for i in grid]),
+                              np.array([[cols[i].scale] for i in grid]))
+        names, grid, off, scale = self._dec_plan
+        m = np.stack([arrays[nm] for nm in names])
+        if grid:
+            g = m[grid]
+            with np.errstate(invalid="ignore"):
+                g -= off
+                g /= scale
+                np.rint(g, out=g)
+                g *= scale
+                g += off
+            m[grid] = g
+        dec = self._dec.push({"m": m})
+        if dec is not None:
+            self._emit_log25(names, dec["m"])
+
+    def _emit_log25(self, names: tuple, m: np.ndarray) -> None:
+        """Write decimated samples (rows of ``m``: the fields ``names``; block means, see rig.log.decimate)
+        as /log25 messages, with mu; every sample's JSON from one printf template per block."""
+        names = list(names)
+        if "normal_1_N" in names and "normal_2_N" in names:
+            nn = m[names.index("normal_1_N")] + m[names.index("normal_2_N")]
             with np.errstate(divide="ignore", invalid="ignore"):
-                cols["mu"] = np.where(nn != 0.0, cols["friction_N"] / nn, np.nan)
+                mu = np.where(nn != 0.0, m[names.index("friction_N")] / nn, np.nan)
+            m = np.vstack((m, mu))
             names.append("mu")
-        m = np.array([cols[nm] for nm in names])
-        rows = m.T.tolist()
+        k = m.shape[1]
         specs = [self._dec_format(nm) for nm in names]
         if np.isfinite(m).all():
             fmt = "{" + ",".join(f'"{nm}":{sp}' for nm, sp in zip(names, specs)) + "}"
-            payloads = [(fmt % tuple(row)).encode() for row in rows]
+            payloads = ("\n".join([fmt] * k) % tuple(m.T.ravel().tolist())).encode().split(b"\n")
         else:
             payloads = [("{" + ",".join(f'"{nm}":' + (sp % v if math.isfinite(v) else "null")
                                         for nm, sp, v in zip(names, specs, row)) + "}").encode()
-                        for row in rows]
-        k = len(payloads)
-        ts = m[0]
-        rel = np.clip(np.rint(np.nan_to_num(ts) * 1e9), -9e18, 9e18).astype(np.int64).tolist()
-        t0n = self._origin_ns  # integer arithmetic: float64 cannot hold epoch ns exactly
-        ns = [min(max(t0n + v, 0), _U64_MAX) for v in rel]
+                        for row in m.T.tolist()]
+        # integer arithmetic: float64 cannot hold epoch ns exactly
+        rel = np.clip(np.rint(np.nan_to_num(m[0]) * 1e9), -4e18, 4e18).astype(np.int64)
+        ns = np.maximum(rel + np.int64(self._origin_ns), 0).tolist()
         seq0 = self._seq[LOG25_TOPIC]
         cid = self._chan[LOG25_TOPIC]
         self._batch.extend(zip([cid] * k, ns, payloads, range(seq0, seq0 + k)))
         self._seq[LOG25_TOPIC] = seq0 + k
         self.counts[LOG25_TOPIC] += k
         if self._listeners:
-            self._notify("samples", cols)
-
-    def _on_grid(self, name: str, x: np.ndarray) -> np.ndarray:
-        """The value /raw stores for a device column (its integer count times the scale)."""
-        col = self._enc.column(name)
-        if name == "t_s" or np.dtype(col.dtype).kind != "i":
-            return x
-        with np.errstate(invalid="ignore"):
-            return np.rint((x - col.offset) / col.scale) * col.scale + col.offset
+            self._notify("samples", dict(zip(names, m)))
 
     def _dec_format(self, name: str) -> str:
         """printf format of a /log25 field: the raw column's resolution (the same values as /raw), else repr."""
@@ -578,8 +616,9 @@ class TrialLogWriter:
                 f = "%.9g"  # e.g. the valve's k/32767
                 for d in range(10):
                     if abs(round(col.scale, d) - col.scale) < 1e-12 * max(col.scale, 1e-300):
-                        # a block mean of counts resolves 1/_dec_every of a count: 2 more digits
-                        f = f"%.{d + (2 if self._dec_every > 1 else 0)}f"
+                        # a block mean of counts resolves 1/_dec_every of a count: 3 more digits hold
+                        # it exactly for any _dec_every dividing 1000 (40: 0.025 of a count)
+                        f = f"%.{d + (3 if self._dec_every > 1 else 0)}f"
                         break
             self._dec_fmt[name] = f
         return f
@@ -653,7 +692,7 @@ class TrialLogWriter:
         end.update(summary)
         last = self._dec.flush()
         if last is not None:  # the last, partial interval (mean of its ticks)
-            self._emit_log25(last)
+            self._emit_log25(self._dec_plan[0], last["m"])
             end["samples_decimated"] = self.counts[LOG25_TOPIC]
         self.event(self.last_t_s, "log_end", status=status)
         self.add_metadata("trial_end", end)
