@@ -488,3 +488,18 @@ def test_foxglove_layout_plots_only_fields_the_log_has():
         return leaves(node["first"]) + leaves(node["second"])
     assert sorted(leaves(layout["layout"])) == sorted(layout["configById"])
     assert [t["title"] for t in layout["configById"]["Tab!main"]["tabs"]] == ["trial (25 Hz)", "tuning (1 kHz)"]
+
+
+def test_trial_end_counts_what_the_file_holds(tmp_path):
+    """One count: trial_end's events, raw blocks and 25 Hz samples are the messages `rig info` counts
+    (log_end and the last partial 25 Hz sample included)."""
+    from rig.log.reader import scan
+
+    path = tmp_path / "c.mcap"
+    write_log(path, make_blocks(n_blocks=12, n=125)).close()
+    c = scan(path)
+    end = next(dict(m.metadata) for m in reversed(c.metadata) if m.name == "trial_end")
+    by_topic = {c.channels[cid].topic: n for cid, n in c.counts.items()}
+    assert int(end["events"]) == by_topic[EVENTS_TOPIC] >= 3  # log_start, velocity_step, log_end
+    assert int(end["raw_blocks"]) == by_topic[RAW_TOPIC] == 12
+    assert int(end["samples_decimated"]) == by_topic[LOG25_TOPIC] == 38  # 1500 ticks: 37 intervals of 40 + 1

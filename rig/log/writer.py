@@ -685,16 +685,16 @@ class TrialLogWriter:
         if self.closed:
             return
         self.status = status
+        last = self._dec.flush()
+        if last is not None:  # the last, partial interval (mean of its ticks)
+            self._emit_log25(self._dec_plan[0], last["m"])
+        self.event(self.last_t_s, "log_end", status=status)
+        # the counts of what the file holds (log_end included: `rig info` counts the same messages)
         end = {"status": status, "ticks": self.ticks, "duration_s": self.last_t_s,
                "raw_blocks": self.counts[RAW_TOPIC], "samples_decimated": self.counts[LOG25_TOPIC],
                "events": self.counts[EVENTS_TOPIC],
                "ended_utc": _dt.datetime.now(_dt.timezone.utc).isoformat()}
         end.update(summary)
-        last = self._dec.flush()
-        if last is not None:  # the last, partial interval (mean of its ticks)
-            self._emit_log25(self._dec_plan[0], last["m"])
-            end["samples_decimated"] = self.counts[LOG25_TOPIC]
-        self.event(self.last_t_s, "log_end", status=status)
         self.add_metadata("trial_end", end)
         self.closed = True
         if self._threaded:
