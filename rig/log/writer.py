@@ -361,6 +361,18 @@ class TrialLogWriter:
         self._pending: list[dict] = []
         self._listeners: list[Callable[[str, dict], None]] = []
         self.listener_errors: list[str] = []
+        self._write_trial_records(sink.w, metadata, recipe, profile, recipe_yaml)
+        self._batch: list = []
+        self._failure: BaseException | None = None
+        self._sink = _ThreadedSink(sink) if threaded else sink
+        self._threaded = bool(threaded)
+        # the first chunk carries the schemas and channels: get it on disk now
+        self.event(0.0, "log_start")
+        self.flush()
+
+    def _write_trial_records(self, w: Writer, metadata, recipe, profile, recipe_yaml) -> None:
+        """The file's first records: ``trial`` metadata (clock, rates, identity), the recipe and the
+        rig profile (JSON), the recipe's YAML as an attachment."""
         started = _dt.datetime.fromtimestamp(self.start_time_ns / 1e9, _dt.timezone.utc)
         trial = {"software_version": __version__, "started_utc": started.isoformat(),
                  "start_time_ns": self.start_time_ns, "log_time": "unix_ns",
@@ -370,22 +382,15 @@ class TrialLogWriter:
         if not str(trial.get("trial_uid", "") or "").strip():
             trial["trial_uid"] = str(uuid.uuid4())  # every trial log has an identity (issue 21)
         self.metadata = {k: meta_str(v) for k, v in trial.items()}
-        sink.w.add_metadata("trial", self.metadata)
+        w.add_metadata("trial", self.metadata)
         if recipe is not None:
-            sink.w.add_metadata("recipe", {"json": json.dumps(jsonable(recipe), allow_nan=False),
-                                           "name": str(recipe.get("name", ""))})
+            w.add_metadata("recipe", {"json": json.dumps(jsonable(recipe), allow_nan=False),
+                                      "name": str(recipe.get("name", ""))})
         if profile is not None:
-            sink.w.add_metadata("rig_profile", {"json": json.dumps(jsonable(profile), allow_nan=False)})
+            w.add_metadata("rig_profile", {"json": json.dumps(jsonable(profile), allow_nan=False)})
         if recipe_yaml is not None:
-            sink.w.add_attachment(create_time=time.time_ns(), log_time=self.start_time_ns, name="recipe.yaml",
-                                  media_type="application/yaml", data=recipe_yaml.encode("utf-8"))
-        self._batch: list = []
-        self._failure: BaseException | None = None
-        self._sink = _ThreadedSink(sink) if threaded else sink
-        self._threaded = bool(threaded)
-        # the first chunk carries the schemas and channels: get it on disk now
-        self.event(0.0, "log_start")
-        self.flush()
+            w.add_attachment(create_time=time.time_ns(), log_time=self.start_time_ns, name="recipe.yaml",
+                             media_type="application/yaml", data=recipe_yaml.encode("utf-8"))
 
     # -- health ------------------------------------------------------------------
     def failure(self) -> BaseException | None:
