@@ -264,14 +264,18 @@ class ColumnsV2Encoder:
                 "columns": {k: self.column(k).as_schema() for k in keys}}
 
 
-def decode_v2(data: bytes) -> tuple[dict, dict[str, np.ndarray]]:
-    """A ``rig.columns.v2`` block -> (header, {key: float64 array in physical units})."""
-    if len(data) < 8 or data[:4] != RAW_V2_MAGIC:
-        raise ValueError("not a rig.columns.v2 block (bad magic)")
+def _block_header(data: bytes, magic: bytes, encoding: str) -> tuple[dict, int, int]:
+    """The JSON header of a v1/v2 block (magic, u32 LE length, JSON): (header, n samples, offset after it)."""
+    if len(data) < 8 or data[:4] != magic:
+        raise ValueError(f"not a {encoding} block (bad magic)")
     (hlen,) = struct.unpack_from("<I", data, 4)
     head = json.loads(data[8:8 + hlen])
-    n = int(head["n"])
-    off = 8 + hlen
+    return head, int(head["n"]), 8 + hlen
+
+
+def decode_v2(data: bytes) -> tuple[dict, dict[str, np.ndarray]]:
+    """A ``rig.columns.v2`` block -> (header, {key: float64 array in physical units})."""
+    head, n, off = _block_header(data, RAW_V2_MAGIC, RAW_V2_ENCODING)
     out: dict[str, np.ndarray] = {}
     for key, dtype, flt, scale, offset, nbytes in head["columns"]:
         end = off + int(nbytes)
@@ -286,12 +290,7 @@ def decode_v2(data: bytes) -> tuple[dict, dict[str, np.ndarray]]:
 
 def decode_v1(data: bytes) -> tuple[dict, dict[str, np.ndarray]]:
     """A ``rig.columns.v1`` block (float64/float32 columns) -> (header, {key: float64 array})."""
-    if data[:4] != RAW_V1_MAGIC or len(data) < 8:
-        raise ValueError("not a rig.columns.v1 block (bad magic)")
-    (hlen,) = struct.unpack_from("<I", data, 4)
-    head = json.loads(data[8:8 + hlen])
-    n = int(head["n"])
-    off = 8 + hlen
+    head, n, off = _block_header(data, RAW_V1_MAGIC, RAW_V1_ENCODING)
     out: dict[str, np.ndarray] = {}
     for key, dt in zip(head["fields"], head["dtypes"]):
         dt = np.dtype(dt)
