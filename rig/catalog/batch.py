@@ -18,7 +18,9 @@ process as each task finishes (in completion order), so a rich progress bar can
 follow the work.
 
 An :class:`Engine` holds one cluster for several runs (``rig identify DIR`` indexes and
-analyses on one; ``mapper`` wraps one for ``rig reproduce`` and ``rig stability``); it
+analyses on one; ``mapper`` wraps one for ``rig reproduce`` and ``rig stability``); the
+commands' engines are this process's shared ones (:func:`shared_engine`): a cluster one
+command started serves the next commands of the same process and closes at exit; it
 orders the work longest first when given a ``cost`` and, for its own LocalCluster, computes
 in this process while the cluster starts (docs/scaling.md, "Where the time went").
 
@@ -28,6 +30,7 @@ so a run on a cluster is bit for bit the serial run (``tests/test_batch.py``).
 
 from __future__ import annotations
 
+import atexit
 import multiprocessing
 import os
 import threading
@@ -338,11 +341,60 @@ class Engine:
         self._stack.close()
 
 
+#: the engines of this process's own LocalClusters, by (jobs, start cost): a cluster one command
+#: started serves the next commands of the same process (closed at exit, :func:`close_shared`)
+_SHARED: dict[tuple, Engine] = {}
+_ATEXIT: list = []
+
+
+def _alive(eng: Engine) -> bool:
+    """False when the engine's cluster failed to start or its client is no longer running."""
+    if eng._error is not None:
+        return False
+    client = eng._client
+    return client is None or getattr(client, "status", "running") == "running"
+
+
+def shared_engine(jobs: int | None = None, start_cost_s: float = START_COST_S) -> Engine:
+    """This process's :class:`Engine` for ``jobs`` workers on its own LocalCluster: made at the first
+    call, kept for the later ones (``rig identify``, ``diagnose``, ``reproduce``, ``stability`` called
+    one after another in one process pay the cluster's start once), closed when the process exits.
+    One whose cluster died or did not start is replaced."""
+    key = (jobs, float(start_cost_s))
+    eng = _SHARED.get(key)
+    if eng is not None and not _alive(eng):
+        _SHARED.pop(key)
+        try:
+            eng.close()
+        except Exception:  # noqa: BLE001 - a dead cluster's close may fail; it is dropped either way
+            pass
+        eng = None
+    if eng is None:
+        if not _ATEXIT:
+            _ATEXIT.append(atexit.register(close_shared))
+        eng = _SHARED[key] = Engine(jobs, None, start_cost_s=start_cost_s)
+    return eng
+
+
+def close_shared() -> None:
+    """Close every shared engine (their clusters); registered with ``atexit``."""
+    while _SHARED:
+        _, eng = _SHARED.popitem()
+        try:
+            eng.close()
+        except Exception:  # noqa: BLE001 - at exit: nothing left to report to
+            pass
+
+
 @contextmanager
 def engine(jobs: int | None = None, scheduler: str | None = None,
-           start_cost_s: float = START_COST_S) -> Iterator[Engine]:
-    """An :class:`Engine` for several runs (one cluster), closed on exit; pass it as
-    ``run_tasks(..., client=engine)``."""
+           start_cost_s: float = START_COST_S, *, shared: bool = True) -> Iterator[Engine]:
+    """An :class:`Engine` for several runs (one cluster); pass it as ``run_tasks(..., client=engine)``.
+    ``shared`` (and no ``scheduler``): this process's engine (:func:`shared_engine`), kept open after
+    the block for the process's next commands; else one of its own, closed on exit."""
+    if shared and scheduler is None and jobs != 1:
+        yield shared_engine(jobs, start_cost_s)
+        return
     eng = Engine(jobs, scheduler, start_cost_s=start_cost_s)
     try:
         yield eng
@@ -375,7 +427,7 @@ def run_tasks(fn: Callable[[Any], Any], items: Iterable[Any], *, jobs: int | Non
         return client.run(fn, items, progress=progress, cost=cost)
     if client is not None:
         return _run_on(client, fn, items, progress, cost)
-    with engine(jobs, scheduler, start_cost_s) as eng:
+    with engine(jobs, scheduler, start_cost_s, shared=False) as eng:
         return eng.run(fn, items, progress=progress, cost=cost)
 
 
@@ -433,4 +485,5 @@ def mapper(jobs: int | None = None, scheduler: str | None = None, progress: Call
         yield lambda fn, items, cost=None: _check(eng.run(fn, items, progress=cb, cost=cost))
 
 
-__all__ = ["TaskResult", "BatchError", "run_tasks", "dask_client", "mapper", "default_jobs", "lpt_order", "Engine", "engine"]
+__all__ = ["TaskResult", "BatchError", "run_tasks", "dask_client", "mapper", "default_jobs", "lpt_order", "Engine", "engine",
+           "shared_engine", "close_shared"]
