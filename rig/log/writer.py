@@ -297,7 +297,7 @@ class TrialLogWriter:
     many small chunks (a trial logged in real time closes one every 0.5-1 s for crash safety) is
     rewritten at close into chunks of 1 MB
     (:func:`compact_log`), atomically: zstd then sees the columns of many blocks at once
-    (the hardware's columns: 73 -> 55 MB per hour, docs/trial.md).
+    (the hardware's columns: 57 -> 42 MB per hour, docs/trial.md).
     """
 
     def __init__(self, path: str | os.PathLike, *, loop_rate_hz: float = 1000.0,
