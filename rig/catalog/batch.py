@@ -213,7 +213,7 @@ class Engine:
       batch of minutes amortises (docs/scaling.md).
 
     A batch never pays for a cluster it cannot use: with no cluster yet (and no ``scheduler``),
-    this process runs the batch's cheapest tasks first and, from their measured times and the
+    this process runs the batch's cheapest tasks first and, from their measured CPU times and the
     tasks' ``cost`` (seconds per unit of cost; per task without one), estimates the rest; only
     when the work left, shared by ``jobs`` workers, would save more than ``PAYBACK`` x
     ``start_cost_s`` does the cluster start (in the background, this process going on meanwhile).
@@ -421,7 +421,7 @@ def run_tasks(fn: Callable[[Any], Any], items: Iterable[Any], *, jobs: int | Non
     ``cost(item)``, an estimate of a task's run time in any unit, orders the work on Dask:
     longest first (LPT), so that the batch does not end with one worker finishing a long task
     while the others are idle. It changes no result, only the order of completion. With an
-    engine of its own, the work is estimated from it and measured times, and a batch too short to
+    engine of its own, the work is estimated from it and measured CPU times, and a batch too short to
     pay back ``start_cost_s`` runs in this process (:class:`Engine`).
     """
     items = list(items)
