@@ -18,7 +18,9 @@ process as each task finishes (in completion order), so a rich progress bar can
 follow the work.
 
 An :class:`Engine` holds one cluster for several runs (``rig identify DIR`` indexes and
-analyses on one; ``mapper`` wraps one for ``rig reproduce`` and ``rig stability``); it
+analyses on one; ``mapper`` wraps one for ``rig reproduce`` and ``rig stability``); the
+commands' engines are this process's shared ones (:func:`shared_engine`): a cluster one
+command started serves the next commands of the same process and closes at exit; it
 orders the work longest first when given a ``cost`` and, for its own LocalCluster, computes
 in this process while the cluster starts (docs/scaling.md, "Where the time went").
 
@@ -28,6 +30,7 @@ so a run on a cluster is bit for bit the serial run (``tests/test_batch.py``).
 
 from __future__ import annotations
 
+import atexit
 import multiprocessing
 import os
 import threading
@@ -210,7 +213,7 @@ class Engine:
       batch of minutes amortises (docs/scaling.md).
 
     A batch never pays for a cluster it cannot use: with no cluster yet (and no ``scheduler``),
-    this process runs the batch's cheapest tasks first and, from their measured times and the
+    this process runs the batch's cheapest tasks first and, from their measured CPU times and the
     tasks' ``cost`` (seconds per unit of cost; per task without one), estimates the rest; only
     when the work left, shared by ``jobs`` workers, would save more than ``PAYBACK`` x
     ``start_cost_s`` does the cluster start (in the background, this process going on meanwhile).
@@ -324,9 +327,13 @@ class Engine:
             if self.start_cost_s <= 0 and len(rest) > 1:
                 return rest  # asked to always use the workers
             i = rest[-1]
-            t0 = time.perf_counter()
+            # the task's CPU time, not its wall time: on a busy machine the wall time of a task grows with
+            # the others' load, and a cluster on the same busy cores would not escape that load (the
+            # batch's tasks compute: identify, diagnose, index, simulate); measured: 12 files at load 18
+            # started a cluster on their inflated wall times and took 0.76x of --jobs 1 (docs/scaling.md)
+            c0 = time.process_time()
             run_local(i)
-            dt = time.perf_counter() - t0
+            dt = time.process_time() - c0
             c = costs[i] if costs[i] > 0 else (sum(costs.values()) / len(costs) or 1.0)
             rates.append(dt / c)
             rest = rest[:-1]
@@ -338,11 +345,60 @@ class Engine:
         self._stack.close()
 
 
+#: the engines of this process's own LocalClusters, by (jobs, start cost): a cluster one command
+#: started serves the next commands of the same process (closed at exit, :func:`close_shared`)
+_SHARED: dict[tuple, Engine] = {}
+_ATEXIT: list = []
+
+
+def _alive(eng: Engine) -> bool:
+    """False when the engine's cluster failed to start or its client is no longer running."""
+    if eng._error is not None:
+        return False
+    client = eng._client
+    return client is None or getattr(client, "status", "running") == "running"
+
+
+def shared_engine(jobs: int | None = None, start_cost_s: float = START_COST_S) -> Engine:
+    """This process's :class:`Engine` for ``jobs`` workers on its own LocalCluster: made at the first
+    call, kept for the later ones (``rig identify``, ``diagnose``, ``reproduce``, ``stability`` called
+    one after another in one process pay the cluster's start once), closed when the process exits.
+    One whose cluster died or did not start is replaced."""
+    key = (jobs, float(start_cost_s))
+    eng = _SHARED.get(key)
+    if eng is not None and not _alive(eng):
+        _SHARED.pop(key)
+        try:
+            eng.close()
+        except Exception:  # noqa: BLE001 - a dead cluster's close may fail; it is dropped either way
+            pass
+        eng = None
+    if eng is None:
+        if not _ATEXIT:
+            _ATEXIT.append(atexit.register(close_shared))
+        eng = _SHARED[key] = Engine(jobs, None, start_cost_s=start_cost_s)
+    return eng
+
+
+def close_shared() -> None:
+    """Close every shared engine (their clusters); registered with ``atexit``."""
+    while _SHARED:
+        _, eng = _SHARED.popitem()
+        try:
+            eng.close()
+        except Exception:  # noqa: BLE001 - at exit: nothing left to report to
+            pass
+
+
 @contextmanager
 def engine(jobs: int | None = None, scheduler: str | None = None,
-           start_cost_s: float = START_COST_S) -> Iterator[Engine]:
-    """An :class:`Engine` for several runs (one cluster), closed on exit; pass it as
-    ``run_tasks(..., client=engine)``."""
+           start_cost_s: float = START_COST_S, *, shared: bool = True) -> Iterator[Engine]:
+    """An :class:`Engine` for several runs (one cluster); pass it as ``run_tasks(..., client=engine)``.
+    ``shared`` (and no ``scheduler``): this process's engine (:func:`shared_engine`), kept open after
+    the block for the process's next commands; else one of its own, closed on exit."""
+    if shared and scheduler is None and jobs != 1:
+        yield shared_engine(jobs, start_cost_s)
+        return
     eng = Engine(jobs, scheduler, start_cost_s=start_cost_s)
     try:
         yield eng
@@ -365,7 +421,7 @@ def run_tasks(fn: Callable[[Any], Any], items: Iterable[Any], *, jobs: int | Non
     ``cost(item)``, an estimate of a task's run time in any unit, orders the work on Dask:
     longest first (LPT), so that the batch does not end with one worker finishing a long task
     while the others are idle. It changes no result, only the order of completion. With an
-    engine of its own, the work is estimated from it and measured times, and a batch too short to
+    engine of its own, the work is estimated from it and measured CPU times, and a batch too short to
     pay back ``start_cost_s`` runs in this process (:class:`Engine`).
     """
     items = list(items)
@@ -375,7 +431,7 @@ def run_tasks(fn: Callable[[Any], Any], items: Iterable[Any], *, jobs: int | Non
         return client.run(fn, items, progress=progress, cost=cost)
     if client is not None:
         return _run_on(client, fn, items, progress, cost)
-    with engine(jobs, scheduler, start_cost_s) as eng:
+    with engine(jobs, scheduler, start_cost_s, shared=False) as eng:
         return eng.run(fn, items, progress=progress, cost=cost)
 
 
@@ -433,4 +489,5 @@ def mapper(jobs: int | None = None, scheduler: str | None = None, progress: Call
         yield lambda fn, items, cost=None: _check(eng.run(fn, items, progress=cb, cost=cost))
 
 
-__all__ = ["TaskResult", "BatchError", "run_tasks", "dask_client", "mapper", "default_jobs", "lpt_order", "Engine", "engine"]
+__all__ = ["TaskResult", "BatchError", "run_tasks", "dask_client", "mapper", "default_jobs", "lpt_order", "Engine", "engine",
+           "shared_engine", "close_shared"]

@@ -13,6 +13,11 @@ from pathlib import Path
 SCHEMA_VERSION = 2
 DEFAULT_DB_NAME = "catalog.duckdb"
 
+#: the first columns of every results table: the trial, the file and its hash the result is of, when and by
+#: which version it was computed, whether it worked (the ``catalog`` view reads them alike)
+_RESULT_KEY_COLUMNS = ("trial_uid VARCHAR PRIMARY KEY, path VARCHAR, sha256 VARCHAR, run_utc TIMESTAMP, "
+                       "rig_version VARCHAR, ok BOOLEAN, error VARCHAR")
+
 TABLES = {
     "schema_version": """
         CREATE TABLE IF NOT EXISTS schema_version (
@@ -59,15 +64,9 @@ TABLES = {
             written_by     VARCHAR,
             metadata       JSON
         )""",
-    "identify_results": """
+    "identify_results": f"""
         CREATE TABLE IF NOT EXISTS identify_results (
-            trial_uid       VARCHAR PRIMARY KEY,
-            path            VARCHAR,
-            sha256          VARCHAR,
-            run_utc         TIMESTAMP,
-            rig_version     VARCHAR,
-            ok              BOOLEAN,
-            error           VARCHAR,
+            {_RESULT_KEY_COLUMNS},
             options         JSON,
             n_steps         INTEGER,
             A_mu            DOUBLE,
@@ -80,15 +79,9 @@ TABLES = {
             seconds         DOUBLE,
             report          JSON
         )""",
-    "diagnose_results": """
+    "diagnose_results": f"""
         CREATE TABLE IF NOT EXISTS diagnose_results (
-            trial_uid              VARCHAR PRIMARY KEY,
-            path                   VARCHAR,
-            sha256                 VARCHAR,
-            run_utc                TIMESTAMP,
-            rig_version            VARCHAR,
-            ok                     BOOLEAN,
-            error                  VARCHAR,
+            {_RESULT_KEY_COLUMNS},
             baseline               VARCHAR,
             baseline_holdout_rms_N DOUBLE,
             holdout_rms_N          DOUBLE,

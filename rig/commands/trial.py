@@ -36,9 +36,9 @@ EXIT_FAILURE = EXIT_FAILED
 EXIT_INTERRUPTED = EXIT_ABORTED
 
 
-#: log size of the raw 1 kHz channel (protobuf rig.LoopBlock) per second of trial, measured: 70-88 MB per hour
+#: log size of the raw 1 kHz channel (protobuf rig.LoopBlock) per second of trial, measured: 49-54 MB per hour
 #: (a slow slide to the velocity steps, simulated, 1 MB chunks; docs/trial.md)
-RAW_LOG_BYTES_PER_S_AT_1KHZ = 80e6 / 3600
+RAW_LOG_BYTES_PER_S_AT_1KHZ = 55e6 / 3600
 #: the per-sample JSON channel (/log25) per message, measured
 LOG25_BYTES_PER_SAMPLE = 40.0  # zstd-compressed JSON
 #: past this estimated log size `rig run` asks before starting (--yes skips; without a terminal it warns)

@@ -26,7 +26,7 @@ from rig.commands.common import EXIT_FAILED, console, fail
 
 _RIG = Path(__file__).resolve().parents[1]
 #: the modules whose numba kernels each command compiles on its first call
-SIM_KERNELS = ("sim/plant.py", "control.py", "model/friction.py", "model/sensors.py", "log/writer.py",
+SIM_KERNELS = ("sim/plant.py", "control.py", "model/friction.py", "model/sensors.py", "log/figures.py",
                "log/loopblock.py")
 IDENTIFY_KERNELS = ("kinematics/velocity.py", "kinematics/steps.py", "model/forward.py", "model/loading.py",
                     "model/friction.py", "model/sensors.py")

@@ -48,21 +48,24 @@ def decimation_factor(loop_rate_hz: float, log_rate_hz: float) -> int:
 def block_mean(columns: dict[str, np.ndarray], n: int, *, partial: bool = True) -> dict[str, np.ndarray]:
     """Block means of every column over consecutive groups of ``n`` samples from the first;
     ``t_s`` becomes the mean time of each group (its centre). ``partial``: the last,
-    incomplete group is kept as the mean of what it has."""
+    incomplete group is kept as the mean of what it has. A column may be a matrix: its
+    samples run along the last axis (the writer stacks its columns so, one numpy pass)."""
     out = {}
     for k, v in columns.items():
         v = np.asarray(v, dtype=np.float64)
-        m = v.size // n
-        full = v[: m * n].reshape(m, n).mean(axis=1) if m else np.zeros(0)
-        if partial and v.size > m * n:
-            full = np.append(full, v[m * n:].mean())
+        size = v.shape[-1]
+        m = size // n
+        full = v[..., : m * n].reshape(v.shape[:-1] + (m, n)).mean(axis=-1)
+        if partial and size > m * n:
+            full = np.concatenate((full, v[..., m * n:].mean(axis=-1, keepdims=True)), axis=-1)
         out[k] = full
     return out
 
 
 class BlockMean:
     """Streaming :func:`block_mean`: ``push(block)`` returns the complete groups so far (the
-    remainder is carried), ``flush()`` the last partial group (or None)."""
+    remainder is carried), ``flush()`` the last partial group (or None). Samples run along the
+    last axis of each column (vectors, or matrices of stacked columns)."""
 
     def __init__(self, n: int):
         self.n = int(n)
@@ -70,19 +73,21 @@ class BlockMean:
 
     def push(self, block: dict[str, np.ndarray]) -> dict[str, np.ndarray] | None:
         if self._rest is not None:
-            block = {k: np.concatenate((self._rest[k], np.asarray(v, dtype=np.float64))) for k, v in block.items()}
-        size = next(iter(block.values())).size
+            block = {k: np.concatenate((self._rest[k], np.asarray(v, dtype=np.float64)), axis=-1)
+                     for k, v in block.items()}
+        size = next(iter(block.values())).shape[-1]
         m = (size // self.n) * self.n
-        self._rest = {k: np.asarray(v[m:], dtype=np.float64).copy() for k, v in block.items()} if m < size else None
+        self._rest = {k: np.asarray(v[..., m:], dtype=np.float64).copy() for k, v in block.items()} \
+            if m < size else None
         if m == 0:
             return None
-        return block_mean({k: v[:m] for k, v in block.items()}, self.n, partial=False)
+        return block_mean({k: v[..., :m] for k, v in block.items()}, self.n, partial=False)
 
     def flush(self) -> dict[str, np.ndarray] | None:
         rest, self._rest = self._rest, None
-        if rest is None or next(iter(rest.values())).size == 0:
+        if rest is None or next(iter(rest.values())).shape[-1] == 0:
             return None
-        return {k: np.array([v.mean()]) for k, v in rest.items()}
+        return {k: v.mean(axis=-1, keepdims=True) for k, v in rest.items()}
 
 
 __all__ = ["block_mean", "BlockMean", "boxcar_response", "decimation_factor"]

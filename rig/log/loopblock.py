@@ -6,29 +6,34 @@ from the block's keys, so any MCAP tool decodes it without ``rig`` (Foxglove,
 ``mcap cat --json``, ``mcap_protobuf.decoder``). Every column is a packed
 repeated field, one value per sample, in the unit its name ends with:
 
-==========================  ==========  ============================================
-field                       type        value
-==========================  ==========  ============================================
-``t0_s`` (1)                double      trial time of the block's first sample, s
-``rate_hz`` (2)             double      sample rate of the block, Hz
-``nonfinite_field`` (3)     uint32      field numbers of samples that were NaN/inf ...
-``nonfinite_index`` (4)     uint32      ... and their sample indexes (stored as 0)
-``t_s`` (5)                 double      trial time of every sample, s
-``position_ref_um``         double      controller reference, µm (1 nm grid)
-``position_nm``             sint64      LVDT, nm (a multiple of the 76 nm count)
-``friction_mN``             sint64      friction load cell, mN
-``normal_1_mN``, ``_2_mN``  sint64      rider load cells, mN
-``valve_cmd_per_32767``     sint64      valve command as the int16 on CAN (32767 = full)
-``pid_p_mN``                sint64      PID proportional term, mN
-``pid_i_uN``                sint64      PID integral term, µN (a multiple of 100)
-``pid_d_N``                 float       PID derivative term, N
-``dither_uN``               sint64      dither, µN
-``spool_per_32767``         sint64      spool position (simulation), valve command steps
-``true_position_nm``        sint64      simulation truth, nm
-``true_velocity_nm_per_s``  sint64      simulation truth, nm/s
-``true_mu_ppm``             sint64      simulation truth, 1e-6
-any other key (import)      double      the value as given, its own unit
-==========================  ==========  ============================================
+================================  ==========  ============================================
+field                             type        value (one stored unit = the quantization step)
+================================  ==========  ============================================
+``t0_s`` (1)                      double      trial time of the block's first sample, s
+``rate_hz`` (2)                   double      sample rate of the block, Hz
+``nonfinite_field`` (3)           uint32      field numbers of samples that were NaN/inf ...
+``nonfinite_index`` (4)           uint32      ... and their sample indexes (stored as 0)
+``t_s`` (5)                       double      trial time of every sample, s
+``position_ref_um``               double      controller reference, µm (1 nm grid)
+``position_nm``                   sint64      LVDT, nm (a multiple of the 76 nm count)
+``friction_cN``                   sint64      friction load cell, cN (10 mN count)
+``normal_1_cN``, ``_2_cN``        sint64      rider load cells, cN (10 mN count)
+``valve_cmd_per_32767``           sint64      valve command as the int16 on CAN (32767 = full)
+``pid_p_mN``, ``pid_i_mN``        sint64      PID proportional and integral terms, mN
+``pid_d_N``                       float       PID derivative term, N (float32)
+``dither_uN``                     sint64      dither, µN
+``spool_per_32767``               sint64      spool position (simulation), valve command steps
+``true_position_10nm``            sint64      simulation truth, 10 nm
+``true_velocity_10nm_per_s``      sint64      simulation truth, 10 nm/s (0.01 µm/s)
+``true_mu_per_100000``            sint64      simulation truth, 1e-5 of mu
+any other key (import)            double      the value as given, its own unit
+================================  ==========  ============================================
+
+Every integer field but ``position_nm`` stores the count of its quantization step (the
+unit is the step): values stored as multiples of a finer unit (the integral term in µN
+on a 0.1 mN grid, until this layout) cost zstd about 5 MB more per hour; ``position_nm``
+(76 x the LVDT count, read in nm) costs 0.6 MB/h. The steps and why they are enough:
+:data:`rig.log.schemas.DEVICE_COLUMNS`.
 
 Columns are numbered from 16 in the block's key order. The stored integers are
 the device counts of :data:`rig.log.schemas.DEVICE_COLUMNS` times a whole
@@ -39,7 +44,7 @@ CSV). The channel's metadata ``rig_columns`` maps each key to its field
 ``rint((stored * unit_scale - offset) / quantum) * quantum + offset``).
 
 In Foxglove's Plot panel (x-axis "Message path", time range "All"): x
-``/raw.t_s[:]``, y e.g. ``/raw.friction_mN[:]`` (docs/trial.md lists them all).
+``/raw.t_s[:]``, y e.g. ``/raw.friction_cN[:]`` (docs/trial.md lists them all).
 
 Size: packed zigzag varints and doubles in zstd chunks (benchmarks/bench_run.py).
 Encoding is one numba pass over the block's integer columns (compiled once and
@@ -67,18 +72,18 @@ FIRST_COLUMN_FIELD = 16
 DISPLAY: dict[str, tuple[str, str, float]] = {
     "position_ref_um": ("position_ref_um", "double", 1.0),
     "position_um": ("position_nm", "sint64", 1e-3),
-    "friction_N": ("friction_mN", "sint64", 1e-3),
-    "normal_1_N": ("normal_1_mN", "sint64", 1e-3),
-    "normal_2_N": ("normal_2_mN", "sint64", 1e-3),
+    "friction_N": ("friction_cN", "sint64", 1e-2),
+    "normal_1_N": ("normal_1_cN", "sint64", 1e-2),
+    "normal_2_N": ("normal_2_cN", "sint64", 1e-2),
     "valve_cmd": ("valve_cmd_per_32767", "sint64", 1.0 / 32767),
     "pid_p": ("pid_p_mN", "sint64", 1e-3),
-    "pid_i": ("pid_i_uN", "sint64", 1e-6),
+    "pid_i": ("pid_i_mN", "sint64", 1e-3),
     "pid_d": ("pid_d_N", "float", 1.0),
     "dither": ("dither_uN", "sint64", 1e-6),
     "spool": ("spool_per_32767", "sint64", 1.0 / 32767),
-    "true_position_um": ("true_position_nm", "sint64", 1e-3),
-    "true_velocity_um_s": ("true_velocity_nm_per_s", "sint64", 1e-3),
-    "true_mu": ("true_mu_ppm", "sint64", 1e-6),
+    "true_position_um": ("true_position_10nm", "sint64", 1e-2),
+    "true_velocity_um_s": ("true_velocity_10nm_per_s", "sint64", 1e-2),
+    "true_mu": ("true_mu_per_100000", "sint64", 1e-5),
 }
 
 

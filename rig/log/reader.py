@@ -20,7 +20,6 @@ from io import BytesIO
 from pathlib import Path
 
 import numpy as np
-from mcap.exceptions import McapError
 from mcap.records import (Attachment, Channel, Chunk, Footer, Header, Message, MessageIndex, Metadata, Schema)
 from mcap.data_stream import ReadDataStream
 from mcap.stream_reader import StreamReader
@@ -170,6 +169,85 @@ def _chunk_records(data: bytes, ids: set[int] | None, topics: set[str] | None = 
     return recs, stats
 
 
+class _Scan:
+    """The state of one :func:`scan`: what is kept, what is counted, the chunk that failed last."""
+
+    def __init__(self, topics: set[str] | None):
+        self.c = LogContent()
+        self.topics = topics
+        self.keep_ids: set[int] = set()
+        self.bad_chunk: dict | None = None
+
+    def count(self, cid: int, n: int, lo: int, hi: int) -> None:
+        c = self.c
+        c.counts[cid] = c.counts.get(cid, 0) + n
+        r = c.t_range.get(cid)
+        c.t_range[cid] = (lo, hi) if r is None else (min(r[0], lo), max(r[1], hi))
+
+    def take(self, rec) -> None:
+        if isinstance(rec, Message):
+            if self.topics is None or rec.channel_id in self.keep_ids:
+                self.c.messages.append(rec)
+        elif isinstance(rec, Schema):
+            self.c.schemas[rec.id] = rec
+        elif isinstance(rec, Channel):
+            self.c.channels[rec.id] = rec
+            if self.topics is not None and rec.topic in self.topics:
+                self.keep_ids.add(rec.id)
+
+    def _damaged(self, chunk: Chunk, error: str) -> None:
+        self.bad_chunk = {"start_ns": chunk.message_start_time, "end_ns": chunk.message_end_time,
+                          "channel_ids": [], "error": error}
+        self.c.damage.append(self.bad_chunk)
+
+    def chunk(self, rec: Chunk) -> None:
+        """A chunk: CRC and decompression checked, its records taken and counted; else it is damage."""
+        self.bad_chunk = None
+        try:
+            data = _chunk_data(rec)
+        except Exception as exc:  # CRC mismatch, a decompression error
+            self._damaged(rec, "CRC mismatch" if "crc" in str(exc).lower() else f"{type(exc).__name__}: {exc}")
+            return
+        try:
+            recs, stats = _chunk_records(data, None if self.topics is None else self.keep_ids, self.topics)
+        except Exception as exc:  # broken records inside a chunk whose CRC matched
+            self._damaged(rec, f"{type(exc).__name__}: {exc}")
+            return
+        for r in recs:
+            self.take(r)
+        for cid, (n, lo, hi) in stats.items():
+            self.count(cid, n, lo, hi)
+
+    def record(self, rec) -> None:
+        c = self.c
+        if isinstance(rec, Chunk):
+            self.chunk(rec)
+        elif isinstance(rec, Message):
+            self.count(rec.channel_id, 1, rec.log_time, rec.log_time)
+            self.take(rec)
+        elif isinstance(rec, MessageIndex):
+            if self.bad_chunk is not None:
+                self.bad_chunk["channel_ids"].append(rec.channel_id)
+        elif isinstance(rec, (Schema, Channel)):
+            self.take(rec)
+        elif isinstance(rec, Header):
+            c.header = rec
+        elif isinstance(rec, Metadata):
+            c.metadata.append(rec)
+        elif isinstance(rec, Attachment):
+            c.attachments.append(rec)
+        elif isinstance(rec, Footer):
+            c.complete = True
+
+
+def _framing_error(exc: Exception) -> str:
+    """What broke the file's framing, in one line."""
+    name = type(exc).__name__
+    if name in ("EndOfFile", "RecordLengthLimitExceeded"):  # a record runs past the end of the file
+        return "file ends in the middle of a record (truncated)"
+    return f"{name}: {exc}" if str(exc) else name
+
+
 def scan(path: str | os.PathLike, topics: set[str] | None = None) -> LogContent:
     """Read every record up to the end or to where the framing breaks (never raises for damage).
 
@@ -179,75 +257,14 @@ def scan(path: str | os.PathLike, topics: set[str] | None = None) -> LogContent:
     """
     path = Path(path)
     _sniff(path)
-    c = LogContent()
-    keep_ids: set[int] = set()
-    bad_chunk: dict | None = None
-
-    def count(cid: int, n: int, lo: int, hi: int) -> None:
-        c.counts[cid] = c.counts.get(cid, 0) + n
-        r = c.t_range.get(cid)
-        c.t_range[cid] = (lo, hi) if r is None else (min(r[0], lo), max(r[1], hi))
-
-    def take(rec) -> None:
-        if isinstance(rec, Message):
-            if topics is None or rec.channel_id in keep_ids:
-                c.messages.append(rec)
-        elif isinstance(rec, Schema):
-            c.schemas[rec.id] = rec
-        elif isinstance(rec, Channel):
-            c.channels[rec.id] = rec
-            if topics is not None and rec.topic in topics:
-                keep_ids.add(rec.id)
-
-
+    sc = _Scan(topics)
+    c = sc.c
     with open(path, "rb") as fh:
         try:
             for rec in StreamReader(fh, emit_chunks=True, record_size_limit=max(64, path.stat().st_size)).records:
-                if isinstance(rec, Chunk):
-                    bad_chunk = None
-                    try:
-                        data = _chunk_data(rec)
-                    except Exception as exc:  # CRC mismatch, a decompression error
-                        what = "CRC mismatch" if "crc" in str(exc).lower() else f"{type(exc).__name__}: {exc}"
-                        bad_chunk = {"start_ns": rec.message_start_time, "end_ns": rec.message_end_time,
-                                     "channel_ids": [], "error": what}
-                        c.damage.append(bad_chunk)
-                        continue
-                    try:
-                        recs, stats = _chunk_records(data, None if topics is None else keep_ids, topics)
-                    except Exception as exc:  # broken records inside a chunk whose CRC matched
-                        bad_chunk = {"start_ns": rec.message_start_time, "end_ns": rec.message_end_time,
-                                     "channel_ids": [], "error": f"{type(exc).__name__}: {exc}"}
-                        c.damage.append(bad_chunk)
-                        continue
-                    for r in recs:
-                        take(r)
-                    for cid, (n, lo, hi) in stats.items():
-                        count(cid, n, lo, hi)
-                elif isinstance(rec, Message):
-                    count(rec.channel_id, 1, rec.log_time, rec.log_time)
-                    take(rec)
-                elif isinstance(rec, MessageIndex):
-                    if bad_chunk is not None:
-                        bad_chunk["channel_ids"].append(rec.channel_id)
-                elif isinstance(rec, (Schema, Channel)):
-                    take(rec)
-                elif isinstance(rec, Header):
-                    c.header = rec
-                elif isinstance(rec, Metadata):
-                    c.metadata.append(rec)
-                elif isinstance(rec, Attachment):
-                    c.attachments.append(rec)
-                elif isinstance(rec, Footer):
-                    c.complete = True
+                sc.record(rec)
         except Exception as exc:  # the point where the framing broke: keep everything before it
-            name = type(exc).__name__
-            if name in ("EndOfFile", "RecordLengthLimitExceeded"):  # a record runs past the end of the file
-                c.error = "file ends in the middle of a record (truncated)"
-            elif isinstance(exc, McapError) or isinstance(exc, (ValueError, KeyError, UnicodeDecodeError)):
-                c.error = f"{name}: {exc}" if str(exc) else name
-            else:
-                c.error = f"{name}: {exc}" if str(exc) else name
+            c.error = _framing_error(exc)
     if c.header is None:
         raise DataFormatError(path, None, f"not a readable MCAP trial log ({c.error or 'no header'})")
     t0 = c.start_time_ns

@@ -3,10 +3,11 @@
 ``/raw`` carries the 1 kHz loop data as blocks of samples (one message per
 block, 1 s by default). Since version 2 (``rig.columns.v2``) each column is
 stored as the device delivers it: integer counts with a scale and an offset
-(LVDT counts of 0.076 µm, load-cell counts of 1 mN, the valve command as the
+(LVDT counts of 0.076 µm, load-cell counts of 10 mN, the valve command as the
 int16 sent on CAN); the derived terms (PID terms, dither, simulation truths)
-in fixed point far below what the valve resolves (PID 1 mN / 0.1 mN, dither
-1 µN; the int16 valve step is 0.31 N of a 10 kN actuator) or float32, and each
+in fixed point far below what the valve resolves (PID P and I terms 1 mN, dither
+1 µN; the int16 valve step is 0.31 N of a 10 kN actuator; truths 10 nm, 0.01 µm/s,
+1e-5 of mu) or float32, and each
 column filtered (delta and/or byte shuffle) where that pays for zstd. A column
 decodes as ``value = stored * scale + offset``; NaN is the dtype's minimum.
 
@@ -77,7 +78,11 @@ class Column:
 
 
 LVDT_UM_PER_COUNT = 0.076      # paper: LVDT quantization step 0.076 µm
-LOAD_CELL_N_PER_COUNT = 0.001  # 1 mN: 250x finer than the ±0.25 N load-cell noise (measured-data.md)
+#: 10 mN: 25x finer than the friction load cell's ±0.25 N and 60x finer than the rider cells' ±0.6 N
+#: (paper, section 3; measured-data.md); its rounding error (10/sqrt(12) = 2.9 mN rms) adds 0.05 % to
+#: the variance of the 125 mN noise. A 1 mN count stored about 3.3 bits of noise per force sample
+#: (7.8 MB per hour of the three forces, benchmarks/bench_run.py --phases).
+LOAD_CELL_N_PER_COUNT = 0.01
 VALVE_FULL_SCALE = 32767       # the int16 valve command on CAN (drivers/valve.py)
 
 #: the loop's columns as the devices deliver them (the measured filters, benchmarks/bench_run.py)
@@ -90,12 +95,13 @@ DEVICE_COLUMNS: dict[str, Column] = {
     "normal_2_N": Column("<i4", LOAD_CELL_N_PER_COUNT, 0.0, "N", "shuffle+zstd", "rider 2 load-cell counts"),
     "valve_cmd": Column("<i2", 1.0 / VALVE_FULL_SCALE, 0.0, "1", "shuffle+zstd", "valve command, int16 as on CAN"),
     "pid_p": Column("<i4", 0.001, 0.0, "N", "shuffle+zstd", "PID proportional term, 1 mN steps"),
-    "pid_i": Column("<i4", 0.0001, 0.0, "N", "delta+shuffle+zstd", "PID integral term, 0.1 mN steps"),
+    "pid_i": Column("<i4", 0.001, 0.0, "N", "delta+shuffle+zstd", "PID integral term, 1 mN steps"),
     "pid_d": Column("<f4", unit="N", filter="zstd", description="PID derivative term, float32"),
     "dither": Column("<i4", 1e-6, 0.0, "N", "shuffle+zstd", "dither added to the PID output, 1 µN steps"),
-    "true_position_um": Column("<i4", 0.001, 0.0, "µm", "delta+shuffle+zstd", "simulation truth, 1 nm steps"),
-    "true_velocity_um_s": Column("<i4", 0.001, 0.0, "µm/s", "shuffle+zstd", "simulation truth"),
-    "true_mu": Column("<i4", 1e-6, 0.0, "1", "shuffle+zstd", "simulation truth"),
+    "true_position_um": Column("<i4", 0.01, 0.0, "µm", "delta+shuffle+zstd",
+                               "simulation truth, 10 nm steps (7.6x finer than the LVDT's count)"),
+    "true_velocity_um_s": Column("<i4", 0.01, 0.0, "µm/s", "shuffle+zstd", "simulation truth, 0.01 µm/s steps"),
+    "true_mu": Column("<i4", 1e-5, 0.0, "1", "shuffle+zstd", "simulation truth, 1e-5 steps"),
     "spool": Column("<i4", 1.0 / VALVE_FULL_SCALE, 0.0, "1", "shuffle+zstd",
                     "servovalve spool position (simulation), in the valve command's int16 steps"),
 }
@@ -258,14 +264,18 @@ class ColumnsV2Encoder:
                 "columns": {k: self.column(k).as_schema() for k in keys}}
 
 
-def decode_v2(data: bytes) -> tuple[dict, dict[str, np.ndarray]]:
-    """A ``rig.columns.v2`` block -> (header, {key: float64 array in physical units})."""
-    if len(data) < 8 or data[:4] != RAW_V2_MAGIC:
-        raise ValueError("not a rig.columns.v2 block (bad magic)")
+def _block_header(data: bytes, magic: bytes, encoding: str) -> tuple[dict, int, int]:
+    """The JSON header of a v1/v2 block (magic, u32 LE length, JSON): (header, n samples, offset after it)."""
+    if len(data) < 8 or data[:4] != magic:
+        raise ValueError(f"not a {encoding} block (bad magic)")
     (hlen,) = struct.unpack_from("<I", data, 4)
     head = json.loads(data[8:8 + hlen])
-    n = int(head["n"])
-    off = 8 + hlen
+    return head, int(head["n"]), 8 + hlen
+
+
+def decode_v2(data: bytes) -> tuple[dict, dict[str, np.ndarray]]:
+    """A ``rig.columns.v2`` block -> (header, {key: float64 array in physical units})."""
+    head, n, off = _block_header(data, RAW_V2_MAGIC, RAW_V2_ENCODING)
     out: dict[str, np.ndarray] = {}
     for key, dtype, flt, scale, offset, nbytes in head["columns"]:
         end = off + int(nbytes)
@@ -280,12 +290,7 @@ def decode_v2(data: bytes) -> tuple[dict, dict[str, np.ndarray]]:
 
 def decode_v1(data: bytes) -> tuple[dict, dict[str, np.ndarray]]:
     """A ``rig.columns.v1`` block (float64/float32 columns) -> (header, {key: float64 array})."""
-    if data[:4] != RAW_V1_MAGIC or len(data) < 8:
-        raise ValueError("not a rig.columns.v1 block (bad magic)")
-    (hlen,) = struct.unpack_from("<I", data, 4)
-    head = json.loads(data[8:8 + hlen])
-    n = int(head["n"])
-    off = 8 + hlen
+    head, n, off = _block_header(data, RAW_V1_MAGIC, RAW_V1_ENCODING)
     out: dict[str, np.ndarray] = {}
     for key, dt in zip(head["fields"], head["dtypes"]):
         dt = np.dtype(dt)

@@ -49,51 +49,30 @@ _COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none"
                 "": CompressionType.NONE}
 
 
-def _block_stats_py(ref, pos, f, n1, n2, valve, acc):  # pragma: no cover - compiled
-    """Accumulate a block's summary figures into ``acc`` (non-finite samples skipped):
-    [sum (ref-pos)^2, max |ref-pos|, n, sum f, sum |f|, n_f, sum f/(n1+n2), n |valve| >= 1, n_mu]."""
-    if ref.size == pos.size:
-        for i in range(ref.size):
-            e = ref[i] - pos[i]
-            if math.isfinite(e):
-                acc[0] += e * e
-                ae = abs(e)
-                if ae > acc[1]:
-                    acc[1] = ae
-                acc[2] += 1.0
-    with_n = n1.size == f.size and n2.size == f.size
-    for i in range(f.size):
-        fi = f[i]
-        if math.isfinite(fi):
-            acc[3] += fi
-            acc[4] += abs(fi)
-            acc[5] += 1.0
-            if with_n:
-                nn = n1[i] + n2[i]
-                if nn != 0.0:
-                    mu = fi / nn
-                    if math.isfinite(mu):
-                        acc[6] += mu
-                        acc[8] += 1.0
-    for i in range(valve.size):
-        if abs(valve[i]) >= 1.0:
-            acc[7] += 1.0
 
 
-_block_stats_jit = None
+_MI: dict = {}
 
 
-def _block_stats(ref, pos, f, n1, n2, valve, acc) -> None:
-    """numba-compiled :func:`_block_stats_py` (compiled on first use, so reading a log needs no numba)."""
-    global _block_stats_jit
-    if _block_stats_jit is None:
-        from numba import njit
+def _message_index_class():
+    """``mcap``'s MessageIndex record, its records written in one call (the Writer writes them
+    with two ``write8`` calls per message: a quarter of the writer's time on the 25 Hz channel)."""
+    cls = _MI.get("cls")
+    if cls is not None:
+        return cls
+    from mcap.opcode import Opcode
+    from mcap.records import MessageIndex
 
-        _block_stats_jit = njit(cache=True)(_block_stats_py)
-    _block_stats_jit(ref, pos, f, n1, n2, valve, acc)
+    class _MessageIndex(MessageIndex):
+        def write(self, stream) -> None:
+            stream.start_record(Opcode.MESSAGE_INDEX)
+            stream.write2(self.channel_id)
+            stream.write4(len(self.records) * 16)
+            stream.write(np.array(self.records, dtype="<u8").tobytes() if self.records else b"")
+            stream.finish_record()
 
-
-_EMPTY = np.zeros(0)
+    _MI["cls"] = _MessageIndex
+    return _MessageIndex
 
 
 class _Sink:
@@ -134,9 +113,8 @@ class _Sink:
         """What ``Writer.add_message`` does for each message (statistics, the chunk's message index, the
         record), without a record object per message; the chunk is closed when it passes the chunk size,
         as the Writer does."""
-        from mcap.records import MessageIndex
-
         w = self.w
+        _MessageIndex = _message_index_class()
         stats = w._Writer__statistics
         counts = stats.channel_message_counts
         limit = w._Writer__chunk_size
@@ -154,7 +132,7 @@ class _Sink:
                 i += 1
                 mi = idx.get(cid)
                 if mi is None:
-                    mi = idx[cid] = MessageIndex(channel_id=cid, records=[])
+                    mi = idx[cid] = _MessageIndex(channel_id=cid, records=[])
                 mi.records.append((ns, pos))
                 head = pack(5, 22 + len(data), cid, seq, ns, ns)
                 parts.append(head)
@@ -319,7 +297,7 @@ class TrialLogWriter:
     many small chunks (a trial logged in real time closes one every 0.5-1 s for crash safety) is
     rewritten at close into chunks of 1 MB
     (:func:`compact_log`), atomically: zstd then sees the columns of many blocks at once
-    (the hardware's columns: 73 -> 55 MB per hour, docs/trial.md).
+    (the hardware's columns: 57 -> 42 MB per hour, docs/trial.md).
     """
 
     def __init__(self, path: str | os.PathLike, *, loop_rate_hz: float = 1000.0,
@@ -383,7 +361,18 @@ class TrialLogWriter:
         self._pending: list[dict] = []
         self._listeners: list[Callable[[str, dict], None]] = []
         self.listener_errors: list[str] = []
-        self._stats_acc = np.zeros(9)
+        self._write_trial_records(sink.w, metadata, recipe, profile, recipe_yaml)
+        self._batch: list = []
+        self._failure: BaseException | None = None
+        self._sink = _ThreadedSink(sink) if threaded else sink
+        self._threaded = bool(threaded)
+        # the first chunk carries the schemas and channels: get it on disk now
+        self.event(0.0, "log_start")
+        self.flush()
+
+    def _write_trial_records(self, w: Writer, metadata, recipe, profile, recipe_yaml) -> None:
+        """The file's first records: ``trial`` metadata (clock, rates, identity), the recipe and the
+        rig profile (JSON), the recipe's YAML as an attachment."""
         started = _dt.datetime.fromtimestamp(self.start_time_ns / 1e9, _dt.timezone.utc)
         trial = {"software_version": __version__, "started_utc": started.isoformat(),
                  "start_time_ns": self.start_time_ns, "log_time": "unix_ns",
@@ -393,22 +382,15 @@ class TrialLogWriter:
         if not str(trial.get("trial_uid", "") or "").strip():
             trial["trial_uid"] = str(uuid.uuid4())  # every trial log has an identity (issue 21)
         self.metadata = {k: meta_str(v) for k, v in trial.items()}
-        sink.w.add_metadata("trial", self.metadata)
+        w.add_metadata("trial", self.metadata)
         if recipe is not None:
-            sink.w.add_metadata("recipe", {"json": json.dumps(jsonable(recipe), allow_nan=False),
-                                           "name": str(recipe.get("name", ""))})
+            w.add_metadata("recipe", {"json": json.dumps(jsonable(recipe), allow_nan=False),
+                                      "name": str(recipe.get("name", ""))})
         if profile is not None:
-            sink.w.add_metadata("rig_profile", {"json": json.dumps(jsonable(profile), allow_nan=False)})
+            w.add_metadata("rig_profile", {"json": json.dumps(jsonable(profile), allow_nan=False)})
         if recipe_yaml is not None:
-            sink.w.add_attachment(create_time=time.time_ns(), log_time=self.start_time_ns, name="recipe.yaml",
-                                  media_type="application/yaml", data=recipe_yaml.encode("utf-8"))
-        self._batch: list = []
-        self._failure: BaseException | None = None
-        self._sink = _ThreadedSink(sink) if threaded else sink
-        self._threaded = bool(threaded)
-        # the first chunk carries the schemas and channels: get it on disk now
-        self.event(0.0, "log_start")
-        self.flush()
+            w.add_attachment(create_time=time.time_ns(), log_time=self.start_time_ns, name="recipe.yaml",
+                             media_type="application/yaml", data=recipe_yaml.encode("utf-8"))
 
     # -- health ------------------------------------------------------------------
     def failure(self) -> BaseException | None:
@@ -419,11 +401,9 @@ class TrialLogWriter:
         return self._sink.failure() if self._threaded else None
 
     def warm_up(self) -> None:
-        """Load and compile now what writing a block needs (numba and its cache for the running
-        figures), so that the first block of a run is written as fast as the rest: call before a
-        real-time loop starts."""
-        acc = np.zeros_like(self._stats_acc)
-        _block_stats(_EMPTY, _EMPTY, _EMPTY, _EMPTY, _EMPTY, _EMPTY, acc)
+        """Load and compile now what writing a block needs (numba and its cache for the /raw encoder),
+        so that the first block of a run is written as fast as the rest: call before a real-time loop
+        starts."""
         _loopblock.warm_up()
 
     # -- listeners (live view hook) --------------------------------------------
@@ -561,57 +541,71 @@ class TrialLogWriter:
                 self._add(RAW_TOPIC, t0, self._raw_enc.encode(raw, t0))
         # decimated per-sample channel: block means of the device values over each interval of
         # _dec_every ticks counted from the trial's first (rig.log.decimate: the anti-aliased 25 Hz log)
-        names = [nm for nm in SAMPLE_FIELDS[:-1] if nm in arrays]
-        dec = self._dec.push({nm: self._on_grid(nm, arrays[nm]) for nm in names})
-        if dec is not None:
-            self._emit_log25(dec)
+        self._decimate(arrays)
         self.ticks += n
         self.last_t_s = float(t[-1])
-        self._running_stats(arrays)
         if self._pending and self._pending[0]["t_s"] <= self.last_t_s + 0.5 / self.loop_rate_hz:
             self._emit_pending(self.last_t_s + 0.5 / self.loop_rate_hz)
         self._send()
         if time.monotonic() - self._last_flush >= self.flush_interval_s:
             self.flush()
 
-    def _emit_log25(self, cols: dict[str, np.ndarray]) -> None:
-        """Write decimated samples (block means, see rig.log.decimate) as /log25 messages."""
-        names = list(cols)
-        if "normal_1_N" in cols and "normal_2_N" in cols:
-            nn = cols["normal_1_N"] + cols["normal_2_N"]
+    _dec_plan: tuple | None = None
+
+    def _decimate(self, arrays: dict[str, np.ndarray]) -> None:
+        """The /log25 samples of a block: the device columns on their /raw grid (integer count times the
+        scale), stacked, and block means over each interval (:class:`rig.log.decimate.BlockMean`), in a
+        few numpy calls per block."""
+        if self._dec_plan is None:
+            names = tuple(nm for nm in SAMPLE_FIELDS[:-1] if nm in arrays)
+            cols = [self._enc.column(nm) for nm in names]
+            grid = [i for i, (nm, c) in enumerate(zip(names, cols)) if nm != "t_s" and np.dtype(c.dtype).kind == "i"]
+            self._dec_plan = (names, grid, np.array([[cols[i].offset] for i in grid]),
+                              np.array([[cols[i].scale] for i in grid]))
+        names, grid, off, scale = self._dec_plan
+        m = np.stack([arrays[nm] for nm in names])
+        if grid:
+            g = m[grid]
+            with np.errstate(invalid="ignore"):
+                g -= off
+                g /= scale
+                np.rint(g, out=g)
+                g *= scale
+                g += off
+            m[grid] = g
+        dec = self._dec.push({"m": m})
+        if dec is not None:
+            self._emit_log25(names, dec["m"])
+
+    def _emit_log25(self, names: tuple, m: np.ndarray) -> None:
+        """Write decimated samples (rows of ``m``: the fields ``names``; block means, see rig.log.decimate)
+        as /log25 messages, with mu; every sample's JSON from one printf template per block."""
+        names = list(names)
+        if "normal_1_N" in names and "normal_2_N" in names:
+            nn = m[names.index("normal_1_N")] + m[names.index("normal_2_N")]
             with np.errstate(divide="ignore", invalid="ignore"):
-                cols["mu"] = np.where(nn != 0.0, cols["friction_N"] / nn, np.nan)
+                mu = np.where(nn != 0.0, m[names.index("friction_N")] / nn, np.nan)
+            m = np.vstack((m, mu))
             names.append("mu")
-        m = np.array([cols[nm] for nm in names])
-        rows = m.T.tolist()
+        k = m.shape[1]
         specs = [self._dec_format(nm) for nm in names]
         if np.isfinite(m).all():
             fmt = "{" + ",".join(f'"{nm}":{sp}' for nm, sp in zip(names, specs)) + "}"
-            payloads = [(fmt % tuple(row)).encode() for row in rows]
+            payloads = ("\n".join([fmt] * k) % tuple(m.T.ravel().tolist())).encode().split(b"\n")
         else:
             payloads = [("{" + ",".join(f'"{nm}":' + (sp % v if math.isfinite(v) else "null")
                                         for nm, sp, v in zip(names, specs, row)) + "}").encode()
-                        for row in rows]
-        k = len(payloads)
-        ts = m[0]
-        rel = np.clip(np.rint(np.nan_to_num(ts) * 1e9), -9e18, 9e18).astype(np.int64).tolist()
-        t0n = self._origin_ns  # integer arithmetic: float64 cannot hold epoch ns exactly
-        ns = [min(max(t0n + v, 0), _U64_MAX) for v in rel]
+                        for row in m.T.tolist()]
+        # integer arithmetic: float64 cannot hold epoch ns exactly
+        rel = np.clip(np.rint(np.nan_to_num(m[0]) * 1e9), -4e18, 4e18).astype(np.int64)
+        ns = np.maximum(rel + np.int64(self._origin_ns), 0).tolist()
         seq0 = self._seq[LOG25_TOPIC]
         cid = self._chan[LOG25_TOPIC]
         self._batch.extend(zip([cid] * k, ns, payloads, range(seq0, seq0 + k)))
         self._seq[LOG25_TOPIC] = seq0 + k
         self.counts[LOG25_TOPIC] += k
         if self._listeners:
-            self._notify("samples", cols)
-
-    def _on_grid(self, name: str, x: np.ndarray) -> np.ndarray:
-        """The value /raw stores for a device column (its integer count times the scale)."""
-        col = self._enc.column(name)
-        if name == "t_s" or np.dtype(col.dtype).kind != "i":
-            return x
-        with np.errstate(invalid="ignore"):
-            return np.rint((x - col.offset) / col.scale) * col.scale + col.offset
+            self._notify("samples", dict(zip(names, m)))
 
     def _dec_format(self, name: str) -> str:
         """printf format of a /log25 field: the raw column's resolution (the same values as /raw), else repr."""
@@ -619,52 +613,20 @@ class TrialLogWriter:
         if f is None:
             col = self._enc.column(name)
             f = "%r"
-            if name == "mu" and self._raw_columns == "device":
+            if name == "t_s" and self._raw_columns == "device":
+                f = "%.6f"  # 1 µs: the centre of a block of ticks, without float64's tail digits
+            elif name == "mu" and self._raw_columns == "device":
                 f = "%.6g"
             elif name != "t_s" and np.dtype(col.dtype).kind == "i" and col.offset == 0.0:
                 f = "%.9g"  # e.g. the valve's k/32767
                 for d in range(10):
                     if abs(round(col.scale, d) - col.scale) < 1e-12 * max(col.scale, 1e-300):
-                        # a block mean of counts resolves 1/_dec_every of a count: 2 more digits
-                        f = f"%.{d + (2 if self._dec_every > 1 else 0)}f"
+                        # a block mean of counts resolves 1/_dec_every of a count: 3 more digits hold
+                        # it exactly for any _dec_every dividing 1000 (40: 0.025 of a count)
+                        f = f"%.{d + (3 if self._dec_every > 1 else 0)}f"
                         break
             self._dec_fmt[name] = f
         return f
-
-    def _running_stats(self, a: dict[str, np.ndarray]) -> None:
-        e = _EMPTY
-        _block_stats(a.get("position_ref_um", e), a.get("position_um", e), a.get("friction_N", e),
-                     a.get("normal_1_N", e), a.get("normal_2_N", e), a.get("valve_cmd", e), self._stats_acc)
-
-    # the running figures, read from the accumulator (see _block_stats)
-    sum_err2_um2 = property(lambda self: float(self._stats_acc[0]))
-    max_abs_err_um = property(lambda self: float(self._stats_acc[1]))
-    n_err = property(lambda self: int(self._stats_acc[2]))
-    sum_friction_N = property(lambda self: float(self._stats_acc[3]))
-    sum_abs_friction_N = property(lambda self: float(self._stats_acc[4]))
-    n_friction = property(lambda self: int(self._stats_acc[5]))
-    sum_mu = property(lambda self: float(self._stats_acc[6]))
-    n_valve_saturated = property(lambda self: int(self._stats_acc[7]))
-
-    @property
-    def tracking_error_rms_um(self) -> float:
-        """RMS of position_ref_um - position_um over everything logged (µm)."""
-        return math.sqrt(self.sum_err2_um2 / self.n_err) if self.n_err else float("nan")
-
-    @property
-    def mean_friction_N(self) -> float:
-        return self.sum_friction_N / self.n_friction if self.n_friction else float("nan")
-
-    @property
-    def mean_abs_friction_N(self) -> float:
-        """Mean |friction| (N): the sliding friction level whatever the direction."""
-        return self.sum_abs_friction_N / self.n_friction if self.n_friction else float("nan")
-
-    @property
-    def mean_mu(self) -> float:
-        """Mean friction / (normal_1 + normal_2) over the samples where it is defined (NaN if none)."""
-        n = self._stats_acc[8]
-        return float(self._stats_acc[6] / n) if n else float("nan")
 
     def schedule_events(self, events: Iterable[dict]) -> None:
         """Queue planned events (``{t_s, kind, ...}``); each is logged once a block reaches its time."""
@@ -728,16 +690,16 @@ class TrialLogWriter:
         if self.closed:
             return
         self.status = status
+        last = self._dec.flush()
+        if last is not None:  # the last, partial interval (mean of its ticks)
+            self._emit_log25(self._dec_plan[0], last["m"])
+        self.event(self.last_t_s, "log_end", status=status)
+        # the counts of what the file holds (log_end included: `rig info` counts the same messages)
         end = {"status": status, "ticks": self.ticks, "duration_s": self.last_t_s,
                "raw_blocks": self.counts[RAW_TOPIC], "samples_decimated": self.counts[LOG25_TOPIC],
                "events": self.counts[EVENTS_TOPIC],
                "ended_utc": _dt.datetime.now(_dt.timezone.utc).isoformat()}
         end.update(summary)
-        last = self._dec.flush()
-        if last is not None:  # the last, partial interval (mean of its ticks)
-            self._emit_log25(last)
-            end["samples_decimated"] = self.counts[LOG25_TOPIC]
-        self.event(self.last_t_s, "log_end", status=status)
         self.add_metadata("trial_end", end)
         self.closed = True
         if self._threaded:

@@ -34,7 +34,6 @@ that is a small capability protocol, asked with ``isinstance``: :class:`Pausable
 
 from __future__ import annotations
 
-import math
 import signal
 import threading
 import time
@@ -42,7 +41,7 @@ from dataclasses import dataclass, field
 from enum import Enum
 from typing import Any, Callable, Protocol, runtime_checkable
 
-import numpy as np
+from rig.log.figures import BlockFigures  # the figures of the logged samples (one accumulator)
 
 
 # the signals that ask for an operator's stop (safe stop, finished log, exit 130): Ctrl-C, SIGTERM
@@ -330,94 +329,6 @@ class StopMachine:
 
 
 # ---------------------------------------------------------------------------
-# Figures of the logged samples
-# ---------------------------------------------------------------------------
-
-class BlockFigures:
-    """Running sums over the blocks: tracking error, friction, mu, valve saturation.
-
-    ``window()`` gives the figures since the previous call; the properties the
-    whole trial's. Non-finite samples are skipped.
-    """
-
-    _N = 8  # sum e^2, max |e|, n_e, sum f, sum |f|, n_f, sum mu, n_valve_saturated
-
-    def __init__(self):
-        self.ticks = 0
-        self.last_t_s = 0.0
-        self.acc = np.zeros(self._N)
-        self._w_acc = self.acc.copy()
-        self._w_ticks = 0
-        self._w_wall = time.perf_counter()
-
-    def add(self, b: dict) -> None:
-        t = b["t_s"]
-        n = t.size
-        if n == 0:
-            return
-        a = self.acc
-        if "position_ref_um" in b and "position_um" in b:
-            e = b["position_ref_um"] - b["position_um"]
-            e = e[np.isfinite(e)]
-            if e.size:
-                a[0] += float(e @ e)
-                a[1] = max(a[1], float(np.abs(e).max()))
-                a[2] += e.size
-        f = b.get("friction_N")
-        if f is not None:
-            ok = np.isfinite(f)
-            fo = f[ok]
-            a[3] += float(fo.sum())
-            a[4] += float(np.abs(fo).sum())
-            a[5] += fo.size
-            if "normal_1_N" in b and "normal_2_N" in b:
-                ntot = (b["normal_1_N"] + b["normal_2_N"])[ok]
-                with np.errstate(divide="ignore", invalid="ignore"):
-                    mu = fo / ntot
-                a[6] += float(mu[np.isfinite(mu)].sum())
-        v = b.get("valve_cmd")
-        if v is not None:
-            a[7] += int((np.abs(v) >= 1.0).sum())
-        self.ticks += n
-        self.last_t_s = float(t[-1])
-
-    def window(self, rate_hz: float) -> dict:
-        now = time.perf_counter()
-        dw = now - self._w_wall
-        d = self.acc - self._w_acc
-        ticks = self.ticks - self._w_ticks
-        out = {"ticks": ticks, "wall_s": dw,
-               "ticks_per_s": ticks / dw if dw > 0 else None,
-               "realtime_factor": (ticks / rate_hz) / dw if dw > 0 else None,
-               "tracking_error_rms_um": math.sqrt(d[0] / d[2]) if d[2] else None,
-               "valve_saturated_fraction": d[7] / ticks if ticks else None}
-        self._w_acc = self.acc.copy()
-        self._w_ticks = self.ticks
-        self._w_wall = now
-        return out
-
-    @property
-    def tracking_error_rms_um(self) -> float:
-        return math.sqrt(self.acc[0] / self.acc[2]) if self.acc[2] else float("nan")
-
-    @property
-    def max_abs_err_um(self) -> float:
-        return float(self.acc[1]) if self.acc[2] else float("nan")
-
-    @property
-    def mean_friction_N(self) -> float:
-        return self.acc[3] / self.acc[5] if self.acc[5] else float("nan")
-
-    @property
-    def mean_abs_friction_N(self) -> float:
-        return self.acc[4] / self.acc[5] if self.acc[5] else float("nan")
-
-    @property
-    def mean_mu(self) -> float:
-        return self.acc[6] / self.acc[5] if self.acc[5] else float("nan")
-
-
-# ---------------------------------------------------------------------------
 # The session
 # ---------------------------------------------------------------------------
 
@@ -621,6 +532,7 @@ class TrialSession:
         handled = 0  # signals turned into stop requests
         old = self._install_signals()
         w.warm_up()  # numba & co. compiled/loaded now: the first second of the run is as durable as the rest
+        self.figures.warm_up()
         self._logged = backend.block_logged if isinstance(backend, LoggerWatched) else None
         anchor = w.anchor if isinstance(w, Anchored) else None  # the log's clock: the samples' wall-clock time
         monitor = _WriterMonitor(self, poll_s=0.005)

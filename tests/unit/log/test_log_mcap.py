@@ -19,6 +19,7 @@ from rig.log import (BLOCK_KEYS, EVENTS_TOPIC, LOG25_TOPIC, RAW_TOPIC, STATS_TOP
 
 
                      LogDamageWarning, TrialLogWriter, read_metadata, read_trial, recover, trial_info)
+from rig.log.figures import BlockFigures
 from rig.log.schemas import DEVICE_COLUMNS, decode_v2
 
 V1_FILE = Path(rig.__file__).resolve().parents[1] / "tests" / "data" / "v1-sim-1khz.mcap"
@@ -127,8 +128,8 @@ def test_layout_schemas_chunks_index_epoch_log_time(tmp_path):
         from google.protobuf import descriptor_pb2
         fds = descriptor_pb2.FileDescriptorSet.FromString(sch.data)
         names = {f.name for f in fds.file[0].message_type[0].field}
-        assert {"t_s", "position_nm", "position_ref_um", "friction_mN", "normal_1_mN", "normal_2_mN",
-                "valve_cmd_per_32767", "pid_p_mN", "pid_i_uN", "pid_d_N", "dither_uN"} <= names
+        assert {"t_s", "position_nm", "position_ref_um", "friction_cN", "normal_1_cN", "normal_2_cN",
+                "valve_cmd_per_32767", "pid_p_mN", "pid_i_mN", "pid_d_N", "dither_uN"} <= names
         rig_cols = {c[0]: c for c in json.loads(raw.metadata["rig_columns"])}
         assert rig_cols["position_um"][2:] == ["position_nm", "sint64", 1e-3, 0.076, 0.0]
         assert raw.metadata["json_twin"] == LOG25_TOPIC
@@ -218,8 +219,10 @@ def test_mu_on_log25_is_null_where_normals_sum_to_zero(tmp_path):
     with open(path, "rb") as fh:
         rows = [json.loads(m.data) for _, _, m in make_reader(fh).iter_messages(topics=[LOG25_TOPIC])]
     assert rows and all(r["mu"] is None for r in rows)
-    assert np.isnan(w.mean_mu)
     assert np.isnan(read_trial(path).mu).all()
+    fig = BlockFigures()
+    fig.add(blk)
+    assert np.isnan(fig.mean_mu) and fig.mean_friction_N == pytest.approx(np.mean(blk["friction_N"]))
 
 
 def test_v1_log_from_the_previous_writer_still_reads():
@@ -463,8 +466,8 @@ def test_foxglove_layout_plots_only_fields_the_log_has():
             assert cfg["topicPath"] == EVENTS_TOPIC
     for want in ("/log25.position_um", "/log25.position_ref_um", "/log25.friction_N", "/log25.normal_1_N",
                  "/log25.normal_2_N", "/log25.valve_cmd", "/loop_stats.late_p99_us", "/raw.position_nm[:]",
-                 "/raw.position_ref_um[:]", "/raw.friction_mN[:]", "/raw.normal_1_mN[:]", "/raw.normal_2_mN[:]",
-                 "/raw.valve_cmd_per_32767[:]", "/raw.pid_p_mN[:]", "/raw.pid_i_uN[:]", "/raw.pid_d_N[:]",
+                 "/raw.position_ref_um[:]", "/raw.friction_cN[:]", "/raw.normal_1_cN[:]", "/raw.normal_2_cN[:]",
+                 "/raw.valve_cmd_per_32767[:]", "/raw.pid_p_mN[:]", "/raw.pid_i_mN[:]", "/raw.pid_d_N[:]",
                  "/raw.dither_uN[:]", "/raw.spool_per_32767[:]"):
         assert want in paths
 
@@ -475,3 +478,18 @@ def test_foxglove_layout_plots_only_fields_the_log_has():
         return leaves(node["first"]) + leaves(node["second"])
     assert sorted(leaves(layout["layout"])) == sorted(layout["configById"])
     assert [t["title"] for t in layout["configById"]["Tab!main"]["tabs"]] == ["trial (25 Hz)", "tuning (1 kHz)"]
+
+
+def test_trial_end_counts_what_the_file_holds(tmp_path):
+    """One count: trial_end's events, raw blocks and 25 Hz samples are the messages `rig info` counts
+    (log_end and the last partial 25 Hz sample included)."""
+    from rig.log.reader import scan
+
+    path = tmp_path / "c.mcap"
+    write_log(path, make_blocks(n_blocks=12, n=125)).close()
+    c = scan(path)
+    end = next(dict(m.metadata) for m in reversed(c.metadata) if m.name == "trial_end")
+    by_topic = {c.channels[cid].topic: n for cid, n in c.counts.items()}
+    assert int(end["events"]) == by_topic[EVENTS_TOPIC] >= 3  # log_start, velocity_step, log_end
+    assert int(end["raw_blocks"]) == by_topic[RAW_TOPIC] == 12
+    assert int(end["samples_decimated"]) == by_topic[LOG25_TOPIC] == 38  # 1500 ticks: 37 intervals of 40 + 1

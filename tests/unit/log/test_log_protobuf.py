@@ -22,21 +22,22 @@ from rig.log import BLOCK_KEYS, TrialLogWriter
 runner = CliRunner()
 T0_NS = 1_700_000_000_000_000_000
 #: what a person reads from a field name's unit suffix (no rig code involved)
-SUFFIX = [("_nm_per_s", 1e-3), ("_per_32767", 1 / 32767), ("_ppm", 1e-6), ("_nm", 1e-3), ("_mN", 1e-3),
-          ("_uN", 1e-6), ("_um", 1.0), ("_N", 1.0), ("_s", 1.0), ("", 1.0)]
+SUFFIX = [("_10nm_per_s", 1e-2), ("_per_32767", 1 / 32767), ("_per_100000", 1e-5), ("_10nm", 1e-2),
+          ("_nm", 1e-3), ("_cN", 1e-2), ("_mN", 1e-3), ("_uN", 1e-6), ("_um", 1.0), ("_N", 1.0), ("_s", 1.0),
+          ("", 1.0)]
 #: the CSV column each field is (export names)
 CSV_NAME = {"t_s": "time_s", "position_nm": "position_um", "position_ref_um": "position_ref_um",
-            "friction_mN": "friction_N", "normal_1_mN": "normal_1_N", "normal_2_mN": "normal_2_N",
-            "valve_cmd_per_32767": "valve_cmd", "pid_p_mN": "pid_p", "pid_i_uN": "pid_i", "pid_d_N": "pid_d",
-            "dither_uN": "dither", "true_position_nm": "true_position_um",
-            "true_velocity_nm_per_s": "true_velocity_um_s", "true_mu_ppm": "true_mu", "spool_per_32767": "spool"}
+            "friction_cN": "friction_N", "normal_1_cN": "normal_1_N", "normal_2_cN": "normal_2_N",
+            "valve_cmd_per_32767": "valve_cmd", "pid_p_mN": "pid_p", "pid_i_mN": "pid_i", "pid_d_N": "pid_d",
+            "dither_uN": "dither", "true_position_10nm": "true_position_um",
+            "true_velocity_10nm_per_s": "true_velocity_um_s", "true_mu_per_100000": "true_mu", "spool_per_32767": "spool"}
 #: a fixed identity: these tests write the same trial twice and compare the files (the writer gives
 #: every other log a new uuid4 trial_uid, issue 21)
 TRIAL_UID = "00000000-0000-4000-8000-000000000001"
 #: one quantization step of each stored column (the devices' counts), in the CSV's unit
-STEP = {"position_um": 0.076, "position_ref_um": 1e-3, "friction_N": 1e-3, "normal_1_N": 1e-3, "normal_2_N": 1e-3,
-        "valve_cmd": 1 / 32767, "pid_p": 1e-3, "pid_i": 1e-4, "pid_d": 1e-6, "dither": 1e-6,
-        "true_position_um": 1e-3, "true_velocity_um_s": 1e-3, "true_mu": 1e-6, "time_s": 1e-9, "spool": 1 / 32767}
+STEP = {"position_um": 0.076, "position_ref_um": 1e-3, "friction_N": 1e-2, "normal_1_N": 1e-2, "normal_2_N": 1e-2,
+        "valve_cmd": 1 / 32767, "pid_p": 1e-3, "pid_i": 1e-3, "pid_d": 1e-6, "dither": 1e-6,
+        "true_position_um": 1e-2, "true_velocity_um_s": 1e-2, "true_mu": 1e-5, "time_s": 1e-9, "spool": 1 / 32767}
 
 
 def blocks(n_blocks=4, n=500, seed=3):
@@ -130,7 +131,7 @@ def test_field_names_carry_units():
     from rig.log.loopblock import DISPLAY
 
     for key, (name, kind, unit) in DISPLAY.items():
-        assert re.fullmatch(r"[a-z_0-9]+(_um|_nm|_mN|_uN|_N|_per_32767|_ppm|_nm_per_s)", name), name
+        assert re.fullmatch(r"[a-z_0-9]+(_um|_nm|_10nm|_cN|_mN|_uN|_N|_per_32767|_per_100000|_10nm_per_s)", name), name
         assert unit == pytest.approx(unit_of(name)) or kind != "sint64", name
 
 
