@@ -50,6 +50,7 @@ from rig.data import TrialData, atomic_write_text, parse_number
 from rig.log import load_trial
 from rig.fitting import Param, ParamSet, least_squares_fit
 from rig.fitting.stats import effective_n
+from rig.analysis.report import rounded as _r
 from rig.model.forward import predict_force
 from rig.model.friction import V0_UM_S
 from rig.model.paper import k_cr_eq13_N_per_um
@@ -96,15 +97,6 @@ class StepResult:
         if not self.ok:
             d["rejected"] = self.reason
         return d
-
-
-def _r(x, nd=6):
-    if x is None:
-        return None
-    x = float(x)
-    if not math.isfinite(x):
-        return None
-    return float(f"{x:.{nd}g}")
 
 
 def _fit_exp(delta: np.ndarray, mu: np.ndarray, mu2: float, l_max: float):
@@ -740,7 +732,9 @@ def compare_laws(fits: dict[str, dict], margin: float = 6.0) -> dict:
 # ---------------------------------------------------------------------------
 # The whole identification
 # ---------------------------------------------------------------------------
-MIN_SAMPLES = 20
+#: the fewest samples of a record that any friction analysis takes (identify, stribeck, heal, diagnose;
+#: the CLI refuses a shorter file at once, exit 2)
+MIN_RECORD_SAMPLES = 20
 MAX_ABS_FORCE_N = 1e6
 
 
@@ -750,8 +744,8 @@ def check_analysable(trial: TrialData, what: str = "analyse") -> None:
     moves. Shared by identify and diagnose."""
     src = trial.source or "trial"
     n = len(trial)
-    if n < MIN_SAMPLES:
-        raise ValueError(f"{src}: too few samples ({n}) to {what} (at least {MIN_SAMPLES})")
+    if n < MIN_RECORD_SAMPLES:
+        raise ValueError(f"{src}: too few samples ({n}) to {what} (at least {MIN_RECORD_SAMPLES})")
     F = np.asarray(trial.friction_N, dtype=float)
     big = np.flatnonzero(~(np.abs(F) < MAX_ABS_FORCE_N))
     if big.size:
@@ -828,25 +822,13 @@ def identify_trials(trials: list[TrialData], *, use_events: bool = True, velocit
     trials = [decimated(tr) for tr in trials]
     for ti, tr in enumerate(trials):
         check_analysable(tr, "identify")
-        t = np.asarray(tr.time_s, dtype=float)
-        x = np.asarray(tr.position_um, dtype=float)
-        mu = np.asarray(tr.mu, dtype=float)
         steps = detect_steps(tr, use_events=use_events, min_ratio=min_ratio)
-        res = []
-        for s in steps:
-            if directions != "both" and s.direction != directions:
-                continue
-            r = fit_step(t, x, mu, s, rise_guard_s=rise_guard_s, window_points=window_points)
-            r.trial = ti
-            res.append(r)
+        res = _fit_steps(tr, ti, steps, directions, rise_guard_s, window_points)
         groups.append(res)
         if whole_record:
-            init = {}
             good = [r for r in res if r.ok]
-            if good:
-                init = {"A_mu": float(np.median([r.A_mu for r in good])),
-                        "B_mu": float(np.median([r.B_mu for r in good])),
-                        "L_um": float(np.median([r.L_um for r in good]))}
+            init = {nm: float(np.median([getattr(r, nm) for r in good])) for nm in ("A_mu", "B_mu", "L_um")} \
+                if good else {}
             stiff = (_looks_like_load_point(tr) or _known_stiffness(tr)) if stiffness is None else stiffness
             fits = {lw: fit_whole_record(tr, steps, stiffness=stiff, velocity_method=whole_velocity, init=init,
                                          law=lw, detrend=detrend, uncertainty=uncertainty, seed=seed,
@@ -857,6 +839,42 @@ def identify_trials(trials: list[TrialData], *, use_events: bool = True, velocit
                 wholes.append(fits["slip"])
             else:
                 wholes.append(fits[law])
+    report = _report(trials, groups, names, velocity_method)
+    report["notes"] = _notes(trials, whole_record and stiffness is None)
+    if whole_record:
+        wr = [{k: v for k, v in w.items() if not k.startswith("_")} for w in wholes]
+        report["whole_record"] = wr[0] if len(wr) == 1 else wr
+        report["law"] = law
+        if law == "both":
+            both = [{**{lw: {k: v for k, v in f.items() if not k.startswith("_")} for lw, f in fits.items()},
+                     "comparison": c} for fits, c in zip(per_law, comparisons)]
+            report["laws"] = both[0] if len(both) == 1 else both
+            prefs = {c["preferred_law"] for c in comparisons}
+            report["preferred_law"] = prefs.pop() if len(prefs) == 1 else "undecided"
+    report["warnings"] = result_warnings(report)
+    return Identification(report, groups, trials, wholes, per_law)
+
+
+def _fit_steps(tr: TrialData, ti: int, steps: list[Step], directions: str, rise_guard_s: float,
+               window_points: int) -> list[StepResult]:
+    """Eqs. (10)-(12) on each step of trial number ``ti`` in the wanted direction(s)."""
+    t = np.asarray(tr.time_s, dtype=float)
+    x = np.asarray(tr.position_um, dtype=float)
+    mu = np.asarray(tr.mu, dtype=float)
+    res = []
+    for s in steps:
+        if directions != "both" and s.direction != directions:
+            continue
+        r = fit_step(t, x, mu, s, rise_guard_s=rise_guard_s, window_points=window_points)
+        r.trial = ti
+        res.append(r)
+    return res
+
+
+def _report(trials: list[TrialData], groups: list[list[StepResult]], names: list[str] | None,
+            velocity_method: str) -> dict:
+    """The per-step part of the ``rig.identify/1`` report: the steps, mean and s.e. over steps (one
+    trial) or trials (several), the rejected steps and, with several trials, each trial's means."""
     N_N = trials[0].normal_force_N
     mean, sem, over, per_trial = summarize(groups, N_N)
     # the field's vocabulary beside the spec's names (rig.model.spec.rsf_vocabulary)
@@ -879,29 +897,23 @@ def identify_trials(trials: list[TrialData], *, use_events: bool = True, velocit
     }
     report["rejected_steps"] = [{"trial": r.trial, "t_s": _r(r.step.t_s), "reason": r.reason}
                                 for g in groups for r in g if not r.ok]
+    report["notes"] = []
+    if len(trials) > 1:
+        report["per_trial"] = [{k: _r(v) if not isinstance(v, int) else v for k, v in row.items()}
+                               for row in per_trial]
+    return report
+
+
+def _notes(trials: list[TrialData], stiffness_by_rule: bool) -> list[str]:
+    """The notes on load-point records: the per-step method's rigid-machine bias, the stiffness fitted."""
     lp = [bool(_looks_like_load_point(tr)) for tr in trials]
     notes = []
     if any(lp):
         notes.append(RIGID_NOTE)
-    if whole_record and any(lp) and stiffness is None:
+    if stiffness_by_rule and any(lp):
         notes.append("position_source: load_point, so the whole-record fit includes the machine stiffness "
                      "(--no-stiffness to fit without)")
-    report["notes"] = notes
-    if len(trials) > 1:
-        report["per_trial"] = [{k: _r(v) if not isinstance(v, int) else v for k, v in row.items()}
-                               for row in per_trial]
-    if whole_record:
-        wr = [{k: v for k, v in w.items() if not k.startswith("_")} for w in wholes]
-        report["whole_record"] = wr[0] if len(wr) == 1 else wr
-        report["law"] = law
-        if law == "both":
-            both = [{**{lw: {k: v for k, v in f.items() if not k.startswith("_")} for lw, f in fits.items()},
-                     "comparison": c} for fits, c in zip(per_law, comparisons)]
-            report["laws"] = both[0] if len(both) == 1 else both
-            prefs = {c["preferred_law"] for c in comparisons}
-            report["preferred_law"] = prefs.pop() if len(prefs) == 1 else "undecided"
-    report["warnings"] = result_warnings(report)
-    return Identification(report, groups, trials, wholes, per_law)
+    return notes
 
 
 def step_where(step_json: dict, n_trials: int) -> str:

@@ -50,7 +50,8 @@ import time
 
 import numpy as np
 
-from rig.analysis.identify import _r, identify_trials, k_cr_table2, mean_sem
+from rig.analysis.identify import identify_trials, k_cr_table2, mean_sem
+from rig.analysis.report import rounded as _r
 from rig.data import atomic_write_text
 from rig.model.paper import TABLE2
 from rig.model.spec import FrictionModel

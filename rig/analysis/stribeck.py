@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rig.analysis.identify import _r
+from rig.analysis.report import rounded as _r
 from rig.kinematics import detect_steps
 from rig.data import TrialData, atomic_write_text
 from rig.model.friction import V0_UM_S
