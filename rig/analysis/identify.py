@@ -82,7 +82,8 @@ class StepResult:
     reason: str = ""
     trial: int = 0
 
-    def to_json(self) -> dict:
+    def report(self) -> dict:
+        """The step's JSON (``steps[]`` of rig.identify/1), rounded here and only here."""
         s = self.step
         d = {"t_s": round(s.t_s, 4), "v1_um_s": _r(s.v1_um_s), "v2_um_s": _r(s.v2_um_s),
              "A_mu": _r(self.A_mu), "B_mu": _r(self.B_mu), "L_um": _r(self.L_um), "r2": _r(self.r2),
@@ -97,6 +98,8 @@ class StepResult:
         if not self.ok:
             d["rejected"] = self.reason
         return d
+
+    to_json = report
 
 
 def _fit_exp(delta: np.ndarray, mu: np.ndarray, mu2: float, l_max: float):
@@ -281,7 +284,8 @@ def reject_outliers(steps: list[StepResult], k: float = 4.0, rel: float = 0.5) -
 
 def summarize(groups: list[list[StepResult]], N_N: float) -> tuple[dict, dict, str, list[dict]]:
     """Mean and SEM over steps (one group) or over trials (each group's mean first), after the
-    physical bounds (:func:`physical_check`) and the outlier rule (:func:`reject_outliers`)."""
+    physical bounds (:func:`physical_check`) and the outlier rule (:func:`reject_outliers`).
+    Unrounded (the report rounds: :meth:`Identification.make_report`)."""
     names = ("A_mu", "B_mu", "L_um")
     for g in groups:
         reject_outliers(g)
@@ -305,7 +309,7 @@ def summarize(groups: list[list[StepResult]], N_N: float) -> tuple[dict, dict, s
     # eq. (14) rise time, mean over steps
     tr = [s.L_um * LN9 / abs(s.step.v2_um_s) for g in good for s in g]
     mean["t_r_s"], sem["t_r_s"] = mean_sem(tr)
-    return ({k_: _r(v) for k_, v in mean.items()}, {k_: _r(v) for k_, v in sem.items()}, over, per_trial)
+    return mean, sem, over, per_trial
 
 
 # ---------------------------------------------------------------------------
@@ -789,12 +793,57 @@ def decimated(trial: TrialData, max_samples: int = MAX_STEP_SAMPLES, target: int
 
 
 @dataclass
+class WholeRecordFit:
+    """One whole-record fit as :func:`fit_whole_record` returns it (its inside, the uncertainty, is
+    rig.fitting's), with typed access; :meth:`report` is its JSON (``whole_record`` of rig.identify/1)."""
+    fit: dict
+
+    @property
+    def ok(self) -> bool:
+        return bool(self.fit.get("ok", True))
+
+    @property
+    def params(self) -> dict:
+        return self.fit.get("params", {})
+
+    @property
+    def model(self) -> str:
+        return self.fit.get("model", "")
+
+    @property
+    def curve(self):
+        """(t, model mu, measured mu, sliding mask, trend line) for the figure; None when the fit failed."""
+        return self.fit.get("_curve")
+
+    def report(self) -> dict:
+        return {k: v for k, v in self.fit.items() if not k.startswith("_")}
+
+
+@dataclass
 class Identification:
-    report: dict
+    """What ``rig identify`` found, typed and unrounded: the steps (per trial), their mean and s.e.
+    over steps (one trial) or trials (several; ``per_trial``: each trial's means), the whole-record fit
+    of each trial (and with ``law="both"`` both laws' and their comparison). ``report`` is the JSON
+    (rig.identify/1), rounded once when it is made (:meth:`make_report`)."""
     results: list[list[StepResult]]
     trials: list[TrialData]
-    whole: list[dict]
-    laws: list[dict] = field(default_factory=list)   # per trial {law: whole-record fit} with --law both
+    fits: list[WholeRecordFit]
+    laws: list[dict] = field(default_factory=list)   # per trial {law: fit dict} with --law both
+    comparisons: list[dict] = field(default_factory=list)
+    mean: dict = field(default_factory=dict)
+    sem: dict = field(default_factory=dict)
+    sem_over: str = "steps"
+    per_trial: list[dict] = field(default_factory=list)
+    report: dict = field(default_factory=dict)
+
+    @property
+    def whole(self) -> list[dict]:
+        """The whole-record fits as dicts (the figure's curves included)."""
+        return [w.fit for w in self.fits]
+
+    @property
+    def steps(self) -> list[StepResult]:
+        return [r for g in self.results for r in g]
 
 
 def identify_trials(trials: list[TrialData], *, use_events: bool = True, velocity_method: str = "local_poly",
@@ -839,20 +888,32 @@ def identify_trials(trials: list[TrialData], *, use_events: bool = True, velocit
                 wholes.append(fits["slip"])
             else:
                 wholes.append(fits[law])
-    report = _report(trials, groups, names, velocity_method)
-    report["notes"] = _notes(trials, whole_record and stiffness is None)
-    if whole_record:
-        wr = [{k: v for k, v in w.items() if not k.startswith("_")} for w in wholes]
+    mean, sem, over, per_trial = summarize(groups, trials[0].normal_force_N)
+    idn = Identification(groups, trials, [WholeRecordFit(w) for w in wholes], per_law, comparisons, mean, sem, over,
+                         per_trial)
+    idn.report = make_report(idn, names, velocity_method, law if whole_record else None,
+                             whole_record and stiffness is None)
+    return idn
+
+
+def make_report(idn: Identification, names: list[str] | None, velocity_method: str, law: str | None,
+                stiffness_by_rule: bool) -> dict:
+    """The rig.identify/1 JSON of a typed identification: the numbers rounded here (6 significant
+    figures, :func:`rig.analysis.report.rounded`), the warnings judged on the report's values."""
+    report = _report(idn, names, velocity_method)
+    report["notes"] = _notes(idn.trials, stiffness_by_rule)
+    if law is not None:  # the whole-record fits
+        wr = [w.report() for w in idn.fits]
         report["whole_record"] = wr[0] if len(wr) == 1 else wr
         report["law"] = law
         if law == "both":
-            both = [{**{lw: {k: v for k, v in f.items() if not k.startswith("_")} for lw, f in fits.items()},
-                     "comparison": c} for fits, c in zip(per_law, comparisons)]
+            both = [{**{lw: WholeRecordFit(f).report() for lw, f in fits.items()}, "comparison": c}
+                    for fits, c in zip(idn.laws, idn.comparisons)]
             report["laws"] = both[0] if len(both) == 1 else both
-            prefs = {c["preferred_law"] for c in comparisons}
+            prefs = {c["preferred_law"] for c in idn.comparisons}
             report["preferred_law"] = prefs.pop() if len(prefs) == 1 else "undecided"
     report["warnings"] = result_warnings(report)
-    return Identification(report, groups, trials, wholes, per_law)
+    return report
 
 
 def _fit_steps(tr: TrialData, ti: int, steps: list[Step], directions: str, rise_guard_s: float,
@@ -871,22 +932,23 @@ def _fit_steps(tr: TrialData, ti: int, steps: list[Step], directions: str, rise_
     return res
 
 
-def _report(trials: list[TrialData], groups: list[list[StepResult]], names: list[str] | None,
-            velocity_method: str) -> dict:
+def _report(idn: Identification, names: list[str] | None, velocity_method: str) -> dict:
     """The per-step part of the ``rig.identify/1`` report: the steps, mean and s.e. over steps (one
     trial) or trials (several), the rejected steps and, with several trials, each trial's means."""
+    trials, groups = idn.trials, idn.results
     N_N = trials[0].normal_force_N
-    mean, sem, over, per_trial = summarize(groups, N_N)
-    # the field's vocabulary beside the spec's names (rig.model.spec.rsf_vocabulary)
+    mean = {k_: _r(v) for k_, v in idn.mean.items()}
+    sem = {k_: _r(v) for k_, v in idn.sem.items()}
+    # the field's vocabulary beside the spec's names (rig.model.spec.rsf_vocabulary), of the rounded means
     mean.update({k_: _r(v_) for k_, v_ in rsf_vocabulary(mean).items()})
     sem.update({k_: v_ for k_, v_ in ((RSF_NAMES[k], sem.get(k)) for k in RSF_NAMES)})
     report = {
         "schema": SCHEMA,
         "data": names if names and len(names) > 1 else (names[0] if names else trials[0].source),
-        "steps": [r.to_json() for g in groups for r in g],
+        "steps": [r.report() for g in groups for r in g],
         "mean": mean,
         "sem": sem,
-        "sem_over": over,
+        "sem_over": idn.sem_over,
         "n_steps": sum(1 for g in groups for r in g if r.ok),
         "n_trials": len(trials),
         "normal_force_N": N_N,
@@ -900,7 +962,7 @@ def _report(trials: list[TrialData], groups: list[list[StepResult]], names: list
     report["notes"] = []
     if len(trials) > 1:
         report["per_trial"] = [{k: _r(v) if not isinstance(v, int) else v for k, v in row.items()}
-                               for row in per_trial]
+                               for row in idn.per_trial]
     return report
 
 
