@@ -388,7 +388,7 @@ def stribeck_cmd(
     window_um: float = typer.Option(50.0, "--window-um", help="Average over the last this many µm of each level."),
 ):
     """Steady-state friction per velocity level, up and down branches, and A - B by eq. (7)."""
-    from rig.analysis.stribeck import plot_stribeck, stribeck
+    from rig.analysis.stribeck import plot_stribeck, stribeck_result
 
     con = _con(json_out)
     if not window_um > 0:
@@ -397,29 +397,29 @@ def stribeck_cmd(
 
     trials = _load(data)
     try:
-        rep = stribeck(trials, use_events=events, window_um=window_um, names=[str(p) for p in data])
+        res = stribeck_result(trials, use_events=events, window_um=window_um, names=[str(p) for p in data])
     except ValueError as exc:
         _fail(_named(str(exc), data))
-    if not rep["levels"]:
+    if not res.levels:
         _fail(f"{', '.join(map(str, data))}: no velocity levels found")
     table = Table(title=f"steady-state friction (last {window_um:g} µm of each level)")
     for c in ("branch", "v (µm/s)", "mu", "sd over trials", "trials"):
         table.add_column(c, justify="right")
     for d in ("up", "down"):
-        for b in rep["branches"][d]:
+        for b in res.branches[d]:
             table.add_row(d, _fmt(b["v_um_s"]), _fmt(b["mu"], 5), _fmt(b["mu_sd"], 2), str(b["n_trials"]))
     con.print(table)
     src = " and ".join({"events": "the log's level events", "data": "velocity steps detected in the data"}[x]
-                       for x in rep["level_source"])
-    con.print(f"{rep['n_levels']} level(s) found (from {src}, at 25 Hz)"
-              + (f"; {len(rep['rejected_levels'])} not counted:" if rep["rejected_levels"] else ""), highlight=False)
-    for r in rep["rejected_levels"]:
+                       for x in res.level_source)
+    con.print(f"{len(res.levels)} level(s) found (from {src}, at 25 Hz)"
+              + (f"; {len(res.rejected)} not counted:" if res.rejected else ""), highlight=False)
+    for r in res.rejected:
         con.print(f"  level at {_fmt(r['v_um_s'])} µm/s (t = {_fmt(r['t_s'], 6)} s): {r['reason']}", highlight=False,
                   markup=False)
-    for key, label in (("fit", "all levels"), ("fit_up", "up branch"), ("fit_down", "down branch")):
-        f = rep[key]
-        con.print(f"eq. (7), {label}: A - B = {_fmt(f['A_minus_B'], 4)} ± {_fmt(f['A_minus_B_err'], 2)}, "
-                      f"mu0 = {_fmt(f['mu0'], 5)} (n={f['n']})")
+    for f, label in ((res.fit, "all levels"), (res.fit_up, "up branch"), (res.fit_down, "down branch")):
+        con.print(f"eq. (7), {label}: A - B = {_fmt(f.A_minus_B, 4)} ± {_fmt(f.A_minus_B_err, 2)}, "
+                  f"mu0 = {_fmt(f.mu0, 5)} (n={f.n})")
+    rep = res.report()
     emit_outputs(con, json_out, rep, plot, lambda path: plot_stribeck(rep, path))
 
 
