@@ -75,10 +75,13 @@ def test_several_files_are_told_apart_by_name():
     rep = {"steps": [], "n_trials": 2, "n_steps": 0, "sem_over": "trials", "law": "slip",
            "mean": dict.fromkeys(("A_mu", "B_mu", "L_um", "k_cr_kN_per_m", "t_r_s"), 1.0),
            "sem": dict.fromkeys(("A_mu", "B_mu", "L_um", "k_cr_kN_per_m"), 0.1),
-           "whole_record": [_whole(1e-3), _whole(2e-3)], "warnings": []}
+           "whole_record": [_whole(1e-3), _whole(2e-3)],
+           "warnings": [{"param": "B_mu", "where": "whole-record fit (trial 1)", "message": "B < 0"}]}
     con = _console()
     A._print_identification(con, rep, "spec", ["first.csv", "second.mcap"])
-    lines = [ln for ln in con.export_text().splitlines() if ln.startswith("whole-record fit")]
+    text = con.export_text()
+    assert "warning (!): whole-record fit (second.mcap): B < 0" in text  # the JSON's '(trial 1)', named
+    lines = [ln for ln in text.splitlines() if ln.startswith("whole-record fit")]
     assert len(lines) == 2
     assert lines[0].startswith("whole-record fit of first.csv (") and lines[1].startswith("whole-record fit of "
                                                                                          "second.mcap (")

@@ -234,9 +234,20 @@ def _print_identification(con, rep: dict, names: str, files: list[str]) -> None:
     for r in rep.get("rejected_steps", []):
         con.print(f"rejected step at t = {_fmt(r['t_s'], 6)} s: {r['reason']}", markup=False, highlight=False)
     for w in warns:
-        con.print(f"[yellow]warning {MARK}:[/yellow] {w['where']}: {w['message']}", highlight=False)
+        con.print(f"[yellow]warning {MARK}:[/yellow] {_named_trial(w['where'], files)}: {w['message']}",
+                  highlight=False)
     for note in rep.get("notes", []):
         con.print(f"[yellow]note:[/yellow] {note}", highlight=False)
+
+
+def _named_trial(where: str, files: list[str]) -> str:
+    """A warning's place with the file's name for the JSON's '(trial i)' when several files are identified."""
+    import re
+
+    if len(files) < 2:
+        return where
+    return re.sub(r"\(trial (\d+)\)", lambda m: f"({files[int(m.group(1))]})" if int(m.group(1)) < len(files)
+                  else m.group(0), where)
 
 
 def _of(label: str | None) -> str:
