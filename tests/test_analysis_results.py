@@ -108,10 +108,13 @@ def test_negative_A_is_not_physical_not_at_a_bound():
 
 
 def test_reproduce_warns_of_one_trials_negative_A():
+    from rig.analysis.reproduce import LubricantResult, MeanSem, ReproduceResult
+
     ok = {"A_mu": 2e-4, "B_mu": 1.1e-2, "L_um": 22.0}
-    lub = {"recovered": {"mean": ok, "sem": {"A_mu": 1e-4, "B_mu": 1e-3, "L_um": 2.0}},
-           "trials": [{"recovered": ok}, {"recovered": {**ok, "A_mu": -1.42e-4}}]}
-    warns = A._reproduce_warnings({"lubricants": {"paraffin": lub}}, ["paraffin"])
+    sem = {"A_mu": 1e-4, "B_mu": 1e-3, "L_um": 2.0}
+    lub = LubricantResult("paraffin", 2, "synth", 0.12, [{"recovered": ok}, {"recovered": {**ok, "A_mu": -1.42e-4}}],
+                          MeanSem(ok, sem), MeanSem(ok, sem), None, {})
+    warns = A._reproduce_warnings(ReproduceResult(2, 0, {"paraffin": lub}))
     assert [(w["where"], w["param"], w["kind"]) for w in warns] == [("paraffin: trial 1 recovered", "A_mu",
                                                                       "not_physical")]
 

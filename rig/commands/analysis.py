@@ -582,7 +582,7 @@ def reproduce_cmd(
 ):
     """Simulated trials in the paper's protocol, identified: our Table 2 beside the paper's."""
     from rig.analysis.plots import plot_reproduce
-    from rig.analysis.reproduce import reproduce
+    from rig.analysis.reproduce import reproduce_result
     from rig.model.paper import TABLE2
 
     con = _con(json_out)
@@ -606,27 +606,28 @@ def reproduce_cmd(
     with progress_bar(json_out, "simulating and identifying", total=trials * len(lubs), unit="trials") as bar:
         try:
             with mapper(jobs, scheduler, progress=bar.advance) as map_fn:
-                rep = reproduce(trials, seed=seed, lubricants=lubs, profile=profile, whole_record=whole,
-                                engine=engine, map_fn=map_fn)
+                res = reproduce_result(trials, seed=seed, lubricants=lubs, profile=profile, whole_record=whole,
+                                       engine=engine, map_fn=map_fn)
         except BatchError as exc:
             _fail(str(exc), 1)
-    con.print(_reproduce_table(rep, lubs, trials, whole))
-    _print_reproduce(con, rep, lubs)
-    rep["warnings"] = _reproduce_warnings(rep, lubs)
-    for w in rep["warnings"]:
+    con.print(_reproduce_table(res, trials))
+    _print_reproduce(con, res)
+    res.warnings = _reproduce_warnings(res)
+    for w in res.warnings:
         con.print(f"[yellow]warning (!):[/yellow] {w['where']}: {w['message']}", highlight=False)
-    emit_outputs(con, json_out, rep, plot, lambda path: plot_reproduce(rep, path, rep["warnings"]))
+    rep = res.report()
+    emit_outputs(con, json_out, rep, plot, lambda path: plot_reproduce(rep, path, res.warnings))
 
 
 _REPRO_SCALE = {"A_mu": 1e3, "B_mu": 1e3, "L_um": 1.0, "k_cr_kN_per_m": 1.0}
 _REPRO_LABEL = {"A_mu": "A_mu x 10^3", "B_mu": "B_mu x 10^3", "L_um": "L (µm)", "k_cr_kN_per_m": "k_cr (kN/m)"}
 
 
-def _reproduce_table(rep: dict, lubs: list[str], trials: int, whole: bool) -> Table:
+def _reproduce_table(res, trials: int) -> Table:
     """Table 2 beside ours and the trials' truth (mean ± s.e. of the mean), the whole-record fit's too."""
     table = Table(title=f"Table 2, paper vs {trials} simulated trials per lubricant (mean ± s.e. of the mean)")
     table.add_column("parameter")
-    for lub in lubs:
+    for lub in res.lubricants:
         table.add_column(f"{lub}: paper", justify="right")
         table.add_column(f"{lub}: ours", justify="right")
         table.add_column(f"{lub}: trials' truth", justify="right")
@@ -636,56 +637,52 @@ def _reproduce_table(rep: dict, lubs: list[str], trials: int, whole: bool) -> Ta
             return f"{m * s:.3g} ± {e * s:.2g}" if m is not None and e is not None else "-"
 
         row = [_REPRO_LABEL[k]]
-        for lub in lubs:
-            r = rep["lubricants"][lub]
-            ok = r["checks"].get(k, {}).get("ok", True)
-            row += [pm(r["paper"][k]["mean"], r["paper"][k]["sem"]),
-                    ("" if ok else "[red]") + pm(r["recovered"]["mean"][k], r["recovered"]["sem"][k]),
-                    pm(r["truth"]["mean"][k], r["truth"]["sem"][k])]
+        for r in res.lubricants.values():
+            ok = r.checks.get(k, {}).get("ok", True)
+            row += [pm(r.paper[k]["mean"], r.paper[k]["sem"]),
+                    ("" if ok else "[red]") + pm(r.recovered.mean[k], r.recovered.sem[k]),
+                    pm(r.truth.mean[k], r.truth.sem[k])]
         table.add_row(*row)
-    if whole:
+    if all(r.whole_record is not None for r in res.lubricants.values()):
         for k in ("A_mu", "B_mu", "L_um"):
             row = [f"{_REPRO_LABEL[k]} (whole-record)"]
-            for lub in lubs:
-                w = rep["lubricants"][lub]["whole_record"]
-                row += ["", f"{w['mean'][k] * _REPRO_SCALE[k]:.3g} ± {w['sem'][k] * _REPRO_SCALE[k]:.2g}", ""]
+            for r in res.lubricants.values():
+                w = r.whole_record
+                row += ["", f"{w.mean[k] * _REPRO_SCALE[k]:.3g} ± {w.sem[k] * _REPRO_SCALE[k]:.2g}", ""]
             table.add_row(*row)
     return table
 
 
-def _print_reproduce(con, rep: dict, lubs: list[str]) -> None:
+def _print_reproduce(con, res) -> None:
     """Per lubricant: the identification's bias, eq. (13) on the recovered means, the check against the truth."""
     from rig.analysis.stability import per_interface_statement
 
-    for lub in lubs:
-        b = rep["lubricants"][lub]["bias"]
+    for lub, r in res.lubricants.items():
+        b = r.bias
         con.print(f"{lub}: identification bias, recovered/true - 1 (mean ± s.e. over trials): "
                   + ", ".join(f"{k} {100 * (b[k]['recovered_vs_true_rel'] or 0):+.1f} ± "
                               f"{100 * (b[k]['recovered_vs_true_rel_sem'] or 0):.1f} %" for k in b)
                   + "; recovered mean vs Table 2 (in the paper's s.e.): "
                   + ", ".join(f"{k} {b[k]['vs_paper_z']:+.2f}" for k in b))
-    for lub in lubs:
-        m = rep["lubricants"][lub]["recovered"]["mean"]
+    for lub, r in res.lubricants.items():
+        m = r.recovered.mean
         con.print(f"{lub}: the k_cr column is {per_interface_statement(m['A_mu'], m['B_mu'], m['L_um'])}")
-    for lub in lubs:
-        c = rep["lubricants"][lub]["checks"]
-        bad = [k for k, v in c.items() if not v["ok"]]
+    for lub, r in res.lubricants.items():
+        bad = [k for k, v in r.checks.items() if not v["ok"]]
         con.print(f"{lub}: recovered - truth within the paper's s.e.: "
-                  + ("all" if not bad else f"[red]not for {', '.join(bad)}[/red]")
-                  + f" ({rep['lubricants'][lub]['engine']})")
+                  + ("all" if not bad else f"[red]not for {', '.join(bad)}[/red]") + f" ({r.engine})")
 
 
-def _reproduce_warnings(rep: dict, lubs: list[str]) -> list[dict]:
+def _reproduce_warnings(res) -> list[dict]:
     """Values that hit a bound or are not physical (rig.model.checks): each lubricant's recovered mean,
     then each trial's recovered values (a trial's A below zero is no direct effect: it is said)."""
     from rig.model.checks import check_params
 
     warns = []
-    for lub in lubs:
-        r = rep["lubricants"][lub]
-        warns += check_params(r["recovered"]["mean"], r["recovered"]["sem"], where=f"{lub}: recovered mean")
-    for lub in lubs:
-        for i, t in enumerate(rep["lubricants"][lub]["trials"]):
+    for lub, r in res.lubricants.items():
+        warns += check_params(r.recovered.mean, r.recovered.sem, where=f"{lub}: recovered mean")
+    for lub, r in res.lubricants.items():
+        for i, t in enumerate(r.trials):
             warns += [w for w in check_params(t["recovered"], where=f"{lub}: trial {i} recovered")
                       if w["kind"] == "not_physical"]
     return warns
