@@ -50,6 +50,7 @@ from rig.data import TrialData, atomic_write_text, parse_number
 from rig.log import load_trial
 from rig.fitting import Param, ParamSet, least_squares_fit
 from rig.fitting.stats import effective_n
+from rig.analysis.report import rounded as _r
 from rig.model.forward import predict_force
 from rig.model.friction import V0_UM_S
 from rig.model.paper import k_cr_eq13_N_per_um
@@ -81,7 +82,8 @@ class StepResult:
     reason: str = ""
     trial: int = 0
 
-    def to_json(self) -> dict:
+    def report(self) -> dict:
+        """The step's JSON (``steps[]`` of rig.identify/1), rounded here and only here."""
         s = self.step
         d = {"t_s": round(s.t_s, 4), "v1_um_s": _r(s.v1_um_s), "v2_um_s": _r(s.v2_um_s),
              "A_mu": _r(self.A_mu), "B_mu": _r(self.B_mu), "L_um": _r(self.L_um), "r2": _r(self.r2),
@@ -97,14 +99,7 @@ class StepResult:
             d["rejected"] = self.reason
         return d
 
-
-def _r(x, nd=6):
-    if x is None:
-        return None
-    x = float(x)
-    if not math.isfinite(x):
-        return None
-    return float(f"{x:.{nd}g}")
+    to_json = report
 
 
 def _fit_exp(delta: np.ndarray, mu: np.ndarray, mu2: float, l_max: float):
@@ -289,7 +284,8 @@ def reject_outliers(steps: list[StepResult], k: float = 4.0, rel: float = 0.5) -
 
 def summarize(groups: list[list[StepResult]], N_N: float) -> tuple[dict, dict, str, list[dict]]:
     """Mean and SEM over steps (one group) or over trials (each group's mean first), after the
-    physical bounds (:func:`physical_check`) and the outlier rule (:func:`reject_outliers`)."""
+    physical bounds (:func:`physical_check`) and the outlier rule (:func:`reject_outliers`).
+    Unrounded (the report rounds: :meth:`Identification.make_report`)."""
     names = ("A_mu", "B_mu", "L_um")
     for g in groups:
         reject_outliers(g)
@@ -313,7 +309,7 @@ def summarize(groups: list[list[StepResult]], N_N: float) -> tuple[dict, dict, s
     # eq. (14) rise time, mean over steps
     tr = [s.L_um * LN9 / abs(s.step.v2_um_s) for g in good for s in g]
     mean["t_r_s"], sem["t_r_s"] = mean_sem(tr)
-    return ({k_: _r(v) for k_, v in mean.items()}, {k_: _r(v) for k_, v in sem.items()}, over, per_trial)
+    return mean, sem, over, per_trial
 
 
 # ---------------------------------------------------------------------------
@@ -740,7 +736,9 @@ def compare_laws(fits: dict[str, dict], margin: float = 6.0) -> dict:
 # ---------------------------------------------------------------------------
 # The whole identification
 # ---------------------------------------------------------------------------
-MIN_SAMPLES = 20
+#: the fewest samples of a record that any friction analysis takes (identify, stribeck, heal, diagnose;
+#: the CLI refuses a shorter file at once, exit 2)
+MIN_RECORD_SAMPLES = 20
 MAX_ABS_FORCE_N = 1e6
 
 
@@ -750,8 +748,8 @@ def check_analysable(trial: TrialData, what: str = "analyse") -> None:
     moves. Shared by identify and diagnose."""
     src = trial.source or "trial"
     n = len(trial)
-    if n < MIN_SAMPLES:
-        raise ValueError(f"{src}: too few samples ({n}) to {what} (at least {MIN_SAMPLES})")
+    if n < MIN_RECORD_SAMPLES:
+        raise ValueError(f"{src}: too few samples ({n}) to {what} (at least {MIN_RECORD_SAMPLES})")
     F = np.asarray(trial.friction_N, dtype=float)
     big = np.flatnonzero(~(np.abs(F) < MAX_ABS_FORCE_N))
     if big.size:
@@ -795,12 +793,57 @@ def decimated(trial: TrialData, max_samples: int = MAX_STEP_SAMPLES, target: int
 
 
 @dataclass
+class WholeRecordFit:
+    """One whole-record fit as :func:`fit_whole_record` returns it (its inside, the uncertainty, is
+    rig.fitting's), with typed access; :meth:`report` is its JSON (``whole_record`` of rig.identify/1)."""
+    fit: dict
+
+    @property
+    def ok(self) -> bool:
+        return bool(self.fit.get("ok", True))
+
+    @property
+    def params(self) -> dict:
+        return self.fit.get("params", {})
+
+    @property
+    def model(self) -> str:
+        return self.fit.get("model", "")
+
+    @property
+    def curve(self):
+        """(t, model mu, measured mu, sliding mask, trend line) for the figure; None when the fit failed."""
+        return self.fit.get("_curve")
+
+    def report(self) -> dict:
+        return {k: v for k, v in self.fit.items() if not k.startswith("_")}
+
+
+@dataclass
 class Identification:
-    report: dict
+    """What ``rig identify`` found, typed and unrounded: the steps (per trial), their mean and s.e.
+    over steps (one trial) or trials (several; ``per_trial``: each trial's means), the whole-record fit
+    of each trial (and with ``law="both"`` both laws' and their comparison). ``report`` is the JSON
+    (rig.identify/1), rounded once when it is made (:meth:`make_report`)."""
     results: list[list[StepResult]]
     trials: list[TrialData]
-    whole: list[dict]
-    laws: list[dict] = field(default_factory=list)   # per trial {law: whole-record fit} with --law both
+    fits: list[WholeRecordFit]
+    laws: list[dict] = field(default_factory=list)   # per trial {law: fit dict} with --law both
+    comparisons: list[dict] = field(default_factory=list)
+    mean: dict = field(default_factory=dict)
+    sem: dict = field(default_factory=dict)
+    sem_over: str = "steps"
+    per_trial: list[dict] = field(default_factory=list)
+    report: dict = field(default_factory=dict)
+
+    @property
+    def whole(self) -> list[dict]:
+        """The whole-record fits as dicts (the figure's curves included)."""
+        return [w.fit for w in self.fits]
+
+    @property
+    def steps(self) -> list[StepResult]:
+        return [r for g in self.results for r in g]
 
 
 def identify_trials(trials: list[TrialData], *, use_events: bool = True, velocity_method: str = "local_poly",
@@ -828,25 +871,13 @@ def identify_trials(trials: list[TrialData], *, use_events: bool = True, velocit
     trials = [decimated(tr) for tr in trials]
     for ti, tr in enumerate(trials):
         check_analysable(tr, "identify")
-        t = np.asarray(tr.time_s, dtype=float)
-        x = np.asarray(tr.position_um, dtype=float)
-        mu = np.asarray(tr.mu, dtype=float)
         steps = detect_steps(tr, use_events=use_events, min_ratio=min_ratio)
-        res = []
-        for s in steps:
-            if directions != "both" and s.direction != directions:
-                continue
-            r = fit_step(t, x, mu, s, rise_guard_s=rise_guard_s, window_points=window_points)
-            r.trial = ti
-            res.append(r)
+        res = _fit_steps(tr, ti, steps, directions, rise_guard_s, window_points)
         groups.append(res)
         if whole_record:
-            init = {}
             good = [r for r in res if r.ok]
-            if good:
-                init = {"A_mu": float(np.median([r.A_mu for r in good])),
-                        "B_mu": float(np.median([r.B_mu for r in good])),
-                        "L_um": float(np.median([r.L_um for r in good]))}
+            init = {nm: float(np.median([getattr(r, nm) for r in good])) for nm in ("A_mu", "B_mu", "L_um")} \
+                if good else {}
             stiff = (tr.is_load_point or _known_stiffness(tr)) if stiffness is None else stiffness
             fits = {lw: fit_whole_record(tr, steps, stiffness=stiff, velocity_method=whole_velocity, init=init,
                                          law=lw, detrend=detrend, uncertainty=uncertainty, seed=seed,
@@ -857,18 +888,67 @@ def identify_trials(trials: list[TrialData], *, use_events: bool = True, velocit
                 wholes.append(fits["slip"])
             else:
                 wholes.append(fits[law])
+    mean, sem, over, per_trial = summarize(groups, trials[0].normal_force_N)
+    idn = Identification(groups, trials, [WholeRecordFit(w) for w in wholes], per_law, comparisons, mean, sem, over,
+                         per_trial)
+    idn.report = make_report(idn, names, velocity_method, law if whole_record else None,
+                             whole_record and stiffness is None)
+    return idn
+
+
+def make_report(idn: Identification, names: list[str] | None, velocity_method: str, law: str | None,
+                stiffness_by_rule: bool) -> dict:
+    """The rig.identify/1 JSON of a typed identification: the numbers rounded here (6 significant
+    figures, :func:`rig.analysis.report.rounded`), the warnings judged on the report's values."""
+    report = _report(idn, names, velocity_method)
+    report["notes"] = _notes(idn.trials, stiffness_by_rule)
+    if law is not None:  # the whole-record fits
+        wr = [w.report() for w in idn.fits]
+        report["whole_record"] = wr[0] if len(wr) == 1 else wr
+        report["law"] = law
+        if law == "both":
+            both = [{**{lw: WholeRecordFit(f).report() for lw, f in fits.items()}, "comparison": c}
+                    for fits, c in zip(idn.laws, idn.comparisons)]
+            report["laws"] = both[0] if len(both) == 1 else both
+            prefs = {c["preferred_law"] for c in idn.comparisons}
+            report["preferred_law"] = prefs.pop() if len(prefs) == 1 else "undecided"
+    report["warnings"] = result_warnings(report)
+    return report
+
+
+def _fit_steps(tr: TrialData, ti: int, steps: list[Step], directions: str, rise_guard_s: float,
+               window_points: int) -> list[StepResult]:
+    """Eqs. (10)-(12) on each step of trial number ``ti`` in the wanted direction(s)."""
+    t = np.asarray(tr.time_s, dtype=float)
+    x = np.asarray(tr.position_um, dtype=float)
+    mu = np.asarray(tr.mu, dtype=float)
+    res = []
+    for s in steps:
+        if directions != "both" and s.direction != directions:
+            continue
+        r = fit_step(t, x, mu, s, rise_guard_s=rise_guard_s, window_points=window_points)
+        r.trial = ti
+        res.append(r)
+    return res
+
+
+def _report(idn: Identification, names: list[str] | None, velocity_method: str) -> dict:
+    """The per-step part of the ``rig.identify/1`` report: the steps, mean and s.e. over steps (one
+    trial) or trials (several), the rejected steps and, with several trials, each trial's means."""
+    trials, groups = idn.trials, idn.results
     N_N = trials[0].normal_force_N
-    mean, sem, over, per_trial = summarize(groups, N_N)
-    # the field's vocabulary beside the spec's names (rig.model.spec.rsf_vocabulary)
+    mean = {k_: _r(v) for k_, v in idn.mean.items()}
+    sem = {k_: _r(v) for k_, v in idn.sem.items()}
+    # the field's vocabulary beside the spec's names (rig.model.spec.rsf_vocabulary), of the rounded means
     mean.update({k_: _r(v_) for k_, v_ in rsf_vocabulary(mean).items()})
     sem.update({k_: v_ for k_, v_ in ((RSF_NAMES[k], sem.get(k)) for k in RSF_NAMES)})
     report = {
         "schema": SCHEMA,
         "data": names if names and len(names) > 1 else (names[0] if names else trials[0].source),
-        "steps": [r.to_json() for g in groups for r in g],
+        "steps": [r.report() for g in groups for r in g],
         "mean": mean,
         "sem": sem,
-        "sem_over": over,
+        "sem_over": idn.sem_over,
         "n_steps": sum(1 for g in groups for r in g if r.ok),
         "n_trials": len(trials),
         "normal_force_N": N_N,
@@ -879,29 +959,23 @@ def identify_trials(trials: list[TrialData], *, use_events: bool = True, velocit
     }
     report["rejected_steps"] = [{"trial": r.trial, "t_s": _r(r.step.t_s), "reason": r.reason}
                                 for g in groups for r in g if not r.ok]
+    report["notes"] = []
+    if len(trials) > 1:
+        report["per_trial"] = [{k: _r(v) if not isinstance(v, int) else v for k, v in row.items()}
+                               for row in idn.per_trial]
+    return report
+
+
+def _notes(trials: list[TrialData], stiffness_by_rule: bool) -> list[str]:
+    """The notes on load-point records: the per-step method's rigid-machine bias, the stiffness fitted."""
     lp = [tr.is_load_point for tr in trials]
     notes = []
     if any(lp):
         notes.append(RIGID_NOTE)
-    if whole_record and any(lp) and stiffness is None:
+    if stiffness_by_rule and any(lp):
         notes.append("position_source: load_point, so the whole-record fit includes the machine stiffness "
                      "(--no-stiffness to fit without)")
-    report["notes"] = notes
-    if len(trials) > 1:
-        report["per_trial"] = [{k: _r(v) if not isinstance(v, int) else v for k, v in row.items()}
-                               for row in per_trial]
-    if whole_record:
-        wr = [{k: v for k, v in w.items() if not k.startswith("_")} for w in wholes]
-        report["whole_record"] = wr[0] if len(wr) == 1 else wr
-        report["law"] = law
-        if law == "both":
-            both = [{**{lw: {k: v for k, v in f.items() if not k.startswith("_")} for lw, f in fits.items()},
-                     "comparison": c} for fits, c in zip(per_law, comparisons)]
-            report["laws"] = both[0] if len(both) == 1 else both
-            prefs = {c["preferred_law"] for c in comparisons}
-            report["preferred_law"] = prefs.pop() if len(prefs) == 1 else "undecided"
-    report["warnings"] = result_warnings(report)
-    return Identification(report, groups, trials, wholes, per_law)
+    return notes
 
 
 def step_where(step_json: dict, n_trials: int) -> str:

@@ -153,13 +153,9 @@ def _title_params(mean: dict, sem: dict | None, flags: set[str]) -> str:
 def build_identification(idn, max_steps: int = 9):
     """The identification figure: the record (friction, whole-record model; velocity below),
     then friction after each step against slip with the eq. (12) fit of each window and the
-    windows shaded (Figs. 9-11), a legend for all of them and the warnings."""
-    from matplotlib.lines import Line2D
-    from matplotlib.patches import Patch
-
-    from rig.kinematics import estimate_velocity
-    from rig.model.checks import MARK, flagged
-    from rig.analysis.identify import step_where
+    windows shaded (Figs. 9-11), a legend for all of them and the warnings. With several files,
+    the record drawn is the first file's, and each step says its file."""
+    from rig.model.checks import MARK
 
     plt = _plt()
     rep = idn.report
@@ -177,19 +173,46 @@ def build_identification(idn, max_steps: int = 9):
         ([footnote_height_in(foot)] if foot else [])
     fig = plt.figure(figsize=(PAGE_WIDTH_IN, sum(heights) + 0.6), layout="constrained")
     gs = fig.add_gridspec(len(heights), ncol, height_ratios=heights)
-    # the record
+    files = _file_names(idn)
     ax = fig.add_subplot(gs[0, :])
-    axv = fig.add_subplot(gs[1, :], sharex=ax)
+    record_handles = _record_panels(ax, fig.add_subplot(gs[1, :], sharex=ax), idn, files)
+    if not results:
+        ax.legend(loc="best", markerscale=4)
+    ax.set_title(_identification_title(rep, files))
+    for k, r in enumerate(results):
+        _step_panel(fig.add_subplot(gs[2 + k // ncol, k % ncol]), idn, r, files)
+        if k % ncol == 0:
+            fig.axes[-1].set_ylabel("μ")
+    if results:
+        _step_legend(fig.add_subplot(gs[2 + nrow_steps, :]), record_handles)
+    if foot:
+        footnote_axes(fig, gs[len(heights) - 1, :], foot)
+    return fig
+
+
+def _file_names(idn) -> list[str]:
+    """The identified files' names (the report's ``data``), one per trial."""
+    data = idn.report.get("data")
+    names = [Path(d).name for d in data] if isinstance(data, list) else [Path(str(data)).name]
+    return names if len(names) == len(idn.trials) else [f"trial {i}" for i in range(len(idn.trials))]
+
+
+def _record_panels(ax, axv, idn, files: list[str]) -> list:
+    """The first record: measured friction with the whole-record fit(s) and trend, the steps, the velocity
+    below; returns the legend handles of the record panel."""
+    from rig.kinematics import estimate_velocity
+
     tr = idn.trials[0]
     step = max(1, tr.time_s.size // 50000)
     t = tr.time_s[::step]
-    ax.plot(t, tr.mu[::step], ".", ms=1.0, color="0.55", label="measured μ", rasterized=True)
+    own = f" ({files[0]})" if len(files) > 1 else ""
+    ax.plot(t, tr.mu[::step], ".", ms=1.0, color="0.55", label=f"measured μ{own}", rasterized=True)
     fits0 = idn.laws[0] if getattr(idn, "laws", None) else ({"": idn.whole[0]} if idn.whole else {})
     for (lw, w0), col in zip(fits0.items(), ("C3", "C4")):
         if w0.get("_curve") is None:
             continue
         tc, mc, _, _, trend = w0["_curve"]
-        ax.plot(tc, mc, "-", color=col, lw=0.9, label=f"whole-record fit ({w0['model']})")
+        ax.plot(tc, mc, "-", color=col, lw=0.9, label=f"whole-record fit ({w0['model']}){own}")
         d = w0.get("detrend", {})
         if d.get("method", "none") != "none" and col == "C3":
             # the trend (mu per mm of slip), drawn about the fit's mean level
@@ -200,19 +223,22 @@ def build_identification(idn, max_steps: int = 9):
             a.axvline(r.step.t_s, color="C0", lw=0.6, ls=":", label="velocity step" if (k == 0 and a is ax) else None)
     ax.set_ylabel("μ = F / (N1 + N2)")
     ax.tick_params(labelbottom=False)
-    record_handles = ax.get_legend_handles_labels()[0]
-    if not results:
-        ax.legend(loc="best", markerscale=4)
-    v = estimate_velocity(t, tr.position_um[::step], rep.get("velocity_method", "local_poly"))
+    v = estimate_velocity(t, tr.position_um[::step], idn.report.get("velocity_method", "local_poly"))
     axv.plot(t, v, "-", color="C2", lw=0.6)
     symlog_velocity(axv, v)
     axv.set_ylabel("v (µm/s)")
     axv.set_xlabel("time (s)")
-    data = rep.get("data")
-    name = Path(data).name if isinstance(data, str) else f"{len(idn.trials)} trials"
-    m = rep["mean"]
+    return ax.get_legend_handles_labels()[0]
+
+
+def _identification_title(rep: dict, files: list[str]) -> str:
+    """The files, the mean A, B, L over steps (or trials), and one file's whole-record fit with its intervals."""
+    from rig.model.checks import flagged
+
+    warns = rep.get("warnings", [])
+    name = files[0] if len(files) == 1 else (", ".join(files) if len(files) <= 3 else f"{len(files)} files")
     if rep["n_steps"]:
-        head = (f"{name}: {_title_params(m, rep['sem'], flagged(warns, 'mean over ' + rep['sem_over']))} "
+        head = (f"{name}: {_title_params(rep['mean'], rep['sem'], flagged(warns, 'mean over ' + rep['sem_over']))} "
                 f"(mean over {_n(rep['n_steps'] if rep['sem_over'] == 'steps' else rep['n_trials'], rep['sem_over'])})")
     else:
         head = f"{name}: no accepted step ({len(rep.get('rejected_steps', []))} rejected)"
@@ -226,50 +252,54 @@ def build_identification(idn, max_steps: int = 9):
         if isinstance(rep.get("laws"), dict):
             c = rep["laws"]["comparison"]
             head += f"\npreferred law: {c['preferred_law']} (ΔBIC {g3(c.get('delta_bic'), 3)}; 6 or more decides)"
-    ax.set_title(head)
-    # the steps
-    for k, r in enumerate(results):
-        a = fig.add_subplot(gs[2 + k // ncol, k % ncol])
-        tr = idn.trials[r.trial]
-        lo, hi = r.step.post
-        pre = max(r.step.pre[0], r.step.i - 200)
-        x = tr.position_um
-        mm = tr.mu
-        j_end = max([f["j1"] for f in r.fits], default=hi)
-        sl = slice(pre, min(hi, j_end + 50))
-        a.plot(x[sl] - r.step.x_um, mm[sl], ".", ms=1.2, color="0.5", rasterized=True)
-        a.axhline(r.mu1, color="C0", lw=0.8, ls="--")
-        for f in r.fits:
-            best = f["window_um"] == r.window_um
-            d0 = x[f["j0"]] - r.step.x_um
-            d1 = x[min(f["j1"], x.size) - 1] - r.step.x_um
-            a.axvspan(d0, d1, color="C1" if best else "0.8", alpha=0.3 if best else 0.35, lw=0)
-            dd = np.linspace(0, max(d1, 1.0), 300)
-            a.plot(dd, f["mu2"] + f["a"] * np.exp(-dd / f["L_um"]), "-" if best else ":",
-                   color="k" if best else "C4", lw=1.1 if best else 0.8)
-        fl = flagged(warns, step_where(r.to_json(), rep["n_trials"]))
-        line2 = ", ".join(f"{lab} = {g3(val, 2 if lab in ('A', 'B') else 3)}{u}" + (" (!)" if key in fl else "")
-                          for lab, key, val, u in (("A", "A_mu", r.A_mu, ""), ("B", "B_mu", r.B_mu, ""),
-                                                   ("L", "L_um", r.L_um, " µm")))
-        a.set_title(f"{g3(r.step.v1_um_s)} → {g3(r.step.v2_um_s)} µm/s" +
-                    (f" (trial {r.trial})" if len(idn.trials) > 1 else "") + f", r² = {g3(r.r2, 2)}\n" + line2 +
-                    ("" if r.ok else "\nrejected (see below)"), color="k" if r.ok else WARN_COLOR, fontsize=7)
-        a.set_xlabel("slip after the step (µm)")
-        if k % ncol == 0:
-            a.set_ylabel("μ")
-    if results:
-        lax = fig.add_subplot(gs[2 + nrow_steps, :])
-        lax.axis("off")
-        handles = record_handles[1:] + [Line2D([], [], ls="", marker=".", color="0.5", label="measured μ"),
-                   Line2D([], [], ls="--", color="C0", label="μ1: mean before the step"),
-                   Line2D([], [], ls="-", color="k", label="eq. (12) fit, window kept (best r²)"),
-                   Line2D([], [], ls=":", color="C4", label="eq. (12) fit, other windows"),
-                   Patch(color="C1", alpha=0.3, label="μ2 window kept"),
-                   Patch(color="0.8", alpha=0.35, label="other μ2 windows tried")]
-        lax.legend(handles=handles, loc="center", ncols=3)
-    if foot:
-        footnote_axes(fig, gs[len(heights) - 1, :], foot)
-    return fig
+    return head
+
+
+def _step_panel(a, idn, r, files: list[str]) -> None:
+    """Friction after one step against slip: mu1, each window's eq. (12) fit, the window kept shaded."""
+    from rig.analysis.identify import step_where
+    from rig.model.checks import flagged
+
+    rep = idn.report
+    tr = idn.trials[r.trial]
+    lo, hi = r.step.post
+    pre = max(r.step.pre[0], r.step.i - 200)
+    x = tr.position_um
+    j_end = max([f["j1"] for f in r.fits], default=hi)
+    sl = slice(pre, min(hi, j_end + 50))
+    a.plot(x[sl] - r.step.x_um, tr.mu[sl], ".", ms=1.2, color="0.5", rasterized=True)
+    a.axhline(r.mu1, color="C0", lw=0.8, ls="--")
+    for f in r.fits:
+        best = f["window_um"] == r.window_um
+        d0 = x[f["j0"]] - r.step.x_um
+        d1 = x[min(f["j1"], x.size) - 1] - r.step.x_um
+        a.axvspan(d0, d1, color="C1" if best else "0.8", alpha=0.3 if best else 0.35, lw=0)
+        dd = np.linspace(0, max(d1, 1.0), 300)
+        a.plot(dd, f["mu2"] + f["a"] * np.exp(-dd / f["L_um"]), "-" if best else ":",
+               color="k" if best else "C4", lw=1.1 if best else 0.8)
+    fl = flagged(rep.get("warnings", []), step_where(r.to_json(), rep["n_trials"]))
+    line2 = ", ".join(f"{lab} = {g3(val, 2 if lab in ('A', 'B') else 3)}{u}" + (" (!)" if key in fl else "")
+                      for lab, key, val, u in (("A", "A_mu", r.A_mu, ""), ("B", "B_mu", r.B_mu, ""),
+                                               ("L", "L_um", r.L_um, " µm")))
+    a.set_title(f"{g3(r.step.v1_um_s)} → {g3(r.step.v2_um_s)} µm/s" +
+                (f" ({files[r.trial]})" if len(idn.trials) > 1 else "") + f", r² = {g3(r.r2, 2)}\n" + line2 +
+                ("" if r.ok else "\nrejected (see below)"), color="k" if r.ok else WARN_COLOR, fontsize=7)
+    a.set_xlabel("slip after the step (µm)")
+
+
+def _step_legend(lax, record_handles: list) -> None:
+    """One legend for the record's lines and the step panels' marks."""
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
+    lax.axis("off")
+    handles = record_handles[1:] + [Line2D([], [], ls="", marker=".", color="0.5", label="measured μ"),
+               Line2D([], [], ls="--", color="C0", label="μ1: mean before the step"),
+               Line2D([], [], ls="-", color="k", label="eq. (12) fit, window kept (best r²)"),
+               Line2D([], [], ls=":", color="C4", label="eq. (12) fit, other windows"),
+               Patch(color="C1", alpha=0.3, label="μ2 window kept"),
+               Patch(color="0.8", alpha=0.35, label="other μ2 windows tried")]
+    lax.legend(handles=handles, loc="center", ncols=3)
 
 
 def _uncertainty_line(w: dict) -> str:
@@ -364,8 +394,6 @@ def build_stability_map(scans: list[dict], title: str = "", *, spread_max: float
     criterion, with the paper's eq. (8) for the fixture (2 N, kd, m), the discrete-time analysis
     of the rig's loop and the simulated boundary; one legend for all panels. ``spread_max`` and
     ``onset_spread`` are the scan's criterion (:mod:`rig.analysis.stability`, which calls this)."""
-    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
-
     SPREAD_MAX, ONSET_SPREAD = spread_max, onset_spread
 
     plt = _plt()
@@ -415,15 +443,7 @@ def build_stability_map(scans: list[dict], title: str = "", *, spread_max: float
             ax.axvline(s["k_onset_N_per_um"] * 1e3, color="C4", ls="-.", label="onset of oscillation")
         top = max(float(sp.max()), float(lin[ok].max()) if ok.any() else 0.0)
         y0, y1 = min(lo, SPREAD_MAX / 2), max(top * 2, SPREAD_MAX * 2)
-        ax.set_yscale("log")
-        ax.set_ylim(y0, y1)
-        ax.yaxis.set_major_locator(LogLocator(base=10, numticks=6))
-        ax.yaxis.set_major_formatter(FuncFormatter(lambda y, _: f"{y:g}"))
-        if y1 / y0 < 30:  # less than ~1.5 decades: label 2 and 5 between the decades too
-            ax.yaxis.set_minor_locator(LogLocator(base=10, subs=(2.0, 5.0)))
-            ax.yaxis.set_minor_formatter(FuncFormatter(lambda y, _: f"{y:g}"))
-        else:
-            ax.yaxis.set_minor_formatter(NullFormatter())
+        _log_axis(ax, y0, y1)
         ax.set_title("\n".join(lines), fontsize=7 if ncol > 1 else 8)
         ax.set_xlabel("kp (kN/m)")
         ax.set_ylabel("velocity spread / V0")
@@ -439,6 +459,21 @@ def build_stability_map(scans: list[dict], title: str = "", *, spread_max: float
     if title:
         fig.suptitle(title)
     return fig
+
+
+def _log_axis(ax, y0: float, y1: float) -> None:
+    """A log y axis from y0 to y1 with plain labels (2 and 5 between the decades when it spans less than ~1.5)."""
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+
+    ax.set_yscale("log")
+    ax.set_ylim(y0, y1)
+    ax.yaxis.set_major_locator(LogLocator(base=10, numticks=6))
+    ax.yaxis.set_major_formatter(FuncFormatter(lambda y, _: f"{y:g}"))
+    if y1 / y0 < 30:
+        ax.yaxis.set_minor_locator(LogLocator(base=10, subs=(2.0, 5.0)))
+        ax.yaxis.set_minor_formatter(FuncFormatter(lambda y, _: f"{y:g}"))
+    else:
+        ax.yaxis.set_minor_formatter(NullFormatter())
 
 
 def plot_stability_map(scans: list[dict], path: str | Path, title: str = "", *, spread_max: float,

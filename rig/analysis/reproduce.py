@@ -47,10 +47,12 @@ from __future__ import annotations
 import json
 import math
 import time
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from rig.analysis.identify import _r, identify_trials, k_cr_table2, mean_sem
+from rig.analysis.identify import identify_trials, k_cr_table2, mean_sem
+from rig.analysis.report import rounded as _r
 from rig.data import atomic_write_text
 from rig.model.paper import TABLE2
 from rig.model.spec import FrictionModel
@@ -206,44 +208,94 @@ def _map_trials(tasks: list[dict], progress=None, map_fn=None) -> list[dict]:
     return out
 
 
+@dataclass
+class MeanSem:
+    """Means and standard errors of the mean of A_mu, B_mu, L_um and eq. (13)'s k_cr over trials."""
+    mean: dict
+    sem: dict
+
+    def report(self) -> dict:
+        return {"mean": self.mean, "sem": self.sem}
+
+
+@dataclass
+class LubricantResult:
+    """One lubricant's Table 2 row from simulated trials: the paper's values, the trials' truth, what
+    the identification recovered (and the whole-record fit's), the check against the truth and the
+    identification's bias; :meth:`report` is its part of rig.reproduce/1. The means are of the
+    trials' reported (6-figure) values, as the JSON has always had them."""
+    lubricant: str
+    n_trials: int
+    engine: str
+    mu0: float
+    trials: list[dict]
+    truth: MeanSem
+    recovered: MeanSem
+    whole_record: MeanSem | None
+    paper: dict
+    checks: dict = field(default_factory=dict)
+    truth_all_draws_mean: dict = field(default_factory=dict)
+    bias: dict = field(default_factory=dict)
+
+    @property
+    def n_trials_identified(self) -> int:
+        return sum(1 for t in self.trials if t["n_steps"] > 0)
+
+    def report(self) -> dict:
+        res = {"lubricant": self.lubricant, "n_trials": self.n_trials, "engine": self.engine, "mu0": self.mu0,
+               "trials": self.trials, "n_trials_identified": self.n_trials_identified,
+               "truth": self.truth.report(), "recovered": self.recovered.report()}
+        if self.whole_record is not None:
+            res["whole_record"] = self.whole_record.report()
+        res.update(paper=self.paper, checks=self.checks, truth_all_draws_mean=self.truth_all_draws_mean,
+                   n_flagged_k_cr_over_half_kp=sum(1 for t in self.trials if t["k_cr_over_half_kp"]), bias=self.bias)
+        return res
+
+
+def _mean_sem_over(used: list[dict], key: str, N: float) -> MeanSem:
+    """Mean ± s.e. over the used trials of their ``key`` values, and eq. (13) on the means (Table 2's
+    propagated error)."""
+    mean, sem = {}, {}
+    for k_ in ("A_mu", "B_mu", "L_um"):
+        mean[k_], sem[k_] = mean_sem([t[key][k_] for t in used if t[key].get(k_) is not None])
+    mean["k_cr_kN_per_m"], sem["k_cr_kN_per_m"] = k_cr_table2(mean["A_mu"], sem["A_mu"], mean["B_mu"],
+                                                              sem["B_mu"], mean["L_um"], sem["L_um"], N)
+    return MeanSem({k_: _r(v) for k_, v in mean.items()}, {k_: _r(v) for k_, v in sem.items()})
+
+
 def summarize_lubricant(lubricant: str, n_trials: int, engine: str, mu0: float, trials_out: list[dict],
                         flags: list[bool], whole_record: bool) -> dict:
+    """Means, standard errors, the paper's values and the identification's bias of one lubricant (the JSON)."""
+    return lubricant_result(lubricant, n_trials, engine, mu0, trials_out, flags, whole_record).report()
+
+
+def lubricant_result(lubricant: str, n_trials: int, engine: str, mu0: float, trials_out: list[dict],
+                     flags: list[bool], whole_record: bool) -> LubricantResult:
     """Means, standard errors, the paper's values and the identification's bias of one lubricant."""
     for row, flagged in zip(trials_out, flags):
         row["k_cr_over_half_kp"] = flagged
     N = 100.0
-    res = {"lubricant": lubricant, "n_trials": n_trials, "engine": engine, "mu0": mu0, "trials": trials_out,
-           "n_trials_identified": sum(1 for t in trials_out if t["n_steps"] > 0)}
-    for label, key in (("truth", "truth"), ("recovered", "recovered"), ("whole_record", "whole_record")):
-        if key == "whole_record" and not whole_record:
-            continue
-        mean, sem = {}, {}
-        # the same trials for truth and recovered: those the identification could use, from a
-        # rig that can slide steadily (a flagged draw may stick-slip: with FF1 on, paraffin's
-        # L = 6.2 µm draw of seed 0 gives steps, identified at L -39 %, from a jerky record)
-        used = [t for t in trials_out if t["n_steps"] > 0 and not t["k_cr_over_half_kp"]]
-        for k_ in ("A_mu", "B_mu", "L_um"):
-            mean[k_], sem[k_] = mean_sem([t[key][k_] for t in used if t[key].get(k_) is not None])
-        mean["k_cr_kN_per_m"], sem["k_cr_kN_per_m"] = k_cr_table2(mean["A_mu"], sem["A_mu"], mean["B_mu"],
-                                                                  sem["B_mu"], mean["L_um"], sem["L_um"], N)
-        res[label] = {"mean": {k_: _r(v) for k_, v in mean.items()}, "sem": {k_: _r(v) for k_, v in sem.items()}}
+    # the same trials for truth and recovered: those the identification could use, from a
+    # rig that can slide steadily (a flagged draw may stick-slip: with FF1 on, paraffin's
+    # L = 6.2 µm draw of seed 0 gives steps, identified at L -39 %, from a jerky record)
+    used = [t for t in trials_out if t["n_steps"] > 0 and not t["k_cr_over_half_kp"]]
     paper = {k_: {"mean": TABLE2[lubricant][k_][0], "sem": TABLE2[lubricant][k_][1]}
              for k_ in ("A_mu", "B_mu", "L_um", "k_cr_kN_per_m")}
-    res["paper"] = paper
+    res = LubricantResult(lubricant, n_trials, engine, mu0, trials_out, _mean_sem_over(used, "truth", N),
+                          _mean_sem_over(used, "recovered", N),
+                          _mean_sem_over(used, "whole_record", N) if whole_record else None, paper)
     # the check: recovered means within the paper's standard errors of the trials' true means
-    checks = {}
     for k_ in ("A_mu", "B_mu", "L_um"):
         tol = paper[k_]["sem"] if paper[k_]["sem"] > 0 else A_NOISE_LEVEL
-        d = res["recovered"]["mean"][k_] - res["truth"]["mean"][k_]
-        checks[k_] = {"diff": _r(d), "tolerance": _r(tol), "ok": bool(abs(d) <= tol)}
-    res["checks"] = checks
+        d = res.recovered.mean[k_] - res.truth.mean[k_]
+        res.checks[k_] = {"diff": _r(d), "tolerance": _r(tol), "ok": bool(abs(d) <= tol)}
     # all draws (also those the identification could not use, e.g. a flagged trial that
     # stick-slipped): their mean is Table 2's population mean; the used trials' mean may be
     # shifted by that selection, which the paper's own trials (steady sliding only) share
-    res["truth_all_draws_mean"] = {k_: _r(np.mean([t["truth"][k_] for t in trials_out])) for k_ in ("A_mu", "B_mu",
-                                                                                                    "L_um")}
-    res["n_flagged_k_cr_over_half_kp"] = sum(1 for t in trials_out if t["k_cr_over_half_kp"])
-    res["bias"] = identification_bias(res)
+    res.truth_all_draws_mean = {k_: _r(np.mean([t["truth"][k_] for t in trials_out]))
+                                for k_ in ("A_mu", "B_mu", "L_um")}
+    res.bias = identification_bias({"trials": trials_out, "paper": paper, "recovered": res.recovered.report(),
+                                    "truth": res.truth.report()})
     return res
 
 
@@ -266,23 +318,47 @@ def identification_bias(res: dict) -> dict:
     return out
 
 
+@dataclass
+class ReproduceResult:
+    """Table 2 from simulated trials: one :class:`LubricantResult` per lubricant, and the warnings on
+    what was recovered (added by the caller, :func:`rig.model.checks.check_params`); :meth:`report` is
+    the rig.reproduce/1 JSON."""
+    n_trials: int
+    seed: int
+    lubricants: dict[str, LubricantResult]
+    warnings: list[dict] | None = None
+
+    def report(self) -> dict:
+        out = {"schema": SCHEMA, "n_trials": self.n_trials, "seed": self.seed,
+               "per_trial_sd": "Table-2 sem x sqrt(8); lognormal matched in mean and sd, no rejection",
+               "lubricants": {lub: r.report() for lub, r in self.lubricants.items()}}
+        if self.warnings is not None:
+            out["warnings"] = self.warnings
+        return out
+
+
 def reproduce(n_trials: int = 8, *, seed: int = 0, lubricants=None, profile=None, whole_record: bool = False,
               progress=None, engine: str = "sim", map_fn=None) -> dict:
+    """The rig.reproduce/1 report of :func:`reproduce_result`."""
+    return reproduce_result(n_trials, seed=seed, lubricants=lubricants, profile=profile, whole_record=whole_record,
+                            progress=progress, engine=engine, map_fn=map_fn).report()
+
+
+def reproduce_result(n_trials: int = 8, *, seed: int = 0, lubricants=None, profile=None, whole_record: bool = False,
+                     progress=None, engine: str = "sim", map_fn=None) -> ReproduceResult:
+    """``n_trials`` simulated trials per lubricant in the paper's protocol, identified; Table 2 of them."""
     lubricants = list(lubricants or TABLE2)
-    out = {"schema": SCHEMA, "n_trials": n_trials, "seed": seed,
-           "per_trial_sd": "Table-2 sem x sqrt(8); lognormal matched in mean and sd, no rejection",
-           "lubricants": {}}
     # every lubricant's trials in one map, so a parallel engine never waits for one lubricant's
     # last trial before starting the next one's
     plans = {lub: plan_lubricant(lub, n_trials, seed=seed, profile=profile, whole_record=whole_record,
                                  engine=engine) for lub in lubricants}
     tasks = [t for lub in lubricants for t in plans[lub][0]]
     rows = _map_trials(tasks, progress, map_fn)
+    out = ReproduceResult(n_trials, seed, {})
     k = 0
     for lub in lubricants:
         lt, flags, mu0 = plans[lub]
-        out["lubricants"][lub] = summarize_lubricant(lub, n_trials, engine, mu0, rows[k:k + len(lt)], flags,
-                                                     whole_record)
+        out.lubricants[lub] = lubricant_result(lub, n_trials, engine, mu0, rows[k:k + len(lt)], flags, whole_record)
         k += len(lt)
     return out
 

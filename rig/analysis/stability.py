@@ -429,6 +429,135 @@ def fixture_statement(A_mu: float, B_mu: float, L_um: float, N_N: float = 100.0)
             f"twice the paper's per-rider value (B_mu - A_mu) N / L = {k1:.4g} kN/m (Table 2, eq. 13)")
 
 
+def per_interface_statement(A_mu: float, B_mu: float, L_um: float, N_N: float = 100.0) -> str:
+    """Eq. (13) of identified values, said as the paper uses it: ``(B_mu - A_mu) N / L`` with ``N`` the normal
+    force on one interface (Table 2's convention, N = 100 N: section 4.2.1), and the moving test piece's
+    quasi-static k_cr, twice that, because it carries the friction of both interfaces (2 N mu, section 3)."""
+    k1 = (B_mu - A_mu) * N_N / L_um * 1e3
+    return (f"eq. (13) on these means, (B_mu - A_mu) N / L with N = {N_N:g} N on one interface (Table 2's "
+            f"convention) = {k1:.4g} kN/m; the moving test piece carries the friction of both interfaces "
+            f"(2 N mu), so its quasi-static k_cr is twice that, {2 * k1:.4g} kN/m")
+
+
+# ---------------------------------------------------------------------------
+# The stability report of `rig stability`: eqs. (8) and (13), the rig's loop, the advice
+# ---------------------------------------------------------------------------
+@dataclass
+class StabilityReport:
+    """What ``rig stability`` found (``rig.stability/2``): the set-up, one analysis per parameter set
+    (:func:`analyse` with the rig loop's k_cr and advice, :func:`analyse_set`) and the simulated
+    checks (:func:`scan_boundary`). Numbers unrounded; :meth:`report` is the JSON."""
+    V0_um_s: float
+    mass_kg: float
+    kd_N_s_per_um: float
+    ki_N_per_um_s: float
+    normal_force_N: float
+    analyses: dict
+    checks: list
+
+    def report(self) -> dict:
+        return {"schema": "rig.stability/2", "V0_um_s": self.V0_um_s, "mass_kg": self.mass_kg,
+                "kd_N_s_per_um": self.kd_N_s_per_um, "ki_N_per_um_s": self.ki_N_per_um_s,
+                "normal_force_N": self.normal_force_N, "analyses": self.analyses, "checks": self.checks}
+
+
+def params_from_report(doc, N_default_N: float) -> tuple[dict, float]:
+    """(A_mu, B_mu, L_um) and the normal force of a ``rig identify`` JSON report (its mean); a
+    ValueError saying what is missing or unusable."""
+    try:
+        m = doc["mean"]
+        p = {"A_mu": float(m["A_mu"]), "B_mu": float(m["B_mu"]), "L_um": float(m["L_um"])}
+        N = float(doc.get("normal_force_N", N_default_N))
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        raise ValueError(f"not a rig identify report with mean A_mu, B_mu, L_um ({type(exc).__name__}: {exc})")
+    bad = [k for k, v in p.items() if not math.isfinite(v)] + ([] if N > 0 else ["normal_force_N"])
+    if bad or not p["L_um"] > 0:
+        raise ValueError(f"mean {', '.join(bad) or 'L_um'} is not a usable number (L_um must be positive, "
+                         "all finite)")
+    return p, N
+
+
+def _loop_k_cr(prof, model: FrictionModel, ki: float, v0: float) -> dict:
+    """k_cr of the rig's loop (N/µm) with the I term off (PD) and on (PID); None where the analysis cannot."""
+    loop = {}
+    for label, k_i in (("PD", 0.0), ("PID", ki)):
+        try:
+            loop[label] = k_cr_loop(LoopModel.from_profile(prof, model, ki_N_per_um_s=k_i, V0_um_s=v0))
+        except ValueError:
+            loop[label] = None
+    return loop
+
+
+def loop_advice(prof, model: FrictionModel, margin: float, v0: float) -> dict:
+    """The rig loop's k_cr (PD and PID, kN/m) and the gain advice ``kp >= margin x k_cr`` of the loop the
+    profile runs (PID when it has an integral gain): the keys :func:`analyse_set` adds to :func:`analyse`'s."""
+    from rig.analysis.report import fmt
+
+    ki = prof.controller.ki_N_per_um_s
+    loop = _loop_k_cr(prof, model, ki, v0)
+    out = {"k_cr_loop_PD_kN_per_m": loop["PD"] * 1e3 if loop["PD"] is not None else None,
+           "k_cr_loop_PID_kN_per_m": loop["PID"] * 1e3 if loop["PID"] is not None else None}
+    k_use = loop["PID"] if ki > 0 else loop["PD"]
+    if k_use == 0.0:
+        kp_min = margin * loop["PD"] if loop["PD"] else None
+        out["kp_min_N_per_um"] = kp_min
+        out["advice"] = ("the rig's PID loop has no finite k_cr (the integral term holds the slow friction "
+                         f"mode); without the I term (PD) kp >= {fmt(kp_min * 1e3 if kp_min else None)} kN/m "
+                         f"= {margin:g} x k_cr")
+    elif k_use is not None:
+        out["kp_min_N_per_um"] = margin * k_use
+        out["advice"] = (f"kp >= {margin * k_use * 1e3:.4g} kN/m = {margin:g} x k_cr of the rig's loop "
+                         f"({'PID' if ki > 0 else 'PD'}, 1 kHz)")
+    return out
+
+
+def analyse_set(name: str, p: dict, inp: StabilityInputs, margin: float, prof=None, from_table2: bool = True) -> dict:
+    """One parameter set's analysis: :func:`analyse` (eqs. 8, 13), with a profile the rig loop's k_cr
+    and advice (:func:`loop_advice`; the profile's own law of a lubricant it knows), and the statement
+    on the moving test piece (:func:`fixture_statement`)."""
+    a = analyse(inp, margin)
+    if prof is not None:
+        model = (prof.friction_model(name) if from_table2 and name in getattr(prof, "lubricants", {})
+                 else FrictionModel(params={"mu0": 0.12, **p}))
+        a.update(loop_advice(prof, model, margin, inp.V0_um_s))
+    a["statement"] = fixture_statement(p["A_mu"], p["B_mu"], p["L_um"], inp.normal_force_N)
+    return a
+
+
+def simulated_checks(analyses: dict, prof, profile_path, v0: float, map_fn, say, bar=None,
+                     from_table2: bool = True) -> list[dict]:
+    """The kp scans (:func:`scan_boundary`) of the profile's lubricants among the analysed sets, PD and
+    (when the profile has an integral gain) PID, each next to the rig loop's k_cr; ``say(text)`` reports
+    each. A set from an identify report is no lubricant of the profile: not simulated."""
+    from rig.analysis.report import fmt
+
+    ki = prof.controller.ki_N_per_um_s
+    checks = []
+    for nm in analyses:
+        if not from_table2 or nm not in prof.lubricants:
+            say(f"{nm}: not a lubricant of the profile; simulation skipped")
+            continue
+        for k_i in (0.0, ki) if ki > 0 else (0.0,):
+            ctl = "PID" if k_i else "PD"
+            k_lin = k_cr_loop(LoopModel.from_profile(prof, prof.friction_model(nm), ki_N_per_um_s=k_i, V0_um_s=v0))
+            if not k_lin:
+                say(f"{nm} ({ctl}): no finite k_cr in the analysis; scan skipped")
+                continue
+            if bar is not None:
+                bar.update(description=f"{nm} ({ctl}): kp scan")
+            r = scan_boundary(nm, profile=profile_path, ki_N_per_um_s=k_i, V0_um_s=v0,
+                              factors=(0.8, 0.9, 0.95, 1.05, 1.1, 1.25), map_fn=map_fn)
+            r["k_cr_eq8_N_per_um"] = analyses[nm]["k_cr_eq8_N_per_um"]
+            checks.append(r)
+            lo, hi = r["bracket_N_per_um"]
+            inside = r["analysis_in_bracket"]
+            say(f"{nm} ({ctl}): simulated boundary in [{fmt(lo * 1e3 if lo else None)}, "
+                f"{fmt(hi * 1e3 if hi else None)}] kN/m (stick-slip at the low end, steady at the high end) vs the "
+                f"rig loop's {fmt(k_lin * 1e3)} kN/m"
+                + ("" if inside is None else " (inside the bracket)" if inside else " (OUTSIDE the bracket)"))
+    return checks
+
+
 # ---------------------------------------------------------------------------
 # The simulated boundary: a scan of kp with a stated criterion
 # ---------------------------------------------------------------------------

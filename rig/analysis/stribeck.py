@@ -19,11 +19,12 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from rig.analysis.identify import _r
+from rig.analysis.report import rounded as _r
 from rig.kinematics import detect_steps
 from rig.data import TrialData, atomic_write_text
 from rig.model.friction import V0_UM_S
@@ -143,7 +144,28 @@ def _level(t, x, mu, sel, v_nom, direction):
             "x_start_um": float(xx[0]), "x_end_um": float(xx[-1]), "direction": direction}
 
 
-def fit_eq7(levels: list[dict]) -> dict:
+@dataclass
+class Eq7Fit:
+    """Eq. (7) fitted to steady-state levels: ``mu = mu0 + (A - B) ln(v/V0)``, with standard errors
+    (None with fewer than 3 levels); unrounded, :meth:`report` rounds."""
+    n: int
+    A_minus_B: float | None = None
+    A_minus_B_err: float | None = None
+    mu0: float | None = None
+    mu0_err: float | None = None
+    r2: float | None = None
+    rms_mu: float | None = None
+    fitted: bool = False
+
+    def report(self) -> dict:
+        out = {"n": int(self.n), "A_minus_B": _r(self.A_minus_B), "A_minus_B_err": _r(self.A_minus_B_err),
+               "mu0": _r(self.mu0), "mu0_err": _r(self.mu0_err)}
+        if self.fitted:
+            out.update(r2=_r(self.r2), rms_mu=_r(self.rms_mu))
+        return out
+
+
+def fit_eq7(levels: list[dict]) -> Eq7Fit:
     """Least squares ``mu = mu0 + c ln(v/V0)``; ``c = A - B`` (eq. 7) with standard errors."""
     v = np.array([lv["v_um_s"] for lv in levels], float)
     m = np.array([lv["mu"] for lv in levels], float)
@@ -151,7 +173,7 @@ def fit_eq7(levels: list[dict]) -> dict:
     v, m = v[ok], m[ok]
     n = v.size
     if n < 2 or np.ptp(np.log(v)) == 0:
-        return {"n": int(n), "A_minus_B": None, "A_minus_B_err": None, "mu0": None, "mu0_err": None}
+        return Eq7Fit(int(n))
     X = np.column_stack([np.ones(n), np.log(v / V0_UM_S)])
     coef, *_ = np.linalg.lstsq(X, m, rcond=None)
     r = m - X @ coef
@@ -160,13 +182,50 @@ def fit_eq7(levels: list[dict]) -> dict:
     cov = np.linalg.inv(X.T @ X) * s2
     err = np.sqrt(np.diag(cov))
     sst = float(((m - m.mean()) ** 2).sum())
-    return {"n": int(n), "A_minus_B": _r(coef[1]), "A_minus_B_err": _r(err[1]) if n > 2 else None,
-            "mu0": _r(coef[0]), "mu0_err": _r(err[0]) if n > 2 else None,
-            "r2": _r(1 - float(r @ r) / sst) if sst > 0 else None, "rms_mu": _r(math.sqrt(float(r @ r) / n))}
+    return Eq7Fit(int(n), float(coef[1]), float(err[1]) if n > 2 else None, float(coef[0]),
+                  float(err[0]) if n > 2 else None, 1 - float(r @ r) / sst if sst > 0 else None,
+                  math.sqrt(float(r @ r) / n), fitted=True)
+
+
+@dataclass
+class StribeckResult:
+    """The steady-state friction of every level (unrounded), the branch means and the eq. (7) fits
+    (all levels, up, down); :meth:`report` is the rig.stribeck/1 JSON, rounded there."""
+    data: object
+    window_um: float
+    level_source: list[str]
+    levels: list[dict]
+    rejected: list[dict]
+    branches: dict[str, list[dict]]
+    fit: Eq7Fit
+    fit_up: Eq7Fit
+    fit_down: Eq7Fit
+
+    def report(self) -> dict:
+        def rounded(d):
+            return {k: (_r(v) if isinstance(v, float) else v) for k, v in d.items()}
+
+        return {
+            "schema": SCHEMA, "data": self.data, "window_um": self.window_um, "level_source": self.level_source,
+            "n_levels": len(self.levels),
+            "levels": [rounded(lv) for lv in self.levels],
+            "rejected_levels": [rounded(r) for r in self.rejected],
+            "branches": {d: [{"v_um_s": b["v_um_s"], "mu": _r(b["mu"]), "n_trials": b["n_trials"],
+                              "mu_sd": _r(b["mu_sd"]) if b["mu_sd"] is not None else None} for b in rows]
+                         for d, rows in self.branches.items()},
+            "fit": self.fit.report(), "fit_up": self.fit_up.report(), "fit_down": self.fit_down.report(),
+            "note": "eq. (7): mu_ss = mu0 + (A - B) ln(v/V0), V0 = 1 µm/s; A - B < 0 is a negative slope",
+        }
 
 
 def stribeck(trials: list[TrialData], *, use_events: bool = True, window_um: float = 50.0,
              names: list[str] | None = None) -> dict:
+    """The rig.stribeck/1 report of :func:`stribeck_result`."""
+    return stribeck_result(trials, use_events=use_events, window_um=window_um, names=names).report()
+
+
+def stribeck_result(trials: list[TrialData], *, use_events: bool = True, window_um: float = 50.0,
+                    names: list[str] | None = None) -> StribeckResult:
     """Levels of every trial, the branch-averaged curves, and the eq. (7) fits."""
     all_levels = []
     all_rejected = []
@@ -199,24 +258,15 @@ def stribeck(trials: list[TrialData], *, use_events: bool = True, window_um: flo
         rows = []
         for v in vs:
             mus = [lv["mu"] for lv in sel if lv["v_um_s"] == v]
-            rows.append({"v_um_s": v, "mu": _r(np.mean(mus)), "n_trials": len(mus),
-                         "mu_sd": _r(np.std(mus, ddof=1)) if len(mus) > 1 else None})
+            rows.append({"v_um_s": v, "mu": float(np.mean(mus)), "n_trials": len(mus),
+                         "mu_sd": float(np.std(mus, ddof=1)) if len(mus) > 1 else None})
         branches[d] = rows
-    rep = {
-        "schema": SCHEMA,
-        "data": names if names and len(names) > 1 else (names[0] if names else trials[0].source),
-        "window_um": window_um,
-        "level_source": sorted(sources),
-        "n_levels": len(all_levels),
-        "levels": [{k: (_r(v) if isinstance(v, float) else v) for k, v in lv.items()} for lv in all_levels],
-        "rejected_levels": [{k: (_r(v) if isinstance(v, float) else v) for k, v in r.items()} for r in all_rejected],
-        "branches": branches,
-        "fit": fit_eq7(all_levels),
-        "fit_up": fit_eq7([lv for lv in all_levels if lv["direction"] == "up"]),
-        "fit_down": fit_eq7([lv for lv in all_levels if lv["direction"] == "down"]),
-        "note": "eq. (7): mu_ss = mu0 + (A - B) ln(v/V0), V0 = 1 µm/s; A - B < 0 is a negative slope",
-    }
-    return rep
+    return StribeckResult(
+        data=names if names and len(names) > 1 else (names[0] if names else trials[0].source),
+        window_um=window_um, level_source=sorted(sources), levels=all_levels, rejected=all_rejected,
+        branches=branches, fit=fit_eq7(all_levels),
+        fit_up=fit_eq7([lv for lv in all_levels if lv["direction"] == "up"]),
+        fit_down=fit_eq7([lv for lv in all_levels if lv["direction"] == "down"]))
 
 
 def write_json(rep: dict, path) -> None:

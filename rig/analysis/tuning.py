@@ -269,6 +269,38 @@ def bandwidth_3db(f_hz: np.ndarray, T: np.ndarray) -> float | None:
     return float(f_hz[i - 1] + w * (f_hz[i] - f_hz[i - 1]))
 
 
+def _compare_model(fb: np.ndarray, ratio: np.ndarray, g2: np.ndarray, n_bin: np.ndarray, f0_hz: float) -> dict:
+    """Measured over modelled response (``ratio``) at the coherent frequencies ``fb`` below COMPARE_MAX_HZ:
+    the verdict on 1/6-octave bands (the mean ratio of the coherent bins in each): a bin's own random error,
+    sqrt(1 - g^2) / (g sqrt(2 n_d)) (Bendat & Piersol), is 0.5-1 dB at g^2 = 0.8; and, when the model misses,
+    the phase slope a pure delay would show."""
+    dg, dp = 20 * np.log10(np.abs(ratio)), np.degrees(np.angle(ratio))
+    edges = f0_hz * 2.0 ** (np.arange(0, 60) / 6.0)
+    idx = np.searchsorted(edges, fb)
+    bands = [(float(np.exp(np.mean(np.log(fb[idx == k])))), ratio[idx == k].mean()) for k in np.unique(idx)]
+    bg = np.array([20 * math.log10(abs(b)) for _, b in bands])
+    bp = np.array([math.degrees(np.angle(b)) for _, b in bands])
+    # segments averaged per bin; with 75 % overlap about half of them are independent
+    n_d = np.maximum(n_bin / 2.0, 1.0)
+    rand_db = 20 * np.log10(1 + np.sqrt(1 - g2) / (np.sqrt(g2) * np.sqrt(2 * n_d)))
+    out = {"max_hz": COMPARE_MAX_HZ, "n": int(fb.size), "n_bands": len(bands),
+           "band_hz": [b for b, _ in bands], "band_gain_db": bg.tolist(),
+           "band_phase_deg": bp.tolist(),
+           "gain_db_max_abs": float(np.abs(bg).max()), "phase_deg_max_abs": float(np.abs(bp).max()),
+           "bin_gain_db_max_abs": float(np.abs(dg).max()),
+           "bin_phase_deg_max_abs": float(np.abs(dp).max()),
+           "gain_db_rms": float(np.sqrt(np.mean(dg ** 2))),
+           "phase_deg_rms": float(np.sqrt(np.mean(dp ** 2))),
+           "bin_random_error_db_median": float(np.median(rand_db)),
+           "within_1db_5deg": bool(np.abs(bg).max() <= 1.0 and np.abs(bp).max() <= 5.0)}
+    # why not: a pure delay shows as phase growing with frequency at equal gain
+    if not out["within_1db_5deg"]:
+        slope = float(np.polyfit(fb, dp, 1)[0]) if fb.size > 2 else 0.0
+        out["phase_slope_deg_per_hz"] = slope
+        out["delay_ms"] = float(-slope / 360.0 * 1e3)
+    return out
+
+
 def frf(trial: TrialData, profile, model, switches: dict | None = None, nperseg: int = 1024) -> dict:
     """The measured frequency response of the last sine sweep, its margins and bandwidth, and the
     loop model's response of ``profile`` (friction ``model``) at the same frequencies."""
@@ -341,35 +373,7 @@ def frf(trial: TrialData, profile, model, switches: dict | None = None, nperseg:
                                               "about steady sliding at the slide velocity"}
         cmp_ = good & (f <= COMPARE_MAX_HZ)
         if cmp_.any():
-            ratio = H[cmp_] / T_model[cmp_]
-            dg, dp = 20 * np.log10(np.abs(ratio)), np.degrees(np.angle(ratio))
-            # the verdict on 1/6-octave bands (the mean ratio of the coherent bins in each): a bin's own
-            # random error, sqrt(1 - g^2) / (g sqrt(2 n_d)) (Bendat & Piersol), is 0.5-1 dB at g^2 = 0.8
-            fb = f[cmp_]
-            edges = ev["f0_hz"] * 2.0 ** (np.arange(0, 60) / 6.0)
-            idx = np.searchsorted(edges, fb)
-            bands = [(float(np.exp(np.mean(np.log(fb[idx == k])))), ratio[idx == k].mean()) for k in np.unique(idx)]
-            bg = np.array([20 * math.log10(abs(b)) for _, b in bands])
-            bp = np.array([math.degrees(np.angle(b)) for _, b in bands])
-            g2 = coh[cmp_]
-            # segments averaged per bin; with 75 % overlap about half of them are independent
-            n_d = np.maximum(n_bin[cmp_] / 2.0, 1.0)
-            rand_db = 20 * np.log10(1 + np.sqrt(1 - g2) / (np.sqrt(g2) * np.sqrt(2 * n_d)))
-            out["compare"] = {"max_hz": COMPARE_MAX_HZ, "n": int(cmp_.sum()), "n_bands": len(bands),
-                              "band_hz": [b for b, _ in bands], "band_gain_db": bg.tolist(),
-                              "band_phase_deg": bp.tolist(),
-                              "gain_db_max_abs": float(np.abs(bg).max()), "phase_deg_max_abs": float(np.abs(bp).max()),
-                              "bin_gain_db_max_abs": float(np.abs(dg).max()),
-                              "bin_phase_deg_max_abs": float(np.abs(dp).max()),
-                              "gain_db_rms": float(np.sqrt(np.mean(dg ** 2))),
-                              "phase_deg_rms": float(np.sqrt(np.mean(dp ** 2))),
-                              "bin_random_error_db_median": float(np.median(rand_db)),
-                              "within_1db_5deg": bool(np.abs(bg).max() <= 1.0 and np.abs(bp).max() <= 5.0)}
-            # why not: a pure delay shows as phase growing with frequency at equal gain
-            if not out["compare"]["within_1db_5deg"]:
-                slope = float(np.polyfit(fb, dp, 1)[0]) if fb.size > 2 else 0.0
-                out["compare"]["phase_slope_deg_per_hz"] = slope
-                out["compare"]["delay_ms"] = float(-slope / 360.0 * 1e3)
+            out["compare"] = _compare_model(f[cmp_], H[cmp_] / T_model[cmp_], coh[cmp_], n_bin[cmp_], ev["f0_hz"])
     out["notes"] = notes
     return out
 

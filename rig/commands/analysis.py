@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from contextlib import nullcontext
 from enum import Enum
 from pathlib import Path
 from typing import Optional
@@ -12,14 +13,11 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from rig.commands.common import (EXIT_BAD_INPUT, JSON_HELP, Lubricant, check_output_path, err_console, fail,
-                                 json_to_stdout, progress_bar, write_json)
+from rig.analysis.report import fmt as _fmt
+from rig.commands.common import (EXIT_BAD_INPUT, JSON_HELP, Lubricant, check_output_path, emit_outputs, err_console,
+                                 fail, json_to_stdout, progress_bar)
 
 console = Console(width=None if Console().is_terminal else 140, highlight=False)
-
-#: fewer samples than this are no record to analyse (a 1-row file divided by zero in identify)
-MIN_SAMPLES = 3
-
 
 def _fail(msg: str, code: int = EXIT_BAD_INPUT):
     fail(msg, code)
@@ -81,6 +79,7 @@ def _outputs(**paths) -> None:
 
 
 def _load(paths: list[Path]):
+    from rig.analysis.identify import MIN_RECORD_SAMPLES
     from rig.data import DataFormatError
     from rig.log import load_trial
 
@@ -90,24 +89,14 @@ def _load(paths: list[Path]):
             trials.append(load_trial(p))
         except DataFormatError as exc:
             _fail(str(exc))
-        if len(trials[-1]) < MIN_SAMPLES:
-            _fail(f"{p}: {len(trials[-1])} sample(s): too few samples to analyse (at least {MIN_SAMPLES})")
+        if len(trials[-1]) < MIN_RECORD_SAMPLES:
+            _fail(f"{p}: {len(trials[-1])} sample(s): too few samples to analyse (at least {MIN_RECORD_SAMPLES})")
     return trials
 
 
 def _named(msg: str, data) -> str:
     """An analysis error with the file(s) named."""
     return msg if any(str(p) in msg for p in data) else f"{', '.join(map(str, data))}: {msg}"
-
-
-def _fmt(v, nd=4):
-    if v is None:
-        return "-"
-    if isinstance(v, float):
-        if not math.isfinite(v):
-            return "-"
-        return f"{v:.{nd}g}"
-    return str(v)
 
 
 def identify_cmd(
@@ -145,63 +134,138 @@ def identify_cmd(
 
     With a directory or a glob (or --jobs/--scheduler/--db), each file is identified on its
     own, in parallel, and the results go into the catalogue (docs/catalog.md)."""
-    from rig.analysis.identify import identify_trials
-
     con = _con(json_out)
     if not min_ratio > 1:
         _fail(f"--min-ratio must be more than 1 (got {min_ratio:g})")
     _outputs(json=json_out, plot=plot)
-    velocity, whole_velocity, direction = velocity.value, whole_velocity.value, direction.value
-    law, detrend, names = law.value, detrend.value, names.value
-    from rig.fitting.stats import parse_uncertainty
-
-    try:
-        unc_method, unc_n = parse_uncertainty(uncertainty)
-    except ValueError as exc:
-        _fail(str(exc))
-    if unc_method == "mcmc":
-        try:
-            import emcee  # noqa: F401
-        except ImportError:
-            _fail(f"--uncertainty {uncertainty}: needs emcee, an optional extra: pip install 'rig[mcmc]'")
+    options = {"use_events": events, "velocity_method": velocity.value, "whole_record": whole,
+               "whole_velocity": whole_velocity.value, "stiffness": stiffness, "directions": direction.value,
+               "min_ratio": min_ratio, "law": law.value, "detrend": detrend.value, "uncertainty": uncertainty}
+    _check_uncertainty(uncertainty)
     from rig.commands.catalog import identify_summary, is_batch, run_batch
 
     if is_batch([str(p) for p in data], jobs, scheduler, db):
         if json_out or plot:
             _fail("--json and --plot are for single runs; a batch writes its results into the catalogue")
-        run_batch("identify", [str(p) for p in data],
-                  {"use_events": events, "velocity_method": velocity, "whole_record": whole,
-                   "whole_velocity": whole_velocity, "stiffness": stiffness, "directions": direction,
-                   "min_ratio": min_ratio, "law": law, "detrend": detrend, "uncertainty": uncertainty},
-                  jobs=jobs, scheduler=scheduler, db=db, summarize=identify_summary)
+        run_batch("identify", [str(p) for p in data], options, jobs=jobs, scheduler=scheduler, db=db,
+                  summarize=identify_summary)
         return
     trials = _load(data)
-
-    from rig.commands.warmup import IDENTIFY_KERNELS, cold_kernels
-    cold = cold_kernels(IDENTIFY_KERNELS)  # the first identify compiles for seconds: say so
-    compiling = ("compiling the identification kernels (first run after an install or a change, once; "
-                 "`rig warmup` does it ahead)...")
-    n_fits = len(trials) * (2 if law == "both" else 1)
-    with_bar = bool(unc_n and whole)
-    if cold and with_bar:  # one live display at a time: the bar, after a line that says it compiles first
-        err_console.print(compiling, markup=False)
-    with progress_bar(json_out, f"{unc_method} ({uncertainty})", total=n_fits * unc_n,
-                      unit="refits" if unc_method == "bootstrap" else "steps") if with_bar \
-            else (err_console.status(compiling) if cold else _no_bar()) as bar:
-        try:
-            idn = identify_trials(trials, use_events=events, velocity_method=velocity, whole_record=whole,
-                                  whole_velocity=whole_velocity, stiffness=stiffness, directions=direction,
-                                  min_ratio=min_ratio, names=[str(p) for p in data], law=law, detrend=detrend,
-                                  uncertainty=uncertainty, progress=getattr(bar, "advance", None))
-        except ValueError as exc:
-            _fail(_named(str(exc), data))
+    idn = _identify(trials, data, json_out, options)
     rep = idn.report
     if not rep["steps"]:
         _fail(f"{', '.join(map(str, data))}: no velocity steps found (ratio >= {min_ratio:g})")
-    from rig.analysis.identify import step_where
-    from rig.model.checks import MARK, flagged
-
     rep.setdefault("warnings", []).extend(_calibration_warnings(trials, rep))  # issue 21
+    _print_identification(con, rep, names.value, [Path(p).name for p in data])
+    from rig.analysis.plots import plot_identification
+
+    emit_outputs(con, json_out, rep, plot, lambda path: plot_identification(idn, path))
+
+
+def _check_uncertainty(uncertainty: str) -> None:
+    """--uncertainty: one of the methods, and MCMC only with emcee installed."""
+    from rig.fitting.stats import parse_uncertainty
+
+    try:
+        method, _ = parse_uncertainty(uncertainty)
+    except ValueError as exc:
+        _fail(str(exc))
+    if method == "mcmc":
+        try:
+            import emcee  # noqa: F401
+        except ImportError:
+            _fail(f"--uncertainty {uncertainty}: needs emcee, an optional extra: pip install 'rig[mcmc]'")
+
+
+COMPILING = ("compiling the identification kernels (first run after an install or a change, once; "
+             "`rig warmup` does it ahead)...")
+
+
+def _identify(trials, data: list[Path], json_out, options: dict):
+    """identify_trials with what a person at the terminal sees meanwhile: a line while the kernels
+    compile (the first run), a bar over the bootstrap refits or MCMC steps."""
+    from rig.analysis.identify import identify_trials
+    from rig.commands.warmup import IDENTIFY_KERNELS, cold_kernels
+    from rig.fitting.stats import parse_uncertainty
+
+    unc = options["uncertainty"]
+    unc_method, unc_n = parse_uncertainty(unc)
+    cold = cold_kernels(IDENTIFY_KERNELS)  # the first identify compiles for seconds: say so
+    n_fits = len(trials) * (2 if options["law"] == "both" else 1)
+    with_bar = bool(unc_n and options["whole_record"])
+    if cold and with_bar:  # one live display at a time: the bar, after a line that says it compiles first
+        err_console.print(COMPILING, markup=False)
+    if with_bar:
+        shown = progress_bar(json_out, f"{unc_method} ({unc})", total=n_fits * unc_n,
+                             unit="refits" if unc_method == "bootstrap" else "steps")
+    else:
+        shown = err_console.status(COMPILING) if cold else nullcontext()
+    with shown as bar:
+        try:
+            return identify_trials(trials, names=[str(p) for p in data], progress=getattr(bar, "advance", None),
+                                   **options)
+        except ValueError as exc:
+            _fail(_named(str(exc), data))
+
+
+def _print_identification(con, rep: dict, names: str, files: list[str]) -> None:
+    """The tables and lines of identify: the steps, their mean, each file's whole-record fit (or both
+    laws), the rejected steps, warnings and notes."""
+    from rig.model.checks import MARK
+
+    warns = rep.get("warnings", [])
+    con.print(_steps_table(rep, names))
+    _print_mean(con, rep, names)
+    many = len(files) > 1
+    if rep.get("law") == "both":
+        lw = rep.get("laws")
+        for i, both in enumerate([lw] if isinstance(lw, dict) else (lw or [])):
+            _print_laws(con, both, names, files[i] if many else None)
+    else:
+        wr = rep.get("whole_record")
+        wrs = [wr] if isinstance(wr, dict) else (wr or [])
+        for i, w in enumerate(wrs):
+            label = files[i] if many else None
+            if not w.get("ok", True) and "params" not in w:
+                con.print(f"whole-record fit{_of(label)} failed: {w.get('reason')}", markup=False, highlight=False)
+                continue
+            where = "whole-record fit" + (f" (trial {i})" if many else "")  # the JSON's `where`
+            _print_whole(con, w, names, _flagged(warns, where), MARK, label)
+    for r in rep.get("rejected_steps", []):
+        con.print(f"rejected step at t = {_fmt(r['t_s'], 6)} s: {r['reason']}", markup=False, highlight=False)
+    for w in warns:
+        con.print(f"[yellow]warning {MARK}:[/yellow] {_named_trial(w['where'], files)}: {w['message']}",
+                  highlight=False)
+    for note in rep.get("notes", []):
+        con.print(f"[yellow]note:[/yellow] {note}", highlight=False)
+
+
+def _named_trial(where: str, files: list[str]) -> str:
+    """A warning's place with the file's name for the JSON's '(trial i)' when several files are identified."""
+    import re
+
+    if len(files) < 2:
+        return where
+    return re.sub(r"\(trial (\d+)\)", lambda m: f"({files[int(m.group(1))]})" if int(m.group(1)) < len(files)
+                  else m.group(0), where)
+
+
+def _of(label: str | None) -> str:
+    """' of FILE' when several files are identified at once (their fits are told apart by name)."""
+    return f" of {label}" if label else ""
+
+
+def _flagged(warns: list[dict], where: str) -> set[str]:
+    from rig.model.checks import flagged
+
+    return flagged(warns, where)
+
+
+def _steps_table(rep: dict, names: str) -> Table:
+    """One row per step (eqs. 10-12), a flagged value marked."""
+    from rig.analysis.identify import step_where
+    from rig.model.checks import MARK
+
     warns = rep.get("warnings", [])
     table = Table(title="velocity steps (eqs. 10-12)")
     for c in ("trial", "t (s)", "v1 (µm/s)", "v2 (µm/s)", _rsf_label("A_mu", names), _rsf_label("B_mu", names),
@@ -209,7 +273,7 @@ def identify_cmd(
         table.add_column(c, justify="right")
     table.add_column("accepted", justify="left", overflow="fold")
     for s in rep["steps"]:
-        fl = flagged(warns, step_where(s, rep["n_trials"]))
+        fl = _flagged(warns, step_where(s, rep["n_trials"]))
 
         def cell(k, nd, s=s, fl=fl):
             return _fmt(s[k], nd) + (f" [yellow]{MARK}[/yellow]" if k in fl else "")
@@ -217,9 +281,15 @@ def identify_cmd(
         table.add_row(str(s["trial"]), _fmt(s["t_s"], 6), _fmt(s["v1_um_s"]), _fmt(s["v2_um_s"]), cell("A_mu", 3),
                       cell("B_mu", 3), cell("L_um", 3), _fmt(s["r2"], 2), _fmt(s["window_um"]), _fmt(s.get("t_r_s"), 3),
                       f"[red]no: {s['rejected']}[/red]" if "rejected" in s else "yes")
-    con.print(table)
+    return table
+
+
+def _print_mean(con, rep: dict, names: str) -> None:
+    """Mean ± s.e. over steps (or trials), eq. (13)'s k_cr and eq. (14)'s t_r."""
+    from rig.model.checks import MARK
+
     m, e = rep["mean"], rep["sem"]
-    fl = flagged(warns, f"mean over {rep['sem_over']}")
+    fl = _flagged(rep.get("warnings", []), f"mean over {rep['sem_over']}")
 
     def mk(k):
         return f" [yellow]{MARK}[/yellow]" if k in fl else ""
@@ -232,33 +302,6 @@ def identify_cmd(
               f"{_rsf_label('L', names)} = {_fmt(m['L_um'], 3)} ± {_fmt(e['L_um'], 2)} µm{mk('L_um')}, "
               f"k_cr (eq. 13) = {_fmt(m['k_cr_kN_per_m'], 3)} ± {_fmt(e['k_cr_kN_per_m'], 2)} kN/m{mk('k_cr_kN_per_m')}, "
               f"t_r (eq. 14) = {_fmt(m['t_r_s'], 3)} s")
-    wr = rep.get("whole_record")
-    wrs = [wr] if isinstance(wr, dict) else (wr or [])
-    if law == "both":
-        lw = rep.get("laws")
-        lws = [lw] if isinstance(lw, dict) else (lw or [])
-        for i, both in enumerate(lws):
-            _print_laws(con, both, names, i if len(lws) > 1 else None)
-    else:
-        for i, w in enumerate(wrs):
-            if not w.get("ok", True) and "params" not in w:
-                con.print(f"whole-record fit failed: {w.get('reason')}")
-                continue
-            fl = flagged(warns, "whole-record fit" + (f" (trial {i})" if len(wrs) > 1 else ""))
-            _print_whole(con, w, names, fl, MARK)
-    for r in rep.get("rejected_steps", []):
-        con.print(f"rejected step at t = {_fmt(r['t_s'], 6)} s: {r['reason']}", markup=False, highlight=False)
-    for w in warns:
-        con.print(f"[yellow]warning {MARK}:[/yellow] {w['where']}: {w['message']}", highlight=False)
-    for note in rep.get("notes", []):
-        con.print(f"[yellow]note:[/yellow] {note}", highlight=False)
-    if json_out:
-        write_json(rep, json_out)
-    if plot:
-        from rig.analysis.plots import plot_identification
-
-        plot_identification(idn, plot)
-        con.print(f"wrote {plot}", markup=False)
 
 
 def _calibration_warnings(trials, rep: dict) -> list[dict]:
@@ -282,24 +325,13 @@ def _calibration_warnings(trials, rep: dict) -> list[dict]:
                    if m.get("A_mu") is not None and m.get("B_mu") is not None else None}
         out += calibration_warnings(tr, effects)
     return out
-class _no_bar:
-    """No progress bar (a plain Jacobian fit is quick)."""
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        return False
-
-    def advance(self, *a, **k):
-        pass
 
 
 _SPEC_KEYS = ("mu0", "A_mu", "B_mu", "L_um", "k_mu_per_um", "stiffness_kN_per_m", "rate_mu_per_mm")
 _RSF_KEYS = ("mu0", "a", "b", "Dc_um", "a_minus_b", "k_per_um", "stiffness_kN_per_m", "rate_mu_per_mm")
 
 
-def _print_whole(con, w: dict, names: str, fl=(), mark: str = "") -> None:
+def _print_whole(con, w: dict, names: str, fl=(), mark: str = "", label: str | None = None) -> None:
     """One whole-record fit: each parameter with its s.e. and its 68 % interval where that is
     asymmetric (L), the correlation of A, B, L, the trend and the information criterion."""
     keys = _RSF_KEYS if names == "rsf" else _SPEC_KEYS
@@ -317,7 +349,7 @@ def _print_whole(con, w: dict, names: str, fl=(), mark: str = "") -> None:
         src = k if names != "rsf" else {"a": "A_mu", "b": "B_mu", "Dc_um": "L_um"}.get(k, k)
         parts.append(txt + (f" [yellow]{mark}[/yellow]" if src in fl else ""))
     unc = w.get("uncertainty", {}).get("method", "jacobian")
-    con.print(f"whole-record fit ({w['model']}, velocity {w['velocity']}, {unc} errors, n_eff {_fmt(w.get('n_eff'), 4)} "
+    con.print(f"whole-record fit{_of(label)} ({w['model']}, velocity {w['velocity']}, {unc} errors, n_eff {_fmt(w.get('n_eff'), 4)} "
               f"of {w.get('n_points')}): {', '.join(parts)}; k_cr (eq. 13) = {_fmt(w.get('k_cr_kN_per_m'), 3)} kN/m; "
               f"rms {_fmt(w['rms_N'], 3)} N", highlight=False)
     c = w.get("correlation")
@@ -334,11 +366,12 @@ def _print_whole(con, w: dict, names: str, fl=(), mark: str = "") -> None:
         con.print("  stiffness held at the file's machine_stiffness_kN_per_m", highlight=False)
 
 
-def _print_laws(con, both: dict, names: str, trial: int | None) -> None:
-    """--law both: the slip- and aging-law fits side by side and the law the record prefers."""
+def _print_laws(con, both: dict, names: str, label: str | None) -> None:
+    """--law both: the slip- and aging-law fits side by side and the law the record prefers (``label``:
+    the file's name when several are identified)."""
     c = both["comparison"]
     for lw in ("slip", "aging"):
-        con.print(f"[bold]{lw} law[/bold]" + (f" (trial {trial})" if trial is not None else "") + ":", highlight=False)
+        con.print(f"[bold]{lw} law[/bold]" + (f" ({label})" if label else "") + ":", highlight=False)
         _print_whole(con, both[lw], names)
     bic = c.get("bic", {})
     con.print(f"preferred law: {c['preferred_law']} (BIC on n_eff {_fmt(c.get('n_eff'), 4)}: slip "
@@ -366,7 +399,7 @@ def stribeck_cmd(
     window_um: float = typer.Option(50.0, "--window-um", help="Average over the last this many µm of each level."),
 ):
     """Steady-state friction per velocity level, up and down branches, and A - B by eq. (7)."""
-    from rig.analysis.stribeck import plot_stribeck, stribeck
+    from rig.analysis.stribeck import plot_stribeck, stribeck_result
 
     con = _con(json_out)
     if not window_um > 0:
@@ -375,34 +408,30 @@ def stribeck_cmd(
 
     trials = _load(data)
     try:
-        rep = stribeck(trials, use_events=events, window_um=window_um, names=[str(p) for p in data])
+        res = stribeck_result(trials, use_events=events, window_um=window_um, names=[str(p) for p in data])
     except ValueError as exc:
         _fail(_named(str(exc), data))
-    if not rep["levels"]:
+    if not res.levels:
         _fail(f"{', '.join(map(str, data))}: no velocity levels found")
     table = Table(title=f"steady-state friction (last {window_um:g} µm of each level)")
     for c in ("branch", "v (µm/s)", "mu", "sd over trials", "trials"):
         table.add_column(c, justify="right")
     for d in ("up", "down"):
-        for b in rep["branches"][d]:
+        for b in res.branches[d]:
             table.add_row(d, _fmt(b["v_um_s"]), _fmt(b["mu"], 5), _fmt(b["mu_sd"], 2), str(b["n_trials"]))
     con.print(table)
     src = " and ".join({"events": "the log's level events", "data": "velocity steps detected in the data"}[x]
-                       for x in rep["level_source"])
-    con.print(f"{rep['n_levels']} level(s) found (from {src}, at 25 Hz)"
-              + (f"; {len(rep['rejected_levels'])} not counted:" if rep["rejected_levels"] else ""), highlight=False)
-    for r in rep["rejected_levels"]:
+                       for x in res.level_source)
+    con.print(f"{len(res.levels)} level(s) found (from {src}, at 25 Hz)"
+              + (f"; {len(res.rejected)} not counted:" if res.rejected else ""), highlight=False)
+    for r in res.rejected:
         con.print(f"  level at {_fmt(r['v_um_s'])} µm/s (t = {_fmt(r['t_s'], 6)} s): {r['reason']}", highlight=False,
                   markup=False)
-    for key, label in (("fit", "all levels"), ("fit_up", "up branch"), ("fit_down", "down branch")):
-        f = rep[key]
-        con.print(f"eq. (7), {label}: A - B = {_fmt(f['A_minus_B'], 4)} ± {_fmt(f['A_minus_B_err'], 2)}, "
-                      f"mu0 = {_fmt(f['mu0'], 5)} (n={f['n']})")
-    if json_out:
-        write_json(rep, json_out)
-    if plot:
-        plot_stribeck(rep, plot)
-        con.print(f"wrote {plot}", markup=False)
+    for f, label in ((res.fit, "all levels"), (res.fit_up, "up branch"), (res.fit_down, "down branch")):
+        con.print(f"eq. (7), {label}: A - B = {_fmt(f.A_minus_B, 4)} ± {_fmt(f.A_minus_B_err, 2)}, "
+                  f"mu0 = {_fmt(f.mu0, 5)} (n={f.n})")
+    rep = res.report()
+    emit_outputs(con, json_out, rep, plot, lambda path: plot_stribeck(rep, path))
 
 
 def stability_cmd(
@@ -425,8 +454,6 @@ def stability_cmd(
     """Critical stiffness of the moving test piece: the paper's eqs. (8)/(13), the rig's PID
     loop (1 kHz, zero-order hold), PD and PID, and optionally the simulated boundary."""
     from rig.analysis import stability as S
-    from rig.model.paper import TABLE2
-    from rig.model.spec import FrictionModel
 
     con = _con(json_out)
     lubricant = lubricant.value if lubricant is not None else None
@@ -439,24 +466,53 @@ def stability_cmd(
         _fail(f"--v0 must be a positive number of µm/s (got {v0:g})")
     if plot and not simulate:
         _fail("--plot needs --simulate (the map shows the scanned runs)")
-    mass, kd, N = S.DEFAULT_MASS_KG, S.DEFAULT_KD_N_S_PER_UM, 100.0
-    prof = None
-    ppath = None
+    if simulate and jobs is not None and jobs < 1:
+        _fail(f"--jobs must be at least 1 (got {jobs})")
+    prof, ppath = _stability_profile(profile)
+    mass, kd, N = ((prof.actuator.moving_mass_kg, prof.controller.kd_N_s_per_um, prof.normal.nominal_force_N)
+                   if prof is not None else (S.DEFAULT_MASS_KG, S.DEFAULT_KD_N_S_PER_UM, 100.0))
+    sets, N = _stability_sets(lubricant, params, N)
+    ki = prof.controller.ki_N_per_um_s if prof is not None else 0.0
+    res = S.StabilityReport(v0, mass, kd, ki, N, {}, [])
+    for nm, p in sets.items():
+        res.analyses[nm] = S.analyse_set(nm, p, S.StabilityInputs(p["A_mu"], p["B_mu"], p["L_um"], N, mass, kd, v0),
+                                         margin, prof, from_table2=not params)
+    _print_stability(con, res, margin)
+    if simulate:
+        if prof is None:
+            _fail("--simulate needs the simulated rig (rig.sim) and a profile")
+        from rig.catalog.batch import mapper
+
+        with progress_bar(json_out, "kp scan", unit="simulated runs") as bar, \
+                mapper(jobs, scheduler, progress=bar.advance) as map_fn:
+            res.checks = S.simulated_checks(res.analyses, prof, ppath, v0, map_fn, con.print, bar,
+                                            from_table2=not params)
+        con.print(f"[dim]criterion: {S.STUCK_FRACTION_MAX:.0%} stuck / spread {S.SPREAD_MAX:g} V0 "
+                  f"({res.checks[0]['criterion'] if res.checks else ''})[/dim]")
+    emit_outputs(con, json_out, res.report(), plot, lambda path: S.plot_map(res.checks, path))
+
+
+def _stability_profile(profile: Path | None):
+    """The rig profile (the default one unless --profile) and its path; (None, path) without rig.config."""
     try:
         from rig.config.profile import default_profile_path, load_profile
-
-        ppath = profile or default_profile_path()
-        if profile is not None and not Path(profile).exists():
-            _fail(f"{profile}: no such profile")
-        prof = load_profile(ppath)
-        mass, kd, N = prof.actuator.moving_mass_kg, prof.controller.kd_N_s_per_um, prof.normal.nominal_force_N
-    except typer.Exit:
-        raise
     except ImportError:
-        pass
+        return None, None
+    ppath = profile or default_profile_path()
+    if profile is not None and not Path(profile).exists():
+        _fail(f"{profile}: no such profile")
+    try:
+        return load_profile(ppath), ppath
     except Exception as exc:  # noqa: BLE001 - ProfileError names file/field/line
         _fail(str(exc))
-    sets: dict[str, dict] = {}
+
+
+def _stability_sets(lubricant: str | None, params: Path | None, N: float) -> tuple[dict, float]:
+    """The parameter sets to analyse: an identify report's mean (--params; its normal force), or Table 2's
+    lubricants (one with --lubricant)."""
+    from rig.analysis.stability import params_from_report
+    from rig.model.paper import TABLE2
+
     if params:
         if not params.is_file():
             _fail(f"{params}: no such file" if not params.exists() else f"{params}: not a file")
@@ -465,124 +521,47 @@ def stability_cmd(
         except (OSError, UnicodeDecodeError) as exc:
             _fail(f"{params}: cannot read: {getattr(exc, 'strerror', None) or exc}")
         try:
-            rep = json.loads(text)
+            doc = json.loads(text)
         except ValueError as exc:
             _fail(f"{params}, line {getattr(exc, 'lineno', '?')}: not JSON ({getattr(exc, 'msg', exc)}); expected a "
                   "`rig identify --json` report")
         try:
-            m = rep["mean"]
-            sets[params.stem] = {"A_mu": float(m["A_mu"]), "B_mu": float(m["B_mu"]), "L_um": float(m["L_um"])}
-            N = float(rep.get("normal_force_N", N))
-        except (KeyError, TypeError, ValueError, AttributeError) as exc:
-            _fail(f"{params}: not a rig identify report with mean A_mu, B_mu, L_um ({type(exc).__name__}: {exc})")
-        bad = [k for k, v in sets[params.stem].items() if not math.isfinite(v)] + ([] if N > 0 else ["normal_force_N"])
-        if bad or not sets[params.stem]["L_um"] > 0:
-            _fail(f"{params}: mean {', '.join(bad) or 'L_um'} is not a usable number (L_um must be positive, "
-                  "all finite)")
-    else:
-        names = [lubricant] if lubricant else list(TABLE2)
-        for nm in names:
-            if nm not in TABLE2:
-                _fail(f"unknown lubricant {nm!r}; known: {', '.join(TABLE2)}")
-            sets[nm] = {k: TABLE2[nm][k][0] for k in ("A_mu", "B_mu", "L_um")}
-    ki = prof.controller.ki_N_per_um_s if prof is not None else 0.0
-    analyses = {}
-    table = Table(title=f"critical stiffness at V0 = {v0:g} µm/s (m = {mass:g} kg, kd = {kd:g} N s/µm, "
-                        f"ki = {ki:g} N/(µm s), N = {N:g} N per rider)")
+            p, N = params_from_report(doc, N)
+        except ValueError as exc:
+            _fail(f"{params}: {exc}")
+        return {params.stem: p}, N
+    names = [lubricant] if lubricant else list(TABLE2)
+    for nm in names:
+        if nm not in TABLE2:
+            _fail(f"unknown lubricant {nm!r}; known: {', '.join(TABLE2)}")
+    return {nm: {k: TABLE2[nm][k][0] for k in ("A_mu", "B_mu", "L_um")} for nm in names}, N
+
+
+def _print_stability(con, res, margin: float) -> None:
+    """The k_cr table of every set, its statement and advice."""
+    table = Table(title=f"critical stiffness at V0 = {res.V0_um_s:g} µm/s (m = {res.mass_kg:g} kg, kd = "
+                        f"{res.kd_N_s_per_um:g} N s/µm, ki = {res.ki_N_per_um_s:g} N/(µm s), N = "
+                        f"{res.normal_force_N:g} N per rider)")
     for c in ("set", "eq.13 per rider (N; Table 2)", "moving piece eq.13 (2N)", "eq.8 (2N, kd, m)",
               "rig loop PD", "rig loop PID", f"kp min (x{margin:g})"):
         table.add_column(c, justify="right")
-    for nm, p in sets.items():
-        a = S.analyse(S.StabilityInputs(p["A_mu"], p["B_mu"], p["L_um"], N, mass, kd, v0), margin)
-        if prof is not None:
-            model = (prof.friction_model(nm) if nm in getattr(prof, "lubricants", {}) and not params
-                     else FrictionModel(params={"mu0": 0.12, **p}))
-            loop = {}
-            for label, k_i in (("PD", 0.0), ("PID", ki)):
-                try:
-                    lm = S.LoopModel.from_profile(prof, model, ki_N_per_um_s=k_i, V0_um_s=v0)
-                    k = S.k_cr_loop(lm)
-                except ValueError as exc:
-                    k, loop[f"{label}_note"] = None, str(exc)
-                loop[label] = k
-            a["k_cr_loop_PD_kN_per_m"] = loop["PD"] * 1e3 if loop["PD"] is not None else None
-            a["k_cr_loop_PID_kN_per_m"] = loop["PID"] * 1e3 if loop["PID"] is not None else None
-            k_use = loop["PID"] if ki > 0 else loop["PD"]
-            if k_use == 0.0:
-                a["kp_min_N_per_um"] = margin * loop["PD"] if loop["PD"] else None
-                a["advice"] = ("the rig's PID loop has no finite k_cr (the integral term holds the slow friction "
-                               "mode); without the I term (PD) kp >= "
-                               f"{_fmt(a['kp_min_N_per_um'] * 1e3 if a['kp_min_N_per_um'] else None)} kN/m "
-                               f"= {margin:g} x k_cr")
-            elif k_use is not None:
-                a["kp_min_N_per_um"] = margin * k_use
-                a["advice"] = (f"kp >= {margin * k_use * 1e3:.4g} kN/m = {margin:g} x k_cr of the rig's loop "
-                               f"({'PID' if ki > 0 else 'PD'}, 1 kHz)")
-        a["statement"] = S.fixture_statement(p["A_mu"], p["B_mu"], p["L_um"], N)
-        analyses[nm] = a
 
-        def k(x):
-            return "none (stable at every kp)" if x == 0 else (_fmt(x) if x is not None else "-")
+    def k(x):
+        return "none (stable at every kp)" if x == 0 else (_fmt(x) if x is not None else "-")
 
+    for nm, a in res.analyses.items():
         table.add_row(nm, _fmt(a["k_cr_eq13_kN_per_m"]), _fmt(a["k_cr_eq13_fixture_kN_per_m"]),
                       _fmt(a["k_cr_eq8_kN_per_m"]) if a["k_cr_eq8_kN_per_m"] else "inf",
                       k(a.get("k_cr_loop_PD_kN_per_m")), k(a.get("k_cr_loop_PID_kN_per_m")),
                       _fmt(a["kp_min_N_per_um"] * 1e3 if a["kp_min_N_per_um"] else None) + " kN/m")
     con.print(table)
-    for nm, a in analyses.items():
+    for nm, a in res.analyses.items():
         con.print(f"{nm}: {a['statement']}")
         con.print(f"{nm}: {a['advice']}")
     con.print("[dim]All stiffnesses in kN/m. The stiffness the controller must provide is the moving test piece's "
-                  "(2 N); Table 2 prints (B - A) N / L per rider interface, half of it. The rig loop columns: "
-                  "eq. (8)'s system with the rig's discrete PID (1 kHz, zero-order hold, backward-difference D), "
-                  "actuator, compliance and LVDT filter (rig.analysis.stability.k_cr_loop).[/dim]")
-    checks = []
-    if simulate:
-        if prof is None:
-            _fail("--simulate needs the simulated rig (rig.sim) and a profile")
-        if jobs is not None and jobs < 1:
-            _fail(f"--jobs must be at least 1 (got {jobs})")
-        from contextlib import ExitStack
-
-        from rig.catalog.batch import mapper
-
-        stack = ExitStack()
-        bar = stack.enter_context(progress_bar(json_out, "kp scan", unit="simulated runs"))
-        map_fn = stack.enter_context(mapper(jobs, scheduler, progress=bar.advance))
-        for nm in sets:
-            if params or nm not in prof.lubricants:
-                con.print(f"{nm}: not a lubricant of the profile; simulation skipped")
-                continue
-            for k_i in (0.0, ki) if ki > 0 else (0.0,):
-                lm = S.LoopModel.from_profile(prof, prof.friction_model(nm), ki_N_per_um_s=k_i, V0_um_s=v0)
-                k_lin = S.k_cr_loop(lm)
-                if not k_lin:
-                    con.print(f"{nm} ({'PID' if k_i else 'PD'}): no finite k_cr in the analysis; scan skipped")
-                    continue
-                bar.update(description=f"{nm} ({'PID' if k_i else 'PD'}): kp scan")
-                if True:
-                    r = S.scan_boundary(nm, profile=ppath, ki_N_per_um_s=k_i, V0_um_s=v0,
-                                        factors=(0.8, 0.9, 0.95, 1.05, 1.1, 1.25), map_fn=map_fn)
-                r["k_cr_eq8_N_per_um"] = analyses[nm]["k_cr_eq8_N_per_um"]
-                checks.append(r)
-                lo, hi = r["bracket_N_per_um"]
-                inside = r["analysis_in_bracket"]
-                con.print(f"{nm} ({'PID' if k_i else 'PD'}): simulated boundary in "
-                          f"[{_fmt(lo * 1e3 if lo else None)}, {_fmt(hi * 1e3 if hi else None)}] kN/m "
-                          f"(stick-slip at the low end, steady at the high end) vs the rig loop's "
-                          f"{_fmt(k_lin * 1e3)} kN/m"
-                          + ("" if inside is None else " (inside the bracket)" if inside else
-                             " (OUTSIDE the bracket)"))
-        stack.close()
-        con.print(f"[dim]criterion: {S.STUCK_FRACTION_MAX:.0%} stuck / spread {S.SPREAD_MAX:g} V0 "
-                      f"({checks[0]['criterion'] if checks else ''})[/dim]")
-    if json_out:
-        doc = {"schema": "rig.stability/2", "V0_um_s": v0, "mass_kg": mass, "kd_N_s_per_um": kd,
-               "ki_N_per_um_s": ki, "normal_force_N": N, "analyses": analyses, "checks": checks}
-        write_json(doc, json_out)
-    if plot:
-        S.plot_map(checks, plot)
-        con.print(f"wrote {plot}", markup=False)
+              "(2 N); Table 2 prints (B - A) N / L per rider interface, half of it. The rig loop columns: "
+              "eq. (8)'s system with the rig's discrete PID (1 kHz, zero-order hold, backward-difference D), "
+              "actuator, compliance and LVDT filter (rig.analysis.stability.k_cr_loop).[/dim]")
 
 
 def reproduce_cmd(
@@ -603,7 +582,7 @@ def reproduce_cmd(
 ):
     """Simulated trials in the paper's protocol, identified: our Table 2 beside the paper's."""
     from rig.analysis.plots import plot_reproduce
-    from rig.analysis.reproduce import reproduce
+    from rig.analysis.reproduce import reproduce_result
     from rig.model.paper import TABLE2
 
     con = _con(json_out)
@@ -627,69 +606,83 @@ def reproduce_cmd(
     with progress_bar(json_out, "simulating and identifying", total=trials * len(lubs), unit="trials") as bar:
         try:
             with mapper(jobs, scheduler, progress=bar.advance) as map_fn:
-                rep = reproduce(trials, seed=seed, lubricants=lubs, profile=profile, whole_record=whole,
-                                engine=engine, map_fn=map_fn)
+                res = reproduce_result(trials, seed=seed, lubricants=lubs, profile=profile, whole_record=whole,
+                                       engine=engine, map_fn=map_fn)
         except BatchError as exc:
             _fail(str(exc), 1)
+    con.print(_reproduce_table(res, trials))
+    _print_reproduce(con, res)
+    res.warnings = _reproduce_warnings(res)
+    for w in res.warnings:
+        con.print(f"[yellow]warning (!):[/yellow] {w['where']}: {w['message']}", highlight=False)
+    rep = res.report()
+    emit_outputs(con, json_out, rep, plot, lambda path: plot_reproduce(rep, path, res.warnings))
+
+
+_REPRO_SCALE = {"A_mu": 1e3, "B_mu": 1e3, "L_um": 1.0, "k_cr_kN_per_m": 1.0}
+_REPRO_LABEL = {"A_mu": "A_mu x 10^3", "B_mu": "B_mu x 10^3", "L_um": "L (µm)", "k_cr_kN_per_m": "k_cr (kN/m)"}
+
+
+def _reproduce_table(res, trials: int) -> Table:
+    """Table 2 beside ours and the trials' truth (mean ± s.e. of the mean), the whole-record fit's too."""
     table = Table(title=f"Table 2, paper vs {trials} simulated trials per lubricant (mean ± s.e. of the mean)")
     table.add_column("parameter")
-    for lub in lubs:
+    for lub in res.lubricants:
         table.add_column(f"{lub}: paper", justify="right")
         table.add_column(f"{lub}: ours", justify="right")
         table.add_column(f"{lub}: trials' truth", justify="right")
-    scale = {"A_mu": 1e3, "B_mu": 1e3, "L_um": 1.0, "k_cr_kN_per_m": 1.0}
-    label = {"A_mu": "A_mu x 10^3", "B_mu": "B_mu x 10^3", "L_um": "L (µm)", "k_cr_kN_per_m": "k_cr (kN/m)"}
-    for k in ("A_mu", "B_mu", "L_um", "k_cr_kN_per_m"):
-        row = [label[k]]
-        for lub in lubs:
-            r = rep["lubricants"][lub]
-            s = scale[k]
+    for k, s in _REPRO_SCALE.items():
 
-            def pm(m, e):
-                return f"{m * s:.3g} ± {e * s:.2g}" if m is not None and e is not None else "-"
+        def pm(m, e):
+            return f"{m * s:.3g} ± {e * s:.2g}" if m is not None and e is not None else "-"
 
-            ok = r["checks"].get(k, {}).get("ok", True)
-            row += [pm(r["paper"][k]["mean"], r["paper"][k]["sem"]),
-                    ("" if ok else "[red]") + pm(r["recovered"]["mean"][k], r["recovered"]["sem"][k]),
-                    pm(r["truth"]["mean"][k], r["truth"]["sem"][k])]
+        row = [_REPRO_LABEL[k]]
+        for r in res.lubricants.values():
+            ok = r.checks.get(k, {}).get("ok", True)
+            row += [pm(r.paper[k]["mean"], r.paper[k]["sem"]),
+                    ("" if ok else "[red]") + pm(r.recovered.mean[k], r.recovered.sem[k]),
+                    pm(r.truth.mean[k], r.truth.sem[k])]
         table.add_row(*row)
-    if whole:
+    if all(r.whole_record is not None for r in res.lubricants.values()):
         for k in ("A_mu", "B_mu", "L_um"):
-            row = [f"{label[k]} (whole-record)"]
-            for lub in lubs:
-                w = rep["lubricants"][lub]["whole_record"]
-                row += ["", f"{w['mean'][k] * scale[k]:.3g} ± {w['sem'][k] * scale[k]:.2g}", ""]
+            row = [f"{_REPRO_LABEL[k]} (whole-record)"]
+            for r in res.lubricants.values():
+                w = r.whole_record
+                row += ["", f"{w.mean[k] * _REPRO_SCALE[k]:.3g} ± {w.sem[k] * _REPRO_SCALE[k]:.2g}", ""]
             table.add_row(*row)
-    con.print(table)
-    for lub in lubs:
-        b = rep["lubricants"][lub]["bias"]
-        con.print(f"{lub}: identification bias, recovered/true - 1 (mean ± s.e. over trials): "
-                      + ", ".join(f"{k} {100 * (b[k]['recovered_vs_true_rel'] or 0):+.1f} ± "
-                                  f"{100 * (b[k]['recovered_vs_true_rel_sem'] or 0):.1f} %" for k in b)
-                      + "; recovered mean vs Table 2 (in the paper's s.e.): "
-                      + ", ".join(f"{k} {b[k]['vs_paper_z']:+.2f}" for k in b))
-    from rig.analysis.stability import fixture_statement
+    return table
 
-    for lub in lubs:
-        m = rep["lubricants"][lub]["recovered"]["mean"]
-        con.print(f"{lub}: k_cr column = eq. (13) per rider; {fixture_statement(m['A_mu'], m['B_mu'], m['L_um'])}")
-    for lub in lubs:
-        c = rep["lubricants"][lub]["checks"]
-        bad = [k for k, v in c.items() if not v["ok"]]
+
+def _print_reproduce(con, res) -> None:
+    """Per lubricant: the identification's bias, eq. (13) on the recovered means, the check against the truth."""
+    from rig.analysis.stability import per_interface_statement
+
+    for lub, r in res.lubricants.items():
+        b = r.bias
+        con.print(f"{lub}: identification bias, recovered/true - 1 (mean ± s.e. over trials): "
+                  + ", ".join(f"{k} {100 * (b[k]['recovered_vs_true_rel'] or 0):+.1f} ± "
+                              f"{100 * (b[k]['recovered_vs_true_rel_sem'] or 0):.1f} %" for k in b)
+                  + "; recovered mean vs Table 2 (in the paper's s.e.): "
+                  + ", ".join(f"{k} {b[k]['vs_paper_z']:+.2f}" for k in b))
+    for lub, r in res.lubricants.items():
+        m = r.recovered.mean
+        con.print(f"{lub}: the k_cr column is {per_interface_statement(m['A_mu'], m['B_mu'], m['L_um'])}")
+    for lub, r in res.lubricants.items():
+        bad = [k for k, v in r.checks.items() if not v["ok"]]
         con.print(f"{lub}: recovered - truth within the paper's s.e.: "
-                      + ("all" if not bad else f"[red]not for {', '.join(bad)}[/red]")
-                      + f" ({rep['lubricants'][lub]['engine']})")
+                  + ("all" if not bad else f"[red]not for {', '.join(bad)}[/red]") + f" ({r.engine})")
+
+
+def _reproduce_warnings(res) -> list[dict]:
+    """Values that hit a bound or are not physical (rig.model.checks): each lubricant's recovered mean,
+    then each trial's recovered values (a trial's A below zero is no direct effect: it is said)."""
     from rig.model.checks import check_params
 
     warns = []
-    for lub in lubs:
-        warns += check_params(rep["lubricants"][lub]["recovered"]["mean"], rep["lubricants"][lub]["recovered"]["sem"],
-                              where=f"{lub}: recovered mean")
-    rep["warnings"] = warns
-    for w in warns:
-        con.print(f"[yellow]warning (!):[/yellow] {w['where']}: {w['message']}", highlight=False)
-    if json_out:
-        write_json(rep, json_out)
-    if plot:
-        plot_reproduce(rep, plot, warns)
-        con.print(f"wrote {plot}", markup=False)
+    for lub, r in res.lubricants.items():
+        warns += check_params(r.recovered.mean, r.recovered.sem, where=f"{lub}: recovered mean")
+    for lub, r in res.lubricants.items():
+        for i, t in enumerate(r.trials):
+            warns += [w for w in check_params(t["recovered"], where=f"{lub}: trial {i} recovered")
+                      if w["kind"] == "not_physical"]
+    return warns

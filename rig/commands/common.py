@@ -197,13 +197,50 @@ def progress_bar(json_out, description: str, total: float | None = None, unit: s
 
 
 def check_output_path(path: Path, option: str, suffixes: tuple[str, ...] = ()) -> None:
-    """An output path that is a directory, or has the wrong suffix, is bad input (exit 2) before any work."""
+    """An output path that is a directory, or has the wrong suffix, is bad input (exit 2) before any work;
+    one that cannot be written (a read-only or missing file system, a file where a directory should be)
+    is exit 1 naming ``path``, also before any work, so no other output is written first."""
     if path is None or str(path) == "-":
         return
     if path.is_dir():
         fail(f"{option} {path}: is a directory (give a file name)")
     if suffixes and path.suffix.lower() not in suffixes:
         fail(f"{option} {path}: expected a {' or '.join(suffixes)} file name")
+    problem = _unwritable(Path(path))
+    if problem:
+        fail(f"{option} {path}: cannot write there ({problem}); nothing was written", EXIT_FAILED)
+
+
+def _unwritable(path: Path) -> str | None:
+    """Why a file cannot be written at ``path`` (None: it can). The atomic writer makes the missing
+    directories and a temporary file beside ``path``: the nearest existing directory must take one."""
+    import tempfile
+
+    d = path.absolute().parent
+    while not d.exists() and d != d.parent:
+        d = d.parent
+    if not d.is_dir():
+        return f"{d} is not a directory"
+    try:
+        with tempfile.TemporaryFile(dir=d):
+            pass
+    except OSError as exc:
+        return f"{d}: {exc.strerror or exc}"
+    return None
+
+
+def emit_outputs(con: Console, json_out: Path | None, doc: Any, plot: Path | None = None, draw=None) -> None:
+    """The tail of an analysis command: the JSON report (``--json``), then the figure (``--plot``:
+    ``draw(path)`` writes it) and ``wrote PATH``. Both paths were checked by :func:`check_output_path`
+    before the work; a write that fails all the same is exit 1 naming the path asked for."""
+    if json_out:
+        write_json(doc, json_out)
+    if plot:
+        try:
+            draw(plot)
+        except OSError as exc:
+            fail(f"cannot write {plot}: {exc.strerror or exc}", EXIT_FAILED)
+        con.print(f"wrote {plot}", markup=False)
 
 
 def check_new_output(path: Path, option: str, overwrite: bool) -> None:
@@ -334,7 +371,7 @@ def report_exception(exc: BaseException) -> ExitCode:
 
 __all__ = ["ExitCode", "EXIT_OK", "EXIT_FAILED", "EXIT_BAD_INPUT", "EXIT_ABORTED", "EXIT_TABLE", "CONVENTIONS",
            "JSON_HELP", "err_console", "console", "fail", "warn", "write_json", "json_to_stdout",
-           "check_output_path", "check_new_output", "RigGroup", "report_exception", "Lubricant", "tidy_help"]
+           "check_output_path", "check_new_output", "emit_outputs", "RigGroup", "report_exception", "Lubricant", "tidy_help"]
 
 
 class Lubricant(str, Enum):

@@ -10,7 +10,7 @@ import typer
 from rich.table import Table
 
 from rig.commands.analysis import _con, _fail, _load, _named, _outputs
-from rig.commands.common import JSON_HELP, write_json
+from rig.commands.common import JSON_HELP, emit_outputs
 
 
 class HealRate(str, Enum):
@@ -69,11 +69,7 @@ def heal_cmd(
               f"relaxation {_g(rep['relax_per_decade'])} ± {_g(rep['relax_per_decade_sd'], '.2g')} per decade")
     for note in rep["notes"]:
         con.print(f"[yellow]note:[/yellow] {note}", highlight=False)
-    if json_out:
-        write_json(rep, json_out)
-    if plot:
-        plot_heal(rep, plot, trial)
-        con.print(f"wrote {plot}", markup=False)
+    emit_outputs(con, json_out, rep, plot, lambda path: plot_heal(rep, path, trial))
 
 
 def register(app: typer.Typer) -> None:

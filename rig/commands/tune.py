@@ -189,7 +189,6 @@ def autotune_cmd(
     from rig.analysis.tuning import RULE, fit_plant, frf, propose_gains
     from rig.config.loader import ConfigError
     from rig.config.profile import load_profile
-    from rig.data import atomic_path
 
     con = _con(json_out)
     check_output_path(out, "--out", (".yaml", ".yml"))
@@ -208,35 +207,8 @@ def autotune_cmd(
         _fail(f"--duration-s must be in (0, {MAX_SWEEP_S:g}] s (got {duration_s:g})")
     sweep = {**SWEEP, "amplitude_um": amplitude_um, "duration_s": duration_s}
     sweep["velocity_um_s"] = max(SWEEP["velocity_um_s"], 1.05 * 2 * math.pi * sweep["f1_hz"] * amplitude_um)
-    tmp = None
     if from_log is None:
-        if prof.hardware is None:
-            _fail(f"{hardware}: no hardware section: autotune runs on a rig (give --from-log for a sim sweep)")
-        if not yes and sys.stdin.isatty() and not typer.confirm(
-                f"autotune moves the actuator: a {duration_s:g} s sine sweep of {amplitude_um:g} µm on a "
-                f"{sweep['velocity_um_s']:.0f} µm/s slide, force clamped at {SWEEP_FORCE_N:g} N. Go on?"):
-            raise typer.Exit(1)
-        from rig.config.recipe import compile_recipe, parse_recipe
-        from trajectories import PlanError
-
-        text = _sweep_recipe(lubricant, sweep)
-        try:  # the sweep must fit this rig's stroke and speed before anything moves
-            compile_recipe(parse_recipe(text, "autotune sweep"), prof)
-        except PlanError as exc:
-            _fail(f"the autotune sweep does not fit {hardware}: {exc}; lower --duration-s")
-        tmp = Path(tempfile.mkdtemp(prefix="rig-autotune-"))
-        (tmp / "sweep.yaml").write_text(text)
-        (tmp / "bounded.yaml").write_text(f"extends: {hardware.resolve()}\ncontroller:\n"
-                                          f"  output_max_N: {SWEEP_FORCE_N:g}\n")
-        log = tmp / "sweep.mcap"
-        cmd = [sys.executable, "-m", "rig.cli", "run", str(tmp / "sweep.yaml"), "--hardware",
-               str(tmp / "bounded.yaml"), "--out", str(log)]
-        con.print(f"sweep through rig run --hardware (log {log})", highlight=False)
-        rc = subprocess.call(cmd, stdout=sys.stderr if json_out and str(json_out) == "-" else None)
-        if rc != 0:
-            _fail(f"the sweep trial ended with exit status {rc} (a trip or a device fault: see above; log {log}); "
-                  "no gains proposed", EXIT_FAILED)
-        from_log = log
+        from_log = _run_sweep(con, hardware, prof, lubricant, sweep, yes, json_out)
     trial, prof_log, model, switches = _log_context(from_log)
     try:
         rep = frf(trial, prof_log, model, switches)
@@ -259,6 +231,54 @@ def autotune_cmd(
               f"{rep['segments_used']} clean Welch segments (at least {MIN_SEGMENTS}; {rep['stalls_in_sweep']} loop stall(s), "
               f"{rep['stale_position_runs']} stale position stretch(es) in the sweep); repeat on a quieter machine or "
               f"with a longer --duration-s; no gains proposed (log {from_log})", EXIT_FAILED)
+    diffs = _print_gains(con, tuned, advice, prof_log)
+    m = tuned["margin_to_k_cr"]
+    header = [f"written by rig tune autotune from {from_log} (sweep {rep['segment']['f0_hz']:g}-"
+              f"{rep['segment']['f1_hz']:g} Hz, {rep['segment']['amplitude_um']:g} µm on {V:g} µm/s)",
+              f"margin to k_cr: {m:.3g} x" if m else "no finite k_cr with these gains",
+              "rule: " + RULE]
+    _write_overlay(out, _overlay_text(hardware, out, f"{prof.name}-tuned", tuned, header))
+    con.print(f"wrote {out} (extends {hardware}; the profile itself is unchanged)", markup=False)
+    if json_out:
+        write_json({"schema": "rig.tune.autotune/1", "log": str(from_log), "plant": plant, "proposed": tuned,
+                    "analytic_advice": advice, "relative_difference": diffs, "overlay": str(out),
+                    "frf": {k: rep[k] for k in ("bandwidth_3db_hz", "phase_margin_deg", "gain_margin_db",
+                                                "crossover_hz", "coherent_fraction")}}, json_out)
+
+
+def _run_sweep(con, hardware: Path, prof, lubricant: str, sweep: dict, yes: bool, json_out) -> Path:
+    """The bounded sweep trial through ``rig run --hardware`` (after asking, unless --yes); its log."""
+    from rig.config.recipe import compile_recipe, parse_recipe
+    from trajectories import PlanError
+
+    if prof.hardware is None:
+        _fail(f"{hardware}: no hardware section: autotune runs on a rig (give --from-log for a sim sweep)")
+    if not yes and sys.stdin.isatty() and not typer.confirm(
+            f"autotune moves the actuator: a {sweep['duration_s']:g} s sine sweep of {sweep['amplitude_um']:g} µm "
+            f"on a {sweep['velocity_um_s']:.0f} µm/s slide, force clamped at {SWEEP_FORCE_N:g} N. Go on?"):
+        raise typer.Exit(1)
+    text = _sweep_recipe(lubricant, sweep)
+    try:  # the sweep must fit this rig's stroke and speed before anything moves
+        compile_recipe(parse_recipe(text, "autotune sweep"), prof)
+    except PlanError as exc:
+        _fail(f"the autotune sweep does not fit {hardware}: {exc}; lower --duration-s")
+    tmp = Path(tempfile.mkdtemp(prefix="rig-autotune-"))
+    (tmp / "sweep.yaml").write_text(text)
+    (tmp / "bounded.yaml").write_text(f"extends: {hardware.resolve()}\ncontroller:\n"
+                                      f"  output_max_N: {SWEEP_FORCE_N:g}\n")
+    log = tmp / "sweep.mcap"
+    cmd = [sys.executable, "-m", "rig.cli", "run", str(tmp / "sweep.yaml"), "--hardware",
+           str(tmp / "bounded.yaml"), "--out", str(log)]
+    con.print(f"sweep through rig run --hardware (log {log})", highlight=False)
+    rc = subprocess.call(cmd, stdout=sys.stderr if json_out and str(json_out) == "-" else None)
+    if rc != 0:
+        _fail(f"the sweep trial ended with exit status {rc} (a trip or a device fault: see above; log {log}); "
+              "no gains proposed", EXIT_FAILED)
+    return log
+
+
+def _print_gains(con, tuned: dict, advice: dict, prof_log) -> dict:
+    """The proposed gains beside the analytic advice and the profile's; their relative differences."""
     tab = Table(title="proposed gains (the rule on the fitted plant) vs the analytic advice (the rule on the "
                       "profile's model)")
     for c in ("gain", "proposed", "analytic advice", "difference", "profile now"):
@@ -269,17 +289,15 @@ def autotune_cmd(
         tab.add_row(k, f"{tuned[k]:.4g}", f"{advice[k]:.4g}", _g(diffs[k] and 100 * diffs[k], "+.1f") + " %",
                     f"{getattr(prof_log.controller, k):.4g}")
     con.print(tab)
-    m = tuned["margin_to_k_cr"]
-    con.print(f"margin to k_cr: kp = {m:.3g} x k_cr ({1e3 * tuned['k_cr_N_per_um']:.4g} kN/m, the rig's loop with "
-              f"these gains, PID at 1 µm/s)" if m else "margin to k_cr: the loop with these gains has no finite k_cr "
-              "(stable at every kp)", highlight=False)
-    con.print(f"phase margin {tuned['phase_margin_deg']:.3g} deg, gain margin {_g(tuned['gain_margin_db'], '.3g')} "
-              f"dB at crossover {tuned['crossover_hz']:.3g} Hz; rule: {RULE}", highlight=False)
-    header = [f"written by rig tune autotune from {from_log} (sweep {rep['segment']['f0_hz']:g}-"
-              f"{rep['segment']['f1_hz']:g} Hz, {rep['segment']['amplitude_um']:g} µm on {V:g} µm/s)",
-              f"margin to k_cr: {m:.3g} x" if m else "no finite k_cr with these gains",
-              "rule: " + RULE]
-    text = _overlay_text(hardware, out, f"{prof.name}-tuned", tuned, header)
+    return diffs
+
+
+def _write_overlay(out: Path, text: str) -> None:
+    """The overlay profile, atomically, and only if it loads (exit 1 naming ``out`` otherwise)."""
+    from rig.config.loader import ConfigError
+    from rig.config.profile import load_profile
+    from rig.data import atomic_path
+
     try:
         with atomic_path(out) as tmp_out:
             tmp_out.write_text(text)
@@ -291,12 +309,6 @@ def autotune_cmd(
         _fail(f"internal check of the overlay failed: {exc}", EXIT_FAILED)
     except OSError as exc:
         _fail(f"cannot write {out}: {exc.strerror or exc}", EXIT_FAILED)
-    con.print(f"wrote {out} (extends {hardware}; the profile itself is unchanged)", markup=False)
-    if json_out:
-        write_json({"schema": "rig.tune.autotune/1", "log": str(from_log), "plant": plant, "proposed": tuned,
-                    "analytic_advice": advice, "relative_difference": diffs, "overlay": str(out),
-                    "frf": {k: rep[k] for k in ("bandwidth_3db_hz", "phase_margin_deg", "gain_margin_db",
-                                                "crossover_hz", "coherent_fraction")}}, json_out)
 
 
 def register(app: typer.Typer) -> None:

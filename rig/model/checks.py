@@ -38,22 +38,23 @@ def _unit(name: str) -> str:
 
 
 def at_bound(name: str, value: float) -> str | None:
-    """'lower' or 'upper' if ``value`` sits on a fit bound of :data:`PARAMS` (else None)."""
+    """'lower' or 'upper' if ``value`` sits on a fit bound of :data:`PARAMS` (else None: inside the
+    bounds, or beyond one, which :func:`check_param` judges by :data:`PLAUSIBLE`)."""
     d = PARAMS.get(name)
     if d is None or not math.isfinite(value):
         return None
     if d.log:
         if value <= 0:
-            return "lower"
+            return None  # beyond the bound, not on it: no fit stopped there (PLAUSIBLE says what it is)
         lo, hi, v = math.log(d.lo), math.log(d.hi), math.log(value)
     else:
         lo, hi, v = d.lo, d.hi, value
     tol = AT_BOUND_REL * (hi - lo)
-    if v <= lo + tol:
+    if lo - tol <= v <= lo + tol:
         return "lower"
-    if v >= hi - tol:
+    if hi - tol <= v <= hi + tol:
         return "upper"
-    return None
+    return None  # inside, or beyond a bound (a value no fit made, e.g. eq. 10's A of one step)
 
 
 def check_param(name: str, value, err=None, where: str = "") -> dict | None:
