@@ -8,7 +8,7 @@ Trials: the paper's step protocol (rig.analysis.reproduce.step_recipe on the sim
 the kinematic generator's paper_step_protocol), boundary lubricant, truth drawn per trial around
 Table 2 (A, B, L within +-15 %), fixed seeds. Each trial's record goes to every estimator of
 :data:`ESTIMATORS`; an estimator returns ``{name: (value, lo, hi)}`` for A_mu, B_mu, L_um.
-To add one (e.g. diagnose's final model): write ``def est(trial) -> dict`` and register it in
+To add one: write ``def est(trial) -> dict`` and register it in
 ESTIMATORS; the table gains its rows. Prints the table (markdown) beside os.getloadavg().
 """
 
@@ -46,9 +46,22 @@ def whole_record_bootstrap(trial) -> dict:
     return {k: (w["params"][k], *w["intervals"][k]) for k in PARAMS}
 
 
-#: name -> estimator(trial) -> {param: (value, lo, hi)}; add diagnose's final model here
+def diagnose_final(trial) -> dict:
+    """diagnose's final model: its value +- params_sd, or its interval where it reports one (L_um)."""
+    from rig.diagnosis import diagnose
+
+    m = diagnose(trial).report()["model"]
+    out = {}
+    for k in PARAMS:
+        v, sd = m["params"][k], m["params_sd"][k]
+        out[k] = (v, *m.get("intervals", {}).get(k, (v - sd, v + sd)))
+    return out
+
+
+#: name -> estimator(trial) -> {param: (value, lo, hi)}
 ESTIMATORS = {"identify whole-record (jacobian)": whole_record,
-              "identify whole-record (bootstrap:30)": whole_record_bootstrap}
+              "identify whole-record (bootstrap:30)": whole_record_bootstrap,
+              "diagnose final model": diagnose_final}
 
 
 def make_trial(engine: str, k: int):

@@ -18,6 +18,7 @@ import numpy as np
 
 from rig.model.forward import as_model, force_sensitivities, has_sensitivities, predict_force
 from rig.fitting import Param, ParamSet, least_squares_fit
+from rig.fitting.stats import effective_n_time, information_criterion
 from rig.model.spec import PARAMS, model_params
 from .prep import Grid
 
@@ -61,6 +62,7 @@ class FitResult:
     nfev: int = 0
     extra: dict = field(default_factory=dict)
     noise_corr: float = 1.0          # Grid.noise_corr: raw samples per independent one
+    n_eff: float = math.nan          # effective sample size of the fit blocks' residual (:func:`n_eff_of`)
 
     @property
     def holdout_rms_N(self) -> float:
@@ -72,11 +74,36 @@ class FitResult:
 
     @property
     def bic(self) -> float:
-        """Gaussian BIC on the fit blocks' raw samples: n ln(SSE/n) + k ln n, with n the
-        effective number of independent samples (raw count / Grid.noise_corr)."""
-        n = max(self.n_fit, 1)
-        ne = max(n / max(self.noise_corr, 1.0), 1.0)
-        return ne * math.log(max(self.sse_fit, 1e-300) / n) + self.n_par * math.log(ne)
+        """Gaussian BIC on the fit blocks' effective sample size (rig.fitting.stats.information_criterion:
+        ``n_eff ln(SSE/n) + k ln n_eff``, ``n_eff`` from the residual's autocorrelation in time)."""
+        ne = self.n_eff if math.isfinite(self.n_eff) else max(self.n_fit / max(self.noise_corr, 1.0), 1.0)
+        return information_criterion(self.sse_fit, self.n_fit, ne, self.n_par)
+
+
+def delta_bic(cur: FitResult, res: FitResult) -> float:
+    """``res``'s BIC minus ``cur``'s on one effective sample size, the better fit's (its residual is
+    the closer to noise: the misfit's correlation is what the worse model lacks, not the record's),
+    so that the difference weighs the record's time, not its rows (issue 20 Deliver 3)."""
+    better = res if res.sse_fit < cur.sse_fit else cur
+    ne = better.n_eff if math.isfinite(better.n_eff) else max(better.n_fit / max(better.noise_corr, 1.0), 1.0)
+    return (information_criterion(res.sse_fit, res.n_fit, ne, res.n_par)
+            - information_criterion(cur.sse_fit, cur.n_fit, ne, cur.n_par))
+
+
+#: cells of the effective sample size in time (s): at least the grid's bins (bin_dt_max_s of prep)
+N_EFF_CELL_S = 1.0
+
+
+def n_eff_of(grid: Grid, pred: np.ndarray, mask: np.ndarray) -> float:
+    """Effective sample size of the residual ``F_mean - pred`` on the bins of ``mask``
+    (rig.fitting.stats.effective_n_time over cells of N_EFF_CELL_S, or two bins where bins are
+    longer): the raw noise's correlation within a bin and the misfit's over seconds alike."""
+    if not mask.any() or not np.all(np.isfinite(pred[mask])):
+        return math.nan
+    t = grid.t[mask]
+    cell = max(N_EFF_CELL_S, 2.0 * float(np.median(np.diff(t)))) if t.size > 1 else N_EFF_CELL_S
+    return effective_n_time(t, (grid.F_mean - pred)[mask], grid.count[mask], cell,
+                            float(grid.ss_within[mask].sum()))
 
 
 def _free_names(baseline: str, extensions: list[str], init: dict | None = None,
@@ -137,7 +164,8 @@ def evaluate(grid: Grid, baseline: str, extensions: list[str], params: dict[str,
     sse_h = float(r2[hm].sum()) if not bad else math.inf
     npar = len([nm for nm in model_params(baseline, extensions) if nm not in grid.known])
     return FitResult(baseline, list(extensions), dict(params), pred, sse_f, sse_h, int(grid.count[fm].sum()),
-                     int(grid.count[hm].sum()), npar, nfev, noise_corr=grid.noise_corr)
+                     int(grid.count[hm].sum()), npar, nfev, noise_corr=grid.noise_corr,
+                     n_eff=math.nan if bad else n_eff_of(grid, pred, fm))
 
 
 def fit(grid: Grid, baseline: str, extensions: list[str], init: dict[str, float],
@@ -204,8 +232,8 @@ def _cov_internal(grid: Grid, res: FitResult):
     residuals correlated over seconds (the kinematics' own errors after a step, the servo, a slow
     structure no model holds) count as the few independent pieces they are -- the effective sample
     size of Deliver 3 of issue 20. It is never smaller than the white-noise one, ``B s^2``, inflated
-    by ``(1 + rho) / (1 - rho)`` (rho the lag-1 autocorrelation of the fitted bins' residuals), which
-    is used alone when the record has fewer than 10 chunks."""
+    by ``n / n_eff`` (:func:`n_eff_of`, the one effective sample size of the information criterion
+    and of identify's whole-record fit), which is used alone when the record has fewer than 10 chunks."""
     if "jac" not in res.extra:
         return None
     pset, z, J, r, m = res.extra["jac"]
@@ -218,10 +246,10 @@ def _cov_internal(grid: Grid, res: FitResult):
     except (np.linalg.LinAlgError, ValueError):
         return None
     white = B * s2
-    x = r - r.mean()
-    rho = float(np.sum(x[1:] * x[:-1]) / max(float(np.sum(x * x)), 1e-300))
-    rho = min(max(rho, 0.0), 0.98)
-    cz = white * (1.0 + rho) / (1.0 - rho)
+    mm = m if m is not None and np.size(m) == grid.t.size else grid.fit_mask()
+    ne = n_eff_of(grid, res.pred, mm)
+    tau = float(grid.count[mm].sum()) / ne if math.isfinite(ne) and ne > 0 else 1.0
+    cz = white * max(tau, 1.0)
     tm = grid.t[m] if m is not None and np.size(m) == grid.t.size else None
     if tm is not None and tm.size == n and tm[-1] > tm[0]:
         ch = np.minimum(((tm - tm[0]) / (tm[-1] - tm[0]) * COV_CHUNKS).astype(np.int64), COV_CHUNKS - 1)
