@@ -492,8 +492,8 @@ def fit_whole_record(trial: TrialData, steps: list[Step] | None = None, *, stiff
       (68 %) and ``correlation``; ``err_corr`` is ``params_sd`` (kept for older readers) and
       ``err`` the plain Jacobian's.
     """
-    from rig.fitting.stats import block_bootstrap, effective_n, information_criterion, jacobian_summary, mcmc, \
-        parse_uncertainty, profile_interval
+    from rig.fitting.stats import block_bootstrap, effective_n_time, information_criterion, jacobian_summary, mcmc, \
+        parse_uncertainty, profile_interval, time_cell_s
 
     if law not in LAWS:
         raise ValueError(f"unknown state law {law!r} (slip, aging)")
@@ -623,18 +623,20 @@ def fit_whole_record(trial: TrialData, steps: list[Step] | None = None, *, stiff
     q = {**fixed, **fit.params}
     r = fit.residuals
     n = r.size
-    # effective sample size: Kish's for the weights, over the residuals' correlation time
-    n_eff = effective_n(r) * float(np.sum(sw ** 2) ** 2 / np.sum(sw ** 4)) / n
-    unc = jacobian_summary(pset, fit, n_eff)
+    # effective sample size of the residual in time (rig.fitting.stats.effective_n_time, as diagnose's)
+    t_sl = t[sliding]
+    n_eff = effective_n_time(t_sl, r / sw, sw ** 2, time_cell_s(t_sl))
+    unc = jacobian_summary(pset, fit, t_sl)
     if method == "jacobian" and profile:
         # L's interval from its profile likelihood (the a-b-L valley is flat and skewed in L)
-        # (its shape from the n_eff-scaled likelihood, its width rescaled to the HAC sd)
+        # (its shape from the white-noise likelihood, its width inflated as L's sd is: sqrt(n / n_eff) of
+        # L's score in time, rig.fitting.stats.inflated_cov)
         jl = names.index("L_um")
         zl = fit.extra["z"][jl]
         ratio = unc["sd_ratio"].get("L_um", 1.0)
         ratio = ratio if math.isfinite(ratio) and ratio > 0 else 1.0
         sd_zl = unc["params_sd"]["L_um"] / max(math.exp(zl), 1e-12) / ratio
-        piv = profile_interval(resid, pset, fit, "L_um", n_eff, sd_zl)
+        piv = profile_interval(resid, pset, fit, "L_um", float(n), sd_zl)
         if piv is not None:
             lo_z, hi_z = math.log(piv[0]), math.log(piv[1])
             unc["intervals"]["L_um"] = [math.exp(zl - (zl - lo_z) * ratio), math.exp(zl + (hi_z - zl) * ratio)]

@@ -18,7 +18,7 @@ import numpy as np
 
 from rig.model.forward import as_model, force_sensitivities, has_sensitivities, predict_force
 from rig.fitting import Param, ParamSet, least_squares_fit
-from rig.fitting.stats import effective_n_time, information_criterion
+from rig.fitting.stats import effective_n_time, inflated_cov, information_criterion, time_cell_s
 from rig.model.spec import PARAMS, model_params
 from .prep import Grid
 
@@ -90,19 +90,13 @@ def delta_bic(cur: FitResult, res: FitResult) -> float:
             - information_criterion(cur.sse_fit, cur.n_fit, ne, cur.n_par))
 
 
-#: cells of the effective sample size in time (s): at least the grid's bins (bin_dt_max_s of prep)
-N_EFF_CELL_S = 1.0
-
-
 def n_eff_of(grid: Grid, pred: np.ndarray, mask: np.ndarray) -> float:
     """Effective sample size of the residual ``F_mean - pred`` on the bins of ``mask``
-    (rig.fitting.stats.effective_n_time over cells of N_EFF_CELL_S, or two bins where bins are
-    longer): the raw noise's correlation within a bin and the misfit's over seconds alike."""
+    (rig.fitting.stats.effective_n_time over its cells in time): the raw noise's correlation within a bin and the misfit's over seconds alike."""
     if not mask.any() or not np.all(np.isfinite(pred[mask])):
         return math.nan
     t = grid.t[mask]
-    cell = max(N_EFF_CELL_S, 2.0 * float(np.median(np.diff(t)))) if t.size > 1 else N_EFF_CELL_S
-    return effective_n_time(t, (grid.F_mean - pred)[mask], grid.count[mask], cell,
+    return effective_n_time(t, (grid.F_mean - pred)[mask], grid.count[mask], time_cell_s(t),
                             float(grid.ss_within[mask].sum()))
 
 
@@ -221,48 +215,27 @@ def fit(grid: Grid, baseline: str, extensions: list[str], init: dict[str, float]
     return res
 
 
-COV_CHUNKS = 40  # time chunks of the cluster-robust covariance
-
-
 def _cov_internal(grid: Grid, res: FitResult):
-    """(pset, z, covariance in the internal variables, its ratio to the white-noise one per parameter).
+    """(pset, z, covariance in the internal variables, its ratio to the white-noise one per parameter, s^2).
 
-    The covariance is cluster-robust in time (a sandwich, ``B M B`` with ``B = (J^T J)^-1`` and
-    ``M`` the sum over COV_CHUNKS chunks of time of ``(J_c^T r_c)(J_c^T r_c)^T``, times G / (G - 1)):
-    residuals correlated over seconds (the kinematics' own errors after a step, the servo, a slow
-    structure no model holds) count as the few independent pieces they are -- the effective sample
-    size of Deliver 3 of issue 20. It is never smaller than the white-noise one, ``B s^2``, inflated
-    by ``n / n_eff`` (:func:`n_eff_of`, the one effective sample size of the information criterion
-    and of identify's whole-record fit), which is used alone when the record has fewer than 10 chunks."""
+    rig.fitting.stats.inflated_cov: the white-noise covariance of the fit's Jacobian, each
+    parameter's variance inflated by ``n / n_eff`` of its score in time (the residual weighted by
+    where the parameter's information is: the effective sample size of Deliver 3 of issue 20,
+    computed as identify's whole-record fit computes it)."""
     if "jac" not in res.extra:
         return None
     pset, z, J, r, m = res.extra["jac"]
     n, p = J.shape
     if n <= p + 1:
         return None
-    s2 = float(np.dot(r, r) / (n - p))
+    mm = m if m is not None and np.size(m) == grid.t.size else grid.fit_mask()
+    if int(mm.sum()) != n:
+        return None
     try:
-        B = np.linalg.pinv(J.T @ J)
+        cz, tau, s2 = inflated_cov(J, r, grid.t[mm])
     except (np.linalg.LinAlgError, ValueError):
         return None
-    white = B * s2
-    mm = m if m is not None and np.size(m) == grid.t.size else grid.fit_mask()
-    ne = n_eff_of(grid, res.pred, mm)
-    tau = float(grid.count[mm].sum()) / ne if math.isfinite(ne) and ne > 0 else 1.0
-    cz = white * max(tau, 1.0)
-    tm = grid.t[m] if m is not None and np.size(m) == grid.t.size else None
-    if tm is not None and tm.size == n and tm[-1] > tm[0]:
-        ch = np.minimum(((tm - tm[0]) / (tm[-1] - tm[0]) * COV_CHUNKS).astype(np.int64), COV_CHUNKS - 1)
-        G = np.unique(ch).size
-        if G >= 10:
-            g = np.zeros((COV_CHUNKS, p))
-            np.add.at(g, ch, J * r[:, None])
-            robust = B @ (g.T @ g) @ B * G / (G - 1)
-            dd = np.maximum(np.diag(robust), np.diag(cz))
-            sc = np.sqrt(dd / np.maximum(np.diag(robust), 1e-300))
-            cz = robust * np.outer(sc, sc)  # the robust correlations, never below the inflated white sd
-    ratio = np.diag(cz) / np.maximum(np.diag(white), 1e-300)
-    return pset, z, cz, ratio, s2
+    return pset, z, cz, tau, s2
 
 
 def covariance(grid: Grid, res: FitResult) -> tuple[list[str], np.ndarray, np.ndarray] | None:
