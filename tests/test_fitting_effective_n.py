@@ -84,13 +84,13 @@ def test_information_criterion_difference_does_not_grow_with_a_faster_second_hal
 
 
 def test_score_inflation_sees_correlation_only_where_a_parameter_has_information():
-    # a slow wander over the first half only; a parameter whose sensitivity is in the second half
-    # keeps white-noise errors, the constant's inflates
+    # a slow wander over the first half only: the level of the first half inflates, the level of the
+    # second half keeps white-noise errors
     rng = np.random.default_rng(5)
     t = np.arange(0.0, 400.0, 0.1)
     r = 0.1 * rng.standard_normal(t.size)
     r[t < 200.0] += np.interp(t[t < 200.0], np.arange(0.0, 205.0, 10.0), rng.standard_normal(21))
-    J = np.column_stack([np.ones(t.size), (t > 200.0).astype(float)])
+    J = np.column_stack([(t < 200.0).astype(float), (t >= 200.0).astype(float)])
     tau = score_inflation(t, J, r, 1.0)
     assert tau[0] > 20.0
     assert tau[1] == pytest.approx(1.0, abs=0.6)

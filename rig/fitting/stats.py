@@ -128,25 +128,26 @@ def inflated_cov(jac: np.ndarray, r: np.ndarray, t_s: np.ndarray) -> tuple[np.nd
 
 
 def score_inflation(t_s: np.ndarray, jac: np.ndarray, r: np.ndarray, cell_s: float) -> np.ndarray:
-    """Per parameter, the variance inflation ``n / n_eff`` of its score ``g_i = J_i r_i`` (the
-    residual weighted by where the parameter's information is): ``g``'s sums over uniform cells of
-    ``cell_s`` seconds, ``sum_j S_j^2 tau_S / sum_i g_i^2`` (``tau_S`` the cells'
-    :func:`correlation_time`), at least 1. A slow misfit that a parameter does not see (a drift
-    under the transients that carry L) does not widen that parameter's error; the constant's
-    score is the residual itself, so its inflation is the residual's (:func:`effective_n_time`).
-    Rows in time order, ``jac`` and ``r`` weighted alike (a Newey-West sandwich's diagonal with the
-    lag window chosen by the data)."""
+    """Per parameter, the variance inflation ``n / n_eff`` of the residual where that parameter's
+    information is: each row's influence on the estimate, ``h_i = (J^T J)^-1 J_i r_i`` (the score
+    ``J_i r_i`` with the other parameters partialled out), summed over uniform cells of ``cell_s``
+    seconds, ``sum_j S_j^2 tau_S / sum_i h_i^2`` (``tau_S`` the cells' :func:`correlation_time`),
+    at least 1. A slow misfit that a parameter does not see (a drift that the constant absorbs,
+    under the transients that carry L) does not widen that parameter's error. Rows in time order,
+    ``jac`` and ``r`` weighted alike: the diagonal of a Newey-West sandwich whose lag window the
+    data choose."""
     t_s, r = np.asarray(t_s, dtype=float), np.asarray(r, dtype=float)
-    g = np.asarray(jac, dtype=float) * r[:, None]
-    out = np.ones(g.shape[1])
+    jac = np.asarray(jac, dtype=float)
+    out = np.ones(jac.shape[1])
     if t_s.size < 3 or not cell_s > 0:
         return out
+    h = (jac * r[:, None]) @ np.linalg.pinv(jac.T @ jac)
     cell = np.floor((t_s - t_s.min()) / cell_s).astype(np.int64)
-    for j in range(g.shape[1]):
-        den = float(np.dot(g[:, j], g[:, j]))
+    for j in range(h.shape[1]):
+        den = float(np.dot(h[:, j], h[:, j]))
         if not den > 0:
             continue
-        s = np.bincount(cell, weights=g[:, j])
+        s = np.bincount(cell, weights=h[:, j])
         out[j] = max(float(np.dot(s, s)) / den * correlation_time(s), 1.0)
     return out
 
