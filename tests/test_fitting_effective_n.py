@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from rig.diagnosis.prep import time_weights
-from rig.fitting.stats import effective_n, effective_n_time, information_criterion, score_inflation
+from rig.fitting.stats import comparison_n_eff, effective_n, effective_n_time, information_criterion, score_inflation
 
 
 def _ar1(n: int, rho: float, rng: np.random.Generator) -> np.ndarray:
@@ -63,10 +63,10 @@ def _smooth(x: np.ndarray, k: int) -> np.ndarray:
 
 
 def _delta_ic(t, w, rA, rB, n_eff=None) -> float:
-    """A's criterion minus B's (B has one parameter more) on B's effective sample size."""
+    """A's criterion minus B's (B has one parameter more) on the comparison's effective sample size."""
     n = float(w.sum())
     ssr_a, ssr_b = float(np.sum(w * rA * rA)), float(np.sum(w * rB * rB))
-    ne = effective_n_time(t, rB, w, 1.0) if n_eff is None else n_eff
+    ne = comparison_n_eff(t, w, rA, rB, 1.0) if n_eff is None else n_eff
     return information_criterion(ssr_a, n, ne, 3) - information_criterion(ssr_b, n, ne, 4)
 
 

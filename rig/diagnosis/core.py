@@ -525,7 +525,7 @@ def try_candidate(grid: Grid, cur: FitResult, cause: str, info: dict, prior: dic
         # slower one, L2_um > L_um (swapped before reporting)
         swap_slower_second(res.params)
     gain = 100.0 * (cur.holdout_rms_N - res.holdout_rms_N) / cur.holdout_rms_N
-    dbic = delta_bic(cur, res)
+    dbic = delta_bic(grid, cur, res)
     z = paired_z(grid, cur.pred, res.pred)
     zw = white_z(grid, cur.pred, res.pred)
     note = ""

@@ -18,7 +18,7 @@ import numpy as np
 
 from rig.model.forward import as_model, force_sensitivities, has_sensitivities, predict_force
 from rig.fitting import Param, ParamSet, least_squares_fit
-from rig.fitting.stats import effective_n_time, inflated_cov, information_criterion, time_cell_s
+from rig.fitting.stats import comparison_n_eff, effective_n_time, inflated_cov, information_criterion, time_cell_s
 from rig.model.spec import PARAMS, model_params
 from .prep import Grid
 
@@ -80,12 +80,20 @@ class FitResult:
         return information_criterion(self.sse_fit, self.n_fit, ne, self.n_par)
 
 
-def delta_bic(cur: FitResult, res: FitResult) -> float:
-    """``res``'s BIC minus ``cur``'s on one effective sample size, the better fit's (its residual is
-    the closer to noise: the misfit's correlation is what the worse model lacks, not the record's),
-    so that the difference weighs the record's time, not its rows (issue 20 Deliver 3)."""
-    better = res if res.sse_fit < cur.sse_fit else cur
-    ne = better.n_eff if math.isfinite(better.n_eff) else max(better.n_fit / max(better.noise_corr, 1.0), 1.0)
+def delta_bic(grid: Grid, cur: FitResult, res: FitResult) -> float:
+    """``res``'s BIC minus ``cur``'s on one effective sample size: the better fit's residual in
+    time along the two predictions' difference (rig.fitting.stats.comparison_n_eff), so that the
+    difference weighs the record's time, not its rows (issue 20 Deliver 3), and another effect
+    that both models leave in the residual does not hide this one."""
+    fm = grid.fit_mask()
+    better, worse = (res, cur) if res.sse_fit < cur.sse_fit else (cur, res)
+    ne = math.nan
+    if fm.any() and np.all(np.isfinite(better.pred[fm])) and np.all(np.isfinite(worse.pred[fm])):
+        t = grid.t[fm]
+        ne = comparison_n_eff(t, grid.count[fm], (grid.F_mean - worse.pred)[fm], (grid.F_mean - better.pred)[fm],
+                              time_cell_s(t))
+    if not math.isfinite(ne):
+        ne = max(better.n_fit / max(better.noise_corr, 1.0), 1.0)
     return (information_criterion(res.sse_fit, res.n_fit, ne, res.n_par)
             - information_criterion(cur.sse_fit, cur.n_fit, ne, cur.n_par))
 

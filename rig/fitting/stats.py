@@ -13,6 +13,8 @@ times: statistics weigh time, not rows).
 * :func:`effective_n_time`: the same for residuals of irregular rows or bins weighted by the time
   they stand for: their sums over uniform cells in time, so a record logged ten times faster
   after a step has the ``n_eff`` of the uniformly sampled one.
+* :func:`comparison_n_eff`: the effective sample size of two fits' comparison, the better
+  fit's residual along the fits' difference.
 * :func:`information_criterion`: Gaussian BIC on the effective sample size,
   ``n_eff ln(SSR / n) + p ln(n_eff)`` (Schwarz 1978; Kass & Raftery 1995: a difference above
   6 is strong evidence).
@@ -150,6 +152,21 @@ def score_inflation(t_s: np.ndarray, jac: np.ndarray, r: np.ndarray, cell_s: flo
         s = np.bincount(cell, weights=h[:, j])
         out[j] = max(float(np.dot(s, s)) / den * correlation_time(s), 1.0)
     return out
+
+
+def comparison_n_eff(t_s: np.ndarray, w: np.ndarray, r_worse: np.ndarray, r_better: np.ndarray,
+                     cell_s: float) -> float:
+    """The effective sample size on which two fits of one record are compared: ``sum w`` over the
+    :func:`score_inflation` of the better fit's residual along the two fits' difference
+    ``d = r_worse - r_better`` (the direction the extra parameters move the prediction). What
+    decides between the models is the residual's correlation where they differ: a slow drift that
+    both leave (another cause, not yet in either) does not hide a periodic term, and a record
+    logged ten times faster after a step counts that part as long as it lasts."""
+    t_s, w = np.asarray(t_s, dtype=float), np.asarray(w, dtype=float)
+    sw = np.sqrt(w)
+    d = np.asarray(r_worse, dtype=float) - np.asarray(r_better, dtype=float)
+    tau = score_inflation(t_s, (sw * d)[:, None], sw * np.asarray(r_better, dtype=float), cell_s)[0]
+    return float(max(w.sum() / tau, 1.0))
 
 
 def information_criterion(ssr: float, n: int, n_eff: float, n_par: int) -> float:
