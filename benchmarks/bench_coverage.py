@@ -2,14 +2,15 @@
 parameter's reported interval contains the truth (issue 20, Deliver 6: 55-80 % is honest).
 
     nice -n 10 .venv/bin/python benchmarks/bench_coverage.py [--trials 20] [--engine sim|synth|both]
-                                                              [--estimators whole_record]
+        [--estimators "identify whole-record (jacobian),diagnose final model"]
 
 Trials: the paper's step protocol (rig.analysis.reproduce.step_recipe on the simulated rig, or
 the kinematic generator's paper_step_protocol), boundary lubricant, truth drawn per trial around
 Table 2 (A, B, L within +-15 %), fixed seeds. Each trial's record goes to every estimator of
-:data:`ESTIMATORS`; an estimator returns ``{name: (value, lo, hi)}`` for A_mu, B_mu, L_um.
-To add one: write ``def est(trial) -> dict`` and register it in
-ESTIMATORS; the table gains its rows. Prints the table (markdown) beside os.getloadavg().
+:data:`ESTIMATORS`; an estimator returns ``{name: (value, lo, hi) or None}`` for A_mu, B_mu,
+L_um (None: no interval, left out of that row). To add one: write ``def est(trial) -> dict``
+and register it in ESTIMATORS; the table gains its rows. Prints a line per trial, then the
+table (markdown: coverage, mean bias, rms pull = error / half-width) beside os.getloadavg().
 """
 
 from __future__ import annotations
