@@ -2,9 +2,10 @@
 correlation, intervals, a block bootstrap in time and an MCMC sampler (emcee, optional).
 
 Every function here works on a fit of :mod:`rig.fitting` (named parameters with bounds and ln
-scaling) and a residual series on a **uniform time grid** (the caller bins the record in time
-first, so that a record that logs ten times faster after a step does not count that part ten
-times: statistics weigh time, not rows).
+scaling) and its residuals in time order. Statistics weigh time, not rows: the ``*_time``,
+``score_inflation`` and ``comparison_n_eff`` functions sum the (time-weighted) residuals over
+uniform cells in time, so a record that logs ten times faster after a step does not count that
+part ten times; :func:`effective_n` and the bootstrap assume rows on a uniform time grid.
 
 * :func:`effective_n`: ``n_eff = n / (1 + 2 sum rho_k)``, the sum over the initial positive
   sequence of the residuals' autocorrelation (Geyer 1992), so a residual that is correlated over
@@ -19,7 +20,7 @@ times: statistics weigh time, not rows).
   ``n_eff ln(SSR / n) + p ln(n_eff)`` (Schwarz 1978; Kass & Raftery 1995: a difference above
   6 is strong evidence).
 * :func:`inflated_cov`, :func:`jacobian_summary`: the Jacobian's covariance with each parameter's
-  variance inflated by ``n / n_eff`` of its score in time (:func:`score_inflation`: each
+  variance inflated by ``n / n_eff`` of its influence in time (:func:`score_inflation`: each
   parameter sees the residual correlation where its information is), mapped to each parameter's
   unit; a ln-scaled parameter's 68 % interval is ``exp(ln v +- sd_ln)``
   (asymmetric, as xlook reports Dc). :func:`profile_interval` gives a skewed interval.
