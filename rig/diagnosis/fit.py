@@ -18,7 +18,7 @@ import numpy as np
 
 from rig.model.forward import as_model, force_sensitivities, has_sensitivities, predict_force
 from rig.fitting import Param, ParamSet, least_squares_fit
-from rig.fitting.stats import comparison_n_eff, effective_n_time, inflated_cov, information_criterion, time_cell_s
+from rig.fitting.stats import comparison_n_eff, inflated_cov, information_criterion, time_cell_s
 from rig.model.spec import PARAMS, model_params
 from .prep import Grid
 
@@ -62,7 +62,6 @@ class FitResult:
     nfev: int = 0
     extra: dict = field(default_factory=dict)
     noise_corr: float = 1.0          # Grid.noise_corr: raw samples per independent one
-    n_eff: float = math.nan          # effective sample size of the fit blocks' residual (:func:`n_eff_of`)
 
     @property
     def holdout_rms_N(self) -> float:
@@ -72,16 +71,10 @@ class FitResult:
     def fit_rms_N(self) -> float:
         return math.sqrt(self.sse_fit / max(self.n_fit, 1))
 
-    @property
-    def bic(self) -> float:
-        """Gaussian BIC on the fit blocks' effective sample size (rig.fitting.stats.information_criterion:
-        ``n_eff ln(SSE/n) + k ln n_eff``, ``n_eff`` from the residual's autocorrelation in time)."""
-        ne = self.n_eff if math.isfinite(self.n_eff) else max(self.n_fit / max(self.noise_corr, 1.0), 1.0)
-        return information_criterion(self.sse_fit, self.n_fit, ne, self.n_par)
-
 
 def delta_bic(grid: Grid, cur: FitResult, res: FitResult) -> float:
-    """``res``'s BIC minus ``cur``'s on one effective sample size: the better fit's residual in
+    """``res``'s Gaussian BIC minus ``cur``'s on the fit blocks, ``n_eff ln(SSE/n) + k ln n_eff``
+    (rig.fitting.stats.information_criterion), on one effective sample size: the better fit's residual in
     time along the two predictions' difference (rig.fitting.stats.comparison_n_eff), so that the
     difference weighs the record's time, not its rows (issue 20 Deliver 3), and another effect
     that both models leave in the residual does not hide this one."""
@@ -96,16 +89,6 @@ def delta_bic(grid: Grid, cur: FitResult, res: FitResult) -> float:
         ne = max(better.n_fit / max(better.noise_corr, 1.0), 1.0)
     return (information_criterion(res.sse_fit, res.n_fit, ne, res.n_par)
             - information_criterion(cur.sse_fit, cur.n_fit, ne, cur.n_par))
-
-
-def n_eff_of(grid: Grid, pred: np.ndarray, mask: np.ndarray) -> float:
-    """Effective sample size of the residual ``F_mean - pred`` on the bins of ``mask``
-    (rig.fitting.stats.effective_n_time over its cells in time): the raw noise's correlation within a bin and the misfit's over seconds alike."""
-    if not mask.any() or not np.all(np.isfinite(pred[mask])):
-        return math.nan
-    t = grid.t[mask]
-    return effective_n_time(t, (grid.F_mean - pred)[mask], grid.count[mask], time_cell_s(t),
-                            float(grid.ss_within[mask].sum()))
 
 
 def _free_names(baseline: str, extensions: list[str], init: dict | None = None,
@@ -166,8 +149,7 @@ def evaluate(grid: Grid, baseline: str, extensions: list[str], params: dict[str,
     sse_h = float(r2[hm].sum()) if not bad else math.inf
     npar = len([nm for nm in model_params(baseline, extensions) if nm not in grid.known])
     return FitResult(baseline, list(extensions), dict(params), pred, sse_f, sse_h, int(grid.count[fm].sum()),
-                     int(grid.count[hm].sum()), npar, nfev, noise_corr=grid.noise_corr,
-                     n_eff=math.nan if bad else n_eff_of(grid, pred, fm))
+                     int(grid.count[hm].sum()), npar, nfev, noise_corr=grid.noise_corr)
 
 
 def fit(grid: Grid, baseline: str, extensions: list[str], init: dict[str, float],
