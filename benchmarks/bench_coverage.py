@@ -2,14 +2,15 @@
 parameter's reported interval contains the truth (issue 20, Deliver 6: 55-80 % is honest).
 
     nice -n 10 .venv/bin/python benchmarks/bench_coverage.py [--trials 20] [--engine sim|synth|both]
-                                                              [--estimators whole_record]
+        [--estimators "identify whole-record (jacobian),diagnose final model"]
 
 Trials: the paper's step protocol (rig.analysis.reproduce.step_recipe on the simulated rig, or
 the kinematic generator's paper_step_protocol), boundary lubricant, truth drawn per trial around
 Table 2 (A, B, L within +-15 %), fixed seeds. Each trial's record goes to every estimator of
-:data:`ESTIMATORS`; an estimator returns ``{name: (value, lo, hi)}`` for A_mu, B_mu, L_um.
-To add one (e.g. diagnose's final model): write ``def est(trial) -> dict`` and register it in
-ESTIMATORS; the table gains its rows. Prints the table (markdown) beside os.getloadavg().
+:data:`ESTIMATORS`; an estimator returns ``{name: (value, lo, hi) or None}`` for A_mu, B_mu,
+L_um (None: no interval, left out of that row). To add one: write ``def est(trial) -> dict``
+and register it in ESTIMATORS; the table gains its rows. Prints a line per trial, then the
+table (markdown: coverage, mean bias, rms pull = error / half-width) beside os.getloadavg().
 """
 
 from __future__ import annotations
@@ -46,9 +47,23 @@ def whole_record_bootstrap(trial) -> dict:
     return {k: (w["params"][k], *w["intervals"][k]) for k in PARAMS}
 
 
-#: name -> estimator(trial) -> {param: (value, lo, hi)}; add diagnose's final model here
+def diagnose_final(trial) -> dict:
+    """diagnose's final model: its value +- params_sd, or its interval where it reports one (L_um)."""
+    from rig.diagnosis import diagnose
+
+    m = diagnose(trial).report()["model"]
+    out = {}
+    for k in PARAMS:
+        v, sd = m["params"].get(k), m.get("params_sd", {}).get(k)
+        # no standard error (a final fit without a Jacobian): no interval, counted apart
+        out[k] = None if v is None or sd is None else (v, *m.get("intervals", {}).get(k, (v - sd, v + sd)))
+    return out
+
+
+#: name -> estimator(trial) -> {param: (value, lo, hi)}
 ESTIMATORS = {"identify whole-record (jacobian)": whole_record,
-              "identify whole-record (bootstrap:30)": whole_record_bootstrap}
+              "identify whole-record (bootstrap:30)": whole_record_bootstrap,
+              "diagnose final model": diagnose_final}
 
 
 def make_trial(engine: str, k: int):
@@ -83,6 +98,7 @@ def main(argv=None) -> int:
     engines = ("sim", "synth") if a.engine == "both" else (a.engine,)
     hits = {(e, n): {p: [] for p in PARAMS} for e in engines for n in names}
     bias = {(e, n): {p: [] for p in PARAMS} for e in engines for n in names}
+    pulls = {(e, n): {p: [] for p in PARAMS} for e in engines for n in names}
     t0 = time.perf_counter()
     with Progress() as prog:
         task = prog.add_task("trials", total=a.trials * len(engines))
@@ -92,18 +108,26 @@ def main(argv=None) -> int:
                 for n in names:
                     res = ESTIMATORS[n](tr)
                     for p in PARAMS:
+                        if res[p] is None:
+                            continue
                         v, lo, hi = res[p]
                         hits[(e, n)][p].append(lo <= truth[p] <= hi)
                         bias[(e, n)][p].append((v - truth[p]) / truth[p])
+                        pulls[(e, n)][p].append((v - truth[p]) / max(0.5 * (hi - lo), 1e-300))
+                    prog.console.print(f"{e} {k} {n}: " + " ".join(
+                        f"{p} {res[p][0]:.4g} [{res[p][1]:.4g}, {res[p][2]:.4g}] (truth {truth[p]:.4g})"
+                        if res[p] else f"{p} -" for p in PARAMS))
                 prog.advance(task)
     print(f"\n{a.trials} trials per engine, {time.perf_counter() - t0:.0f} s, load average "
           f"{', '.join(f'{x:.2f}' for x in os.getloadavg())}\n")
     print("| records | estimator | " + " | ".join(f"{p}: covered (68 %)" for p in PARAMS) + " | " +
-          " | ".join(f"{p}: mean bias" for p in PARAMS) + " |")
+          " | ".join(f"{p}: mean bias (rms pull)" for p in PARAMS) + " |")
     print("|---|---|" + "---|" * (2 * len(PARAMS)))
     for (e, n), h in hits.items():
         cov = " | ".join(f"{100 * np.mean(h[p]):.0f} % ({sum(h[p])}/{len(h[p])})" for p in PARAMS)
-        b = " | ".join(f"{100 * np.mean(bias[(e, n)][p]):+.1f} %" for p in PARAMS)
+        # pull: the error over the interval's half-width (1 for an honest interval, in rms)
+        b = " | ".join(f"{100 * np.mean(bias[(e, n)][p]):+.1f} % "
+                       f"({np.sqrt(np.mean(np.square(pulls[(e, n)][p]))):.2f})" for p in PARAMS)
         label = "simulated rig (closed loop, 25 Hz)" if e == "sim" else "generated (open loop, 25 Hz)"
         print(f"| {label} | {n} | {cov} | {b} |")
     return 0

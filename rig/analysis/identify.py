@@ -457,6 +457,272 @@ def trend_from_windows(s_mm: np.ndarray, mu: np.ndarray, windows: list[tuple[int
     return slope, se
 
 
+@dataclass
+class _Record:
+    """The whole-record fit's record: time-binned rows, velocity, runs and the compared bins."""
+    t: np.ndarray
+    x: np.ndarray
+    mu: np.ndarray
+    v: np.ndarray
+    wsum: np.ndarray           # each bin's share of the time (sum of the rows' time weights)
+    width: float               # the bins' width (s)
+    decimation: int
+    steps: list
+    runs: list
+    sliding: np.ndarray        # the bins compared
+    velocity_method: str
+
+
+def _binned_record(trial: TrialData, steps: list[Step], stiffness: bool, velocity_method: str,
+                   max_points: int, rise_guard_s: float) -> _Record:
+    """The record reduced to time bins, its velocity (segments or an estimator), its runs and the
+    bins compared (the runs' sliding stretches, without the steps' velocity rise)."""
+    t = np.asarray(trial.time_s, dtype=float)
+    w_raw, _ = _time_weights(t)
+    idx, width = _time_bins(t, max_points)
+    wsum = np.bincount(idx, w_raw).astype(float)
+    nb = wsum.size
+    t, x, mu = (_bin_mean(a, idx, wsum, w_raw) for a in (t, trial.position_um, trial.mu))
+    steps = _binned_steps(steps, idx, nb)
+    v_est = estimate_velocity(t, x, "local_poly" if velocity_method == "segments" else velocity_method)
+    if stiffness or (velocity_method == "segments" and steps):
+        v, in_steps = _segment_velocity(t, x, steps, v_est)
+        velocity_method = "segments"
+    else:
+        v = v_est
+        _, in_steps = _segment_velocity(t, x, steps, v_est)
+    runs = _runs(steps, t.size)
+    if not stiffness or not trial.is_load_point:
+        # the velocity rise of a step (the rig's controller, 0.2-0.5 s) is not the segments' ideal
+        # step: it is not compared, as the per-step method leaves it out (rise_guard_s after t*,
+        # half of it before); on generated records it biased A by -1.6 of its sd. A load point's
+        # (position_source: load_point) rounding is the spring's, which the model has: compared whole.
+        for s_ in steps:
+            in_steps[(t > s_.t_s - 0.5 * rise_guard_s) & (t < s_.t_s + rise_guard_s)] = False
+    vmed = max(float(np.median(np.abs(v))), 1e-6)
+    # compare model and data on the runs' sliding stretches (not on rests or returns)
+    sliding = np.zeros(t.size, bool)
+    for lo, hi in runs:
+        sliding[lo:hi] = in_steps[lo:hi] & (v[lo:hi] > 0.05 * vmed)
+    if sliding.sum() < 20:
+        runs = [(0, t.size)]
+        sliding = v > 0.05 * vmed
+    return _Record(t, x, mu, v, wsum, width, int(max(1, round(idx.size / nb))), steps, runs, sliding,
+                   velocity_method)
+
+
+def _detrending(rec: _Record, detrend: str, L0: float) -> tuple[np.ndarray, float, dict]:
+    """(slip since the first compared bin in mm, the trend held (auto) or 0, the report's detrend)."""
+    t, x = rec.t, rec.x
+    # slip since the first compared sample (mm), for the trend: |dx| summed (returns count as slip)
+    s_mm = np.concatenate([[0.0], np.cumsum(np.abs(np.diff(x)))]) * 1e-3
+    s_mm = s_mm - s_mm[int(np.argmax(rec.sliding))]
+    trend_fixed = 0.0
+    info: dict = {"method": detrend}
+    if detrend == "auto":
+        wins = steady_windows(t, x, rec.mu, rec.v, rec.steps, rec.runs, L0)
+        slope, se = trend_from_windows(s_mm, rec.mu, wins)
+        if math.isfinite(slope):
+            trend_fixed = slope
+            info.update(rate_mu_per_mm=_r(slope), rate_sd_mu_per_mm=_r(se),
+                        windows_s=[[_r(t[a], 5), _r(t[b - 1], 5)] for a, b in wins])
+        else:
+            info.update(rate_mu_per_mm=0.0, note="no steady-state window of 20 µm beyond 5 L: not detrended")
+    return s_mm, trend_fixed, info
+
+
+@dataclass
+class _Problem:
+    """The whole-record least-squares problem: free parameters, held ones, the model (mu per bin)."""
+    pset: ParamSet
+    names: list
+    fixed: dict
+    run_names: list
+    v_first: dict
+    model: object              # q -> mu per bin
+    sw: np.ndarray             # sqrt of each compared bin's share of the time (mean 1)
+    F_per_mu: float
+
+    def resid(self, rec: _Record):
+        mu_s = rec.mu[rec.sliding]
+
+        def r(free: dict) -> np.ndarray:
+            d = (self.model({**self.fixed, **free})[rec.sliding] - mu_s) * self.sw
+            return np.where(np.isfinite(d), d, 1.0)
+        return r
+
+
+def _problem(rec: _Record, trial: TrialData, stiffness: bool, k_fixed, law: str, detrend: str,
+             s_mm: np.ndarray, trend_fixed: float) -> _Problem:
+    """Parameters, held values and the forward model of the whole-record fit: each run starts in
+    the steady state of a fitted speed (a run from the record's first samples: of its first speed)."""
+    t, v = rec.t, rec.v
+    F_per_mu = 2.0 * trial.normal_force_N  # the fixture's total friction force per unit mu (two interfaces)
+    t_rel = t - t[0]
+    ext = (["finite_stiffness"] if stiffness else []) + (["aging_law"] if law == "aging" else [])
+    # a run that starts after a rest, a return or a stretch the fit does not compare has an unknown
+    # state: fitted; a run from the record's first samples starts in the steady state of its first
+    # speed (xlook's and RSFit's convention before a step)
+    run_names = [f"v_init_um_s.{j}" for j in range(len(rec.runs))]
+    v_first = {nm: max(abs(float(np.median(v[lo:min(hi, lo + 5)]))), 0.01) for nm, (lo, hi) in zip(run_names, rec.runs)}
+    held_init = {nm: v_first[nm] for nm, (lo, _) in zip(run_names, rec.runs) if lo < 3}
+    names = ["mu0", "A_mu", "B_mu", "L_um"] + (["stiffness_kN_per_m"] if stiffness and k_fixed is None else []) + \
+        (["rate_mu_per_mm"] if detrend == "linear" else []) + [nm for nm in run_names if nm not in held_init]
+    V_INIT = Param.of("v_init_um_s", PARAMS["v_init_um_s"])
+    pset = ParamSet([TREND if nm == "rate_mu_per_mm" else
+                     (Param(nm, V_INIT.unit, V_INIT.lo, V_INIT.hi, True) if nm.startswith("v_init") else
+                      Param.of(nm, PARAMS[nm])) for nm in names])
+    fixed = {"stiffness_kN_per_m": float(k_fixed) * F_per_mu * 1e3} if stiffness and k_fixed is not None else {}
+    fixed.update(held_init)
+    # the load point (stiffness) moves with the segment velocity, piecewise constant per interval
+    x_lp = np.concatenate([[rec.x[0]], rec.x[0] + np.cumsum(v[:-1] * np.diff(t))]) if stiffness else rec.x
+    N_N = trial.normal_force_N
+
+    def model(q: dict) -> np.ndarray:
+        fm = FrictionModel(extensions=ext, params={k_: q[k_] for k_ in ("mu0", "A_mu", "B_mu", "L_um",
+                                                                        "stiffness_kN_per_m") if k_ in q})
+        out = np.full(t.size, np.nan)
+        for j, (lo, hi) in enumerate(rec.runs):
+            out[lo:hi] = predict_force(fm, t_rel[lo:hi], x_lp[lo:hi], v[lo:hi], None, N_N,
+                                       q[run_names[j]]) / F_per_mu
+        return out + q.get("rate_mu_per_mm", trend_fixed) * s_mm
+
+    # statistics weigh time, not rows: each compared bin by its share of the time (mean 1)
+    sw = np.sqrt(rec.wsum[rec.sliding] / np.mean(rec.wsum[rec.sliding]))
+    return _Problem(pset, names, fixed, run_names, v_first, model, sw, F_per_mu)
+
+
+def _least_squares(rec: _Record, prob: _Problem, init: dict, stiffness: bool):
+    """The fit from a semi-log regression's steady state (and per-step results if given), several L."""
+    resid = prob.resid(rec)
+    mu, v, sl = rec.mu, rec.v, rec.sliding
+    lv = np.log(np.maximum(v[sl], 1e-6) / V0_UM_S)
+    c = np.polyfit(lv, mu[sl], 1) if np.ptp(lv) > 0.1 else (0.0, float(np.mean(mu[sl])))
+    A0 = float(init.get("A_mu", 0.005 if stiffness else 0.002))
+    A0 = A0 if math.isfinite(A0) and A0 > 0 else 0.002
+    B0 = float(init.get("B_mu", A0 - c[0]))
+    B0 = B0 if math.isfinite(B0) else A0
+    k0 = float(init.get("k_mu_per_um", 0.005)) * prob.F_per_mu * 1e3
+
+    def start(L_: float) -> dict:
+        return {"mu0": float(c[1]), "A_mu": A0, "B_mu": B0, "L_um": max(L_, 0.5), "stiffness_kN_per_m": k0,
+                "rate_mu_per_mm": 0.0, **prob.v_first}
+
+    Ls = [float(init["L_um"])] if "L_um" in init and math.isfinite(init["L_um"]) else []
+    opts = dict(max_nfev=200, diff_step=None, xtol=1e-8, ftol=1e-8, x_scale="jac")
+    fit = least_squares_fit(resid, prob.pset, [start(L_) for L_ in (Ls or [5.0, 20.0, 80.0])], **opts)
+    if Ls and (fit is None or not fit.success):
+        more = least_squares_fit(resid, prob.pset, [start(Ls[0] / 3.0), start(Ls[0] * 3.0)], **opts)
+        if more is not None and (fit is None or more.cost < fit.cost):
+            fit = more
+    return fit
+
+
+def _whole_record_uncertainty(rec: _Record, prob: _Problem, fit, method: str, n_draws: int, seed: int,
+                              profile: bool, progress) -> tuple[dict, float]:
+    """(params_sd, intervals, correlation and cov of :mod:`rig.fitting.stats`; the residual's n_eff).
+    Jacobian errors: each parameter's variance inflated by n / n_eff of its score in time (as
+    diagnose's); with ``profile``, L's interval from its profile likelihood, inflated alike."""
+    from rig.fitting.stats import block_bootstrap, effective_n_time, jacobian_summary, mcmc, profile_interval, \
+        time_cell_s
+
+    resid = prob.resid(rec)
+    r = fit.residuals
+    n = r.size
+    t_sl = rec.t[rec.sliding]
+    n_eff = effective_n_time(t_sl, r / prob.sw, prob.sw ** 2, time_cell_s(t_sl))
+    unc = jacobian_summary(prob.pset, fit, t_sl)
+    if method == "jacobian" and profile:
+        # L's interval from its profile likelihood (the a-b-L valley is flat and skewed in L): its
+        # shape from the white-noise likelihood, its width inflated as L's sd is
+        zl = fit.extra["z"][prob.names.index("L_um")]
+        ratio = unc["sd_ratio"].get("L_um", 1.0)
+        ratio = ratio if math.isfinite(ratio) and ratio > 0 else 1.0
+        sd_zl = unc["params_sd"]["L_um"] / max(math.exp(zl), 1e-12) / ratio
+        piv = profile_interval(resid, prob.pset, fit, "L_um", float(n), sd_zl)
+        if piv is not None:
+            lo_z, hi_z = math.log(piv[0]), math.log(piv[1])
+            unc["intervals"]["L_um"] = [math.exp(zl - (zl - lo_z) * ratio), math.exp(zl + (hi_z - zl) * ratio)]
+            unc["profile"] = ["L_um"]
+    if method == "bootstrap":
+        m_hat = prob.model({**prob.fixed, **fit.params})[rec.sliding]
+
+        def residual_for(e):
+            return lambda free: np.where(np.isfinite(rr := ((prob.model({**prob.fixed, **free})[rec.sliding] - m_hat)
+                                                            * prob.sw + e)), rr, 1.0)
+
+        unc = block_bootstrap(residual_for, prob.pset, fit, n_draws, seed=seed, progress=progress)
+    elif method == "mcmc":
+        z_cov = np.linalg.pinv(fit.jac.T @ fit.jac) * float(np.dot(r, r)) / max(n - len(prob.names), 1)
+        unc = mcmc(resid, prob.pset, fit, n_draws, n_eff, seed=seed, cov_z=z_cov, progress=progress)
+    return unc, n_eff
+
+
+def _reported(prob: _Problem, fit, unc: dict, stiffness: bool, detrend: str) -> dict:
+    """params, params_sd, intervals, correlation, err, err_corr in the report's units (k in mu per
+    µm and kN/m) and the friction lab's vocabulary (rsf_vocabulary); ``_sd`` and ``_q`` for the rest."""
+    F_per_mu, fixed = prob.F_per_mu, prob.fixed
+    q = {**fixed, **fit.params}
+    sd = dict(unc["params_sd"])
+    iv = {k_: list(v_) for k_, v_ in unc["intervals"].items()}
+    if "stiffness_kN_per_m" in fixed:
+        sd["stiffness_kN_per_m"] = 0.0
+        iv["stiffness_kN_per_m"] = [fixed["stiffness_kN_per_m"]] * 2
+    order = ["mu0", "A_mu", "B_mu", "L_um"] + (["k_mu_per_um", "stiffness_kN_per_m"] if stiffness else []) + \
+        (["rate_mu_per_mm"] if detrend == "linear" else [])
+    val = dict(q)
+    jac_sd = {nm: fit.stderr.get(nm, 0.0) for nm in q}
+    if stiffness:
+        val["k_mu_per_um"] = q["stiffness_kN_per_m"] * 1e-3 / F_per_mu
+        for d in (sd, jac_sd):
+            d["k_mu_per_um"] = d.get("stiffness_kN_per_m", 0.0) * 1e-3 / F_per_mu
+        iv["k_mu_per_um"] = [b_ * 1e-3 / F_per_mu for b_ in iv["stiffness_kN_per_m"]]
+    params = {nm: _r(val[nm]) for nm in order}
+    params_sd = {nm: _r(sd.get(nm, 0.0)) for nm in order}
+    corr = unc["correlation"]
+    keep = [i for i, nm in enumerate(corr["names"]) if not nm.startswith("v_init")]
+    correlation = {"names": [corr["names"][i] for i in keep],
+                   "matrix": [[corr["matrix"][i][j] for j in keep] for i in keep]}
+    # the field's vocabulary (a, b, Dc_um, a_minus_b, k_per_um): rig.model.spec.rsf_vocabulary
+    rsf = rsf_vocabulary(val, F_per_mu)
+    cov, names_c = unc["cov"], corr["names"]
+    ia, ib = names_c.index("A_mu"), names_c.index("B_mu")
+    amb_sd = math.sqrt(max(cov[ia, ia] + cov[ib, ib] - 2 * cov[ia, ib], 0.0))
+    rsf_sd = {**rsf_vocabulary(sd, F_per_mu), "a_minus_b": amb_sd}
+    rsf_iv = {RSF_NAMES[k_]: iv[k_] for k_ in RSF_NAMES if k_ in iv}
+    if "k_mu_per_um" in iv:
+        rsf_iv["k_per_um"] = iv["k_mu_per_um"]
+    params.update({k_: _r(v_) for k_, v_ in rsf.items()})
+    params_sd.update({k_: _r(v_) for k_, v_ in rsf_sd.items() if k_ in rsf})
+    intervals = {nm: [_r(iv[nm][0]), _r(iv[nm][1])] for nm in order if nm in iv}
+    intervals.update({k_: [_r(v_[0]), _r(v_[1])] for k_, v_ in rsf_iv.items()})
+    return {"params": params, "params_sd": params_sd, "intervals": intervals, "correlation": correlation,
+            "err": {nm: _r(jac_sd.get(nm, 0.0)) for nm in order}, "err_corr": {nm: params_sd[nm] for nm in order},
+            "_sd": sd, "_q": q}
+
+
+def _checked_options(law: str, trend: bool, detrend: str) -> str:
+    """The detrend method (``trend`` asks for ``linear``); ValueError for an unknown law or detrend."""
+    if law not in LAWS:
+        raise ValueError(f"unknown state law {law!r} (slip, aging)")
+    if trend and detrend == "none":
+        detrend = "linear"
+    if detrend not in DETRENDS:
+        raise ValueError(f"unknown detrend {detrend!r} (none, linear, auto)")
+    return detrend
+
+
+def _held_stiffness(trial: TrialData, stiffness: bool, k_fixed: float | None) -> tuple[float | None, str | None]:
+    """(k held in mu per µm or None, its source: fitted, metadata or given): a known machine
+    stiffness (measured-data.md: machine_stiffness_kN_per_m) is held."""
+    if not stiffness:
+        return k_fixed, None
+    k_meta = parse_number(str(trial.metadata.get("machine_stiffness_kN_per_m", "")))
+    if k_fixed is None and k_meta is not None and k_meta > 0:
+        k_fixed = k_meta * 1e-3 / (2.0 * trial.normal_force_N)
+    return k_fixed, ("fitted" if k_fixed is None else ("metadata" if k_meta is not None and k_meta > 0 else "given"))
+
+
 def fit_whole_record(trial: TrialData, steps: list[Step] | None = None, *, stiffness: bool = False,
                      velocity_method: str = "segments", max_points: int = 15000, trend: bool = False,
                      init: dict | None = None, k_fixed: float | None = None, law: str = "slip",
@@ -488,226 +754,51 @@ def fit_whole_record(trial: TrialData, steps: list[Step] | None = None, *, stiff
       (68 %) and ``correlation``; ``err_corr`` is ``params_sd`` (kept for older readers) and
       ``err`` the plain Jacobian's.
     """
-    from rig.fitting.stats import block_bootstrap, effective_n, information_criterion, jacobian_summary, mcmc, \
-        parse_uncertainty, profile_interval
+    from rig.fitting.stats import information_criterion, parse_uncertainty
 
-    if law not in LAWS:
-        raise ValueError(f"unknown state law {law!r} (slip, aging)")
-    if trend and detrend == "none":
-        detrend = "linear"
-    if detrend not in DETRENDS:
-        raise ValueError(f"unknown detrend {detrend!r} (none, linear, auto)")
+    detrend = _checked_options(law, trend, detrend)
     method, n_draws = parse_uncertainty(uncertainty)
-    t = np.asarray(trial.time_s, dtype=float)
-    x = np.asarray(trial.position_um, dtype=float)
-    mu = np.asarray(trial.mu, dtype=float)
-    if steps is None:
-        steps = detect_steps(trial)
     if stiffness:
         max_points = min(max_points, 8000)
-    w_raw, _ = _time_weights(t)
-    idx, width = _time_bins(t, max_points)
-    wsum = np.bincount(idx, w_raw).astype(float)
-    nb = wsum.size
-    t, x, mu = (_bin_mean(a, idx, wsum, w_raw) for a in (t, x, mu))
-    steps = _binned_steps(steps, idx, nb)
-    v_est = estimate_velocity(t, x, "local_poly" if velocity_method == "segments" else velocity_method)
-    if stiffness or (velocity_method == "segments" and steps):
-        v, in_steps = _segment_velocity(t, x, steps, v_est)
-        velocity_method = "segments"
-    else:
-        v = v_est
-        _, in_steps = _segment_velocity(t, x, steps, v_est)
-    runs = _runs(steps, t.size)
-    if not stiffness or not trial.is_load_point:
-        # the velocity rise of a step (the rig's controller, 0.2-0.5 s) is not the segments' ideal
-        # step: it is not compared, as the per-step method leaves it out (rise_guard_s after t*,
-        # half of it before); on generated records it biased A by -1.6 of its sd. A load point's
-        # (position_source: load_point) rounding is the spring's, which the model has: compared whole.
-        for s_ in steps:
-            in_steps[(t > s_.t_s - 0.5 * rise_guard_s) & (t < s_.t_s + rise_guard_s)] = False
-    vmed = max(float(np.median(np.abs(v))), 1e-6)
-    # compare model and data on the runs' sliding stretches (not on rests or returns)
-    sliding = np.zeros(t.size, bool)
-    for lo, hi in runs:
-        sliding[lo:hi] = in_steps[lo:hi] & (v[lo:hi] > 0.05 * vmed)
-    if sliding.sum() < 20:
-        runs = [(0, t.size)]
-        sliding = v > 0.05 * vmed
-    N_N = trial.normal_force_N
-    F_per_mu = 2.0 * N_N  # the fixture's total friction force per unit mu (two interfaces)
-    # a known machine stiffness (measured-data.md: machine_stiffness_kN_per_m) is held
-    k_meta = parse_number(str(trial.metadata.get("machine_stiffness_kN_per_m", ""))) if stiffness else None
-    if stiffness and k_fixed is None and k_meta is not None and k_meta > 0:
-        k_fixed = k_meta * 1e-3 / F_per_mu
-    k_source = None if not stiffness else ("fitted" if k_fixed is None else
-                                           ("metadata" if k_meta is not None and k_meta > 0 else "given"))
-    # slip since the first compared sample (mm), for the trend: |dx| summed (returns count as slip)
-    s_mm = np.concatenate([[0.0], np.cumsum(np.abs(np.diff(x)))]) * 1e-3
-    s_mm = s_mm - s_mm[int(np.argmax(sliding))]
+    rec = _binned_record(trial, detect_steps(trial) if steps is None else steps, stiffness, velocity_method,
+                         max_points, rise_guard_s)
+    F_per_mu = 2.0 * trial.normal_force_N
+    k_fixed, k_source = _held_stiffness(trial, stiffness, k_fixed)
     L0 = float((init or {}).get("L_um", 20.0))
-    L0 = L0 if math.isfinite(L0) and L0 > 0 else 20.0
-    trend_fixed = 0.0
-    detrend_info: dict = {"method": detrend}
-    if detrend == "auto":
-        wins = steady_windows(t, x, mu, v, steps, runs, L0)
-        slope, se = trend_from_windows(s_mm, mu, wins)
-        if math.isfinite(slope):
-            trend_fixed = slope
-            detrend_info.update(rate_mu_per_mm=_r(slope), rate_sd_mu_per_mm=_r(se),
-                                windows_s=[[_r(t[a], 5), _r(t[b - 1], 5)] for a, b in wins])
-        else:
-            detrend_info.update(rate_mu_per_mm=0.0, note="no steady-state window of 20 µm beyond 5 L: not detrended")
-    t_rel = t - t[0]
-    ext = (["finite_stiffness"] if stiffness else []) + (["aging_law"] if law == "aging" else [])
-    # a run that starts after a rest, a return or a stretch the fit does not compare has an unknown
-    # state: fitted; a run from the record's first samples starts in the steady state of its first
-    # speed (xlook's and RSFit's convention before a step)
-    run_names = [f"v_init_um_s.{j}" for j in range(len(runs))]
-    v_first = {nm: max(abs(float(np.median(v[lo:min(hi, lo + 5)]))), 0.01) for nm, (lo, hi) in zip(run_names, runs)}
-    held_init = {nm: v_first[nm] for nm, (lo, _) in zip(run_names, runs) if lo < 3}
-    names = ["mu0", "A_mu", "B_mu", "L_um"] + (["stiffness_kN_per_m"] if stiffness and k_fixed is None else []) + \
-        (["rate_mu_per_mm"] if detrend == "linear" else []) + [nm for nm in run_names if nm not in held_init]
-    V_INIT = Param.of("v_init_um_s", PARAMS["v_init_um_s"])
-    pset = ParamSet([TREND if nm == "rate_mu_per_mm" else
-                     (Param(nm, V_INIT.unit, V_INIT.lo, V_INIT.hi, True) if nm.startswith("v_init") else
-                      Param.of(nm, PARAMS[nm])) for nm in names])
-    fixed = {"stiffness_kN_per_m": float(k_fixed) * F_per_mu * 1e3} if stiffness and k_fixed is not None else {}
-    fixed.update(held_init)
-    # the load point (stiffness) moves with the segment velocity, piecewise constant per interval
-    x_lp = np.concatenate([[x[0]], x[0] + np.cumsum(v[:-1] * np.diff(t))]) if stiffness else x
-
-    def model(q: dict) -> np.ndarray:
-        fm = FrictionModel(extensions=ext, params={k_: q[k_] for k_ in ("mu0", "A_mu", "B_mu", "L_um",
-                                                                        "stiffness_kN_per_m") if k_ in q})
-        out = np.full(t.size, np.nan)
-        for j, (lo, hi) in enumerate(runs):
-            out[lo:hi] = predict_force(fm, t_rel[lo:hi], x_lp[lo:hi], v[lo:hi], None, N_N,
-                                       q[run_names[j]]) / F_per_mu
-        return out + q.get("rate_mu_per_mm", trend_fixed) * s_mm
-
-    # statistics weigh time, not rows: each compared bin by its share of the time (mean 1)
-    sw = np.sqrt(wsum[sliding] / np.mean(wsum[sliding]))
-
-    def resid(free: dict) -> np.ndarray:
-        r = (model({**fixed, **free}) - mu)[sliding] * sw
-        return np.where(np.isfinite(r), r, 1.0)
-
-    # starting values: steady state from a semi-log regression, per-step results if given
-    lv = np.log(np.maximum(v[sliding], 1e-6) / V0_UM_S)
-    c = np.polyfit(lv, mu[sliding], 1) if np.ptp(lv) > 0.1 else (0.0, float(np.mean(mu[sliding])))
-    init = dict(init or {})
-    A0 = float(init.get("A_mu", 0.005 if stiffness else 0.002))
-    A0 = A0 if math.isfinite(A0) and A0 > 0 else 0.002
-    B0 = float(init.get("B_mu", A0 - c[0]))
-    B0 = B0 if math.isfinite(B0) else A0
-    k0 = float(init.get("k_mu_per_um", 0.005)) * F_per_mu * 1e3
-    def start(L_: float) -> dict:
-        return {"mu0": float(c[1]), "A_mu": A0, "B_mu": B0, "L_um": max(L_, 0.5), "stiffness_kN_per_m": k0,
-                "rate_mu_per_mm": 0.0, **v_first}
-
-    Ls = [float(init["L_um"])] if "L_um" in init and math.isfinite(init["L_um"]) else []
+    s_mm, trend_fixed, detrend_info = _detrending(rec, detrend, L0 if math.isfinite(L0) and L0 > 0 else 20.0)
+    prob = _problem(rec, trial, stiffness, k_fixed, law, detrend, s_mm, trend_fixed)
     t0 = time.perf_counter()
-    opts = dict(max_nfev=200, diff_step=None, xtol=1e-8, ftol=1e-8, x_scale="jac")
-    fit = least_squares_fit(resid, pset, [start(L_) for L_ in (Ls or [5.0, 20.0, 80.0])], **opts)
-    if Ls and (fit is None or not fit.success):
-        more = least_squares_fit(resid, pset, [start(Ls[0] / 3.0), start(Ls[0] * 3.0)], **opts)
-        if more is not None and (fit is None or more.cost < fit.cost):
-            fit = more
+    fit = _least_squares(rec, prob, dict(init or {}), stiffness)
     if fit is None:
         return {"ok": False, "reason": "least squares failed"}
-    q = {**fixed, **fit.params}
+    unc, n_eff = _whole_record_uncertainty(rec, prob, fit, method, n_draws, seed, profile, progress)
+    rep = _reported(prob, fit, unc, stiffness, detrend)
+    sd, q = rep.pop("_sd"), rep.pop("_q")
     r = fit.residuals
     n = r.size
-    # effective sample size: Kish's for the weights, over the residuals' correlation time
-    n_eff = effective_n(r) * float(np.sum(sw ** 2) ** 2 / np.sum(sw ** 4)) / n
-    unc = jacobian_summary(pset, fit, n_eff)
-    if method == "jacobian" and profile:
-        # L's interval from its profile likelihood (the a-b-L valley is flat and skewed in L)
-        # (its shape from the n_eff-scaled likelihood, its width rescaled to the HAC sd)
-        jl = names.index("L_um")
-        zl = fit.extra["z"][jl]
-        ratio = unc["sd_ratio"].get("L_um", 1.0)
-        ratio = ratio if math.isfinite(ratio) and ratio > 0 else 1.0
-        sd_zl = unc["params_sd"]["L_um"] / max(math.exp(zl), 1e-12) / ratio
-        piv = profile_interval(resid, pset, fit, "L_um", n_eff, sd_zl)
-        if piv is not None:
-            lo_z, hi_z = math.log(piv[0]), math.log(piv[1])
-            unc["intervals"]["L_um"] = [math.exp(zl - (zl - lo_z) * ratio), math.exp(zl + (hi_z - zl) * ratio)]
-            unc["profile"] = ["L_um"]
-    if method == "bootstrap":
-        m_hat = model(q)[sliding]
-
-        def residual_for(e):
-            return lambda free: np.where(np.isfinite(rr := ((model({**fixed, **free})[sliding] - m_hat) * sw + e)),
-                                         rr, 1.0)
-
-        unc = block_bootstrap(residual_for, pset, fit, n_draws, seed=seed, progress=progress)
-    elif method == "mcmc":
-        z_cov = np.linalg.pinv(fit.jac.T @ fit.jac) * float(np.dot(r, r)) / max(n - len(names), 1)
-        unc = mcmc(resid, pset, fit, n_draws, n_eff, seed=seed, cov_z=z_cov, progress=progress)
-    sd = dict(unc["params_sd"])
-    iv = {k_: list(v_) for k_, v_ in unc["intervals"].items()}
-    if "stiffness_kN_per_m" in fixed:
-        sd["stiffness_kN_per_m"] = 0.0
-        iv["stiffness_kN_per_m"] = [fixed["stiffness_kN_per_m"]] * 2
-    # report: the paper's friction units (k in mu per µm) and the stiffness in kN/m
-    order = ["mu0", "A_mu", "B_mu", "L_um"] + (["k_mu_per_um", "stiffness_kN_per_m"] if stiffness else []) + \
-        (["rate_mu_per_mm"] if detrend == "linear" else [])
-    val = dict(q)
-    jac_sd = {nm: fit.stderr.get(nm, 0.0) for nm in q}
-    if stiffness:
-        val["k_mu_per_um"] = q["stiffness_kN_per_m"] * 1e-3 / F_per_mu
-        for d in (sd, jac_sd):
-            d["k_mu_per_um"] = d.get("stiffness_kN_per_m", 0.0) * 1e-3 / F_per_mu
-        iv["k_mu_per_um"] = [b_ * 1e-3 / F_per_mu for b_ in iv["stiffness_kN_per_m"]]
-    params = {nm: _r(val[nm]) for nm in order}
-    params_sd = {nm: _r(sd.get(nm, 0.0)) for nm in order}
     ssr = float(np.dot(r, r))
-    corr = unc["correlation"]
-    keep = [i for i, nm in enumerate(corr["names"]) if not nm.startswith("v_init")]
-    correlation = {"names": [corr["names"][i] for i in keep],
-                   "matrix": [[corr["matrix"][i][j] for j in keep] for i in keep]}
-    # the field's vocabulary (a, b, Dc_um, a_minus_b, k_per_um): rig.model.spec.rsf_vocabulary
-    rsf = rsf_vocabulary(val, F_per_mu)
-    names_c = corr["names"]
-    cov = unc["cov"]
-    ia, ib = names_c.index("A_mu"), names_c.index("B_mu")
-    amb_sd = math.sqrt(max(cov[ia, ia] + cov[ib, ib] - 2 * cov[ia, ib], 0.0))
-    rsf_sd = {**rsf_vocabulary(sd, F_per_mu), "a_minus_b": amb_sd}
-    rsf_iv = {RSF_NAMES[k_]: iv[k_] for k_ in RSF_NAMES if k_ in iv}
-    if "k_mu_per_um" in iv:
-        rsf_iv["k_per_um"] = iv["k_mu_per_um"]
-    params.update({k_: _r(v_) for k_, v_ in rsf.items()})
-    params_sd.update({k_: _r(v_) for k_, v_ in rsf_sd.items() if k_ in rsf})
-    intervals = {nm: [_r(iv[nm][0]), _r(iv[nm][1])] for nm in order if nm in iv}
-    intervals.update({k_: [_r(v_[0]), _r(v_[1])] for k_, v_ in rsf_iv.items()})
-    rho = float(np.corrcoef(r[:-1], r[1:])[0, 1]) if n > 3 else 0.0
-    n_par = len(names)
+    n_par = len(prob.names)
     out = {"ok": fit.success, "model": "rate_state" + ("+finite_stiffness" if stiffness else "")
-           + ("+aging_law" if law == "aging" else ""),
-           "law": law, "params": params, "params_sd": params_sd, "intervals": intervals, "correlation": correlation,
+           + ("+aging_law" if law == "aging" else ""), "law": law, **rep,
            "uncertainty": {k_: v_ for k_, v_ in unc.items() if k_ not in ("params_sd", "intervals", "correlation", "cov",
                                                                           "sd_ratio")},
-           "err": {nm: _r(jac_sd.get(nm, 0.0)) for nm in order}, "err_corr": {nm: params_sd[nm] for nm in order},
-           "rho1": _r(rho), "n_eff": _r(n_eff, 4), "bin_s": _r(width, 4),
+           "rho1": _r(float(np.corrcoef(r[:-1], r[1:])[0, 1]) if n > 3 else 0.0), "n_eff": _r(n_eff, 4), "bin_s": _r(rec.width, 4),
            "information_criterion": _r(information_criterion(ssr, n, n_eff, n_par)),
-           "n_params": n_par, "runs": len(runs),
-           "v_init_um_s": [_r(q[nm], 4) for nm in run_names],
+           "n_params": n_par, "runs": len(rec.runs),
+           "v_init_um_s": [_r(q[nm], 4) for nm in prob.run_names],
            "rms_mu": _r(math.sqrt(ssr / n)), "rms_N": _r(math.sqrt(ssr / n) * F_per_mu),
-           "n_points": int(n), "decimation": int(max(1, round(idx.size / nb))), "nfev": int(fit.nfev), "fit_time_s": _r(time.perf_counter() - t0, 3),
-           "velocity": "segments (load point)" if stiffness else velocity_method, "detrend": detrend_info}
+           "n_points": int(n), "decimation": rec.decimation, "nfev": int(fit.nfev),
+           "fit_time_s": _r(time.perf_counter() - t0, 3),
+           "velocity": "segments (load point)" if stiffness else rec.velocity_method, "detrend": detrend_info}
     if stiffness:
         out["stiffness_source"] = k_source
     if detrend == "linear":
-        detrend_info.update(rate_mu_per_mm=params["rate_mu_per_mm"], rate_sd_mu_per_mm=params_sd["rate_mu_per_mm"])
-    A, B, L = q["A_mu"], q["B_mu"], q["L_um"]
-    kcr, skcr = k_cr_table2(A, sd["A_mu"], B, sd["B_mu"], L, sd["L_um"], N_N)
-    out["k_cr_kN_per_m"] = _r(kcr)
-    out["k_cr_err_kN_per_m"] = _r(skcr)
-    tr_line = q.get("rate_mu_per_mm", trend_fixed) * s_mm
-    out["_curve"] = (t, model(q), mu, sliding, tr_line)
-    out["_resid"] = (t[sliding], r)
+        detrend_info.update(rate_mu_per_mm=rep["params"]["rate_mu_per_mm"],
+                            rate_sd_mu_per_mm=rep["params_sd"]["rate_mu_per_mm"])
+    kcr, skcr = k_cr_table2(q["A_mu"], sd["A_mu"], q["B_mu"], sd["B_mu"], q["L_um"], sd["L_um"], trial.normal_force_N)
+    out.update(k_cr_kN_per_m=_r(kcr), k_cr_err_kN_per_m=_r(skcr))
+    out["_curve"] = (rec.t, prob.model(q), rec.mu, rec.sliding, q.get("rate_mu_per_mm", trend_fixed) * s_mm)
+    out["_resid"] = (rec.t[rec.sliding], r)
     return out
 
 

@@ -49,7 +49,7 @@ import numpy as np
 
 from rig.data import TrialData
 
-from .fit import FitResult, at_bound, evaluate, fit, multistart, profile
+from .fit import FitResult, at_bound, delta_bic, evaluate, fit, multistart, profile
 from rig.kinematics import velocity_changes
 from rig.model.forward import as_model
 from rig.model.spec import EXT_PARAMS, PLAUSIBLE, model_params
@@ -519,7 +519,7 @@ def try_candidate(grid: Grid, cur: FitResult, cause: str, info: dict, prior: dic
         # slower one, L2_um > L_um (swapped before reporting)
         swap_slower_second(res.params)
     gain = 100.0 * (cur.holdout_rms_N - res.holdout_rms_N) / cur.holdout_rms_N
-    dbic = res.bic - cur.bic
+    dbic = delta_bic(grid, cur, res)
     z = paired_z(grid, cur.pred, res.pred)
     zw = white_z(grid, cur.pred, res.pred)
     note = ""

@@ -18,6 +18,7 @@ import numpy as np
 
 from rig.model.forward import as_model, force_sensitivities, has_sensitivities, predict_force
 from rig.fitting import Param, ParamSet, least_squares_fit
+from rig.fitting.stats import comparison_n_eff, inflated_cov, information_criterion, time_cell_s
 from rig.model.spec import PARAMS, model_params
 from .prep import Grid
 
@@ -70,13 +71,24 @@ class FitResult:
     def fit_rms_N(self) -> float:
         return math.sqrt(self.sse_fit / max(self.n_fit, 1))
 
-    @property
-    def bic(self) -> float:
-        """Gaussian BIC on the fit blocks' raw samples: n ln(SSE/n) + k ln n, with n the
-        effective number of independent samples (raw count / Grid.noise_corr)."""
-        n = max(self.n_fit, 1)
-        ne = max(n / max(self.noise_corr, 1.0), 1.0)
-        return ne * math.log(max(self.sse_fit, 1e-300) / n) + self.n_par * math.log(ne)
+
+def delta_bic(grid: Grid, cur: FitResult, res: FitResult) -> float:
+    """``res``'s Gaussian BIC minus ``cur``'s on the fit blocks, ``n_eff ln(SSE/n) + k ln n_eff``
+    (rig.fitting.stats.information_criterion), on one effective sample size: the better fit's residual in
+    time along the two predictions' difference (rig.fitting.stats.comparison_n_eff), so that the
+    difference weighs the record's time, not its rows (issue 20 Deliver 3), and another effect
+    that both models leave in the residual does not hide this one."""
+    fm = grid.fit_mask()
+    better, worse = (res, cur) if res.sse_fit < cur.sse_fit else (cur, res)
+    ne = math.nan
+    if fm.any() and np.all(np.isfinite(better.pred[fm])) and np.all(np.isfinite(worse.pred[fm])):
+        t = grid.t[fm]
+        ne = comparison_n_eff(t, grid.count[fm], (grid.F_mean - worse.pred)[fm], (grid.F_mean - better.pred)[fm],
+                              time_cell_s(t))
+    if not math.isfinite(ne):
+        ne = max(better.n_fit / max(better.noise_corr, 1.0), 1.0)
+    return (information_criterion(res.sse_fit, res.n_fit, ne, res.n_par)
+            - information_criterion(cur.sse_fit, cur.n_fit, ne, cur.n_par))
 
 
 def _free_names(baseline: str, extensions: list[str], init: dict | None = None,
@@ -193,48 +205,27 @@ def fit(grid: Grid, baseline: str, extensions: list[str], init: dict[str, float]
     return res
 
 
-COV_CHUNKS = 40  # time chunks of the cluster-robust covariance
-
-
 def _cov_internal(grid: Grid, res: FitResult):
-    """(pset, z, covariance in the internal variables, its ratio to the white-noise one per parameter).
+    """(pset, z, covariance in the internal variables, its ratio to the white-noise one per parameter, s^2).
 
-    The covariance is cluster-robust in time (a sandwich, ``B M B`` with ``B = (J^T J)^-1`` and
-    ``M`` the sum over COV_CHUNKS chunks of time of ``(J_c^T r_c)(J_c^T r_c)^T``, times G / (G - 1)):
-    residuals correlated over seconds (the kinematics' own errors after a step, the servo, a slow
-    structure no model holds) count as the few independent pieces they are -- the effective sample
-    size of Deliver 3 of issue 20. It is never smaller than the white-noise one, ``B s^2``, inflated
-    by ``(1 + rho) / (1 - rho)`` (rho the lag-1 autocorrelation of the fitted bins' residuals), which
-    is used alone when the record has fewer than 10 chunks."""
+    rig.fitting.stats.inflated_cov: the white-noise covariance of the fit's Jacobian, each
+    parameter's variance inflated by ``n / n_eff`` of its score in time (the residual weighted by
+    where the parameter's information is: the effective sample size of Deliver 3 of issue 20,
+    computed as identify's whole-record fit computes it)."""
     if "jac" not in res.extra:
         return None
     pset, z, J, r, m = res.extra["jac"]
     n, p = J.shape
     if n <= p + 1:
         return None
-    s2 = float(np.dot(r, r) / (n - p))
+    mm = m if m is not None and np.size(m) == grid.t.size else grid.fit_mask()
+    if int(mm.sum()) != n:
+        return None
     try:
-        B = np.linalg.pinv(J.T @ J)
+        cz, tau, s2 = inflated_cov(J, r, grid.t[mm])
     except (np.linalg.LinAlgError, ValueError):
         return None
-    white = B * s2
-    x = r - r.mean()
-    rho = float(np.sum(x[1:] * x[:-1]) / max(float(np.sum(x * x)), 1e-300))
-    rho = min(max(rho, 0.0), 0.98)
-    cz = white * (1.0 + rho) / (1.0 - rho)
-    tm = grid.t[m] if m is not None and np.size(m) == grid.t.size else None
-    if tm is not None and tm.size == n and tm[-1] > tm[0]:
-        ch = np.minimum(((tm - tm[0]) / (tm[-1] - tm[0]) * COV_CHUNKS).astype(np.int64), COV_CHUNKS - 1)
-        G = np.unique(ch).size
-        if G >= 10:
-            g = np.zeros((COV_CHUNKS, p))
-            np.add.at(g, ch, J * r[:, None])
-            robust = B @ (g.T @ g) @ B * G / (G - 1)
-            dd = np.maximum(np.diag(robust), np.diag(cz))
-            sc = np.sqrt(dd / np.maximum(np.diag(robust), 1e-300))
-            cz = robust * np.outer(sc, sc)  # the robust correlations, never below the inflated white sd
-    ratio = np.diag(cz) / np.maximum(np.diag(white), 1e-300)
-    return pset, z, cz, ratio, s2
+    return pset, z, cz, tau, s2
 
 
 def covariance(grid: Grid, res: FitResult) -> tuple[list[str], np.ndarray, np.ndarray] | None:

@@ -2,20 +2,27 @@
 correlation, intervals, a block bootstrap in time and an MCMC sampler (emcee, optional).
 
 Every function here works on a fit of :mod:`rig.fitting` (named parameters with bounds and ln
-scaling) and a residual series on a **uniform time grid** (the caller bins the record in time
-first, so that a record that logs ten times faster after a step does not count that part ten
-times: statistics weigh time, not rows).
+scaling) and its residuals in time order. Statistics weigh time, not rows: the ``*_time``,
+``score_inflation`` and ``comparison_n_eff`` functions sum the (time-weighted) residuals over
+uniform cells in time, so a record that logs ten times faster after a step does not count that
+part ten times; :func:`effective_n` and the bootstrap assume rows on a uniform time grid.
 
 * :func:`effective_n`: ``n_eff = n / (1 + 2 sum rho_k)``, the sum over the initial positive
   sequence of the residuals' autocorrelation (Geyer 1992), so a residual that is correlated over
   ``tau`` samples holds ``n / tau`` independent ones (the lag-1 correction alone misses a slow
   structure).
+* :func:`effective_n_time`: the same for residuals of irregular rows or bins weighted by the time
+  they stand for: their sums over uniform cells in time, so a record logged ten times faster
+  after a step has the ``n_eff`` of the uniformly sampled one.
+* :func:`comparison_n_eff`: the effective sample size of two fits' comparison, the better
+  fit's residual along the fits' difference.
 * :func:`information_criterion`: Gaussian BIC on the effective sample size,
   ``n_eff ln(SSR / n) + p ln(n_eff)`` (Schwarz 1978; Kass & Raftery 1995: a difference above
   6 is strong evidence).
-* :func:`jacobian_summary`: the Newey-West (HAC) covariance ``B^-1 M B^-1`` in the internal
-  variables (each parameter sees the residual correlation where its information is), mapped to
-  each parameter's unit; a ln-scaled parameter's 68 % interval is ``exp(ln v +- sd_ln)``
+* :func:`inflated_cov`, :func:`jacobian_summary`: the Jacobian's covariance with each parameter's
+  variance inflated by ``n / n_eff`` of its influence in time (:func:`score_inflation`: each
+  parameter sees the residual correlation where its information is), mapped to each parameter's
+  unit; a ln-scaled parameter's 68 % interval is ``exp(ln v +- sd_ln)``
   (asymmetric, as xlook reports Dc). :func:`profile_interval` gives a skewed interval.
 * :func:`block_bootstrap`: the residuals resampled in blocks of about twice their correlation
   time (moving-block bootstrap, Kuensch 1989), added to the fitted curve and refitted N times.
@@ -73,6 +80,96 @@ def effective_n(r: np.ndarray) -> float:
     return max(r.size / correlation_time(r), 1.0)
 
 
+def effective_n_time(t_s: np.ndarray, r: np.ndarray, w: np.ndarray, cell_s: float,
+                     ss_within: float = 0.0) -> float:
+    """Effective sample size of a weighted residual in time (issue 20 Deliver 3: time, not rows).
+
+    ``r`` are residuals of rows or bins at times ``t_s`` (s), ``w`` the raw samples each stands
+    for (a time-weighted count), ``ss_within`` the raw sum of squares about the bins' means. The
+    residual sums ``S_j = sum w_i r_i`` over uniform cells of ``cell_s`` seconds (empty cells 0: a
+    gap is time) give the long-run variance ``sum_j S_j^2 tau_S``, ``tau_S`` the cells'
+    :func:`correlation_time`; over the raw sum of squares ``SSR = sum w_i r_i^2 + ss_within``
+    it is the variance inflation ``tau`` of the sum of the raw residuals (1 for white noise,
+    the raw samples per independent one otherwise), and ``n_eff = sum w / tau``. A record logged
+    ten times faster after a step has ten times the rows there and ten times their correlation in
+    rows: its ``n_eff`` is that of the uniformly sampled one. At most ``sum w``, at least 1."""
+    t_s, r, w = (np.asarray(a, dtype=float) for a in (t_s, r, w))
+    n = float(w.sum())
+    ssr = float(np.sum(w * r * r)) + float(ss_within)
+    if t_s.size < 3 or not n > 0 or not ssr > 0 or not cell_s > 0:
+        return max(n, 1.0)
+    cell = np.floor((t_s - t_s.min()) / cell_s).astype(np.int64)
+    s = np.bincount(cell, weights=w * r)
+    tau = float(np.dot(s, s)) / ssr * correlation_time(s)
+    return float(min(max(n / max(tau, 1.0), 1.0), n))
+
+
+#: the cells in time of :func:`effective_n_time` and :func:`score_inflation` (s); longer where the
+#: rows are sparser (:func:`time_cell_s`)
+CELL_S = 1.0
+
+
+def time_cell_s(t_s: np.ndarray) -> float:
+    """The cell of the effective sample size for rows at ``t_s``: CELL_S, or two rows' median
+    interval where rows are sparser (every cell then holds a row)."""
+    t_s = np.asarray(t_s, dtype=float)
+    return max(CELL_S, 2.0 * float(np.median(np.diff(t_s)))) if t_s.size > 1 else CELL_S
+
+
+def inflated_cov(jac: np.ndarray, r: np.ndarray, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """``(cov_z, tau, s2)``: the least-squares covariance of the internal variables,
+    ``(J^T J)^-1 s^2`` with ``s^2 = SSR / (n - p)``, each parameter's variance inflated by its
+    :func:`score_inflation` ``tau`` (``n / n_eff`` of the residual where its information is), the
+    correlations kept. The one rule for identify's whole-record fit and diagnose's models."""
+    jac, r = np.asarray(jac, dtype=float), np.asarray(r, dtype=float)
+    n, p = jac.shape
+    s2 = float(np.dot(r, r)) / max(n - p, 1)
+    white = np.linalg.pinv(jac.T @ jac) * s2
+    tau = score_inflation(t_s, jac, r, time_cell_s(t_s))
+    f = np.sqrt(tau)
+    return white * np.outer(f, f), tau, s2
+
+
+def score_inflation(t_s: np.ndarray, jac: np.ndarray, r: np.ndarray, cell_s: float) -> np.ndarray:
+    """Per parameter, the variance inflation ``n / n_eff`` of the residual where that parameter's
+    information is: each row's influence on the estimate, ``h_i = (J^T J)^-1 J_i r_i`` (the score
+    ``J_i r_i`` with the other parameters partialled out), summed over uniform cells of ``cell_s``
+    seconds, ``sum_j S_j^2 tau_S / sum_i h_i^2`` (``tau_S`` the cells' :func:`correlation_time`),
+    at least 1. A slow misfit that a parameter does not see (a drift that the constant absorbs,
+    under the transients that carry L) does not widen that parameter's error. Rows in time order,
+    ``jac`` and ``r`` weighted alike: the diagonal of a Newey-West sandwich whose lag window the
+    data choose."""
+    t_s, r = np.asarray(t_s, dtype=float), np.asarray(r, dtype=float)
+    jac = np.asarray(jac, dtype=float)
+    out = np.ones(jac.shape[1])
+    if t_s.size < 3 or not cell_s > 0:
+        return out
+    h = (jac * r[:, None]) @ np.linalg.pinv(jac.T @ jac)
+    cell = np.floor((t_s - t_s.min()) / cell_s).astype(np.int64)
+    for j in range(h.shape[1]):
+        den = float(np.dot(h[:, j], h[:, j]))
+        if not den > 0:
+            continue
+        s = np.bincount(cell, weights=h[:, j])
+        out[j] = max(float(np.dot(s, s)) / den * correlation_time(s), 1.0)
+    return out
+
+
+def comparison_n_eff(t_s: np.ndarray, w: np.ndarray, r_worse: np.ndarray, r_better: np.ndarray,
+                     cell_s: float) -> float:
+    """The effective sample size on which two fits of one record are compared: ``sum w`` over the
+    :func:`score_inflation` of the better fit's residual along the two fits' difference
+    ``d = r_worse - r_better`` (the direction the extra parameters move the prediction). What
+    decides between the models is the residual's correlation where they differ: a slow drift that
+    both leave (another cause, not yet in either) does not hide a periodic term, and a record
+    logged ten times faster after a step counts that part as long as it lasts."""
+    t_s, w = np.asarray(t_s, dtype=float), np.asarray(w, dtype=float)
+    sw = np.sqrt(w)
+    d = np.asarray(r_worse, dtype=float) - np.asarray(r_better, dtype=float)
+    tau = score_inflation(t_s, (sw * d)[:, None], sw * np.asarray(r_better, dtype=float), cell_s)[0]
+    return float(max(w.sum() / tau, 1.0))
+
+
 def information_criterion(ssr: float, n: int, n_eff: float, n_par: int) -> float:
     """Gaussian BIC on the effective sample size: ``n_eff ln(SSR/n) + p ln(n_eff)``."""
     ne = max(float(n_eff), 1.0)
@@ -89,28 +186,18 @@ def correlation_of(cov: np.ndarray, names: list[str]) -> dict:
     return {"names": list(names), "matrix": [[round(float(v), 4) for v in row] for row in np.clip(c, -1, 1)]}
 
 
-def jacobian_summary(pset: ParamSet, fit: FitOutcome, n_eff: float, hac: bool = True) -> dict:
-    """sd, 68 % intervals and correlation from the fit's Jacobian: the residual variance inflated
-    by ``n / n_eff``, and with ``hac`` (default) the Newey-West covariance (:func:`hac_cov`, lags =
-    4 correlation times) where that is larger (per parameter; its correlations are kept). Internal variables: ln
-    for log parameters, so their intervals are asymmetric. ``sd_ratio`` (per parameter) is this
-    sd over the ``n / n_eff``-inflated one, for rescaling a profile interval."""
+def jacobian_summary(pset: ParamSet, fit: FitOutcome, t_s: np.ndarray) -> dict:
+    """sd, 68 % intervals and correlation from the fit's Jacobian (:func:`inflated_cov`: each
+    parameter's variance inflated by ``n / n_eff`` of its score in time; rows at ``t_s``, in time
+    order). Internal variables: ln for log parameters, so their intervals are asymmetric.
+    ``sd_ratio`` (per parameter) is the inflation's square root, for rescaling a profile interval."""
     z = fit.extra["z"]
     r = np.asarray(fit.residuals, dtype=float)
-    n, p = r.size, z.size
-    s2 = float(np.dot(r, r)) / max(n - p, 1) * max(n / max(n_eff, 1.0), 1.0)
+    p = z.size
     try:
-        cov_n = np.linalg.pinv(fit.jac.T @ fit.jac) * s2
-        cov_z = cov_n
-        if hac:
-            cov_h = hac_cov(fit.jac, r, int(math.ceil(4.0 * correlation_time(r)))) * n / max(n - p, 1)
-            # the larger of the two per parameter: each is a lower bound under its own assumption
-            # (the HAC's lags are truncated, so a slow misfit escapes it; one n/n_eff factor misses
-            # correlation concentrated where a parameter's information is)
-            f = np.sqrt(np.maximum(np.diag(cov_h), np.diag(cov_n)) / np.maximum(np.diag(cov_h), 1e-300))
-            cov_z = cov_h * np.outer(f, f)
+        cov_z, tau, _ = inflated_cov(fit.jac, r, t_s)
     except (np.linalg.LinAlgError, ValueError):
-        cov_z = cov_n = np.full((p, p), np.nan)
+        cov_z, tau = np.full((p, p), np.nan), np.ones(p)
     sd_z = np.sqrt(np.maximum(np.diag(cov_z), 0.0))
     sd, iv = {}, {}
     for prm, zi, si in zip(pset.params, z, sd_z):
@@ -126,11 +213,9 @@ def jacobian_summary(pset: ParamSet, fit: FitOutcome, n_eff: float, hac: bool = 
     # covariance in the parameters' own units (first order) for the correlation
     d = np.array([prm.to_value(float(zi)) if prm.log else prm.scale for prm, zi in zip(pset.params, z)])
     cov = cov_z * np.outer(d, d)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        ratio = np.sqrt(np.diag(cov_z) / np.diag(cov_n))
     return {"method": "jacobian", "params_sd": sd, "intervals": iv, "correlation": correlation_of(cov, pset.names),
-            "cov": cov, "sd_ratio": {nm: float(x) for nm, x in zip(pset.names, ratio)},
-            "errors": "max(Newey-West HAC, n_eff-inflated)" if hac else "n_eff-inflated"}
+            "cov": cov, "sd_ratio": {nm: float(math.sqrt(x)) for nm, x in zip(pset.names, tau)},
+            "errors": "n/n_eff of each parameter's score in time"}
 
 
 def profile_interval(residual: Callable[[dict], np.ndarray], pset: ParamSet, fit: FitOutcome, name: str,
