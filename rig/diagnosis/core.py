@@ -72,6 +72,9 @@ MAX_FINDINGS = 5
 # a further cause must leave the causes already found as they were (within this fraction): one that
 # takes over part of their job (a lag that makes a spring 60 % stiffer) is not separable from them
 MAX_FINDING_SHIFT = 0.3
+# |A|, |B| or |B2| above this is a pair of cancelling stand-ins, not rate-and-state coefficients (which
+# are O(0.001-0.02): Table 2, rock friction): the upper end of rig.model.spec.PLAUSIBLE
+COEF_MAX_MU = max(PLAUSIBLE["A_mu"].hi, PLAUSIBLE["B_mu"].hi)
 
 # how the duration of each transient cause's correction scales with the new speed: over a slip
 # distance (~1/v: memory, a second state, a spring taking up dF/k of slip) or a fixed time (lag, delay)
@@ -462,7 +465,8 @@ def identify_prior(trial: TrialData, steps: list | None = None) -> dict:
         return {}
     p = w["params"]
     out = {k: float(p[k]) for k in ("A_mu", "B_mu", "L_um", "stiffness_kN_per_m") if p.get(k) is not None}
-    if not (0.0 <= out.get("A_mu", -1) < 0.05 and abs(out.get("B_mu", 1)) < 0.05 and 0.1 < out.get("L_um", 0) < 1e4):
+    if not (0.0 <= out.get("A_mu", -1) < COEF_MAX_MU and abs(out.get("B_mu", 1)) < COEF_MAX_MU
+            and 0.1 < out.get("L_um", 0) < 1e4):
         return {}
     return out
 
@@ -634,6 +638,11 @@ def _ext_params_plausible(extensions, p: dict) -> bool:
     return True
 
 
+def _coefs_too_large(p: dict) -> bool:
+    """|A|, |B| or |B2| above ``COEF_MAX_MU``."""
+    return any(abs(p.get(k, 0.0)) > COEF_MAX_MU for k in ("A_mu", "B_mu", "B2_mu"))
+
+
 def _plausible(cause: str, p: dict, grid: Grid) -> bool:
     """Reject fits that ran to a bound (the extension then stands in for something else)."""
 
@@ -641,9 +650,8 @@ def _plausible(cause: str, p: dict, grid: Grid) -> bool:
         return False
     if not _ext_params_plausible((cause,), p):
         return False
-    # large cancelling coefficients (e.g. B = 0.13, B2 = -0.13) stand in for something else: real
-    # rate-and-state coefficients are O(0.001-0.02) (Table 2; rock friction)
-    if any(abs(p.get(k, 0.0)) > 0.05 for k in ("A_mu", "B_mu", "B2_mu")):
+    # large cancelling coefficients (e.g. B = 0.13, B2 = -0.13) stand in for something else
+    if _coefs_too_large(p):
         return False
     return CAUSES[cause].plausible(p, grid)
 
@@ -680,13 +688,18 @@ class _Search:
     history: list[FitResult]
     tried: list[list[Candidate]]
     chosen: list[tuple[Candidate, FitResult, str]]  # (candidate, model before it, why it was chosen)
+    # load point: the machine's coupling, fitted from the start (named first) or, when it worsens the
+    # held-out data, left out (then it is here, not in ``chosen``)
+    coupled: bool = False
+    coupling_refused: Candidate | None = None
 
 
 def _search(trial: TrialData, baseline: str, prior: dict, steps: list, known: dict, load_point: bool,
             n_blocks: int = 20, swap_aligned: bool = False, progress=None, max_rounds: int = MAX_FINDINGS,
-            align: bool = True, warm: list[dict] | None = None) -> _Search:
+            align: bool = True, warm: list[dict] | None = None, warm_coupling: dict | None = None) -> _Search:
     """One split of the record: the baseline, the machine's coupling (load point), then the loop of
-    candidates until none passes."""
+    candidates until none passes. ``warm``: per round of the loop, each candidate's fit on another
+    split (``warm_coupling``: the coupling's)."""
     grid = prepare(trial, n_blocks=n_blocks, restart_guard_um=3.0 * prior["L_um"] if prior else 0.0,
                    step_times_s=np.array([s.t_s for s in steps]) if steps else np.zeros(0), align_to_steps=align)
     grid.known = dict(known)
@@ -696,27 +709,14 @@ def _search(trial: TrialData, baseline: str, prior: dict, steps: list, known: di
         raise ValueError(f"{trial.source or 'trial'}: hardly any forward sliding (v > {0.1:g} um/s away from stops): "
                          "nothing to diagnose")
     base = fit_baseline(grid, baseline, prior)
-    cur = base
-    history, tried, chosen = [base], [], []
+    s = _Search(grid, base, [base], [], [])
     if load_point and baseline == "rate_state":
-        # measured-data.md: with position_source load_point (or a stated machine stiffness) the elastic
-        # coupling between the measured position and the interface is always there: fitted from the
-        # start (or held at the stated value), never left for a stand-in cause (aging, a lag, a drift)
-        if progress:
-            progress("the machine's coupling")
-        c = try_candidate(grid, cur, "finite_stiffness", {}, prior,
-                          warm=(warm[0].get("finite_stiffness") if warm else None))
-        why = ("the file states the machine stiffness (machine_stiffness_kN_per_m), held fixed" if known else
-               "position_source: load_point: the machine's compliance lies between the measured position and the "
-               "interface, so the coupling is fitted from the start, whatever its hold-out gain")
-        chosen.append((c, cur, why))
-        tried.append([c])
-        cur = c.result
-        history.append(cur)
-    for _ in range(max_rounds):
+        _couple(s, prior, known, warm_coupling, progress)
+    cur, tried, chosen, history = s.history[-1], s.tried, s.chosen, s.history
+    for round_no in range(max_rounds):
         cands, info = screen(grid, cur)
         results = []
-        w = warm[len(tried)] if warm and len(tried) < len(warm) else {}
+        w = warm[round_no] if warm and round_no < len(warm) else {}
         for cn in cands:
             if progress:
                 progress(f"trying {cn}")
@@ -736,20 +736,44 @@ def _search(trial: TrialData, baseline: str, prior: dict, steps: list, known: di
         chosen.append((best, cur, why))
         cur = best.result
         history.append(cur)
-    return _Search(grid, base, history, tried, chosen)
+    return s
+
+
+def _couple(s: _Search, prior: dict, known: dict, warm: dict | None, progress=None) -> None:
+    """The machine's coupling of a load-point record (measured-data.md: ``position_source:
+    load_point`` or a stated ``machine_stiffness_kN_per_m``): the elastic coupling between the
+    measured position and the interface is always there, so it is fitted from the start (or held at
+    the stated value) and named first, before any stand-in cause (aging, a lag, a drift) is tried,
+    whatever its significance, but never when it worsens the held-out data (a hold-out RMS that rises
+    is no evidence for any cause; the search then goes on from the rigid model)."""
+    if progress:
+        progress("the machine's coupling")
+    cur = s.history[-1]
+    c = try_candidate(s.grid, cur, "finite_stiffness", {}, prior, warm=warm)
+    if not c.gain_pct >= 0.0:
+        c.note = (f"the held-out data get worse with it (hold-out RMS {cur.holdout_rms_N:.4g} -> "
+                  f"{c.result.holdout_rms_N:.4g} N, {c.gain_pct:+.1f}%)")
+        s.coupling_refused = c
+        return
+    why = ("the file states the machine stiffness (machine_stiffness_kN_per_m), held fixed" if known else
+           "position_source: load_point: the machine's compliance lies between the measured position and the "
+           "interface, so the coupling is fitted from the start, whatever the significance of its hold-out gain")
+    s.chosen.append((c, cur, why))
+    s.tried.append([c])
+    s.history.append(c.result)
+    s.coupled = True
 
 
 def _resplit_causes(args) -> list[str]:
     """The causes one re-split names, in order (a worker of :func:`diagnose`)."""
-    trial, baseline, prior, steps, known, load_point, spec, rounds, warm = args
     import warnings
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # a forked worker writes nothing (a stream's lock may be held at the fork)
-        return _resplit_search(trial, baseline, prior, steps, known, load_point, spec, rounds, warm)
+        return _resplit_search(*args)
 
 
-def _resplit_search(trial, baseline, prior, steps, known, load_point, spec, rounds, warm) -> list[str]:
+def _resplit_search(trial, baseline, prior, steps, known, load_point, spec, rounds, warm, warm_coupling) -> list[str]:
     a, b = spec.get("crop", (0.0, 0.0))
     if a or b:
         t = np.asarray(trial.time_s, dtype=float)
@@ -759,7 +783,7 @@ def _resplit_search(trial, baseline, prior, steps, known, load_point, spec, roun
     try:
         s = _search(trial, baseline, prior, steps, known, load_point, n_blocks=spec.get("n_blocks", 20),
                     swap_aligned=spec.get("swap_aligned", False), max_rounds=rounds, align=spec.get("align", True),
-                    warm=warm)
+                    warm=warm, warm_coupling=warm_coupling)
     except (ValueError, ZeroDivisionError, FloatingPointError, IndexError, KeyError):
         return ["(failed)"]  # counted as a split that does not name the cause
     return [c.cause for c, _, _ in s.chosen]
@@ -827,13 +851,14 @@ def diagnose(trial: TrialData, baseline: str = "rate_state", progress=None, n_bl
     # re-splits: a cause is named only when most splits name it (the coupling of a load-point record is
     # physics, named on every split)
     split_causes: list[list[str]] = []
-    coupling = 1 if (load_point and main.chosen and main.chosen[0][0].cause == "finite_stiffness") else 0
+    coupling = int(main.coupled)
     if resplits and len(main.chosen) > coupling:
         # as many rounds as the main split took (what a re-split names after that is not asked)
         # warm-started from the main split's fit of every candidate of the same round
-        warm = [{c.cause: dict(c.result.params) for c in round_} for round_ in main.tried]
-        jobs = [(trial, baseline, prior, steps, known, load_point, spec, len(main.chosen) - coupling, warm)
-                for spec in RESPLITS]
+        warm = [{c.cause: dict(c.result.params) for c in round_} for round_ in main.tried[coupling:]]
+        wc = main.chosen[0][0] if main.coupled else main.coupling_refused
+        jobs = [(trial, baseline, prior, steps, known, load_point, spec, len(main.chosen) - coupling, warm,
+                 None if wc is None else dict(wc.result.params)) for spec in RESPLITS]
         split_causes = _run_resplits(jobs, t_loop > RESPLIT_PARALLEL_MIN_S, progress)
     n_splits = 1 + len(split_causes)
     kept = 0
@@ -849,6 +874,10 @@ def diagnose(trial: TrialData, baseline: str = "rate_state", progress=None, n_bl
     for i in range(kept, len(main.chosen)):
         unnamed.append({"cause": main.chosen[i][0].cause, "stability": _r(stab[i], 3),
                         "gain_pct": _r(main.chosen[i][0].gain_pct, 4)})
+    if main.coupling_refused is not None:
+        c = main.coupling_refused
+        unnamed.insert(0, {"cause": c.cause, "stability": None, "gain_pct": _r(c.gain_pct, 4),
+                           "why": f"the machine's coupling of a load-point record, but {c.note}"})
     findings = []
     for i, (c, before, why) in enumerate(main.chosen[:kept]):
         res = c.result
@@ -1034,7 +1063,7 @@ def refit_all(grid: Grid, res: FitResult) -> FitResult:
         return keep
     p = dict(r.params)
     if (not np.all(np.isfinite(list(p.values()))) or at_bound(p, grid)
-            or any(abs(p.get(k, 0.0)) > 0.05 for k in ("A_mu", "B_mu", "B2_mu"))
+            or _coefs_too_large(p)
             or not _ext_params_plausible(res.extensions, p)):
         return keep  # ran away on the joined data: keep the validated split fit
     if "second_state_variable" in res.extensions and "aging_law" not in res.extensions:

@@ -108,8 +108,10 @@ class Grid:
     slide_ok: np.ndarray | None = None
     # shortest time constant the kinematics can tell from their own rounding of a velocity change (s)
     time_resolution_s: float = 0.0
-    # variance of a bin's mean over that of white noise: (1 + rho) / (1 - rho), rho the lag-1
-    # autocorrelation of the raw force noise (the analog filter's memory at 1 kHz; ~1 at <= 100 Hz)
+    # variance of the mean of the raw force noise over one kinematic cell (KIN_DT_MIN_S, m samples)
+    # over that of white noise, 1 + 2 sum_{k<m} (1 - k/m) rho_k, clipped to [1, m]: raw samples per
+    # independent one (the analog filter's memory at 1 kHz; 1 when a cell holds one sample, <= 100 Hz);
+    # see _noise_correlation
     noise_corr: float = 1.0
     # the 20 equal time blocks (the linear-drift check), and how fit / hold-out were split
     time_block: np.ndarray | None = None
@@ -247,8 +249,10 @@ def canonical(trial: TrialData) -> TrialData:
 
 def _noise_correlation(t: np.ndarray, F: np.ndarray) -> float:
     """Variance of the mean of the raw force noise over a kinematic cell (KIN_DT_MIN_S) relative
-    to white noise's, 1 + 2 sum_k (1 - k/m) rho_k over the m samples of a cell; rho_k from the
-    force minus a running mean. 1 when a cell holds one sample (records at <= 100 Hz)."""
+    to white noise's, 1 + 2 sum_{k=1}^{m-1} (1 - k/m) rho_k over the m samples of a cell (m from the
+    median sampling interval); rho_k the autocorrelation of the force minus its running mean over
+    4 m + 1 samples. Clipped to [1, m]; 1 when a cell holds one sample (records at <= 100 Hz) or the
+    record has under 200 samples."""
     if t.size < 200:
         return 1.0
     m = int(round(KIN_DT_MIN_S / max(float(np.median(np.diff(t))), 1e-9)))
