@@ -77,6 +77,6 @@ def test_one_step_record_evidence_counts_its_step_only(real_data_dir):
     firing on noise) and said "a fixed time" while naming finite stiffness. The transient's scaling
     is now measured on the steps identify finds: one step gives no slope, so no claim."""
     d = diagnose(load_trial(real_data_dir / "leeman-p4309-step2.csv"))
-    ev = d.findings[0]["evidence"]
-    assert d.findings[0]["cause"] == "finite_stiffness"
+    ev = d.findings[0].evidence
+    assert d.findings[0].cause == "finite_stiffness"
     assert "velocity changes" not in ev and "a fixed time" not in ev, ev

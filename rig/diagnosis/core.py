@@ -98,10 +98,40 @@ class Candidate:
 
 
 @dataclass
+class Finding:
+    """A named cause (diagnosis.md, ``findings[]``), its numbers unrounded; :meth:`report` makes the
+    JSON. ``params`` are the final model's values of the cause's parameters (the single-cause fit's,
+    where they differ, are in ``evidence``); ``uncertainty``: ``params_sd``/``intervals``/``correlation``
+    of those parameters in the final model."""
+    cause: str
+    params: dict[str, float]
+    evidence: str
+    holdout_rms_N_before: float
+    holdout_rms_N_after: float
+    gain_pct: float
+    delta_bic: float
+    stability: float | None = None  # the fraction of the record's splits that name it (None: one split)
+    alternatives: list[dict] = field(default_factory=list)
+    uncertainty: dict = field(default_factory=dict)
+
+    def report(self) -> dict:
+        out = {"cause": self.cause, "params": {k: _r(v) for k, v in self.params.items()}, "evidence": self.evidence,
+               "holdout_rms_N_before": _r(self.holdout_rms_N_before),
+               "holdout_rms_N_after": _r(self.holdout_rms_N_after),
+               "gain_pct": _r(self.gain_pct, 4), "delta_bic": _r(self.delta_bic, 6)}
+        if self.stability is not None:
+            out["stability"] = _r(self.stability, 3)
+        if self.alternatives:
+            out["alternatives"] = self.alternatives
+        out.update(self.uncertainty)
+        return out
+
+
+@dataclass
 class Diagnosis:
     data: str
     baseline: FitResult
-    findings: list[dict]
+    findings: list[Finding]
     unexplained: list[dict]
     final: FitResult
     grid: Grid
@@ -138,7 +168,7 @@ class Diagnosis:
             "schema": "rig.diagnosis/1",
             "data": self.data,
             "baseline": base,
-            "findings": self.findings,
+            "findings": [f.report() for f in self.findings],
             "unexplained": self.unexplained,
             "model": model,
             "holdout_rms_N": _r(self.final.holdout_rms_N),
@@ -497,6 +527,34 @@ def try_candidate(grid: Grid, cur: FitResult, cause: str, info: dict, prior: dic
     the same candidate's fit on another split of the record (a re-split), its one starting point
     besides the current model's with the cause's first start."""
     exts = list(cur.extensions) + [cause]
+    res = _fit_candidate(grid, cur, cause, info, prior, warm)
+    gain = 100.0 * (cur.holdout_rms_N - res.holdout_rms_N) / cur.holdout_rms_N
+    dbic = res.bic - cur.bic
+    z = paired_z(grid, cur.pred, res.pred)
+    zw = white_z(grid, cur.pred, res.pred)
+    note = ""
+    if gain < MIN_GAIN_PCT:
+        note = f"hold-out gain under {MIN_GAIN_PCT:g}%"
+    elif dbic > MIN_DBIC:
+        note = (f"its BIC falls by only {-dbic:.1f}" if dbic < 0 else f"its BIC rises by {dbic:.1f}") + \
+            f" (a fall of {-MIN_DBIC:g} needed)"
+    elif not (z >= MIN_Z or zw >= MIN_ZW or gain >= STRONG_GAIN_PCT):
+        note = f"not significant on the hold-out blocks (z = {z:.1f})"
+    elif not _plausible(cause, res.params, grid):
+        note = ("its fit is not physical (a bound, a parameter outside its plausible range, or an effect below "
+                "the noise)")
+    if not note:
+        note = _veto(grid, cur, res, cause, exts, gain)
+    c = Candidate(cause, res, gain, dbic, z, not note, note)
+    c.zw = zw
+    return c
+
+
+def _fit_candidate(grid: Grid, cur: FitResult, cause: str, info: dict, prior: dict | None,
+                   warm: dict | None) -> FitResult:
+    """The joint fit of the current model and ``cause`` on the fit blocks, from the cause's starts
+    (and a re-split's ``warm`` fit, or identify's whole-record fit for a spring or a second state)."""
+    exts = list(cur.extensions) + [cause]
     starts = _candidate_starts(cause, cur, grid, info)
     # e.g. two states: many local minima (but the stiffness solver is costly)
     keep = CAUSES[cause].keep if "finite_stiffness" not in exts else 2
@@ -528,29 +586,18 @@ def try_candidate(grid: Grid, cur: FitResult, cause: str, info: dict, prior: dic
         # the two slip-law states are interchangeable: by the spec's convention the second is the
         # slower one, L2_um > L_um (swapped before reporting)
         swap_slower_second(res.params)
-    gain = 100.0 * (cur.holdout_rms_N - res.holdout_rms_N) / cur.holdout_rms_N
-    dbic = res.bic - cur.bic
-    z = paired_z(grid, cur.pred, res.pred)
-    zw = white_z(grid, cur.pred, res.pred)
-    note = ""
-    if gain < MIN_GAIN_PCT:
-        note = f"hold-out gain under {MIN_GAIN_PCT:g}%"
-    elif dbic > MIN_DBIC:
-        note = (f"its BIC falls by only {-dbic:.1f}" if dbic < 0 else f"its BIC rises by {dbic:.1f}") + \
-            f" (a fall of {-MIN_DBIC:g} needed)"
-    elif not (z >= MIN_Z or zw >= MIN_ZW or gain >= STRONG_GAIN_PCT):
-        note = f"not significant on the hold-out blocks (z = {z:.1f})"
-    elif not _plausible(cause, res.params, grid):
-        note = ("its fit is not physical (a bound, a parameter outside its plausible range, or an effect below "
-                "the noise)")
-    ok = not note
-    if ok and cur.extensions:
+    return res
+
+
+def _veto(grid: Grid, cur: FitResult, res: FitResult, cause: str, exts: list[str], gain: float) -> str:
+    """Why a candidate that passed the hold-out test is still not named ("" when nothing vetoes it):
+    it moves a cause already found, a transient that is not in every step, a drift that is not linear."""
+    if cur.extensions:
         moved = _confounded(cur, res)
         if moved:
-            ok = False
-            note = (f"confounded with {moved[0]}: adding it moves {moved[1]} from {moved[2]:.4g} to {moved[3]:.4g} "
+            return (f"confounded with {moved[0]}: adding it moves {moved[1]} from {moved[2]:.4g} to {moved[3]:.4g} "
                     f"({100 * moved[4]:+.0f}%); the data do not tell the two apart")
-    if ok and CAUSES[cause].transient and grid.holdout_design.startswith("blocks aligned"):
+    if CAUSES[cause].transient and grid.holdout_design.startswith("blocks aligned"):
         # with the hold-out segments aligned to the steps, a transient cause must also predict the
         # other half of the steps: refitted on the hold-out segments, judged on the fit segments.
         # A true memory, lag or spring shows in every step; a one-off event inside one segment (a
@@ -562,21 +609,17 @@ def try_candidate(grid: Grid, cur: FitResult, cause: str, info: dict, prior: dic
         gain_sw = (100.0 * (before_sw - ext_sw.holdout_rms_N) / before_sw
                    if math.isfinite(before_sw) and before_sw > 0 else math.inf)  # nothing to judge on: no veto
         if gain_sw < SWAP_MIN_FRACTION * gain:
-            ok = False
-            note = (f"not in every step: refitted on the held-out steps and judged on the fitted ones it "
+            return (f"not in every step: refitted on the held-out steps and judged on the fitted ones it "
                     f"gains {gain_sw:+.2f}%, under {SWAP_MIN_FRACTION:g} of its {gain:.1f}% (an event in a few "
                     "segments, not a property of every transient)")
-    if ok and cause in ("force_offset_drift", "slip_wear_drift"):
+    if cause in ("force_offset_drift", "slip_wear_drift"):
         # a drift must be linear: if a free profile in the same quantity still explains much of what
         # is left, the drift only approximates something else (a jump, a non-linear run-in)
         ratio = _drift_leftover(grid, cur.pred, res.pred)
         if ratio > 0.5:
-            ok = False
-            note = (f"not linear: block means of the residual after it keep {100 * ratio:.0f}% of the drift's own "
+            return (f"not linear: block means of the residual after it keep {100 * ratio:.0f}% of the drift's own "
                     "size (a jump or a non-linear run-in, not a linear drift)")
-    c = Candidate(cause, res, gain, dbic, z, ok, note)
-    c.zw = zw
-    return c
+    return ""
 
 
 def _swapped(grid: Grid) -> Grid:
@@ -831,22 +874,10 @@ def diagnose(trial: TrialData, baseline: str = "rate_state", progress=None, n_bl
     check_analysable(trial, "diagnose")
     # the file's clock and the position's zero are no physics: every step below sees them from 0
     trial = canonical(trial)
-    from rig.analysis.identify import decimated
-    from rig.kinematics import detect_steps
-
-    known = known_params(trial)
-    try:
-        small = decimated(trial)
-        steps = detect_steps(small)
-    except (ValueError, IndexError, ZeroDivisionError):
-        small, steps = trial, []
-    prior = identify_prior(small, steps)
-    load_point = is_load_point(trial) or bool(known)
-    if known and prior and "stiffness_kN_per_m" in prior:
-        prior["stiffness_kN_per_m"] = known["stiffness_kN_per_m"]
+    known, steps, prior, load_point = _inputs(trial)
     t_prep = _time.perf_counter() - t0
     main = _search(trial, baseline, prior, steps, known, load_point, n_blocks=n_blocks, progress=progress)
-    grid, base = main.grid, main.base
+    grid = main.grid
     t_loop = _time.perf_counter() - t0 - t_prep
     # re-splits: a cause is named only when most splits name it (the coupling of a load-point record is
     # physics, named on every split)
@@ -860,25 +891,72 @@ def diagnose(trial: TrialData, baseline: str = "rate_state", progress=None, n_bl
         jobs = [(trial, baseline, prior, steps, known, load_point, spec, len(main.chosen) - coupling, warm,
                  None if wc is None else dict(wc.result.params)) for spec in RESPLITS]
         split_causes = _run_resplits(jobs, t_loop > RESPLIT_PARALLEL_MIN_S, progress)
+    kept, stab = _stability(main, split_causes)
+    cur = main.history[kept]
+    findings = _findings(main, kept, stab, split_causes)
+    d = Diagnosis(data=str(trial.source), baseline=main.base, findings=findings,
+                  unexplained=find_unexplained(grid, cur), final=cur, grid=grid, history=main.history[: kept + 1],
+                  tried=main.tried)
+    d.unnamed = _unnamed(main, kept, stab)
+    _final_models(d, progress)
+    for f in findings:
+        _as_final(f, d)
+    d.timings = {"prepare_s": t_prep, "fit_s": t_loop, "total_s": _time.perf_counter() - t0,
+                 "n_samples": int(len(trial)), "n_bins": int(grid.t.size), "n_splits": 1 + len(split_causes)}
+    return d
+
+
+def _inputs(trial: TrialData) -> tuple[dict, list, dict, bool]:
+    """What every split shares: the file's stated parameters, identify's steps and whole-record fit
+    (the starting point), and whether the record is a load-point one."""
+    from rig.analysis.identify import decimated
+    from rig.kinematics import detect_steps
+
+    known = known_params(trial)
+    try:
+        small = decimated(trial)
+        steps = detect_steps(small)
+    except (ValueError, IndexError, ZeroDivisionError):
+        small, steps = trial, []
+    prior = identify_prior(small, steps)
+    load_point = is_load_point(trial) or bool(known)
+    if known and prior and "stiffness_kN_per_m" in prior:
+        prior["stiffness_kN_per_m"] = known["stiffness_kN_per_m"]
+    return known, steps, prior, load_point
+
+
+def _stability(main: _Search, split_causes: list[list[str]]) -> tuple[int, list[float]]:
+    """(how many of the main split's causes are named, the fraction of all splits naming each): the
+    causes in order until the first that most splits do not name (the coupling is always kept)."""
     n_splits = 1 + len(split_causes)
     kept = 0
     stab = []
     for i, (c, _, _) in enumerate(main.chosen):
         st = (1 + sum(c.cause in sc for sc in split_causes)) / n_splits
         stab.append(st)
-        if st <= MIN_STABILITY and i >= coupling:
+        if st <= MIN_STABILITY and i >= int(main.coupled):
             break
         kept = i + 1
-    cur = main.history[kept]
-    unnamed = []  # causes the main split found but most re-splits did not: the record cannot tell
-    for i in range(kept, len(main.chosen)):
-        unnamed.append({"cause": main.chosen[i][0].cause, "stability": _r(stab[i], 3),
-                        "gain_pct": _r(main.chosen[i][0].gain_pct, 4)})
+    return kept, stab
+
+
+def _unnamed(main: _Search, kept: int, stab: list[float]) -> list[dict]:
+    """Causes the main split found but most re-splits did not (the record cannot tell them from none),
+    and a load-point coupling left out because it worsens the held-out data."""
+    out = [{"cause": main.chosen[i][0].cause, "stability": _r(stab[i], 3),
+            "gain_pct": _r(main.chosen[i][0].gain_pct, 4)} for i in range(kept, len(main.chosen))]
     if main.coupling_refused is not None:
         c = main.coupling_refused
-        unnamed.insert(0, {"cause": c.cause, "stability": None, "gain_pct": _r(c.gain_pct, 4),
-                           "why": f"the machine's coupling of a load-point record, but {c.note}"})
-    findings = []
+        out.insert(0, {"cause": c.cause, "stability": None, "gain_pct": _r(c.gain_pct, 4),
+                       "why": f"the machine's coupling of a load-point record, but {c.note}"})
+    return out
+
+
+def _findings(main: _Search, kept: int, stab: list[float], split_causes: list[list[str]]) -> list[Finding]:
+    """The named causes, each with its evidence, hold-out figures, stability and alternatives, as
+    found (single-cause fit on the fit blocks; :func:`_as_final` gives them the final model's values)."""
+    grid = main.grid
+    out = []
     for i, (c, before, why) in enumerate(main.chosen[:kept]):
         res = c.result
         round_ = main.tried[i]
@@ -890,34 +968,25 @@ def diagnose(trial: TrialData, baseline: str = "rate_state", progress=None, n_bl
             ev += f"; {why}"
         if stronger:
             ev += "; not named: " + "; ".join(f"{o.cause} ({o.gain_pct:+.1f}%): {o.note}" for o in stronger)
-        f = {
-            "cause": c.cause,
-            "params": {k: _r(res.params[k]) for k in CAUSES[c.cause].params},
-            "evidence": ev,
-            "holdout_rms_N_before": _r(before.holdout_rms_N),
-            "holdout_rms_N_after": _r(res.holdout_rms_N),
-            "gain_pct": _r(c.gain_pct, 4),
-            "delta_bic": _r(c.delta_bic, 6),
-        }
-        if split_causes or i < coupling:
-            f["stability"] = _r(stab[i], 3)
         alts = _alternatives(grid, c, round_, [sc[i] if i < len(sc) else "none" for sc in split_causes
                                                if c.cause not in sc])
-        if alts:
-            f["alternatives"] = alts
-        findings.append(f)
-    unexplained = find_unexplained(grid, cur)
-    d = Diagnosis(data=str(trial.source), baseline=base, findings=findings, unexplained=unexplained, final=cur,
-                  grid=grid, history=main.history[: kept + 1], tried=main.tried)
-    d.unnamed = unnamed
-    # the reported parameters: the chosen models refitted on every sliding bin (fit and hold-out
-    # blocks). The split decides WHICH model (hold-out gains); with half of a few steps in the fit
-    # blocks, the direct effect A of a three-step record moves by +-50 % with the split alone
+        out.append(Finding(c.cause, {k: res.params[k] for k in CAUSES[c.cause].params}, ev, before.holdout_rms_N,
+                           res.holdout_rms_N, c.gain_pct, c.delta_bic,
+                           stability=stab[i] if (split_causes or i < int(main.coupled)) else None,
+                           alternatives=alts))
+    return out
+
+
+def _final_models(d: Diagnosis, progress=None) -> None:
+    """The reported models: the chosen baseline and final model refitted on every sliding bin (fit
+    and hold-out blocks), at the global optimum of the a-b-L valley (profile likelihood over ln L),
+    with split-half errors where each half holds steps of its own. The split decides WHICH model
+    (hold-out gains); with half of a few steps in the fit blocks, the direct effect A of a three-step
+    record moves by +-50 % with the split alone."""
+    grid, base, cur = d.grid, d.baseline, d.final
     d.baseline_fit = refit_all(grid, base)
     d.final_fit = d.baseline_fit if cur is base else refit_all(grid, cur)
-    # the global optimum along the flat a-b-L valley and L's interval: a profile likelihood over ln L
-    # (fit.profile), for the baseline and the final model (with a spring only on small grids: each
-    # profile point is a spring fit)
+    # the profile of a model with a spring only on small grids: each profile point is a spring fit
     for attr in ("baseline_fit", "final_fit"):
         res = getattr(d, attr)
         if attr == "final_fit" and res is d.baseline_fit:
@@ -947,22 +1016,20 @@ def diagnose(trial: TrialData, baseline: str = "rate_state", progress=None, n_bl
         split_sd(grid, base, d.baseline_fit)
         if d.final_fit is not d.baseline_fit:
             split_sd(grid, cur, d.final_fit)
-    for f in findings:
-        # a finding's parameters are the final model's; the single-cause fit's values beside them
-        single = f["params"]
-        final = {k: _r(d.final_all[k]) for k in single if k in d.final_all}
-        moved = {k: v for k, v in single.items() if v is not None and final.get(k) is not None
-                 and abs(final[k] - v) > 0.005 * abs(v)}
-        if moved:
-            f["evidence"] += ("; the parameters are the final model's, refitted on all sliding data (when it was "
-                              "found, on the fit blocks: " + ", ".join(f"{k} = {v:.4g}" for k, v in moved.items())
-                              + ")")
-        f["params"] = {k: final.get(k, v) for k, v in single.items()}
-        unc = uncertainty(grid, d.final_fit, list(single))
-        f.update(unc)
-    d.timings = {"prepare_s": t_prep, "fit_s": t_loop, "total_s": _time.perf_counter() - t0,
-                 "n_samples": int(len(trial)), "n_bins": int(grid.t.size), "n_splits": n_splits}
-    return d
+
+
+def _as_final(f: Finding, d: Diagnosis) -> None:
+    """A finding's parameters are the final model's; the single-cause fit's values (as found, on the
+    fit blocks) beside them in the evidence where they differ by more than 0.5 %."""
+    single = {k: _r(v) for k, v in f.params.items()}
+    final = {k: _r(d.final_all[k]) for k in single if k in d.final_all}
+    moved = {k: v for k, v in single.items() if v is not None and final.get(k) is not None
+             and abs(final[k] - v) > 0.005 * abs(v)}
+    if moved:
+        f.evidence += ("; the parameters are the final model's, refitted on all sliding data (when it was "
+                       "found, on the fit blocks: " + ", ".join(f"{k} = {v:.4g}" for k, v in moved.items()) + ")")
+    f.params = {k: d.final_all[k] if k in d.final_all else v for k, v in f.params.items()}
+    f.uncertainty = uncertainty(d.grid, d.final_fit, list(single))
 
 
 def _alternatives(grid: Grid, chosen: Candidate, round_: list[Candidate], instead: list[str]) -> list[dict]:

@@ -24,7 +24,7 @@ def _binned(q, r, w, nb=120):
 
 
 def _notes(d: Diagnosis) -> list[str]:
-    notes = [f"[{i}] {f['cause']} (hold-out gain {f['gain_pct']:.1f} %): {f['evidence']}"
+    notes = [f"[{i}] {f.cause} (hold-out gain {f.gain_pct:.1f} %): {f.evidence}"
              for i, f in enumerate(d.findings, 1)]
     notes += [f"[?] unexplained, follows {u['follows']}: {u['evidence']}" for u in d.unexplained]
     return notes or ["no finding: no catalogue extension passes the hold-out test"]
@@ -114,8 +114,8 @@ def _legend(fig, a, extended: bool, n_clipped: int, lim: float) -> None:
 def _evidence_marks(d: Diagnosis, res_axes) -> None:
     g = d.grid
     for f in d.findings:
-        c = f["cause"]
-        p = f["params"]
+        c = f.cause
+        p = f.params
         if c == "position_periodic":
             lam = p["wavelength_um"]
             x0 = float(g.x.min())

@@ -390,8 +390,6 @@ def prepare(trial: TrialData, n_blocks: int = 20, slip_window_um: float = 3.0,
     tr = t_raw - t0
     F = np.asarray(trial.friction_N, dtype=float)
     x_raw = np.asarray(trial.position_um, dtype=float)
-    N_nom = float(trial.normal_force_N)
-    Ntot = np.asarray(trial.total_normal_N, dtype=float)
     noise_N = _robust_noise(F)
     noise_corr = _noise_correlation(tr, F)
     if x_raw[-1] < x_raw[0] and float(np.median(F)) < 0:
@@ -400,8 +398,36 @@ def prepare(trial: TrialData, n_blocks: int = 20, slip_window_um: float = 3.0,
         if trial.position_ref_um is not None:
             trial = trial.select(np.ones(len(trial), bool))
             trial.position_ref_um = -trial.position_ref_um
+    k = _cells(trial, tr, F, x_raw)  # 1. kinematic grid cells
+    xs, vs, time_res = _kinematics(k, slip_window_um)  # 2./3. kinematics
+    tk = k["t"]
+    steps_k = None if step_times_s is None else np.asarray(step_times_s) - t0
+    for aligned in ((True, False) if align_to_steps else (False,)):  # 4. blocks and bins
+        T = float(tk[-1] - tk[0]) if tk.size > 1 else 1.0
+        time_blk_k = np.minimum((tk - tk[0]) / (T / n_blocks), n_blocks - 1).astype(np.int64)
+        blk_k, holdout_design = _holdout_blocks(tk, vs, time_blk_k, T, n_blocks, steps_k, aligned=aligned)
+        b = _bins(k, xs, vs, blk_k, time_blk_k, bin_dt_max_s, bin_slip_um)
+        slide_ok = _sliding(k, vs, b, noise_N, restart_guard_um)
+        n_hold = int(np.count_nonzero(slide_ok & (b["block"] % 2 == 1)))
+        if not holdout_design.startswith("blocks aligned") or (
+                min(n_hold, int(slide_ok.sum()) - n_hold) >= ALIGNED_MIN_SHARE * max(int(slide_ok.sum()), 1)):
+            break
+        # the steps leave one half (fit or hold-out) with too little of the sliding that is used
+        # (steps that bunch up, segments dropped as reloading): the design for fewer steps instead
+    normals_vary = bool(trial.has_normals and float(np.std(k["N"])) > 0.0)
+    return Grid(t=b["t"], x=b["x"], v=b["v"], F_mean=b["F"], N_tot=b["N"], count=b["count"], ss_within=b["ssw"],
+                block=b["block"], N_nom=float(trial.normal_force_N), t0=t0, has_normals=trial.has_normals,
+                normals_vary=normals_vary, noise_N=noise_N, noise_corr=noise_corr, slide_ok=slide_ok,
+                time_resolution_s=time_res, time_block=b["time_block"], holdout_design=holdout_design,
+                step_times_s=None if step_times_s is None else np.asarray(step_times_s, dtype=float) - t0,
+                kin={"t": tk, "x": xs, "v": vs, "F": k["Fs"] / k["count"], "N": k["N"], "count": k["count"],
+                     "x_meas": k["x"]})
 
-    # 1. kinematic grid cells
+
+def _cells(trial: TrialData, tr: np.ndarray, F: np.ndarray, x_raw: np.ndarray) -> dict:
+    """The kinematic grid: cells of at least KIN_DT_MIN_S, each sample weighted by the time it
+    stands for (:func:`time_weights`): cell time, measured position, friction sums, normal force
+    (and the reference position's mean, ``xr``, when the record has one)."""
     dt_med = float(np.median(np.diff(tr)))
     cell = max(KIN_DT_MIN_S, dt_med * 0.999)
     if dt_med >= KIN_DT_MIN_S:
@@ -417,18 +443,23 @@ def prepare(trial: TrialData, n_blocks: int = 20, slip_window_um: float = 3.0,
         return np.bincount(idx, weights=y * u, minlength=ncell) / cnt
 
     tk = cmean(tr)
-    xk = cmean(x_raw)
-    Fs = np.bincount(idx, weights=F * u, minlength=ncell)
-    F2s = np.bincount(idx, weights=F * F * u, minlength=ncell)
-    Nk = cmean(Ntot)
+    Nk = cmean(np.asarray(trial.total_normal_N, dtype=float))
     if trial.has_normals and tk.size > 5:
         # the normal load cells' noise (±0.6 N) would otherwise enter mu (N1 + N2): centred 0.5 s mean
         kk = max(1, int(round(0.25 / max(float(np.median(np.diff(tk))), 1e-6))))
         ker = np.ones(2 * kk + 1)
         Nk = np.convolve(Nk, ker, mode="same") / np.convolve(np.ones_like(Nk), ker, mode="same")
-
-    # 2./3. kinematics
     use_ref = trial.position_ref_um is not None and np.all(np.isfinite(trial.position_ref_um))
+    return {"t": tk, "x": cmean(x_raw), "count": cnt, "Fs": np.bincount(idx, weights=F * u, minlength=ncell),
+            "F2s": np.bincount(idx, weights=F * F * u, minlength=ncell), "N": Nk,
+            "xr": cmean(np.asarray(trial.position_ref_um, dtype=float)) if use_ref else None}
+
+
+def _kinematics(k: dict, slip_window_um: float) -> tuple[np.ndarray, np.ndarray, float]:
+    """(position, velocity, time resolution (s)) of the cells: from the reference and the servo's
+    lag when the record has a reference, else an edge-preserving line fit over a window of
+    ``slip_window_um`` of slip at the slower side of any nearby velocity change."""
+    tk, xk = k["t"], k["x"]
     v_rough = np.gradient(xk, tk) if tk.size > 2 else np.zeros_like(tk)
     # rough speed over ~2 s for the window length
     k2 = max(1, int(round(2.0 / max(np.median(np.diff(tk)), 1e-6))))
@@ -441,9 +472,9 @@ def prepare(trial: TrialData, n_blocks: int = 20, slip_window_um: float = 3.0,
     v_min = minimum_filter1d(np.abs(v_s), size=2 * k2 + 1, mode="nearest")
     half = 0.5 * np.clip(slip_window_um / np.maximum(v_min, 0.05), 0.2, 4.0)
     servo_tau = None
+    use_ref = k["xr"] is not None
     if use_ref:
-        xr = cmean(np.asarray(trial.position_ref_um, dtype=float))
-        servo_tau, xm = _servo_fit(tk, xr, xk)
+        servo_tau, xm = _servo_fit(tk, k["xr"], xk)
         if servo_tau is None:
             use_ref = False
     if use_ref:
@@ -453,67 +484,54 @@ def prepare(trial: TrialData, n_blocks: int = 20, slip_window_um: float = 3.0,
         vs = np.gradient(xm, tk) + ev
     else:
         xs, vs = edge_preserving_line(tk, xk, half)
-
     # without a reference, a line fit cannot resolve the actuator's rounded velocity change (the
     # paper's steps rise in up to 0.5 s): time constants below ~0.15 s are the estimator's own
     dtk0 = float(np.median(np.diff(tk))) if tk.size > 1 else KIN_DT_MIN_S
     time_res = max(3.0 * dtk0, 2.0 * servo_tau) if use_ref else max(3.0 * dtk0, 0.15)
+    return xs, vs, time_res
 
-    # 4. blocks and bins
-    for aligned in ((True, False) if align_to_steps else (False,)):
-        T = float(tk[-1] - tk[0]) if tk.size > 1 else 1.0
-        time_blk_k = np.minimum((tk - tk[0]) / (T / n_blocks), n_blocks - 1).astype(np.int64)
-        blk_k, holdout_design = _holdout_blocks(tk, vs, time_blk_k, T, n_blocks,
-                                                None if step_times_s is None else np.asarray(step_times_s) - t0,
-                                                aligned=aligned)
-        dtk = float(np.median(np.diff(tk)))
-        starts = _make_bins(tk, vs, blk_k, bin_dt_max_s, bin_slip_um, 0.08, 1.1, max(dtk, 0.02))
-        seg = np.repeat(np.arange(starts.size - 1), np.diff(starts))
-        nb = starts.size - 1
-        bc = np.bincount(seg, weights=cnt, minlength=nb)
 
-        def bmean_w(y):  # weighted by raw count
-            return np.bincount(seg, weights=y * cnt, minlength=nb) / bc
+def _bins(k: dict, xs: np.ndarray, vs: np.ndarray, blk_k: np.ndarray, time_blk_k: np.ndarray,
+          bin_dt_max_s: float, bin_slip_um: float) -> dict:
+    """The adaptive fit bins over the cells (inside the blocks): their means weighted by the raw
+    count, the friction's within-bin sum of squares, and the cells where each starts."""
+    tk, cnt = k["t"], k["count"]
+    dtk = float(np.median(np.diff(tk)))
+    starts = _make_bins(tk, vs, blk_k, bin_dt_max_s, bin_slip_um, 0.08, 1.1, max(dtk, 0.02))
+    seg = np.repeat(np.arange(starts.size - 1), np.diff(starts))
+    nb = starts.size - 1
+    bc = np.bincount(seg, weights=cnt, minlength=nb)
 
-        Fsum = np.bincount(seg, weights=Fs, minlength=nb)
-        F2sum = np.bincount(seg, weights=F2s, minlength=nb)
-        Fm = Fsum / bc
-        ssw = np.maximum(F2sum - Fsum * Fm, 0.0)
-        tb = bmean_w(tk)
-        xb = bmean_w(xs)
-        vb = bmean_w(vs)
-        Nb = bmean_w(Nk)
-        blk = blk_k[starts[:-1]]
-        time_blk = time_blk_k[starts[:-1]]
-        # forward sliding, away from stops, starts from rest and returns
-        kg = max(1, int(round(STOP_GUARD_S / max(dtk, 1e-6))))
-        vmin_k = minimum_filter1d(vs, size=2 * kg + 1, mode="nearest")
-        slide_ok = np.minimum.reduceat(vmin_k, starts[:-1]) > V_SLIDE_MIN_UM_S
-        if slide_ok.sum() < 0.1 * slide_ok.size:  # a record with hardly any steady sliding: keep what slides
-            slide_ok = vb > V_SLIDE_MIN_UM_S
-        slide_ok = _drop_reloading(slide_ok, tb, xb, Fm, bc, noise_N, settle_um=restart_guard_um)
-        # the velocity changes themselves: within RISE_GUARD_S (or the kinematics' own resolution) of
-        # a change of ln v the measured velocity is not the interface's to the precision the direct
-        # effect needs (the peak is a few samples at 25 Hz, their timing set by the estimator, not by
-        # friction); as in the paper's identification the transient is fitted from the end of the rise
-        h = RISE_GUARD_S
-        lv = np.log(np.maximum(np.abs(vs), 1e-2))
-        dlv = np.abs(np.interp(tk + h, tk, lv) - np.interp(tk - h, tk, lv))
-        rise_k = dlv > RISE_DLNV
-        rise_b = np.maximum.reduceat(rise_k, starts[:-1]) if rise_k.any() else np.zeros(nb, bool)
-        if h > 0 and (slide_ok & ~rise_b).sum() > 0.5 * slide_ok.sum():
-            slide_ok = slide_ok & ~rise_b
-        n_hold = int(np.count_nonzero(slide_ok & (blk % 2 == 1)))
-        if not holdout_design.startswith("blocks aligned") or (
-                min(n_hold, int(slide_ok.sum()) - n_hold) >= ALIGNED_MIN_SHARE * max(int(slide_ok.sum()), 1)):
-            break
-        # the steps leave one half (fit or hold-out) with too little of the sliding that is used
-        # (steps that bunch up, segments dropped as reloading): the design for fewer steps instead
-    normals_vary = False
-    if trial.has_normals:
-        nstd = float(np.std(Nk))
-        normals_vary = nstd > 0.0
-    return Grid(t=tb, x=xb, v=vb, F_mean=Fm, N_tot=Nb, count=bc, ss_within=ssw, block=blk, N_nom=N_nom,
-                t0=t0, has_normals=trial.has_normals, normals_vary=normals_vary, noise_N=noise_N, noise_corr=noise_corr,
-                slide_ok=slide_ok, time_resolution_s=time_res, time_block=time_blk, holdout_design=holdout_design,
-                step_times_s=None if step_times_s is None else np.asarray(step_times_s, dtype=float) - t0, kin={"t": tk, "x": xs, "v": vs, "F": Fs / cnt, "N": Nk, "count": cnt, "x_meas": xk})
+    def bmean_w(y):  # weighted by raw count
+        return np.bincount(seg, weights=y * cnt, minlength=nb) / bc
+
+    Fsum = np.bincount(seg, weights=k["Fs"], minlength=nb)
+    F2sum = np.bincount(seg, weights=k["F2s"], minlength=nb)
+    Fm = Fsum / bc
+    return {"t": bmean_w(tk), "x": bmean_w(xs), "v": bmean_w(vs), "N": bmean_w(k["N"]), "F": Fm, "count": bc,
+            "ssw": np.maximum(F2sum - Fsum * Fm, 0.0), "block": blk_k[starts[:-1]],
+            "time_block": time_blk_k[starts[:-1]], "starts": starts, "dtk": dtk}
+
+
+def _sliding(k: dict, vs: np.ndarray, b: dict, noise_N: float, restart_guard_um: float) -> np.ndarray:
+    """The bins the fits use: forward sliding, away from stops, starts from rest and returns, and
+    from the velocity changes' rise."""
+    tk, starts, dtk = k["t"], b["starts"], b["dtk"]
+    kg = max(1, int(round(STOP_GUARD_S / max(dtk, 1e-6))))
+    vmin_k = minimum_filter1d(vs, size=2 * kg + 1, mode="nearest")
+    slide_ok = np.minimum.reduceat(vmin_k, starts[:-1]) > V_SLIDE_MIN_UM_S
+    if slide_ok.sum() < 0.1 * slide_ok.size:  # a record with hardly any steady sliding: keep what slides
+        slide_ok = b["v"] > V_SLIDE_MIN_UM_S
+    slide_ok = _drop_reloading(slide_ok, b["t"], b["x"], b["F"], b["count"], noise_N, settle_um=restart_guard_um)
+    # the velocity changes themselves: within RISE_GUARD_S (or the kinematics' own resolution) of
+    # a change of ln v the measured velocity is not the interface's to the precision the direct
+    # effect needs (the peak is a few samples at 25 Hz, their timing set by the estimator, not by
+    # friction); as in the paper's identification the transient is fitted from the end of the rise
+    h = RISE_GUARD_S
+    lv = np.log(np.maximum(np.abs(vs), 1e-2))
+    dlv = np.abs(np.interp(tk + h, tk, lv) - np.interp(tk - h, tk, lv))
+    rise_k = dlv > RISE_DLNV
+    rise_b = np.maximum.reduceat(rise_k, starts[:-1]) if rise_k.any() else np.zeros(starts.size - 1, bool)
+    if h > 0 and (slide_ok & ~rise_b).sum() > 0.5 * slide_ok.sum():
+        slide_ok = slide_ok & ~rise_b
+    return slide_ok
