@@ -140,9 +140,9 @@ def _second_starts(p, grid, screen):
 def _second_plausible(p, grid):
     if _force_scale(grid) * abs(p["B2_mu"]) < EFFECT_MIN_NOISE * grid.noise_N:
         return False  # significant perhaps, but below the noise floor: not a finding
-    # two states of opposite sign and similar length nearly cancel: their small difference (the
-    # basalt record: B = 0.0119 over 168 um, B2 = -0.0130 over 218 um) is one hump that a single
-    # state, a spring or a lag shapes as well; two states are two only if their lengths differ
+    # two states of opposite sign and similar length nearly cancel: their small difference is one hump
+    # that a single state, a spring or a lag shapes as well; two states are two only if their lengths
+    # differ (docs/diagnosis.md, "Rules learned from records")
     L1, L2 = p.get("L_um", 0.0), p["L2_um"]
     if p.get("B_mu", 0.0) * p["B2_mu"] < 0 and max(L1, L2) < MIN_OPPOSITE_STATE_RATIO * min(L1, L2):
         return False

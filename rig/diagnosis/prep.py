@@ -143,8 +143,8 @@ class Grid:
     @property
     def max_state_um(self) -> float:
         """Longest slip-law state distance the record can tell from a drift: half its slip (µm).
-        A state whose transient outlasts the record is a linear trend in slip (a one-state fit to
-        the basalt record ran to L = 1e5 µm, B = -0.17: a drift, not a memory)."""
+        A state whose transient outlasts the record is a linear trend in slip: a drift, not a
+        memory (docs/diagnosis.md, "Rules learned from records")."""
         s = float(np.sum(0.5 * np.abs(self.v[1:] + self.v[:-1]) * np.diff(self.t)))
         return 0.5 * s
 
@@ -361,8 +361,8 @@ def _holdout_blocks(tk: np.ndarray, vs: np.ndarray, time_blk: np.ndarray, T: flo
     if PHASE_TO_STEP and 0 < len(fwd) and (len(fwd) < MIN_STEPS_ALIGNED or not aligned):
         # one to three steps: the equal time blocks, phased so that the first step's transient
         # starts (1 s before the step) at the start of a fit block; unphased, a crop that moves the
-        # boundaries decided whether the single step's peak was fitted or held out (the basalt
-        # record: held out whole, the rigid fit never saw the direct effect and ran to A ~ 0)
+        # boundaries decides whether the single step's peak is fitted or held out (held out whole, the
+        # rigid fit never sees the direct effect: docs/diagnosis.md, "Rules learned from records")
         Tb = T / n_blocks
         phase = (fwd[0] - 1.0 - tk[0]) % Tb
         blk = np.floor((tk - tk[0] - phase) / Tb).astype(np.int64) + 1
@@ -371,8 +371,8 @@ def _holdout_blocks(tk: np.ndarray, vs: np.ndarray, time_blk: np.ndarray, T: flo
             blk = blk + 1
         return blk, f"{n_blocks} time blocks phased to the step at {fwd[0]:.4g} s (fitted)"
     if SUBWINDOWS <= 0:
-        # sub-window cross-validation is off (SUBWINDOWS = 0): tried on the shared real records it lost
-        # Leeman's finite_stiffness (docs/diagnosis.md); equal time blocks for now
+        # sub-window cross-validation is off (SUBWINDOWS = 0; docs/diagnosis.md, "Rules learned from
+        # records"); equal time blocks for now
         return time_blk, f"{n_blocks} time blocks ({len(fwd)} velocity step(s): too few to hold out whole)"
     n_sub = int(max(2 * n_blocks, min(SUBWINDOWS, T / SUBWINDOW_MIN_S)))
     blk = np.minimum((tk - tk[0]) / (T / n_sub), n_sub - 1).astype(np.int64)
