@@ -30,8 +30,10 @@ def test_coupling_that_worsens_the_held_out_data_is_not_named(monkeypatch):
             c.result = evaluate(grid, cur.baseline, list(cur.extensions) + [cause],
                                 dict(c.result.params, stiffness_kN_per_m=1.0))
             c.gain_pct = 100.0 * (cur.holdout_rms_N - c.result.holdout_rms_N) / cur.holdout_rms_N
+            c.z = core.paired_z(grid, cur.pred, c.result.pred)
+            c.zw = core.white_z(grid, cur.pred, c.result.pred)
             c.accepted = False
-            assert c.gain_pct < 0
+            assert c.gain_pct < -core.MIN_GAIN_PCT
         return c
 
     monkeypatch.setattr(core, "try_candidate", worse)

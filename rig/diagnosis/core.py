@@ -725,6 +725,7 @@ RESPLITS = ({"n_blocks": 16, "align": False}, {"n_blocks": 24, "swap_aligned": T
             {"crop": (0.0, 0.03)})
 MIN_STABILITY = 0.5  # named on more than this fraction of all splits (main + RESPLITS)
 RESPLIT_PARALLEL_MIN_S = 3.0  # a main search shorter than this runs its re-splits in-process
+CANDIDATES_PARALLEL_MIN_S = 1.0  # a baseline fit longer than this: a round's candidates on both cores
 PROFILE_MAX_BINS_SPRING = 2000  # profile likelihood of a model with a spring only on grids this small
 
 
@@ -755,19 +756,19 @@ def _search(trial: TrialData, baseline: str, prior: dict, steps: list, known: di
     if int(grid.sliding.sum()) < 10:
         raise ValueError(f"{trial.source or 'trial'}: hardly any forward sliding (v > {0.1:g} um/s away from stops): "
                          "nothing to diagnose")
+    t_base = _time.perf_counter()
     base = fit_baseline(grid, baseline, prior)
+    t_base = _time.perf_counter() - t_base
     s = _Search(grid, base, [base], [], [])
     if load_point and baseline == "rate_state":
         _couple(s, prior, known, warm_coupling, progress)
     cur, tried, chosen, history = s.history[-1], s.tried, s.chosen, s.history
     for round_no in range(max_rounds):
         cands, info = screen(grid, cur)
-        results = []
         w = warm[round_no] if warm and round_no < len(warm) else {}
-        for cn in cands:
-            if progress:
-                progress(f"trying {cn}")
-            results.append(try_candidate(grid, cur, cn, info, prior, warm=w.get(cn)))
+        # the candidates of a round are independent: both cores where the fits are slow
+        results = _fork_map(_try_job, [(grid, cur, cn, info, prior, w.get(cn)) for cn in cands],
+                            t_base > CANDIDATES_PARALLEL_MIN_S, progress, lambda j: f"trying {j[2]}")
         tried.append(results)
         acc = [c for c in results if c.accepted]
         if not acc:
@@ -786,18 +787,29 @@ def _search(trial: TrialData, baseline: str, prior: dict, steps: list, known: di
     return s
 
 
+def _worsens(c: Candidate) -> bool:
+    """The held-out data predicted worse with the candidate than without it, by the test a gain must
+    pass with the sign reversed: a loss of at least MIN_GAIN_PCT that is significant (paired chunk z
+    or white-noise z) or of at least STRONG_GAIN_PCT. A loss inside the noise (a spring on a one-step
+    record whose hold-out blocks hold no transient: -0.1 %) is no evidence either way."""
+    if not math.isfinite(c.gain_pct):
+        return True
+    return c.gain_pct <= -MIN_GAIN_PCT and (c.z <= -MIN_Z or c.zw <= -MIN_ZW or c.gain_pct <= -STRONG_GAIN_PCT)
+
+
 def _couple(s: _Search, prior: dict, known: dict, warm: dict | None, progress=None) -> None:
     """The machine's coupling of a load-point record (measured-data.md: ``position_source:
     load_point`` or a stated ``machine_stiffness_kN_per_m``): the elastic coupling between the
     measured position and the interface is always there, so it is fitted from the start (or held at
     the stated value) and named first, before any stand-in cause (aging, a lag, a drift) is tried,
-    whatever its significance, but never when it worsens the held-out data (a hold-out RMS that rises
-    is no evidence for any cause; the search then goes on from the rigid model)."""
+    whatever its significance, but never when it worsens the held-out data (:func:`_worsens`: a
+    hold-out RMS that rises significantly is evidence against it; the search then goes on from the
+    rigid model)."""
     if progress:
         progress("the machine's coupling")
     cur = s.history[-1]
     c = try_candidate(s.grid, cur, "finite_stiffness", {}, prior, warm=warm)
-    if not c.gain_pct >= 0.0:
+    if _worsens(c):
         c.note = (f"the held-out data get worse with it (hold-out RMS {cur.holdout_rms_N:.4g} -> "
                   f"{c.result.holdout_rms_N:.4g} N, {c.gain_pct:+.1f}%)")
         s.coupling_refused = c
@@ -837,26 +849,39 @@ def _resplit_search(trial, baseline, prior, steps, known, load_point, spec, roun
 
 
 def _run_resplits(jobs: list, parallel: bool, progress=None) -> list[list[str]]:
-    if parallel:
+    return _fork_map(_resplit_causes, jobs, parallel, progress, lambda j: "re-splits")
+
+
+def _try_job(args) -> Candidate:
+    """One candidate's fit and judgement (a worker of :func:`_search`'s rounds)."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # a forked worker writes nothing (a stream's lock may be held at the fork)
+        return try_candidate(*args)
+
+
+def _fork_map(fn, jobs: list, parallel: bool, progress=None, what=None) -> list:
+    """``[fn(j) for j in jobs]``, in order, on both cores when ``parallel`` (forked workers: they
+    start at once with the compiled kernels, where spawn would re-import everything; ``RIG_JOBS=N``
+    sets their number). Forked only from the main thread of a main process (a batch worker, with its
+    own threads or as a daemon, and a worker of this function run them in-process); ``progress`` is
+    called in this process, ``what(job)`` its message."""
+    if parallel and len(jobs) > 1:
         import concurrent.futures as cf
         import multiprocessing as mp
         import os
-
         import threading
 
         n = min(len(jobs), int(os.environ.get("RIG_JOBS", "0") or 0) or min(2, os.cpu_count() or 1))
-        # forked only from the main thread of a main process (a batch worker, with its own threads or as
-        # a daemon, runs them in-process)
         if (n > 1 and "fork" in mp.get_all_start_methods() and threading.current_thread() is threading.main_thread()
                 and mp.current_process().name == "MainProcess"):
-            # fork: the workers start at once with the compiled kernels (spawn re-imports everything,
-            # slower than the re-splits themselves on a loaded 2-core machine); they call no progress
             try:
                 with cf.ProcessPoolExecutor(n, mp_context=mp.get_context("fork")) as ex:
                     out = []
-                    for r in ex.map(_resplit_causes, jobs):
+                    for j, r in zip(jobs, ex.map(fn, jobs)):
                         if progress:
-                            progress("re-splits")
+                            progress(what(j))
                         out.append(r)
                     return out
             except (OSError, AssertionError, cf.process.BrokenProcessPool):
@@ -864,8 +889,8 @@ def _run_resplits(jobs: list, parallel: bool, progress=None) -> list[list[str]]:
     out = []
     for j in jobs:
         if progress:
-            progress("re-splits")
-        out.append(_resplit_causes(j))
+            progress(what(j))
+        out.append(fn(j))
     return out
 
 
