@@ -5,6 +5,7 @@ project has x every harmless transformation -> causes and parameters, with a ver
     python benchmarks/bench_invariance.py real       # the shared real records and tests/data's converted ones
     python benchmarks/bench_invariance.py synth      # every cause, two clean, the load-point step
 
+The causes column gives each finding's `stability` (when under 1) and `alternatives` in brackets.
 Verdict per row: "same" when the causes are those of the original and every parameter is within
 twice the joint standard error of the two estimates (original and transformed) or 25 % (a
 stiffness and a force drift scaled with the forces under "scale"); otherwise what differs.
@@ -59,7 +60,8 @@ def synth_records():
 
 def _row(rep):
     causes = [f["cause"] for f in rep["findings"]]
-    alts = {f["cause"]: [a["cause"] for a in f.get("alternatives", [])] for f in rep["findings"]}
+    alts = {f["cause"]: ([f"stability {f['stability']:.1f}"] if f.get("stability") not in (None, 1.0) else [])
+            + [a["cause"] for a in f.get("alternatives", [])] for f in rep["findings"]}
     params = {k: v for k, v in rep["model"]["params"].items() if k != "mu0" and k != "v_init_um_s"}
     return causes, alts, params, rep["model"].get("params_sd", {})
 
@@ -129,4 +131,10 @@ def main(which: str = "all") -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main(sys.argv[1] if len(sys.argv) > 1 else "all"))
+    args = sys.argv[1:]
+    if len(args) > 1 or (args and args[0] not in ("all", "real", "synth")):
+        print(__doc__ if args and args[0] in ("-h", "--help") else
+              f"usage: python benchmarks/bench_invariance.py [all|real|synth] (not {' '.join(args)!r})",
+              file=sys.stdout if args and args[0] in ("-h", "--help") else sys.stderr)
+        sys.exit(0 if args and args[0] in ("-h", "--help") else 2)
+    sys.exit(main(args[0] if args else "all"))
