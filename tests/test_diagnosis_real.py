@@ -61,17 +61,16 @@ def test_basalt_one_state_with_the_step_fitted(real_data_dir):
     fitted, one state explains the transient (A ~ B ~ 0.008, L ~ 10 um; identify's whole-record
     fit with stiffness: 0.0095, 0.0097, 8.1 um); before, the step was held out, the baseline ran to
     A ~ 0, B = -0.17, L = 1e5 um (a drift) and a near-cancelling second state (B 0.0138, B2 -0.0149,
-    L 171 / 214 um) was named. Now no transient cause is named (a slow drift may be),
-    nor the machine's coupling, which predicts the held-out data worse."""
+    L 171 / 214 um) was named. Now no transient cause is named (a slow drift may be)."""
     res = CliRunner().invoke(app, ["diagnose", str(real_data_dir / "giacomel-basalt-brava.csv")])
     assert res.exit_code == 0
     rep = diagnose(load_trial(real_data_dir / "giacomel-basalt-brava.csv")).report()
     p = rep["baseline"]["params"]
     assert 0.005 < p["A_mu"] < 0.012 and 0.005 < p["B_mu"] < 0.012 and 5.0 < p["L_um"] < 20.0, p
-    # a load-point record, but its coupling worsens the held-out data (0.164 -> 0.168 N): not named
-    # (issue 20: a cause that worsens the held-out data is never named); at most a slow drift
-    assert {f["cause"] for f in rep["findings"]} <= {"slip_wear_drift", "force_offset_drift"}
-    assert all(f["holdout_rms_N_after"] < f["holdout_rms_N_before"] for f in rep["findings"])
+    # a load-point record: the machine's coupling first (issue 20; its hold-out loss, 0.164 -> 0.168 N,
+    # is inside the noise: no evidence against it), then at most a slow drift
+    assert rep["findings"][0]["cause"] == "finite_stiffness"
+    assert {f["cause"] for f in rep["findings"][1:]} <= {"slip_wear_drift", "force_offset_drift"}
 
 
 def test_one_step_record_evidence_counts_its_step_only(real_data_dir):

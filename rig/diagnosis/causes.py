@@ -218,8 +218,16 @@ def _periodic_starts(p, grid, screen):
             for lf in (1.0, 0.97, 1.03) for ph in (0.0, 1.6, 3.1, -1.6)]
 
 
+# a period in position is told from a drift by several cycles in the record: the screen's periodogram
+# searches wavelengths up to 1/PERIODIC_SEARCH_CYCLES of the position span, and a fit (which starts
+# there and may move) is plausible up to 1/PERIODIC_MIN_CYCLES of it. The same bound for both rejected
+# a true 202 um period on a record trimmed by 5 % at each end: 4.7 cycles (docs/diagnosis.md)
+PERIODIC_SEARCH_CYCLES = 5.0
+PERIODIC_MIN_CYCLES = 4.0
+
+
 def _periodic_plausible(p, grid):
-    return p["wavelength_um"] <= float(grid.x.max() - grid.x.min()) / 5
+    return p["wavelength_um"] <= float(grid.x.max() - grid.x.min()) / PERIODIC_MIN_CYCLES
 
 
 def _periodic_evidence(p, grid, info):

@@ -53,7 +53,7 @@ from .fit import FitResult, at_bound, evaluate, fit, multistart, profile
 from rig.kinematics import velocity_changes
 from rig.model.forward import as_model
 from rig.model.spec import EXT_PARAMS, PLAUSIBLE, model_params
-from .causes import CAUSES, rate_starts, slip_of
+from .causes import CAUSES, PERIODIC_SEARCH_CYCLES, rate_starts, slip_of
 from .prep import Grid, canonical, prepare
 
 # a finding must matter in practice, not only pass a significance test (docs/diagnosis.md):
@@ -306,7 +306,7 @@ def position_periodogram(grid: Grid, r: np.ndarray, lam_min: float = 8.0):
     span = float(x.max() - x.min())
     if span < 10 * lam_min:
         return None
-    return _fft_periodogram(grid.x, r, grid.w, lam_min / 4.0, lam_min, span / 5.0)
+    return _fft_periodogram(grid.x, r, grid.w, lam_min / 4.0, lam_min, span / PERIODIC_SEARCH_CYCLES)
 
 
 def time_periodogram(grid: Grid, r: np.ndarray):
