@@ -4,6 +4,7 @@ project has x every harmless transformation -> causes and parameters, with a ver
     python benchmarks/bench_invariance.py            # everything: real, converted, synthetic, clean
     python benchmarks/bench_invariance.py real       # the shared real records and tests/data's converted ones
     python benchmarks/bench_invariance.py synth      # every cause, two clean, the load-point step
+    python benchmarks/bench_invariance.py real basalt   # only the records whose label contains "basalt"
 
 The causes column gives each finding's `stability` (when under 1) and `alternatives` in brackets.
 Verdict per row: "same" when the causes are those of the original and every parameter is within
@@ -26,6 +27,7 @@ from rig.diagnosis.transforms import TRANSFORMS, expected
 from rig.sim.synth import SynthSpec, make_record, random_effect
 
 ROOT = Path(__file__).resolve().parent.parent
+ONLY = ""  # the second argument: only the records whose label contains it
 EFFECTS = ["second_state_variable", "aging_law", "sensor_lag", "finite_stiffness", "normal_force_variation",
            "slip_wear_drift", "force_offset_drift", "position_periodic", "time_delay"]
 
@@ -103,6 +105,8 @@ def main(which: str = "all") -> int:
     with Progress(transient=True) as bar:
         task = bar.add_task("records x transformations", total=len(recs) * len(names))
         for label, trial, baseline in recs:
+            if ONLY and ONLY not in label:
+                continue
             ref = None
             for name in names:
                 bar.update(task, description=f"{label}: {name}")
@@ -132,6 +136,8 @@ def main(which: str = "all") -> int:
 
 if __name__ == "__main__":
     args = sys.argv[1:]
+    if len(args) == 2 and args[0] in ("all", "real", "synth"):
+        ONLY = args.pop()
     if len(args) > 1 or (args and args[0] not in ("all", "real", "synth")):
         print(__doc__ if args and args[0] in ("-h", "--help") else
               f"usage: python benchmarks/bench_invariance.py [all|real|synth] (not {' '.join(args)!r})",
