@@ -34,7 +34,7 @@ def speed():
         dt = time.perf_counter() - t0
         print(f"speed: {dur / 3600:.2g} h at {rate:g} Hz{' (irregular)' if jit else ''} ({len(trial)} samples, "
               f"{d.timings['n_bins']} fit bins): {dt:.1f} s (budget {budget:g} s) "
-              f"findings={[f['cause'] for f in d.findings]}; load average {os.getloadavg()[0]:.2f}", flush=True)
+              f"findings={[f.cause for f in d.findings]}; load average {os.getloadavg()[0]:.2f}", flush=True)
 
 
 def real():
@@ -54,7 +54,7 @@ def real():
     d = diagnose(trial)
     dt = time.perf_counter() - t0
     print(f"real: {path.name} ({len(trial)} rows, {d.timings['n_bins']} fit bins): {dt:.1f} s (reading {t_read:.1f} s; "
-          f"budget 20 s) findings={[f['cause'] for f in d.findings]}; load average {os.getloadavg()[0]:.2f}", flush=True)
+          f"budget 20 s) findings={[f.cause for f in d.findings]}; load average {os.getloadavg()[0]:.2f}", flush=True)
 
 
 def clean(n):

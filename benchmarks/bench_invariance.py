@@ -4,7 +4,9 @@ project has x every harmless transformation -> causes and parameters, with a ver
     python benchmarks/bench_invariance.py            # everything: real, converted, synthetic, clean
     python benchmarks/bench_invariance.py real       # the shared real records and tests/data's converted ones
     python benchmarks/bench_invariance.py synth      # every cause, two clean, the load-point step
+    python benchmarks/bench_invariance.py real basalt   # only the records whose label contains "basalt"
 
+The causes column gives each finding's `stability` (when under 1) and `alternatives` in brackets.
 Verdict per row: "same" when the causes are those of the original and every parameter is within
 twice the joint standard error of the two estimates (original and transformed) or 25 % (a
 stiffness and a force drift scaled with the forces under "scale"); otherwise what differs.
@@ -25,6 +27,7 @@ from rig.diagnosis.transforms import TRANSFORMS, expected
 from rig.sim.synth import SynthSpec, make_record, random_effect
 
 ROOT = Path(__file__).resolve().parent.parent
+ONLY = ""  # the second argument: only the records whose label contains it
 EFFECTS = ["second_state_variable", "aging_law", "sensor_lag", "finite_stiffness", "normal_force_variation",
            "slip_wear_drift", "force_offset_drift", "position_periodic", "time_delay"]
 
@@ -59,7 +62,8 @@ def synth_records():
 
 def _row(rep):
     causes = [f["cause"] for f in rep["findings"]]
-    alts = {f["cause"]: [a["cause"] for a in f.get("alternatives", [])] for f in rep["findings"]}
+    alts = {f["cause"]: ([f"stability {f['stability']:.1f}"] if f.get("stability") not in (None, 1.0) else [])
+            + [a["cause"] for a in f.get("alternatives", [])] for f in rep["findings"]}
     params = {k: v for k, v in rep["model"]["params"].items() if k != "mu0" and k != "v_init_um_s"}
     return causes, alts, params, rep["model"].get("params_sd", {})
 
@@ -101,6 +105,8 @@ def main(which: str = "all") -> int:
     with Progress(transient=True) as bar:
         task = bar.add_task("records x transformations", total=len(recs) * len(names))
         for label, trial, baseline in recs:
+            if ONLY and ONLY not in label:
+                continue
             ref = None
             for name in names:
                 bar.update(task, description=f"{label}: {name}")
@@ -129,4 +135,12 @@ def main(which: str = "all") -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main(sys.argv[1] if len(sys.argv) > 1 else "all"))
+    args = sys.argv[1:]
+    if len(args) == 2 and args[0] in ("all", "real", "synth"):
+        ONLY = args.pop()
+    if len(args) > 1 or (args and args[0] not in ("all", "real", "synth")):
+        print(__doc__ if args and args[0] in ("-h", "--help") else
+              f"usage: python benchmarks/bench_invariance.py [all|real|synth] (not {' '.join(args)!r})",
+              file=sys.stdout if args and args[0] in ("-h", "--help") else sys.stderr)
+        sys.exit(0 if args and args[0] in ("-h", "--help") else 2)
+    sys.exit(main(args[0] if args else "all"))

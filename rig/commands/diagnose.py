@@ -13,8 +13,8 @@ from typing import Optional
 
 import typer
 
-from rig.commands.common import (EXIT_BAD_INPUT, EXIT_FAILED, JSON_HELP, check_output_path, err_console, fail,
-                                 json_to_stdout, progress_bar, write_json)
+from rig.commands.common import (EXIT_BAD_INPUT, EXIT_FAILED, JSON_HELP, check_output_path, console, err_console,
+                                 fail, json_to_stdout, progress_bar, write_json)
 
 
 class Baseline(str, Enum):
@@ -86,15 +86,22 @@ def register(app: typer.Typer) -> None:
             typer.echo(text)
         if json_out is not None:
             write_json(rep, json_out)
+        # what was written, on the terminal (stderr when the JSON goes to stdout); write_json says its own
+        con = err_console if json_to_stdout(json_out) else console
         if plot is not None:
             from rig.diagnosis.plot import plot_diagnosis
 
-            plot_diagnosis(d, plot, warnings=rep["warnings"])
+            try:
+                plot_diagnosis(d, plot, warnings=rep["warnings"])
+            except OSError as exc:
+                fail(f"cannot write {plot}: {exc.strerror or exc}", EXIT_FAILED)
+            con.print(f"wrote {plot}", markup=False)
         if model_out is not None:
             try:
                 d.model.to_yaml(model_out)
             except OSError as exc:
                 fail(f"cannot write {model_out}: {exc.strerror or exc}", EXIT_FAILED)
+            con.print(f"wrote {model_out} (the final model, for `rig run --sim --friction-model`)", markup=False)
 
 
 def _calibration_warnings(trial, rep: dict) -> list[dict]:
@@ -152,6 +159,9 @@ def summary(rep: dict) -> str:
             lines.append(f"  this record cannot tell {f['cause']} apart from {_or(alts)}: "
                          f"{'they explain' if len(alts) > 1 else 'it explains'} the held-out data about as well")
     for u in rep.get("_unnamed", []):
+        if u.get("why"):
+            lines.append(f"  not named: {u['cause']} ({u['gain_pct']:+.1f}%): {u['why']}")
+            continue
         lines.append(f"  not named: {u['cause']} ({u['gain_pct']:+.1f}% on the main split, but named on only "
                      f"{u['stability']:.0%} of the record's splits): this record cannot tell it apart from no such "
                      "cause")

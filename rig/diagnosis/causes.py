@@ -139,9 +139,9 @@ def _second_starts(p, grid, screen):
 def _second_plausible(p, grid):
     if _force_scale(grid) * abs(p["B2_mu"]) < EFFECT_MIN_NOISE * grid.noise_N:
         return False  # significant perhaps, but below the noise floor: not a finding
-    # two states of opposite sign and similar length nearly cancel: their small difference (the
-    # basalt record: B = 0.0119 over 168 um, B2 = -0.0130 over 218 um) is one hump that a single
-    # state, a spring or a lag shapes as well; two states are two only if their lengths differ
+    # two states of opposite sign and similar length nearly cancel: their small difference is one hump
+    # that a single state, a spring or a lag shapes as well; two states are two only if their lengths
+    # differ (docs/diagnosis.md, "Rules learned from records")
     L1, L2 = p.get("L_um", 0.0), p["L2_um"]
     if p.get("B_mu", 0.0) * p["B2_mu"] < 0 and max(L1, L2) < MIN_OPPOSITE_STATE_RATIO * min(L1, L2):
         return False
@@ -217,8 +217,16 @@ def _periodic_starts(p, grid, screen):
             for lf in (1.0, 0.97, 1.03) for ph in (0.0, 1.6, 3.1, -1.6)]
 
 
+# a period in position is told from a drift by several cycles in the record: the screen's periodogram
+# searches wavelengths up to 1/PERIODIC_SEARCH_CYCLES of the position span, and a fit (which starts
+# there and may move) is plausible up to 1/PERIODIC_MIN_CYCLES of it. The same bound for both rejected
+# a true 202 um period on a record trimmed by 5 % at each end: 4.7 cycles (docs/diagnosis.md)
+PERIODIC_SEARCH_CYCLES = 5.0
+PERIODIC_MIN_CYCLES = 4.0
+
+
 def _periodic_plausible(p, grid):
-    return p["wavelength_um"] <= float(grid.x.max() - grid.x.min()) / 5
+    return p["wavelength_um"] <= float(grid.x.max() - grid.x.min()) / PERIODIC_MIN_CYCLES
 
 
 def _periodic_evidence(p, grid, info):

@@ -53,7 +53,7 @@ from .fit import FitResult, at_bound, delta_bic, evaluate, fit, multistart, prof
 from rig.kinematics import velocity_changes
 from rig.model.forward import as_model
 from rig.model.spec import EXT_PARAMS, PLAUSIBLE, model_params
-from .causes import CAUSES, rate_starts, slip_of
+from .causes import CAUSES, PERIODIC_SEARCH_CYCLES, rate_starts, slip_of
 from .prep import Grid, canonical, prepare
 
 # a finding must matter in practice, not only pass a significance test (docs/diagnosis.md):
@@ -63,7 +63,10 @@ MIN_GAIN_PCT = 1.0
 MIN_Z = 2.5
 MIN_ZW = 5.0
 MIN_DBIC = -10.0
-STRONG_GAIN_PCT = 5.0  # a hold-out gain this large needs no chunk test (single-step records)
+# a transient cause with a hold-out gain this large needs no chunk test: a single step gives too few
+# chunks for one. A drift or a periodic term spreads over the whole record and always has the chunks:
+# without them it is a gain the record's noise can make, named on some crops and samplings only
+STRONG_GAIN_PCT = 5.0
 UNEXPLAINED_MIN_GAIN_PCT = 1.0
 # practical effect of an oscillation in time: its rms (amplitude / sqrt 2) at least this fraction of the
 # hold-out residual rms; a smaller one is significant but negligible (a few mN on a 0.04 N residual)
@@ -72,6 +75,9 @@ MAX_FINDINGS = 5
 # a further cause must leave the causes already found as they were (within this fraction): one that
 # takes over part of their job (a lag that makes a spring 60 % stiffer) is not separable from them
 MAX_FINDING_SHIFT = 0.3
+# |A|, |B| or |B2| above this is a pair of cancelling stand-ins, not rate-and-state coefficients (which
+# are O(0.001-0.02): Table 2, rock friction): the upper end of rig.model.spec.PLAUSIBLE
+COEF_MAX_MU = max(PLAUSIBLE["A_mu"].hi, PLAUSIBLE["B_mu"].hi)
 
 # how the duration of each transient cause's correction scales with the new speed: over a slip
 # distance (~1/v: memory, a second state, a spring taking up dF/k of slip) or a fixed time (lag, delay)
@@ -95,10 +101,40 @@ class Candidate:
 
 
 @dataclass
+class Finding:
+    """A named cause (diagnosis.md, ``findings[]``), its numbers unrounded; :meth:`report` makes the
+    JSON. ``params`` are the final model's values of the cause's parameters (the single-cause fit's,
+    where they differ, are in ``evidence``); ``uncertainty``: ``params_sd``/``intervals``/``correlation``
+    of those parameters in the final model."""
+    cause: str
+    params: dict[str, float]
+    evidence: str
+    holdout_rms_N_before: float
+    holdout_rms_N_after: float
+    gain_pct: float
+    delta_bic: float
+    stability: float | None = None  # the fraction of the record's splits that name it (None: one split)
+    alternatives: list[dict] = field(default_factory=list)
+    uncertainty: dict = field(default_factory=dict)
+
+    def report(self) -> dict:
+        out = {"cause": self.cause, "params": {k: _r(v) for k, v in self.params.items()}, "evidence": self.evidence,
+               "holdout_rms_N_before": _r(self.holdout_rms_N_before),
+               "holdout_rms_N_after": _r(self.holdout_rms_N_after),
+               "gain_pct": _r(self.gain_pct, 4), "delta_bic": _r(self.delta_bic, 6)}
+        if self.stability is not None:
+            out["stability"] = _r(self.stability, 3)
+        if self.alternatives:
+            out["alternatives"] = self.alternatives
+        out.update(self.uncertainty)
+        return out
+
+
+@dataclass
 class Diagnosis:
     data: str
     baseline: FitResult
-    findings: list[dict]
+    findings: list[Finding]
     unexplained: list[dict]
     final: FitResult
     grid: Grid
@@ -135,7 +171,7 @@ class Diagnosis:
             "schema": "rig.diagnosis/1",
             "data": self.data,
             "baseline": base,
-            "findings": self.findings,
+            "findings": [f.report() for f in self.findings],
             "unexplained": self.unexplained,
             "model": model,
             "holdout_rms_N": _r(self.final.holdout_rms_N),
@@ -270,7 +306,7 @@ def position_periodogram(grid: Grid, r: np.ndarray, lam_min: float = 8.0):
     span = float(x.max() - x.min())
     if span < 10 * lam_min:
         return None
-    return _fft_periodogram(grid.x, r, grid.w, lam_min / 4.0, lam_min, span / 5.0)
+    return _fft_periodogram(grid.x, r, grid.w, lam_min / 4.0, lam_min, span / PERIODIC_SEARCH_CYCLES)
 
 
 def time_periodogram(grid: Grid, r: np.ndarray):
@@ -456,7 +492,8 @@ def identify_prior(trial: TrialData, steps: list | None = None) -> dict:
         return {}
     p = w["params"]
     out = {k: float(p[k]) for k in ("A_mu", "B_mu", "L_um", "stiffness_kN_per_m") if p.get(k) is not None}
-    if not (0.0 <= out.get("A_mu", -1) < 0.05 and abs(out.get("B_mu", 1)) < 0.05 and 0.1 < out.get("L_um", 0) < 1e4):
+    if not (0.0 <= out.get("A_mu", -1) < COEF_MAX_MU and abs(out.get("B_mu", 1)) < COEF_MAX_MU
+            and 0.1 < out.get("L_um", 0) < 1e4):
         return {}
     return out
 
@@ -487,6 +524,34 @@ def try_candidate(grid: Grid, cur: FitResult, cause: str, info: dict, prior: dic
     the same candidate's fit on another split of the record (a re-split), its one starting point
     besides the current model's with the cause's first start."""
     exts = list(cur.extensions) + [cause]
+    res = _fit_candidate(grid, cur, cause, info, prior, warm)
+    gain = 100.0 * (cur.holdout_rms_N - res.holdout_rms_N) / cur.holdout_rms_N
+    dbic = delta_bic(grid, cur, res)
+    z = paired_z(grid, cur.pred, res.pred)
+    zw = white_z(grid, cur.pred, res.pred)
+    note = ""
+    if gain < MIN_GAIN_PCT:
+        note = f"hold-out gain under {MIN_GAIN_PCT:g}%"
+    elif dbic > MIN_DBIC:
+        note = (f"its BIC falls by only {-dbic:.1f}" if dbic < 0 else f"its BIC rises by {dbic:.1f}") + \
+            f" (a fall of {-MIN_DBIC:g} needed)"
+    elif not (z >= MIN_Z or zw >= MIN_ZW or (gain >= STRONG_GAIN_PCT and CAUSES[cause].transient)):
+        note = f"not significant on the hold-out blocks (z = {z:.1f})"
+    elif not _plausible(cause, res.params, grid):
+        note = ("its fit is not physical (a bound, a parameter outside its plausible range, or an effect below "
+                "the noise)")
+    if not note:
+        note = _veto(grid, cur, res, cause, exts, gain)
+    c = Candidate(cause, res, gain, dbic, z, not note, note)
+    c.zw = zw
+    return c
+
+
+def _fit_candidate(grid: Grid, cur: FitResult, cause: str, info: dict, prior: dict | None,
+                   warm: dict | None) -> FitResult:
+    """The joint fit of the current model and ``cause`` on the fit blocks, from the cause's starts
+    (and a re-split's ``warm`` fit, or identify's whole-record fit for a spring or a second state)."""
+    exts = list(cur.extensions) + [cause]
     starts = _candidate_starts(cause, cur, grid, info)
     # e.g. two states: many local minima (but the stiffness solver is costly)
     keep = CAUSES[cause].keep if "finite_stiffness" not in exts else 2
@@ -509,8 +574,9 @@ def try_candidate(grid: Grid, cur: FitResult, cause: str, info: dict, prior: dic
     res = multistart(grid, cur.baseline, exts, starts, keep=min(keep, len(starts)), max_nfev=120, must=must)
     if cause == "finite_stiffness" and res.sse_fit > cur.sse_fit:
         # the nested comparison at the better of the two fits: the extended model contains the current
-        # one (k -> infinity), so a fit that ends worse on the fit blocks is stuck (the basalt record's
-        # did); from the current model with a spring too stiff to matter it can only improve
+        # one (k -> infinity), so a fit that ends worse on the fit blocks is stuck; from the current model
+        # with a spring too stiff to matter it can only improve (docs/diagnosis.md, "Rules learned from
+        # records")
         r2 = fit(grid, cur.baseline, exts, dict(cur.params, stiffness_kN_per_m=1e5), max_nfev=120)
         if r2.sse_fit < res.sse_fit:
             res = r2
@@ -518,29 +584,18 @@ def try_candidate(grid: Grid, cur: FitResult, cause: str, info: dict, prior: dic
         # the two slip-law states are interchangeable: by the spec's convention the second is the
         # slower one, L2_um > L_um (swapped before reporting)
         swap_slower_second(res.params)
-    gain = 100.0 * (cur.holdout_rms_N - res.holdout_rms_N) / cur.holdout_rms_N
-    dbic = delta_bic(grid, cur, res)
-    z = paired_z(grid, cur.pred, res.pred)
-    zw = white_z(grid, cur.pred, res.pred)
-    note = ""
-    if gain < MIN_GAIN_PCT:
-        note = f"hold-out gain under {MIN_GAIN_PCT:g}%"
-    elif dbic > MIN_DBIC:
-        note = (f"its BIC falls by only {-dbic:.1f}" if dbic < 0 else f"its BIC rises by {dbic:.1f}") + \
-            f" (a fall of {-MIN_DBIC:g} needed)"
-    elif not (z >= MIN_Z or zw >= MIN_ZW or gain >= STRONG_GAIN_PCT):
-        note = f"not significant on the hold-out blocks (z = {z:.1f})"
-    elif not _plausible(cause, res.params, grid):
-        note = ("its fit is not physical (a bound, a parameter outside its plausible range, or an effect below "
-                "the noise)")
-    ok = not note
-    if ok and cur.extensions:
+    return res
+
+
+def _veto(grid: Grid, cur: FitResult, res: FitResult, cause: str, exts: list[str], gain: float) -> str:
+    """Why a candidate that passed the hold-out test is still not named ("" when nothing vetoes it):
+    it moves a cause already found, a transient that is not in every step, a drift that is not linear."""
+    if cur.extensions:
         moved = _confounded(cur, res)
         if moved:
-            ok = False
-            note = (f"confounded with {moved[0]}: adding it moves {moved[1]} from {moved[2]:.4g} to {moved[3]:.4g} "
+            return (f"confounded with {moved[0]}: adding it moves {moved[1]} from {moved[2]:.4g} to {moved[3]:.4g} "
                     f"({100 * moved[4]:+.0f}%); the data do not tell the two apart")
-    if ok and CAUSES[cause].transient and grid.holdout_design.startswith("blocks aligned"):
+    if CAUSES[cause].transient and grid.holdout_design.startswith("blocks aligned"):
         # with the hold-out segments aligned to the steps, a transient cause must also predict the
         # other half of the steps: refitted on the hold-out segments, judged on the fit segments.
         # A true memory, lag or spring shows in every step; a one-off event inside one segment (a
@@ -552,21 +607,17 @@ def try_candidate(grid: Grid, cur: FitResult, cause: str, info: dict, prior: dic
         gain_sw = (100.0 * (before_sw - ext_sw.holdout_rms_N) / before_sw
                    if math.isfinite(before_sw) and before_sw > 0 else math.inf)  # nothing to judge on: no veto
         if gain_sw < SWAP_MIN_FRACTION * gain:
-            ok = False
-            note = (f"not in every step: refitted on the held-out steps and judged on the fitted ones it "
+            return (f"not in every step: refitted on the held-out steps and judged on the fitted ones it "
                     f"gains {gain_sw:+.2f}%, under {SWAP_MIN_FRACTION:g} of its {gain:.1f}% (an event in a few "
                     "segments, not a property of every transient)")
-    if ok and cause in ("force_offset_drift", "slip_wear_drift"):
+    if cause in ("force_offset_drift", "slip_wear_drift"):
         # a drift must be linear: if a free profile in the same quantity still explains much of what
         # is left, the drift only approximates something else (a jump, a non-linear run-in)
         ratio = _drift_leftover(grid, cur.pred, res.pred)
         if ratio > 0.5:
-            ok = False
-            note = (f"not linear: block means of the residual after it keep {100 * ratio:.0f}% of the drift's own "
+            return (f"not linear: block means of the residual after it keep {100 * ratio:.0f}% of the drift's own "
                     "size (a jump or a non-linear run-in, not a linear drift)")
-    c = Candidate(cause, res, gain, dbic, z, ok, note)
-    c.zw = zw
-    return c
+    return ""
 
 
 def _swapped(grid: Grid) -> Grid:
@@ -628,6 +679,11 @@ def _ext_params_plausible(extensions, p: dict) -> bool:
     return True
 
 
+def _coefs_too_large(p: dict) -> bool:
+    """|A|, |B| or |B2| above ``COEF_MAX_MU``."""
+    return any(abs(p.get(k, 0.0)) > COEF_MAX_MU for k in ("A_mu", "B_mu", "B2_mu"))
+
+
 def _plausible(cause: str, p: dict, grid: Grid) -> bool:
     """Reject fits that ran to a bound (the extension then stands in for something else)."""
 
@@ -635,9 +691,8 @@ def _plausible(cause: str, p: dict, grid: Grid) -> bool:
         return False
     if not _ext_params_plausible((cause,), p):
         return False
-    # large cancelling coefficients (e.g. B = 0.13, B2 = -0.13) stand in for something else: real
-    # rate-and-state coefficients are O(0.001-0.02) (Table 2; rock friction)
-    if any(abs(p.get(k, 0.0)) > 0.05 for k in ("A_mu", "B_mu", "B2_mu")):
+    # large cancelling coefficients (e.g. B = 0.13, B2 = -0.13) stand in for something else
+    if _coefs_too_large(p):
         return False
     return CAUSES[cause].plausible(p, grid)
 
@@ -664,6 +719,7 @@ RESPLITS = ({"n_blocks": 16, "align": False}, {"n_blocks": 24, "swap_aligned": T
             {"crop": (0.0, 0.03)})
 MIN_STABILITY = 0.5  # named on more than this fraction of all splits (main + RESPLITS)
 RESPLIT_PARALLEL_MIN_S = 3.0  # a main search shorter than this runs its re-splits in-process
+CANDIDATES_PARALLEL_MIN_S = 1.0  # a baseline fit longer than this: a round's candidates on both cores
 PROFILE_MAX_BINS_SPRING = 2000  # profile likelihood of a model with a spring only on grids this small
 
 
@@ -674,13 +730,18 @@ class _Search:
     history: list[FitResult]
     tried: list[list[Candidate]]
     chosen: list[tuple[Candidate, FitResult, str]]  # (candidate, model before it, why it was chosen)
+    # load point: the machine's coupling, fitted from the start (named first) or, when it worsens the
+    # held-out data, left out (then it is here, not in ``chosen``)
+    coupled: bool = False
+    coupling_refused: Candidate | None = None
 
 
 def _search(trial: TrialData, baseline: str, prior: dict, steps: list, known: dict, load_point: bool,
             n_blocks: int = 20, swap_aligned: bool = False, progress=None, max_rounds: int = MAX_FINDINGS,
-            align: bool = True, warm: list[dict] | None = None) -> _Search:
+            align: bool = True, warm: list[dict] | None = None, warm_coupling: dict | None = None) -> _Search:
     """One split of the record: the baseline, the machine's coupling (load point), then the loop of
-    candidates until none passes."""
+    candidates until none passes. ``warm``: per round of the loop, each candidate's fit on another
+    split (``warm_coupling``: the coupling's)."""
     grid = prepare(trial, n_blocks=n_blocks, restart_guard_um=3.0 * prior["L_um"] if prior else 0.0,
                    step_times_s=np.array([s.t_s for s in steps]) if steps else np.zeros(0), align_to_steps=align)
     grid.known = dict(known)
@@ -689,32 +750,19 @@ def _search(trial: TrialData, baseline: str, prior: dict, steps: list, known: di
     if int(grid.sliding.sum()) < 10:
         raise ValueError(f"{trial.source or 'trial'}: hardly any forward sliding (v > {0.1:g} um/s away from stops): "
                          "nothing to diagnose")
+    t_base = _time.perf_counter()
     base = fit_baseline(grid, baseline, prior)
-    cur = base
-    history, tried, chosen = [base], [], []
+    t_base = _time.perf_counter() - t_base
+    s = _Search(grid, base, [base], [], [])
     if load_point and baseline == "rate_state":
-        # measured-data.md: with position_source load_point (or a stated machine stiffness) the elastic
-        # coupling between the measured position and the interface is always there: fitted from the
-        # start (or held at the stated value), never left for a stand-in cause (aging, a lag, a drift)
-        if progress:
-            progress("the machine's coupling")
-        c = try_candidate(grid, cur, "finite_stiffness", {}, prior,
-                          warm=(warm[0].get("finite_stiffness") if warm else None))
-        why = ("the file states the machine stiffness (machine_stiffness_kN_per_m), held fixed" if known else
-               "position_source: load_point: the machine's compliance lies between the measured position and the "
-               "interface, so the coupling is fitted from the start, whatever its hold-out gain")
-        chosen.append((c, cur, why))
-        tried.append([c])
-        cur = c.result
-        history.append(cur)
-    for _ in range(max_rounds):
+        _couple(s, prior, known, warm_coupling, progress)
+    cur, tried, chosen, history = s.history[-1], s.tried, s.chosen, s.history
+    for round_no in range(max_rounds):
         cands, info = screen(grid, cur)
-        results = []
-        w = warm[len(tried)] if warm and len(tried) < len(warm) else {}
-        for cn in cands:
-            if progress:
-                progress(f"trying {cn}")
-            results.append(try_candidate(grid, cur, cn, info, prior, warm=w.get(cn)))
+        w = warm[round_no] if warm and round_no < len(warm) else {}
+        # the candidates of a round are independent: both cores where the fits are slow
+        results = _fork_map(_try_job, [(grid, cur, cn, info, prior, w.get(cn)) for cn in cands],
+                            t_base > CANDIDATES_PARALLEL_MIN_S, progress, lambda j: f"trying {j[2]}")
         tried.append(results)
         acc = [c for c in results if c.accepted]
         if not acc:
@@ -730,20 +778,55 @@ def _search(trial: TrialData, baseline: str, prior: dict, steps: list, known: di
         chosen.append((best, cur, why))
         cur = best.result
         history.append(cur)
-    return _Search(grid, base, history, tried, chosen)
+    return s
+
+
+def _worsens(c: Candidate) -> bool:
+    """The held-out data predicted worse with the candidate than without it, by the test a gain must
+    pass with the sign reversed: a loss of at least MIN_GAIN_PCT that is significant (paired chunk z
+    or white-noise z) or of at least STRONG_GAIN_PCT. A loss inside the noise (a spring on a one-step
+    record whose hold-out blocks hold no transient: -0.1 %) is no evidence either way."""
+    if not math.isfinite(c.gain_pct):
+        return True
+    return c.gain_pct <= -MIN_GAIN_PCT and (c.z <= -MIN_Z or c.zw <= -MIN_ZW or c.gain_pct <= -STRONG_GAIN_PCT)
+
+
+def _couple(s: _Search, prior: dict, known: dict, warm: dict | None, progress=None) -> None:
+    """The machine's coupling of a load-point record (measured-data.md: ``position_source:
+    load_point`` or a stated ``machine_stiffness_kN_per_m``): the elastic coupling between the
+    measured position and the interface is always there, so it is fitted from the start (or held at
+    the stated value) and named first, before any stand-in cause (aging, a lag, a drift) is tried,
+    whatever its significance, but never when it worsens the held-out data (:func:`_worsens`: a
+    hold-out RMS that rises significantly is evidence against it; the search then goes on from the
+    rigid model)."""
+    if progress:
+        progress("the machine's coupling")
+    cur = s.history[-1]
+    c = try_candidate(s.grid, cur, "finite_stiffness", {}, prior, warm=warm)
+    if _worsens(c):
+        c.note = (f"the held-out data get worse with it (hold-out RMS {cur.holdout_rms_N:.4g} -> "
+                  f"{c.result.holdout_rms_N:.4g} N, {c.gain_pct:+.1f}%)")
+        s.coupling_refused = c
+        return
+    why = ("the file states the machine stiffness (machine_stiffness_kN_per_m), held fixed" if known else
+           "position_source: load_point: the machine's compliance lies between the measured position and the "
+           "interface, so the coupling is fitted from the start, whatever the significance of its hold-out gain")
+    s.chosen.append((c, cur, why))
+    s.tried.append([c])
+    s.history.append(c.result)
+    s.coupled = True
 
 
 def _resplit_causes(args) -> list[str]:
     """The causes one re-split names, in order (a worker of :func:`diagnose`)."""
-    trial, baseline, prior, steps, known, load_point, spec, rounds, warm = args
     import warnings
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # a forked worker writes nothing (a stream's lock may be held at the fork)
-        return _resplit_search(trial, baseline, prior, steps, known, load_point, spec, rounds, warm)
+        return _resplit_search(*args)
 
 
-def _resplit_search(trial, baseline, prior, steps, known, load_point, spec, rounds, warm) -> list[str]:
+def _resplit_search(trial, baseline, prior, steps, known, load_point, spec, rounds, warm, warm_coupling) -> list[str]:
     a, b = spec.get("crop", (0.0, 0.0))
     if a or b:
         t = np.asarray(trial.time_s, dtype=float)
@@ -753,33 +836,46 @@ def _resplit_search(trial, baseline, prior, steps, known, load_point, spec, roun
     try:
         s = _search(trial, baseline, prior, steps, known, load_point, n_blocks=spec.get("n_blocks", 20),
                     swap_aligned=spec.get("swap_aligned", False), max_rounds=rounds, align=spec.get("align", True),
-                    warm=warm)
+                    warm=warm, warm_coupling=warm_coupling)
     except (ValueError, ZeroDivisionError, FloatingPointError, IndexError, KeyError):
         return ["(failed)"]  # counted as a split that does not name the cause
     return [c.cause for c, _, _ in s.chosen]
 
 
 def _run_resplits(jobs: list, parallel: bool, progress=None) -> list[list[str]]:
-    if parallel:
+    return _fork_map(_resplit_causes, jobs, parallel, progress, lambda j: "re-splits")
+
+
+def _try_job(args) -> Candidate:
+    """One candidate's fit and judgement (a worker of :func:`_search`'s rounds)."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # a forked worker writes nothing (a stream's lock may be held at the fork)
+        return try_candidate(*args)
+
+
+def _fork_map(fn, jobs: list, parallel: bool, progress=None, what=None) -> list:
+    """``[fn(j) for j in jobs]``, in order, on both cores when ``parallel`` (forked workers: they
+    start at once with the compiled kernels, where spawn would re-import everything; ``RIG_JOBS=N``
+    sets their number). Forked only from the main thread of a main process (a batch worker, with its
+    own threads or as a daemon, and a worker of this function run them in-process); ``progress`` is
+    called in this process, ``what(job)`` its message."""
+    if parallel and len(jobs) > 1:
         import concurrent.futures as cf
         import multiprocessing as mp
         import os
-
         import threading
 
         n = min(len(jobs), int(os.environ.get("RIG_JOBS", "0") or 0) or min(2, os.cpu_count() or 1))
-        # forked only from the main thread of a main process (a batch worker, with its own threads or as
-        # a daemon, runs them in-process)
         if (n > 1 and "fork" in mp.get_all_start_methods() and threading.current_thread() is threading.main_thread()
                 and mp.current_process().name == "MainProcess"):
-            # fork: the workers start at once with the compiled kernels (spawn re-imports everything,
-            # slower than the re-splits themselves on a loaded 2-core machine); they call no progress
             try:
                 with cf.ProcessPoolExecutor(n, mp_context=mp.get_context("fork")) as ex:
                     out = []
-                    for r in ex.map(_resplit_causes, jobs):
+                    for j, r in zip(jobs, ex.map(fn, jobs)):
                         if progress:
-                            progress("re-splits")
+                            progress(what(j))
                         out.append(r)
                     return out
             except (OSError, AssertionError, cf.process.BrokenProcessPool):
@@ -787,8 +883,8 @@ def _run_resplits(jobs: list, parallel: bool, progress=None) -> list[list[str]]:
     out = []
     for j in jobs:
         if progress:
-            progress("re-splits")
-        out.append(_resplit_causes(j))
+            progress(what(j))
+        out.append(fn(j))
     return out
 
 
@@ -801,6 +897,41 @@ def diagnose(trial: TrialData, baseline: str = "rate_state", progress=None, n_bl
     check_analysable(trial, "diagnose")
     # the file's clock and the position's zero are no physics: every step below sees them from 0
     trial = canonical(trial)
+    known, steps, prior, load_point = _inputs(trial)
+    t_prep = _time.perf_counter() - t0
+    main = _search(trial, baseline, prior, steps, known, load_point, n_blocks=n_blocks, progress=progress)
+    grid = main.grid
+    t_loop = _time.perf_counter() - t0 - t_prep
+    # re-splits: a cause is named only when most splits name it (the coupling of a load-point record is
+    # physics, named on every split)
+    split_causes: list[list[str]] = []
+    coupling = int(main.coupled)
+    if resplits and len(main.chosen) > coupling:
+        # as many rounds as the main split took (what a re-split names after that is not asked)
+        # warm-started from the main split's fit of every candidate of the same round
+        warm = [{c.cause: dict(c.result.params) for c in round_} for round_ in main.tried[coupling:]]
+        wc = main.chosen[0][0] if main.coupled else main.coupling_refused
+        jobs = [(trial, baseline, prior, steps, known, load_point, spec, len(main.chosen) - coupling, warm,
+                 None if wc is None else dict(wc.result.params)) for spec in RESPLITS]
+        split_causes = _run_resplits(jobs, t_loop > RESPLIT_PARALLEL_MIN_S, progress)
+    kept, stab = _stability(main, split_causes)
+    cur = main.history[kept]
+    findings = _findings(main, kept, stab, split_causes)
+    d = Diagnosis(data=str(trial.source), baseline=main.base, findings=findings,
+                  unexplained=find_unexplained(grid, cur), final=cur, grid=grid, history=main.history[: kept + 1],
+                  tried=main.tried)
+    d.unnamed = _unnamed(main, kept, stab)
+    _final_models(d, progress)
+    for f in findings:
+        _as_final(f, d)
+    d.timings = {"prepare_s": t_prep, "fit_s": t_loop, "total_s": _time.perf_counter() - t0,
+                 "n_samples": int(len(trial)), "n_bins": int(grid.t.size), "n_splits": 1 + len(split_causes)}
+    return d
+
+
+def _inputs(trial: TrialData) -> tuple[dict, list, dict, bool]:
+    """What every split shares: the file's stated parameters, identify's steps and whole-record fit
+    (the starting point), and whether the record is a load-point one."""
     from rig.analysis.identify import decimated
     from rig.kinematics import detect_steps
 
@@ -814,36 +945,41 @@ def diagnose(trial: TrialData, baseline: str = "rate_state", progress=None, n_bl
     load_point = trial.is_load_point or bool(known)
     if known and prior and "stiffness_kN_per_m" in prior:
         prior["stiffness_kN_per_m"] = known["stiffness_kN_per_m"]
-    t_prep = _time.perf_counter() - t0
-    main = _search(trial, baseline, prior, steps, known, load_point, n_blocks=n_blocks, progress=progress)
-    grid, base = main.grid, main.base
-    t_loop = _time.perf_counter() - t0 - t_prep
-    # re-splits: a cause is named only when most splits name it (the coupling of a load-point record is
-    # physics, named on every split)
-    split_causes: list[list[str]] = []
-    coupling = 1 if (load_point and main.chosen and main.chosen[0][0].cause == "finite_stiffness") else 0
-    if resplits and len(main.chosen) > coupling:
-        # as many rounds as the main split took (what a re-split names after that is not asked)
-        # warm-started from the main split's fit of every candidate of the same round
-        warm = [{c.cause: dict(c.result.params) for c in round_} for round_ in main.tried]
-        jobs = [(trial, baseline, prior, steps, known, load_point, spec, len(main.chosen) - coupling, warm)
-                for spec in RESPLITS]
-        split_causes = _run_resplits(jobs, t_loop > RESPLIT_PARALLEL_MIN_S, progress)
+    return known, steps, prior, load_point
+
+
+def _stability(main: _Search, split_causes: list[list[str]]) -> tuple[int, list[float]]:
+    """(how many of the main split's causes are named, the fraction of all splits naming each): the
+    causes in order until the first that most splits do not name (the coupling is always kept)."""
     n_splits = 1 + len(split_causes)
     kept = 0
     stab = []
     for i, (c, _, _) in enumerate(main.chosen):
         st = (1 + sum(c.cause in sc for sc in split_causes)) / n_splits
         stab.append(st)
-        if st <= MIN_STABILITY and i >= coupling:
+        if st <= MIN_STABILITY and i >= int(main.coupled):
             break
         kept = i + 1
-    cur = main.history[kept]
-    unnamed = []  # causes the main split found but most re-splits did not: the record cannot tell
-    for i in range(kept, len(main.chosen)):
-        unnamed.append({"cause": main.chosen[i][0].cause, "stability": _r(stab[i], 3),
-                        "gain_pct": _r(main.chosen[i][0].gain_pct, 4)})
-    findings = []
+    return kept, stab
+
+
+def _unnamed(main: _Search, kept: int, stab: list[float]) -> list[dict]:
+    """Causes the main split found but most re-splits did not (the record cannot tell them from none),
+    and a load-point coupling left out because it worsens the held-out data."""
+    out = [{"cause": main.chosen[i][0].cause, "stability": _r(stab[i], 3),
+            "gain_pct": _r(main.chosen[i][0].gain_pct, 4)} for i in range(kept, len(main.chosen))]
+    if main.coupling_refused is not None:
+        c = main.coupling_refused
+        out.insert(0, {"cause": c.cause, "stability": None, "gain_pct": _r(c.gain_pct, 4),
+                       "why": f"the machine's coupling of a load-point record, but {c.note}"})
+    return out
+
+
+def _findings(main: _Search, kept: int, stab: list[float], split_causes: list[list[str]]) -> list[Finding]:
+    """The named causes, each with its evidence, hold-out figures, stability and alternatives, as
+    found (single-cause fit on the fit blocks; :func:`_as_final` gives them the final model's values)."""
+    grid = main.grid
+    out = []
     for i, (c, before, why) in enumerate(main.chosen[:kept]):
         res = c.result
         round_ = main.tried[i]
@@ -855,34 +991,25 @@ def diagnose(trial: TrialData, baseline: str = "rate_state", progress=None, n_bl
             ev += f"; {why}"
         if stronger:
             ev += "; not named: " + "; ".join(f"{o.cause} ({o.gain_pct:+.1f}%): {o.note}" for o in stronger)
-        f = {
-            "cause": c.cause,
-            "params": {k: _r(res.params[k]) for k in CAUSES[c.cause].params},
-            "evidence": ev,
-            "holdout_rms_N_before": _r(before.holdout_rms_N),
-            "holdout_rms_N_after": _r(res.holdout_rms_N),
-            "gain_pct": _r(c.gain_pct, 4),
-            "delta_bic": _r(c.delta_bic, 6),
-        }
-        if split_causes or i < coupling:
-            f["stability"] = _r(stab[i], 3)
         alts = _alternatives(grid, c, round_, [sc[i] if i < len(sc) else "none" for sc in split_causes
                                                if c.cause not in sc])
-        if alts:
-            f["alternatives"] = alts
-        findings.append(f)
-    unexplained = find_unexplained(grid, cur)
-    d = Diagnosis(data=str(trial.source), baseline=base, findings=findings, unexplained=unexplained, final=cur,
-                  grid=grid, history=main.history[: kept + 1], tried=main.tried)
-    d.unnamed = unnamed
-    # the reported parameters: the chosen models refitted on every sliding bin (fit and hold-out
-    # blocks). The split decides WHICH model (hold-out gains); with half of a few steps in the fit
-    # blocks, the direct effect A of a three-step record moves by +-50 % with the split alone
+        out.append(Finding(c.cause, {k: res.params[k] for k in CAUSES[c.cause].params}, ev, before.holdout_rms_N,
+                           res.holdout_rms_N, c.gain_pct, c.delta_bic,
+                           stability=stab[i] if (split_causes or i < int(main.coupled)) else None,
+                           alternatives=alts))
+    return out
+
+
+def _final_models(d: Diagnosis, progress=None) -> None:
+    """The reported models: the chosen baseline and final model refitted on every sliding bin (fit
+    and hold-out blocks), at the global optimum of the a-b-L valley (profile likelihood over ln L),
+    with split-half errors where each half holds steps of its own. The split decides WHICH model
+    (hold-out gains); with half of a few steps in the fit blocks, the direct effect A of a three-step
+    record moves by +-50 % with the split alone."""
+    grid, base, cur = d.grid, d.baseline, d.final
     d.baseline_fit = refit_all(grid, base)
     d.final_fit = d.baseline_fit if cur is base else refit_all(grid, cur)
-    # the global optimum along the flat a-b-L valley and L's interval: a profile likelihood over ln L
-    # (fit.profile), for the baseline and the final model (with a spring only on small grids: each
-    # profile point is a spring fit)
+    # the profile of a model with a spring only on small grids: each profile point is a spring fit
     for attr in ("baseline_fit", "final_fit"):
         res = getattr(d, attr)
         if attr == "final_fit" and res is d.baseline_fit:
@@ -912,22 +1039,20 @@ def diagnose(trial: TrialData, baseline: str = "rate_state", progress=None, n_bl
         split_sd(grid, base, d.baseline_fit)
         if d.final_fit is not d.baseline_fit:
             split_sd(grid, cur, d.final_fit)
-    for f in findings:
-        # a finding's parameters are the final model's; the single-cause fit's values beside them
-        single = f["params"]
-        final = {k: _r(d.final_all[k]) for k in single if k in d.final_all}
-        moved = {k: v for k, v in single.items() if v is not None and final.get(k) is not None
-                 and abs(final[k] - v) > 0.005 * abs(v)}
-        if moved:
-            f["evidence"] += ("; the parameters are the final model's, refitted on all sliding data (when it was "
-                              "found, on the fit blocks: " + ", ".join(f"{k} = {v:.4g}" for k, v in moved.items())
-                              + ")")
-        f["params"] = {k: final.get(k, v) for k, v in single.items()}
-        unc = uncertainty(grid, d.final_fit, list(single))
-        f.update(unc)
-    d.timings = {"prepare_s": t_prep, "fit_s": t_loop, "total_s": _time.perf_counter() - t0,
-                 "n_samples": int(len(trial)), "n_bins": int(grid.t.size), "n_splits": n_splits}
-    return d
+
+
+def _as_final(f: Finding, d: Diagnosis) -> None:
+    """A finding's parameters are the final model's; the single-cause fit's values (as found, on the
+    fit blocks) beside them in the evidence where they differ by more than 0.5 %."""
+    single = {k: _r(v) for k, v in f.params.items()}
+    final = {k: _r(d.final_all[k]) for k in single if k in d.final_all}
+    moved = {k: v for k, v in single.items() if v is not None and final.get(k) is not None
+             and abs(final[k] - v) > 0.005 * abs(v)}
+    if moved:
+        f.evidence += ("; the parameters are the final model's, refitted on all sliding data (when it was "
+                       "found, on the fit blocks: " + ", ".join(f"{k} = {v:.4g}" for k, v in moved.items()) + ")")
+    f.params = {k: d.final_all[k] if k in d.final_all else v for k, v in f.params.items()}
+    f.uncertainty = uncertainty(d.grid, d.final_fit, list(single))
 
 
 def _alternatives(grid: Grid, chosen: Candidate, round_: list[Candidate], instead: list[str]) -> list[dict]:
@@ -1028,7 +1153,7 @@ def refit_all(grid: Grid, res: FitResult) -> FitResult:
         return keep
     p = dict(r.params)
     if (not np.all(np.isfinite(list(p.values()))) or at_bound(p, grid)
-            or any(abs(p.get(k, 0.0)) > 0.05 for k in ("A_mu", "B_mu", "B2_mu"))
+            or _coefs_too_large(p)
             or not _ext_params_plausible(res.extensions, p)):
         return keep  # ran away on the joined data: keep the validated split fit
     if "second_state_variable" in res.extensions and "aging_law" not in res.extensions:

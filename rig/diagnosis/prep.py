@@ -109,8 +109,10 @@ class Grid:
     slide_ok: np.ndarray | None = None
     # shortest time constant the kinematics can tell from their own rounding of a velocity change (s)
     time_resolution_s: float = 0.0
-    # variance of a bin's mean over that of white noise: (1 + rho) / (1 - rho), rho the lag-1
-    # autocorrelation of the raw force noise (the analog filter's memory at 1 kHz; ~1 at <= 100 Hz)
+    # variance of the mean of the raw force noise over one kinematic cell (KIN_DT_MIN_S, m samples)
+    # over that of white noise, 1 + 2 sum_{k<m} (1 - k/m) rho_k, clipped to [1, m]: raw samples per
+    # independent one (the analog filter's memory at 1 kHz; 1 when a cell holds one sample, <= 100 Hz);
+    # see _noise_correlation
     noise_corr: float = 1.0
     # the 20 equal time blocks (the linear-drift check), and how fit / hold-out were split
     time_block: np.ndarray | None = None
@@ -142,8 +144,8 @@ class Grid:
     @property
     def max_state_um(self) -> float:
         """Longest slip-law state distance the record can tell from a drift: half its slip (µm).
-        A state whose transient outlasts the record is a linear trend in slip (a one-state fit to
-        the basalt record ran to L = 1e5 µm, B = -0.17: a drift, not a memory)."""
+        A state whose transient outlasts the record is a linear trend in slip: a drift, not a
+        memory (docs/diagnosis.md, "Rules learned from records")."""
         return 0.5 * float(np.sum(slip_increments_um(self.t, self.v)))
 
     def holdout_mask(self) -> np.ndarray:
@@ -247,8 +249,10 @@ def canonical(trial: TrialData) -> TrialData:
 
 def _noise_correlation(t: np.ndarray, F: np.ndarray) -> float:
     """Variance of the mean of the raw force noise over a kinematic cell (KIN_DT_MIN_S) relative
-    to white noise's, 1 + 2 sum_k (1 - k/m) rho_k over the m samples of a cell; rho_k from the
-    force minus a running mean. 1 when a cell holds one sample (records at <= 100 Hz)."""
+    to white noise's, 1 + 2 sum_{k=1}^{m-1} (1 - k/m) rho_k over the m samples of a cell (m from the
+    median sampling interval); rho_k the autocorrelation of the force minus its running mean over
+    4 m + 1 samples. Clipped to [1, m]; 1 when a cell holds one sample (records at <= 100 Hz) or the
+    record has under 200 samples."""
     if t.size < 200:
         return 1.0
     m = int(round(KIN_DT_MIN_S / max(float(np.median(np.diff(t))), 1e-9)))
@@ -357,8 +361,8 @@ def _holdout_blocks(tk: np.ndarray, vs: np.ndarray, time_blk: np.ndarray, T: flo
     if PHASE_TO_STEP and 0 < len(fwd) and (len(fwd) < MIN_STEPS_ALIGNED or not aligned):
         # one to three steps: the equal time blocks, phased so that the first step's transient
         # starts (1 s before the step) at the start of a fit block; unphased, a crop that moves the
-        # boundaries decided whether the single step's peak was fitted or held out (the basalt
-        # record: held out whole, the rigid fit never saw the direct effect and ran to A ~ 0)
+        # boundaries decides whether the single step's peak is fitted or held out (held out whole, the
+        # rigid fit never sees the direct effect: docs/diagnosis.md, "Rules learned from records")
         Tb = T / n_blocks
         phase = (fwd[0] - 1.0 - tk[0]) % Tb
         blk = np.floor((tk - tk[0] - phase) / Tb).astype(np.int64) + 1
@@ -367,8 +371,8 @@ def _holdout_blocks(tk: np.ndarray, vs: np.ndarray, time_blk: np.ndarray, T: flo
             blk = blk + 1
         return blk, f"{n_blocks} time blocks phased to the step at {fwd[0]:.4g} s (fitted)"
     if SUBWINDOWS <= 0:
-        # sub-window cross-validation is off (SUBWINDOWS = 0): tried on the shared real records it lost
-        # Leeman's finite_stiffness (docs/diagnosis.md); equal time blocks for now
+        # sub-window cross-validation is off (SUBWINDOWS = 0; docs/diagnosis.md, "Rules learned from
+        # records"); equal time blocks for now
         return time_blk, f"{n_blocks} time blocks ({len(fwd)} velocity step(s): too few to hold out whole)"
     n_sub = int(max(2 * n_blocks, min(SUBWINDOWS, T / SUBWINDOW_MIN_S)))
     blk = np.minimum((tk - tk[0]) / (T / n_sub), n_sub - 1).astype(np.int64)
@@ -386,8 +390,6 @@ def prepare(trial: TrialData, n_blocks: int = 20, slip_window_um: float = 3.0,
     tr = t_raw - t0
     F = np.asarray(trial.friction_N, dtype=float)
     x_raw = np.asarray(trial.position_um, dtype=float)
-    N_nom = float(trial.normal_force_N)
-    Ntot = np.asarray(trial.total_normal_N, dtype=float)
     noise_N = _robust_noise(F)
     noise_corr = _noise_correlation(tr, F)
     if x_raw[-1] < x_raw[0] and float(np.median(F)) < 0:
@@ -396,8 +398,36 @@ def prepare(trial: TrialData, n_blocks: int = 20, slip_window_um: float = 3.0,
         if trial.position_ref_um is not None:
             trial = trial.select(np.ones(len(trial), bool))
             trial.position_ref_um = -trial.position_ref_um
+    k = _cells(trial, tr, F, x_raw)  # 1. kinematic grid cells
+    xs, vs, time_res = _kinematics(k, slip_window_um)  # 2./3. kinematics
+    tk = k["t"]
+    steps_k = None if step_times_s is None else np.asarray(step_times_s) - t0
+    for aligned in ((True, False) if align_to_steps else (False,)):  # 4. blocks and bins
+        T = float(tk[-1] - tk[0]) if tk.size > 1 else 1.0
+        time_blk_k = np.minimum((tk - tk[0]) / (T / n_blocks), n_blocks - 1).astype(np.int64)
+        blk_k, holdout_design = _holdout_blocks(tk, vs, time_blk_k, T, n_blocks, steps_k, aligned=aligned)
+        b = _bins(k, xs, vs, blk_k, time_blk_k, bin_dt_max_s, bin_slip_um)
+        slide_ok = _sliding(k, vs, b, noise_N, restart_guard_um)
+        n_hold = int(np.count_nonzero(slide_ok & (b["block"] % 2 == 1)))
+        if not holdout_design.startswith("blocks aligned") or (
+                min(n_hold, int(slide_ok.sum()) - n_hold) >= ALIGNED_MIN_SHARE * max(int(slide_ok.sum()), 1)):
+            break
+        # the steps leave one half (fit or hold-out) with too little of the sliding that is used
+        # (steps that bunch up, segments dropped as reloading): the design for fewer steps instead
+    normals_vary = bool(trial.has_normals and float(np.std(k["N"])) > 0.0)
+    return Grid(t=b["t"], x=b["x"], v=b["v"], F_mean=b["F"], N_tot=b["N"], count=b["count"], ss_within=b["ssw"],
+                block=b["block"], N_nom=float(trial.normal_force_N), t0=t0, has_normals=trial.has_normals,
+                normals_vary=normals_vary, noise_N=noise_N, noise_corr=noise_corr, slide_ok=slide_ok,
+                time_resolution_s=time_res, time_block=b["time_block"], holdout_design=holdout_design,
+                step_times_s=None if step_times_s is None else np.asarray(step_times_s, dtype=float) - t0,
+                kin={"t": tk, "x": xs, "v": vs, "F": k["Fs"] / k["count"], "N": k["N"], "count": k["count"],
+                     "x_meas": k["x"]})
 
-    # 1. kinematic grid cells
+
+def _cells(trial: TrialData, tr: np.ndarray, F: np.ndarray, x_raw: np.ndarray) -> dict:
+    """The kinematic grid: cells of at least KIN_DT_MIN_S, each sample weighted by the time it
+    stands for (:func:`time_weights`): cell time, measured position, friction sums, normal force
+    (and the reference position's mean, ``xr``, when the record has one)."""
     dt_med = float(np.median(np.diff(tr)))
     cell = max(KIN_DT_MIN_S, dt_med * 0.999)
     if dt_med >= KIN_DT_MIN_S:
@@ -413,18 +443,23 @@ def prepare(trial: TrialData, n_blocks: int = 20, slip_window_um: float = 3.0,
         return np.bincount(idx, weights=y * u, minlength=ncell) / cnt
 
     tk = cmean(tr)
-    xk = cmean(x_raw)
-    Fs = np.bincount(idx, weights=F * u, minlength=ncell)
-    F2s = np.bincount(idx, weights=F * F * u, minlength=ncell)
-    Nk = cmean(Ntot)
+    Nk = cmean(np.asarray(trial.total_normal_N, dtype=float))
     if trial.has_normals and tk.size > 5:
         # the normal load cells' noise (±0.6 N) would otherwise enter mu (N1 + N2): centred 0.5 s mean
         kk = max(1, int(round(0.25 / max(float(np.median(np.diff(tk))), 1e-6))))
         ker = np.ones(2 * kk + 1)
         Nk = np.convolve(Nk, ker, mode="same") / np.convolve(np.ones_like(Nk), ker, mode="same")
-
-    # 2./3. kinematics
     use_ref = trial.position_ref_um is not None and np.all(np.isfinite(trial.position_ref_um))
+    return {"t": tk, "x": cmean(x_raw), "count": cnt, "Fs": np.bincount(idx, weights=F * u, minlength=ncell),
+            "F2s": np.bincount(idx, weights=F * F * u, minlength=ncell), "N": Nk,
+            "xr": cmean(np.asarray(trial.position_ref_um, dtype=float)) if use_ref else None}
+
+
+def _kinematics(k: dict, slip_window_um: float) -> tuple[np.ndarray, np.ndarray, float]:
+    """(position, velocity, time resolution (s)) of the cells: from the reference and the servo's
+    lag when the record has a reference, else an edge-preserving line fit over a window of
+    ``slip_window_um`` of slip at the slower side of any nearby velocity change."""
+    tk, xk = k["t"], k["x"]
     v_rough = np.gradient(xk, tk) if tk.size > 2 else np.zeros_like(tk)
     # rough speed over ~2 s for the window length
     k2 = max(1, int(round(2.0 / max(np.median(np.diff(tk)), 1e-6))))
@@ -437,9 +472,9 @@ def prepare(trial: TrialData, n_blocks: int = 20, slip_window_um: float = 3.0,
     v_min = minimum_filter1d(np.abs(v_s), size=2 * k2 + 1, mode="nearest")
     half = 0.5 * np.clip(slip_window_um / np.maximum(v_min, 0.05), 0.2, 4.0)
     servo_tau = None
+    use_ref = k["xr"] is not None
     if use_ref:
-        xr = cmean(np.asarray(trial.position_ref_um, dtype=float))
-        servo_tau, xm = _servo_fit(tk, xr, xk)
+        servo_tau, xm = _servo_fit(tk, k["xr"], xk)
         if servo_tau is None:
             use_ref = False
     if use_ref:
@@ -449,67 +484,54 @@ def prepare(trial: TrialData, n_blocks: int = 20, slip_window_um: float = 3.0,
         vs = np.gradient(xm, tk) + ev
     else:
         xs, vs = edge_preserving_line(tk, xk, half)
-
     # without a reference, a line fit cannot resolve the actuator's rounded velocity change (the
     # paper's steps rise in up to 0.5 s): time constants below ~0.15 s are the estimator's own
     dtk0 = float(np.median(np.diff(tk))) if tk.size > 1 else KIN_DT_MIN_S
     time_res = max(3.0 * dtk0, 2.0 * servo_tau) if use_ref else max(3.0 * dtk0, 0.15)
+    return xs, vs, time_res
 
-    # 4. blocks and bins
-    for aligned in ((True, False) if align_to_steps else (False,)):
-        T = float(tk[-1] - tk[0]) if tk.size > 1 else 1.0
-        time_blk_k = np.minimum((tk - tk[0]) / (T / n_blocks), n_blocks - 1).astype(np.int64)
-        blk_k, holdout_design = _holdout_blocks(tk, vs, time_blk_k, T, n_blocks,
-                                                None if step_times_s is None else np.asarray(step_times_s) - t0,
-                                                aligned=aligned)
-        dtk = float(np.median(np.diff(tk)))
-        starts = _make_bins(tk, vs, blk_k, bin_dt_max_s, bin_slip_um, 0.08, 1.1, max(dtk, 0.02))
-        seg = np.repeat(np.arange(starts.size - 1), np.diff(starts))
-        nb = starts.size - 1
-        bc = np.bincount(seg, weights=cnt, minlength=nb)
 
-        def bmean_w(y):  # weighted by raw count
-            return np.bincount(seg, weights=y * cnt, minlength=nb) / bc
+def _bins(k: dict, xs: np.ndarray, vs: np.ndarray, blk_k: np.ndarray, time_blk_k: np.ndarray,
+          bin_dt_max_s: float, bin_slip_um: float) -> dict:
+    """The adaptive fit bins over the cells (inside the blocks): their means weighted by the raw
+    count, the friction's within-bin sum of squares, and the cells where each starts."""
+    tk, cnt = k["t"], k["count"]
+    dtk = float(np.median(np.diff(tk)))
+    starts = _make_bins(tk, vs, blk_k, bin_dt_max_s, bin_slip_um, 0.08, 1.1, max(dtk, 0.02))
+    seg = np.repeat(np.arange(starts.size - 1), np.diff(starts))
+    nb = starts.size - 1
+    bc = np.bincount(seg, weights=cnt, minlength=nb)
 
-        Fsum = np.bincount(seg, weights=Fs, minlength=nb)
-        F2sum = np.bincount(seg, weights=F2s, minlength=nb)
-        Fm = Fsum / bc
-        ssw = np.maximum(F2sum - Fsum * Fm, 0.0)
-        tb = bmean_w(tk)
-        xb = bmean_w(xs)
-        vb = bmean_w(vs)
-        Nb = bmean_w(Nk)
-        blk = blk_k[starts[:-1]]
-        time_blk = time_blk_k[starts[:-1]]
-        # forward sliding, away from stops, starts from rest and returns
-        kg = max(1, int(round(STOP_GUARD_S / max(dtk, 1e-6))))
-        vmin_k = minimum_filter1d(vs, size=2 * kg + 1, mode="nearest")
-        slide_ok = np.minimum.reduceat(vmin_k, starts[:-1]) > V_SLIDE_MIN_UM_S
-        if slide_ok.sum() < 0.1 * slide_ok.size:  # a record with hardly any steady sliding: keep what slides
-            slide_ok = vb > V_SLIDE_MIN_UM_S
-        slide_ok = _drop_reloading(slide_ok, tb, xb, Fm, bc, noise_N, settle_um=restart_guard_um)
-        # the velocity changes themselves: within RISE_GUARD_S (or the kinematics' own resolution) of
-        # a change of ln v the measured velocity is not the interface's to the precision the direct
-        # effect needs (the peak is a few samples at 25 Hz, their timing set by the estimator, not by
-        # friction); as in the paper's identification the transient is fitted from the end of the rise
-        h = RISE_GUARD_S
-        lv = np.log(np.maximum(np.abs(vs), 1e-2))
-        dlv = np.abs(np.interp(tk + h, tk, lv) - np.interp(tk - h, tk, lv))
-        rise_k = dlv > RISE_DLNV
-        rise_b = np.maximum.reduceat(rise_k, starts[:-1]) if rise_k.any() else np.zeros(nb, bool)
-        if h > 0 and (slide_ok & ~rise_b).sum() > 0.5 * slide_ok.sum():
-            slide_ok = slide_ok & ~rise_b
-        n_hold = int(np.count_nonzero(slide_ok & (blk % 2 == 1)))
-        if not holdout_design.startswith("blocks aligned") or (
-                min(n_hold, int(slide_ok.sum()) - n_hold) >= ALIGNED_MIN_SHARE * max(int(slide_ok.sum()), 1)):
-            break
-        # the steps leave one half (fit or hold-out) with too little of the sliding that is used
-        # (steps that bunch up, segments dropped as reloading): the design for fewer steps instead
-    normals_vary = False
-    if trial.has_normals:
-        nstd = float(np.std(Nk))
-        normals_vary = nstd > 0.0
-    return Grid(t=tb, x=xb, v=vb, F_mean=Fm, N_tot=Nb, count=bc, ss_within=ssw, block=blk, N_nom=N_nom,
-                t0=t0, has_normals=trial.has_normals, normals_vary=normals_vary, noise_N=noise_N, noise_corr=noise_corr,
-                slide_ok=slide_ok, time_resolution_s=time_res, time_block=time_blk, holdout_design=holdout_design,
-                step_times_s=None if step_times_s is None else np.asarray(step_times_s, dtype=float) - t0, kin={"t": tk, "x": xs, "v": vs, "F": Fs / cnt, "N": Nk, "count": cnt, "x_meas": xk})
+    def bmean_w(y):  # weighted by raw count
+        return np.bincount(seg, weights=y * cnt, minlength=nb) / bc
+
+    Fsum = np.bincount(seg, weights=k["Fs"], minlength=nb)
+    F2sum = np.bincount(seg, weights=k["F2s"], minlength=nb)
+    Fm = Fsum / bc
+    return {"t": bmean_w(tk), "x": bmean_w(xs), "v": bmean_w(vs), "N": bmean_w(k["N"]), "F": Fm, "count": bc,
+            "ssw": np.maximum(F2sum - Fsum * Fm, 0.0), "block": blk_k[starts[:-1]],
+            "time_block": time_blk_k[starts[:-1]], "starts": starts, "dtk": dtk}
+
+
+def _sliding(k: dict, vs: np.ndarray, b: dict, noise_N: float, restart_guard_um: float) -> np.ndarray:
+    """The bins the fits use: forward sliding, away from stops, starts from rest and returns, and
+    from the velocity changes' rise."""
+    tk, starts, dtk = k["t"], b["starts"], b["dtk"]
+    kg = max(1, int(round(STOP_GUARD_S / max(dtk, 1e-6))))
+    vmin_k = minimum_filter1d(vs, size=2 * kg + 1, mode="nearest")
+    slide_ok = np.minimum.reduceat(vmin_k, starts[:-1]) > V_SLIDE_MIN_UM_S
+    if slide_ok.sum() < 0.1 * slide_ok.size:  # a record with hardly any steady sliding: keep what slides
+        slide_ok = b["v"] > V_SLIDE_MIN_UM_S
+    slide_ok = _drop_reloading(slide_ok, b["t"], b["x"], b["F"], b["count"], noise_N, settle_um=restart_guard_um)
+    # the velocity changes themselves: within RISE_GUARD_S (or the kinematics' own resolution) of
+    # a change of ln v the measured velocity is not the interface's to the precision the direct
+    # effect needs (the peak is a few samples at 25 Hz, their timing set by the estimator, not by
+    # friction); as in the paper's identification the transient is fitted from the end of the rise
+    h = RISE_GUARD_S
+    lv = np.log(np.maximum(np.abs(vs), 1e-2))
+    dlv = np.abs(np.interp(tk + h, tk, lv) - np.interp(tk - h, tk, lv))
+    rise_k = dlv > RISE_DLNV
+    rise_b = np.maximum.reduceat(rise_k, starts[:-1]) if rise_k.any() else np.zeros(starts.size - 1, bool)
+    if h > 0 and (slide_ok & ~rise_b).sum() > 0.5 * slide_ok.sum():
+        slide_ok = slide_ok & ~rise_b
+    return slide_ok

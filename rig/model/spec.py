@@ -224,11 +224,15 @@ class FrictionModel(BaseModel):
         return cls(params={"mu0": mu0, "A_mu": row["A_mu"][0], "B_mu": row["B_mu"][0], "L_um": row["L_um"][0]})
 
     def to_yaml(self, path: str | Path) -> None:
-        """Write ``{friction_model: ...}`` atomically (temporary file, then rename)."""
+        """Write ``{friction_model: ...}`` atomically (temporary file, then rename), readable as
+        ``open()`` would make it (0666 less the umask; mkstemp alone makes 0600)."""
         path = Path(path)
         text = yaml.safe_dump({"friction_model": self.model_dump()}, sort_keys=False)
         fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent if str(path.parent) else ".")
         try:
+            umask = os.umask(0)
+            os.umask(umask)
+            os.fchmod(fd, 0o666 & ~umask)
             with os.fdopen(fd, "w") as fh:
                 fh.write(text)
             os.replace(tmp, path)

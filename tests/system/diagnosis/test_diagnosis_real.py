@@ -67,7 +67,8 @@ def test_basalt_one_state_with_the_step_fitted(real_data_dir):
     rep = diagnose(load_trial(real_data_dir / "giacomel-basalt-brava.csv")).report()
     p = rep["baseline"]["params"]
     assert 0.005 < p["A_mu"] < 0.012 and 0.005 < p["B_mu"] < 0.012 and 5.0 < p["L_um"] < 20.0, p
-    # a load-point record: the machine's coupling first (issue 20), then at most a slow drift
+    # a load-point record: the machine's coupling first (issue 20; its hold-out loss, 0.164 -> 0.168 N,
+    # is inside the noise: no evidence against it), then at most a slow drift
     assert rep["findings"][0]["cause"] == "finite_stiffness"
     assert {f["cause"] for f in rep["findings"][1:]} <= {"slip_wear_drift", "force_offset_drift"}
 
@@ -77,6 +78,6 @@ def test_one_step_record_evidence_counts_its_step_only(real_data_dir):
     firing on noise) and said "a fixed time" while naming finite stiffness. The transient's scaling
     is now measured on the steps identify finds: one step gives no slope, so no claim."""
     d = diagnose(load_trial(real_data_dir / "leeman-p4309-step2.csv"))
-    ev = d.findings[0]["evidence"]
-    assert d.findings[0]["cause"] == "finite_stiffness"
+    ev = d.findings[0].evidence
+    assert d.findings[0].cause == "finite_stiffness"
     assert "velocity changes" not in ev and "a fixed time" not in ev, ev

@@ -130,7 +130,7 @@ def test_transient_duration_scaling_discriminates():
     d = diagnose(trial)
     slope, n, _ = transient_scaling(d.grid, d.baseline.pred, d.final.pred)
     assert n >= 5 and slope > -0.3
-    assert "a fixed time" in d.findings[0]["evidence"]
+    assert "a fixed time" in d.findings[0].evidence
     # the evidence never contradicts itself (issue 13): the same fixed-time transient offered as
     # the evidence for a spring (whose transient spans a slip, ~1/v) says that it does not fit
     from dataclasses import replace
@@ -140,13 +140,13 @@ def test_transient_duration_scaling_discriminates():
     as_spring = replace(d.final, params=dict(d.final.params, stiffness_kN_per_m=500.0))
     ev = _evidence("finite_stiffness", as_spring, d.grid, {}, {}, before=d.baseline)
     assert "a fixed time -- not the ~1/v of a slip distance that finite_stiffness predicts" in ev
-    assert "not the" not in d.findings[0]["evidence"]
+    assert "not the" not in d.findings[0].evidence
 
     trial, _ = _record(None, 25.0, 3, True, "varied")
     d = diagnose(trial, baseline="steady_state")
     slope, n, _ = transient_scaling(d.grid, d.baseline.pred, d.history[1].pred)
     assert n >= 5 and slope < -0.6
-    assert "a slip distance" in d.findings[0]["evidence"]
+    assert "a slip distance" in d.findings[0].evidence
 
 
 def test_structure_outside_the_catalogue_is_unexplained():

@@ -67,13 +67,15 @@ def test_basalt_no_transient_cause_from_any_crop(real_data_dir):
     """3 -> 10 um/s at 68.7 s: with the step fitted, one state explains the transient in every
     window (A, B ~ 0.008, L ~ 10 um); no transient cause is named in any. (A slow drift at about
     5 % hold-out gain passes in some windows and not in others: docs/validation.md.) The machine's
-    coupling of this load-point record is fitted from the start in every window (issue 20)."""
+    coupling of this load-point record is fitted from the start in every window (issue 20), and
+    named first unless it significantly worsens that window's held-out data (then not at all)."""
     tr = load_trial(real_data_dir / "giacomel-basalt-brava.csv")
     base = []
     for t0, t1 in ((0.0, np.inf), (10.0, np.inf), (30.0, np.inf), (0.0, 110.0)):
         got, rep = causes(crop(tr, t0, t1))
-        assert rep["findings"][0]["cause"] == "finite_stiffness"
-        assert not {f["cause"] for f in rep["findings"][1:]} & TRANSIENT, (t0, t1, rep["findings"])
+        named = [f["cause"] for f in rep["findings"]]
+        rest = named[1:] if named[:1] == ["finite_stiffness"] else named
+        assert not set(rest) & TRANSIENT, (t0, t1, rep["findings"])
         base.append(rep["baseline"]["params"])
     for k, tol in (("A_mu", 0.15), ("B_mu", 0.15), ("L_um", 0.35)):
         v = [p[k] for p in base]

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import os
+import stat
 
 import numpy as np
 from typer.testing import CliRunner
@@ -46,6 +48,11 @@ def test_cli_report_plot_model(tmp_path):
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     fm = FrictionModel.from_yaml(yml)
     assert fm.extensions == rep["model"]["extensions"]
+    # it says what it wrote; the model is readable as open() makes a file (0666 less the umask)
+    assert all(f"wrote {p}" in res.output for p in (js, png, yml))
+    umask = os.umask(0)
+    os.umask(umask)
+    assert stat.S_IMODE(yml.stat().st_mode) == 0o666 & ~umask
     assert abs(fm.params["wavelength_um"] - truth["params"]["wavelength_um"]) < 0.25 * truth["params"]["wavelength_um"]
 
 
