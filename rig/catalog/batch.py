@@ -25,7 +25,7 @@ orders the work longest first when given a ``cost`` and, for its own LocalCluste
 in this process while the cluster starts (docs/scaling.md, "Where the time went").
 
 Determinism: the tasks are pure functions of their arguments (seeds included),
-so a run on a cluster is bit for bit the serial run (``tests/test_batch.py``).
+so a run on a cluster is bit for bit the serial run (``tests/system/catalog/test_batch.py``).
 """
 
 from __future__ import annotations
@@ -219,7 +219,7 @@ class Engine:
     ``start_cost_s`` does the cluster start (in the background, this process going on meanwhile).
     A short batch therefore runs as ``--jobs 1`` does; a long one grows onto the workers.
 
-    The results do not depend on where a task ran (pure tasks: ``tests/test_batch.py``).
+    The results do not depend on where a task ran (pure tasks: ``tests/system/catalog/test_batch.py``).
     """
 
     def __init__(self, jobs: int | None = None, scheduler: str | None = None, client: Any = None,

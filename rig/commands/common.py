@@ -1,7 +1,7 @@
 """What every ``rig`` command shares: the exit-code table, the error and warning printers,
 the ``--json PATH`` convention, and the safety net that keeps tracebacks from operators.
 
-Exit codes (one table, kept by every subcommand; ``tests/test_exit_codes.py`` checks it):
+Exit codes (one table, kept by every subcommand; ``tests/system/commands/test_exit_codes.py`` checks it):
 
 ====  =====================================================================
 0     done (an analysis that ran, whatever it found)

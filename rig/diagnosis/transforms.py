@@ -2,7 +2,7 @@
 
 Each takes a :class:`rig.data.TrialData` and returns a new one that carries the
 same physics: the diagnosis must name the same causes, with every parameter
-within its uncertainty. The invariance test (tests/test_diagnosis_invariance.py)
+within its uncertainty. The invariance test (tests/unit/diagnosis/test_diagnosis_invariance.py)
 and the sweep (benchmarks/bench_invariance.py) use these, one definition each.
 """
 

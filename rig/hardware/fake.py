@@ -8,7 +8,7 @@
 in ``writes``), ``start()``, ``safe_stop()`` and ``final_state()``.
 :class:`FakeClock` is a simulated clock for the loop's pacer: a sleep moves it
 on at once, ``stall(s)`` makes the next wake ``s`` late. So each interlock's
-trip is a deterministic test (tests/test_hardware_fake_loop.py).
+trip is a deterministic test (tests/unit/hardware/test_hardware_fake_loop.py).
 """
 
 from __future__ import annotations

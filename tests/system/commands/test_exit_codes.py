@@ -2,7 +2,7 @@
 
 0 done; 1 a failed run, trip or write; 2 bad input (nothing written); 130 aborted. Every registered
 subcommand has cases here (a new command without one fails `test_every_subcommand_is_covered`); the
-130 cases are in tests/test_cli_trial_run.py (a real SIGINT, and one while the log is finished).
+130 cases are in tests/system/commands/test_cli_trial_run.py (a real SIGINT, and one while the log is finished).
 """
 
 from __future__ import annotations

@@ -19,7 +19,7 @@ def test_emulated_profile_validates(repo_root):
     assert hw.loadcells.transport == "tcp" and hw.valve.interface == "rig_unix"
     assert hw.emulators.autostart
     assert hw.lvdt.um_per_count == p.sensors.lvdt.quantization_um == pytest.approx(0.076)
-    # (that its plant is sim.yaml's: tests/test_sim_profile.py::test_emulated_is_an_overlay_of_sim)
+    # (that its plant is sim.yaml's: tests/unit/config/test_sim_profile.py::test_emulated_is_an_overlay_of_sim)
 
 
 def test_smoke_recipe_validates_and_compiles(repo_root):

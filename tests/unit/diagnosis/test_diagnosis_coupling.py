@@ -1,7 +1,7 @@
 """A load-point record's machine coupling is fitted from the start, but a cause that worsens the
 held-out data is never named, the coupling included (issue 20; docs/diagnosis.md, "Load-point
 records"): the sepiolite velstep2 record named finite_stiffness while its hold-out RMS rose
-from 1.34 to 2.20 N. (That the coupling is named where it helps: tests/test_diagnosis_invariance.py.)"""
+from 1.34 to 2.20 N. (That the coupling is named where it helps: tests/unit/diagnosis/test_diagnosis_invariance.py.)"""
 
 from __future__ import annotations
 
