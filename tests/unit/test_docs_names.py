@@ -261,7 +261,8 @@ def check(span: str) -> str | None:
                 re.search(r"[<{]|\.\.\.", s) or s.startswith("../shared") and not SPECS.is_dir():
             return None  # an output or a placeholder (F.mcap, PROFILE)
         if s.startswith("../"):
-            return None if (ROOT / s).exists() else f"no file {s!r}"
+            found = glob.glob(str(ROOT / s)) if any(c in s for c in "*?") else (ROOT / s).exists()
+            return None if found else f"no file {s!r}"
         if "/" not in s and not s.endswith((".py", ".md")):
             return None  # a bare data file name is an example (recipe.yaml, gains.yaml)
         return _check_path(span)

@@ -365,12 +365,12 @@ def test_terminal_hangup_stops_safely(env):
     assert tr.metadata["status"] == "interrupted" and tr.valve_cmd[-1] == 0.0
 
 
-def test_kill9_of_the_load_cell_conditioner(tmp_path):
+def test_kill9_of_the_load_cell_conditioner(tmp_path, private_profile, short_recipe):
     """The conditioner's process dies (its Modbus TCP connection closed by the kernel): a fault no
     injection models. The loop trips at once on the lost device, nulls and disables the valve, and
     never goes on with the last forces as if they were new (it did: the trial completed, exit 0,
     on frozen forces). Its own emulator: the module's one keeps its Modbus server."""
-    env2 = _emulated_env(tmp_path)
+    env2 = _emulated_env(tmp_path, private_profile, short_recipe)
     emu = env2.emu
     try:
         out = tmp_path / "kill-conditioner.mcap"
