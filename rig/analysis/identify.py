@@ -798,6 +798,7 @@ def fit_whole_record(trial: TrialData, steps: list[Step] | None = None, *, stiff
     kcr, skcr = k_cr_table2(q["A_mu"], sd["A_mu"], q["B_mu"], sd["B_mu"], q["L_um"], sd["L_um"], trial.normal_force_N)
     out.update(k_cr_kN_per_m=_r(kcr), k_cr_err_kN_per_m=_r(skcr))
     out["_curve"] = (rec.t, prob.model(q), rec.mu, rec.sliding, q.get("rate_mu_per_mm", trend_fixed) * s_mm)
+    out["_params"] = dict(q)  # the fitted values unrounded, for the analyses that start from them (diagnose)
     out["_resid"] = (rec.t[rec.sliding], r)
     return out
 

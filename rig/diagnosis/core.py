@@ -47,6 +47,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from rig.analysis.report import rounded as _r  # the one rounding of the reports (6 significant figures)
 from rig.data import TrialData
 
 from .fit import FitResult, at_bound, delta_bic, evaluate, fit, multistart, profile
@@ -178,11 +179,6 @@ class Diagnosis:
         }
 
 
-def _r(x, nd=6):
-    x = float(x)
-    if not math.isfinite(x):
-        return None
-    return float(f"{x:.{nd}g}")
 
 
 def _public(params: dict, baseline: str, extensions: list[str]) -> dict:
@@ -490,7 +486,7 @@ def identify_prior(trial: TrialData, steps: list | None = None) -> dict:
         return {}
     if not w.get("params"):
         return {}
-    p = w["params"]
+    p = w.get("_params") or w["params"]  # the fit's own numbers, unrounded (the report's are rounded)
     out = {k: float(p[k]) for k in ("A_mu", "B_mu", "L_um", "stiffness_kN_per_m") if p.get(k) is not None}
     if not (0.0 <= out.get("A_mu", -1) < COEF_MAX_MU and abs(out.get("B_mu", 1)) < COEF_MAX_MU
             and 0.1 < out.get("L_um", 0) < 1e4):

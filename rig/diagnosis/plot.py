@@ -48,12 +48,12 @@ def _data_panel(a, d: Diagnosis, base, fin, extended: bool) -> None:
     a.plot(g.t, g.F_mean, ".", ms=1.2, color="0.5", label="data (binned)", rasterized=True)
     # the split fits' hold-out RMS (what chose the model) beside the reported model, refitted on all data
     a.plot(g.t, base.pred, "-", lw=0.9, color="tab:blue",
-           label=f"baseline {base.baseline}, refitted on all sliding data (split fit's hold-out RMS "
-                 f"{d.baseline.holdout_rms_N:.3g} N)")
+           label=f"baseline {base.baseline}, refitted on all sliding data "
+                 f"(split fit: hold-out RMS {d.baseline.holdout_rms_N:.3g} N)")
     if extended:
         a.plot(g.t, fin.pred, "-", lw=0.9, color="tab:red",
-               label=f"final model: {' + '.join(fin.extensions)}, refitted on all sliding data (split fit's "
-                     f"hold-out RMS {d.final.holdout_rms_N:.3g} N)")
+               label=f"final model: {' + '.join(fin.extensions)}, refitted on all sliding data "
+                     f"(split fit: hold-out RMS {d.final.holdout_rms_N:.3g} N)")
     a.set_ylabel("friction (N)")
     a.set_title(f"rig diagnose: {Path(d.data).name}")
     a.tick_params(labelbottom=False)
@@ -108,7 +108,7 @@ def _legend(fig, a, extended: bool, n_clipped: int, lim: float) -> None:
     if n_clipped:
         h.append(Line2D([], [], color=WARN_COLOR, marker="x", lw=0, ms=3))
         lab.append(f"residual beyond ±{lim:.2g} N (start-up, reversals), clipped to the edge")
-    fig.legend(h, lab, loc="outside upper center", ncols=2, markerscale=2)
+    fig.legend(h, lab, loc="outside upper center", ncols=1 if max(map(len, lab)) > 45 else 2, markerscale=2)
 
 
 def _evidence_marks(d: Diagnosis, res_axes) -> None:
