@@ -47,3 +47,30 @@ def _corrupt_middle_chunk(src: Path, dst: Path, nbytes: int = 64):
 def corrupt_middle_chunk():
     """``corrupt_middle_chunk(src, dst, nbytes=64)``: a copy of an MCAP with one chunk's data flipped."""
     return _corrupt_middle_chunk
+
+
+#: a short tuning trial: a square wave (step response), then a 2-70 Hz sine sweep on a slide (frequency response)
+TUNE_RECIPE = """name: tune
+lubricant: boundary
+seed: 4
+accel_um_s2: 500
+controller: {ff1: on, friction_ff: on}
+segments:
+  - {kind: hold, duration_s: 0.5}
+  - {kind: square, amplitude_um: 5, frequency_hz: 1, cycles: 2, velocity_um_s: 50, edge_speed_um_s: 500}
+  - {kind: sine_sweep, f0_hz: 2, f1_hz: 70, amplitude_um: 0.35, duration_s: 12, velocity_um_s: 160}
+"""
+
+
+@pytest.fixture(scope="session")
+def sweep_log(tmp_path_factory) -> Path:
+    """A folder with ``tune.yaml`` (:data:`TUNE_RECIPE`) and its simulated trial ``tune.mcap``, made once."""
+    from typer.testing import CliRunner
+
+    from rig.cli import app
+
+    d = tmp_path_factory.mktemp("tune")
+    (d / "tune.yaml").write_text(TUNE_RECIPE)
+    res = CliRunner().invoke(app, ["run", str(d / "tune.yaml"), "--sim", "--out", str(d / "tune.mcap")])
+    assert res.exit_code == 0, res.output
+    return d

@@ -14,27 +14,6 @@ from rig.cli import app
 from rig.config.profile import load_profile
 
 
-TUNE = """name: tune
-lubricant: boundary
-seed: 4
-accel_um_s2: 500
-controller: {ff1: on, friction_ff: on}
-segments:
-  - {kind: hold, duration_s: 0.5}
-  - {kind: square, amplitude_um: 5, frequency_hz: 1, cycles: 2, velocity_um_s: 50, edge_speed_um_s: 500}
-  - {kind: sine_sweep, f0_hz: 2, f1_hz: 70, amplitude_um: 0.35, duration_s: 12, velocity_um_s: 160}
-"""
-
-
-@pytest.fixture(scope="module")
-def sweep_log(tmp_path_factory):
-    d = tmp_path_factory.mktemp("tune")
-    (d / "tune.yaml").write_text(TUNE)
-    res = CliRunner().invoke(app, ["run", str(d / "tune.yaml"), "--sim", "--out", str(d / "tune.mcap")])
-    assert res.exit_code == 0, res.output
-    return d
-
-
 def test_autotune_from_the_sweep_log_writes_an_overlay_near_the_advice(sweep_log, repo_root):
     out = sweep_log / "gains.yaml"
     prof = repo_root / "config" / "rigs" / "emulated.yaml"

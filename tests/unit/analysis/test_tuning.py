@@ -22,18 +22,6 @@ LIM = RigLimits(loop_rate_hz=1000.0, stroke_min_um=0.0, stroke_max_um=5000.0, ma
                 initial_position_um=500.0, source="test")
 
 
-TUNE = """name: tune
-lubricant: boundary
-seed: 4
-accel_um_s2: 500
-controller: {ff1: on, friction_ff: on}
-segments:
-  - {kind: hold, duration_s: 0.5}
-  - {kind: square, amplitude_um: 5, frequency_hz: 1, cycles: 2, velocity_um_s: 50, edge_speed_um_s: 500}
-  - {kind: sine_sweep, f0_hz: 2, f1_hz: 70, amplitude_um: 0.35, duration_s: 12, velocity_um_s: 160}
-"""
-
-
 def rec(seg: str, extra: str = ""):
     return parse_recipe(f"name: t\nlubricant: boundary\n{extra}segments:\n{seg}")
 
@@ -123,15 +111,6 @@ def test_margins_of_a_known_loop():
     w180 = math.sqrt(50 * 500)                                # phase -180 where atan sum = 90 deg
     gm = -20 * math.log10(100.0 / (w180 * math.hypot(1, w180 / 50) * math.hypot(1, w180 / 500)))
     assert m["gain_margin_db"] == pytest.approx(gm, abs=0.05)
-
-
-@pytest.fixture(scope="module")
-def sweep_log(tmp_path_factory):
-    d = tmp_path_factory.mktemp("tune")
-    (d / "tune.yaml").write_text(TUNE)
-    res = CliRunner().invoke(app, ["run", str(d / "tune.yaml"), "--sim", "--out", str(d / "tune.mcap")])
-    assert res.exit_code == 0, res.output
-    return d
 
 
 def test_frf_matches_the_loop_model_on_the_simulated_rig(sweep_log):
