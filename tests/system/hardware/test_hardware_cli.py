@@ -6,6 +6,7 @@ from pathlib import Path
 import json
 import subprocess
 import sys
+import time
 
 import rig
 
@@ -46,11 +47,17 @@ def test_rig_emulate_serves_devices_check_and_run_in_other_processes(tmp_path, p
     from rig.hardware.emulated import RemoteEmulator
 
     prof = private_profile(tmp_path)
-    p = subprocess.Popen([sys.executable, "-m", "rig.cli", "emulate", "--hardware", str(prof), "--seconds", "120"],
-                         cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    # its output goes to a file, not a pipe: the test waits for `rig emulate` itself to exit, not for every
+    # process that inherited its stdout (the emulator's own children) to close a pipe
+    log = tmp_path / "emulate.log"
+    with open(log, "w") as fh:
+        p = subprocess.Popen([sys.executable, "-m", "rig.cli", "emulate", "--hardware", str(prof), "--seconds",
+                              "120"], cwd=REPO, stdout=fh, stderr=subprocess.STDOUT, text=True)
     try:
-        line = p.stdout.readline()
-        assert "emulators up" in line, line + p.stdout.read()
+        t_end = time.monotonic() + 60
+        while "emulators up" not in log.read_text() and p.poll() is None and time.monotonic() < t_end:
+            time.sleep(0.1)
+        assert "emulators up" in log.read_text(), log.read_text()
         r = _rig("devices", "check", "--hardware", prof, "--json", "-")
         assert r.returncode == 0, r.stdout + r.stderr
         assert [x["ok"] for x in json.loads(r.stdout)] == [True, True, True, True]
@@ -58,7 +65,13 @@ def test_rig_emulate_serves_devices_check_and_run_in_other_processes(tmp_path, p
         assert remote is not None and remote.reset_plant(500.0)["ok"]
     finally:
         p.send_signal(signal.SIGINT)
-        out = p.communicate(timeout=30)[0]
+        try:
+            p.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()
+            raise AssertionError("rig emulate did not stop within 60 s of Ctrl-C:\n" + log.read_text()) from None
+    out = log.read_text()
     assert p.returncode == 0, out
     assert not (tmp_path / "emulate.sock").exists()
 
