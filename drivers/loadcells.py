@@ -47,6 +47,9 @@ from drivers.errors import DeviceError
 from drivers.linux import close_quietly, open_tcp_nodelay, recv_available
 
 DEVICE = "load-cell conditioner"
+#: tries of one register read in a blocking check (shunt): a missed answer within the loop's timeout is
+#: not yet a silent conditioner
+SHUNT_READ_ATTEMPTS = 3
 CHANNELS = ("friction", "normal_1", "normal_2")
 _U16 = struct.Struct(">H")
 _MBAP = struct.Struct(">HHH")   # transaction id, protocol id (0), length of what follows
@@ -363,17 +366,25 @@ class LoadCellReader:
                 continue
             total = 0.0
             for _ in range(n):
-                try:
-                    rr = self._client.read_input_registers(cal.shunt_address, count=c.words_per_value,
-                                                           device_id=c.device_id)
-                except Exception as exc:  # noqa: BLE001 - ModbusIOException, ConnectionException, OSError
-                    raise DeviceError(DEVICE, self.address, f"shunt register of {ch}: no answer: {exc}") from exc
+                rr = self._read_patiently(cal.shunt_address, f"shunt register of {ch}")
                 if rr.isError():
                     raise DeviceError(DEVICE, self.address, f"shunt register of {ch}: Modbus exception "
                                       f"(code {getattr(rr, 'exception_code', None)})", kind="protocol")
                 total += decode_value(list(rr.registers), c.encoding, c.word_order) * cal.scale + cal.offset
             out[ch] = total / n
         return out
+
+    def _read_patiently(self, address: int, what: str, attempts: int = SHUNT_READ_ATTEMPTS):
+        """One register read outside the loop: the client's timeout is the loop's (a few ms), so a
+        blocking check retries a missed answer before it calls the conditioner silent."""
+        c = self.cfg
+        for attempt in range(attempts):
+            try:
+                return self._client.read_input_registers(address, count=c.words_per_value, device_id=c.device_id)
+            except Exception as exc:  # noqa: BLE001 - ModbusIOException, ConnectionException, OSError
+                if attempt == attempts - 1:
+                    raise DeviceError(DEVICE, self.address, f"{what}: no answer in {attempts} tries: {exc}") from exc
+                time.sleep(0.01)
 
     def tare(self, n: int = 20) -> dict[str, float]:
         """Average ``n`` readings and make them the zeros (sets each channel's ``tare_N``)."""
