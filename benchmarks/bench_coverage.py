@@ -35,7 +35,7 @@ def whole_record(trial) -> dict:
     """identify's whole-record fit (slip law, Jacobian errors with the effective sample size)."""
     from rig.analysis.identify import identify_trials
 
-    w = identify_trials([trial], directions="up").report["whole_record"]
+    w = identify_trials([trial], directions="up").report()["whole_record"]
     return {k: (w["params"][k], *w["intervals"][k]) for k in PARAMS}
 
 
@@ -43,7 +43,7 @@ def whole_record_bootstrap(trial) -> dict:
     """identify's whole-record fit with --uncertainty bootstrap:30."""
     from rig.analysis.identify import identify_trials
 
-    w = identify_trials([trial], directions="up", uncertainty="bootstrap:30").report["whole_record"]
+    w = identify_trials([trial], directions="up", uncertainty="bootstrap:30").report()["whole_record"]
     return {k: (w["params"][k], *w["intervals"][k]) for k in PARAMS}
 
 

@@ -32,7 +32,7 @@ def main():
         for ev in (True, False):
             t, idn = timed(lambda: identify_trials([trial25], use_events=ev, **kw))
             print(f"25 Hz trial ({len(trial25)} samples, {trial25.time_s[-1]:.0f} s), {label}, "
-                  f"steps from {'events' if ev else 'data'}: {t:.3f} s ({idn.report['n_steps']} steps)")
+                  f"steps from {'events' if ev else 'data'}: {t:.3f} s ({idn.report()['n_steps']} steps)")
 
     # one hour at 1 kHz: the paper's protocol repeated
     highs = (2.0, 5.0, 10.0) * 4
@@ -44,7 +44,7 @@ def main():
     for label, kw in (("per-step only", {"whole_record": False}), ("per-step + whole-record", {})):
         for ev in (True, False):
             t, idn = timed(lambda: identify_trials([tr], use_events=ev, **kw), repeat=2)
-            r = idn.report
+            r = idn.report()
             print(f"1 kHz, {tr.time_s[-1] / 3600:.2f} h, {label}, steps from {'events' if ev else 'data'}: "
                   f"{t:.2f} s ({r['n_steps']} steps; A={r['mean']['A_mu']:.4g} B={r['mean']['B_mu']:.4g} "
                   f"L={r['mean']['L_um']:.4g})")

@@ -65,7 +65,7 @@ def main(argv=None) -> int:
         t0 = time.perf_counter()
         idn = identify_trials([trial], names=[str(path)])
         t_id = time.perf_counter() - t0
-        r = idn.report
+        r = idn.report()
         la = os.getloadavg()
         print(f"rig identify {path.name}: read CSV {t_read:.1f} s (rig.data.read_csv) + identify {t_id:.1f} s "
               f"= {t_read + t_id:.1f} s (budget 30 s); load average {la[0]:.2f} {la[1]:.2f} on "

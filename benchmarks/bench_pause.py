@@ -38,7 +38,7 @@ def run(seed: int, hold_s: float | None):
     log, res = simulate(recipe, profile, seed=seed, keep_blocks=True, pause_script=script, block_ticks=1000)
     tr = log.trial_data(25.0)
     ident = identify_trials([tr], whole_record=False)
-    r = ident.report
+    r = ident.report()
     pauses = tr.pause_intervals
     return {"seed": seed, "hold_s": hold_s, "status": res.status, "duration_s": res.duration_s,
             "pauses": pauses, "mean": r["mean"], "sem": r["sem"], "n_steps": r["n_steps"],

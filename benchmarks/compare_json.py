@@ -125,6 +125,9 @@ def jobs_for(commands: list[str], records: list[Path]) -> list[list[tuple[str, s
     pair = [p for p in records if "sepiolite-velstep" in p.name][:2]
     if "identify" in commands and len(pair) == 2:  # several files: the per-trial and pooled report
         groups.append([("identify", " + ".join(p.name for p in pair), ["identify", *map(str, pair)])])
+    steps = [p for p in records if "velocity-steps" in p.name][:1]
+    if "identify" in commands and steps:  # both state laws and their comparison
+        groups.append([("identify", f"--law both {steps[0].name}", ["identify", "--law", "both", str(steps[0])])])
     if "stability" in commands:
         groups.append([("stability", "Table 2", ["stability"])])
         if "identify" in commands:
@@ -221,12 +224,46 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{len(rows)} comparisons, {len(diffs)} differ; {time.perf_counter() - t0:.0f} s wall, "
           f"load average {' '.join(f'{x:.1f}' for x in os.getloadavg())}")
     if diffs:
+        for cmd, label, _, detail, b, w_ in diffs:
+            print(f"\n{cmd} {label} ({detail}): the values that differ (path: base -> work, relative change)")
+            for line in value_changes(b, w_):
+                print("  " + line)
         cmd, label, _, detail, b, w_ = diffs[0]
         print(f"\nfirst difference: {cmd} {label} ({detail})")
         sys.stdout.writelines(difflib.unified_diff((b or "").splitlines(True), (w_ or "").splitlines(True),
                                                    f"base/{cmd}--{label}", f"work/{cmd}--{label}", n=2))
         return 1
     return 0
+
+
+def _leaves(doc, path: str = ""):
+    """(path, value) of every number, string, bool and null of a JSON document."""
+    if isinstance(doc, dict):
+        for k, v in doc.items():
+            yield from _leaves(v, f"{path}.{k}" if path else str(k))
+    elif isinstance(doc, list):
+        for i, v in enumerate(doc):
+            yield from _leaves(v, f"{path}[{i}]")
+    else:
+        yield path, doc
+
+
+def value_changes(base: str | None, work: str | None, limit: int = 40) -> list[str]:
+    """The leaves of two JSON texts that differ, with the relative change of a number (and the keys
+    only one side has); at most ``limit`` lines. The whole text when either side is not JSON."""
+    try:
+        b, w = dict(_leaves(json.loads(base or "null"))), dict(_leaves(json.loads(work or "null")))
+    except ValueError:
+        return ["(not JSON on one side)"]
+    out = []
+    for k in list(b) + [k for k in w if k not in b]:
+        vb, vw = b.get(k, "<absent>"), w.get(k, "<absent>")
+        if vb == vw and (k in b) == (k in w):
+            continue
+        num = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (vb, vw))
+        rel = f", {(vw - vb) / abs(vb):+.2e}" if num and vb else ""
+        out.append(f"{k}: {vb!r} -> {vw!r}{rel}")
+    return out[:limit] + ([f"... {len(out) - limit} more"] if len(out) > limit else [])
 
 
 if __name__ == "__main__":

@@ -45,7 +45,7 @@ def stiffness_kN_per_m(trial: TrialData, given: float | None) -> tuple[float, st
         return v, "machine_stiffness_kN_per_m metadata", None
     from rig.analysis.identify import fit_whole_record
 
-    fit = fit_whole_record(trial, stiffness=True)
+    fit = fit_whole_record(trial, stiffness=True).report()
     k = (fit.get("params") or {}).get("stiffness_kN_per_m")
     if not fit.get("ok") or k is None or not math.isfinite(k) or k <= 0:
         raise ValueError(f"{trial.source or 'trial'}: the whole-record fit with a machine stiffness did not "

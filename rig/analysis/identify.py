@@ -50,7 +50,7 @@ from rig.data import TrialData, atomic_write_text, parse_number
 from rig.log import load_trial
 from rig.fitting import Param, ParamSet, least_squares_fit
 from rig.fitting.stats import effective_n
-from rig.analysis.report import rounded as _r
+from rig.analysis.report import rounded as _r, rounded_warnings
 from rig.model.forward import predict_force
 from rig.model.friction import V0_UM_S
 from rig.model.paper import k_cr_eq13_N_per_um
@@ -82,6 +82,15 @@ class StepResult:
     reason: str = ""
     trial: int = 0
 
+    @property
+    def t_r_s(self) -> float:
+        """Eq. (14): the rise time ``L ln 9 / v2`` (s); NaN without an L."""
+        return self.L_um * LN9 / abs(self.step.v2_um_s) if math.isfinite(self.L_um) else math.nan
+
+    def where(self, n_trials: int) -> str:
+        """The ``where`` of this step's warnings (:func:`step_where`)."""
+        return step_where(self.step.t_s, self.trial, n_trials)
+
     def report(self) -> dict:
         """The step's JSON (``steps[]`` of rig.identify/1), rounded here and only here."""
         s = self.step
@@ -92,14 +101,13 @@ class StepResult:
              "direction": s.direction, "trial": self.trial, "source": s.source,
              "mu1": _r(self.mu1), "mu2": _r(self.mu2), "mu_max": _r(self.mu_max),
              "mu_peak_raw": _r(self.mu_peak_raw),
-             "t_r_s": _r(self.L_um * LN9 / abs(s.v2_um_s)) if math.isfinite(self.L_um) else None,
+             "t_r_s": _r(self.t_r_s),
              "windows": [{"window_um": f["window_um"], "mu2": _r(f["mu2"]), "L_um": _r(f["L_um"]),
                           "r2": _r(f["r2"])} for f in self.fits]}
         if not self.ok:
             d["rejected"] = self.reason
         return d
 
-    to_json = report
 
 
 def _fit_exp(delta: np.ndarray, mu: np.ndarray, mu2: float, l_max: float):
@@ -282,22 +290,31 @@ def reject_outliers(steps: list[StepResult], k: float = 4.0, rel: float = 0.5) -
                 s.reason = f"outlier: {nm} = {v:.3g} is {abs(v - med) / mad:.1f} robust sigma from the median {med:.3g}"
 
 
-def summarize(groups: list[list[StepResult]], N_N: float) -> tuple[dict, dict, str, list[dict]]:
+@dataclass
+class TrialMeans:
+    """One trial's means over its accepted steps (``per_trial[]`` of rig.identify/1 with several files)."""
+    A_mu: float
+    B_mu: float
+    L_um: float
+    n_steps: int
+
+    def report(self) -> dict:
+        return {"A_mu": _r(self.A_mu), "B_mu": _r(self.B_mu), "L_um": _r(self.L_um), "n_steps": self.n_steps}
+
+
+def summarize(groups: list[list[StepResult]], N_N: float) -> tuple[dict, dict, str, list[TrialMeans]]:
     """Mean and SEM over steps (one group) or over trials (each group's mean first), after the
     physical bounds (:func:`physical_check`) and the outlier rule (:func:`reject_outliers`).
-    Unrounded (the report rounds: :meth:`Identification.make_report`)."""
+    Unrounded (the report rounds: :meth:`Identification.report`)."""
     names = ("A_mu", "B_mu", "L_um")
     for g in groups:
         reject_outliers(g)
     good = [[s for s in g if s.ok] for g in groups]
-    per_trial = []
-    for g in good:
-        row = {n: mean_sem([getattr(s, n) for s in g])[0] for n in names}
-        row["n_steps"] = len(g)
-        per_trial.append(row)
+    per_trial = [TrialMeans(*(mean_sem([getattr(s, n) for s in g])[0] for n in names), n_steps=len(g))
+                 for g in good]
     if len(groups) > 1:
         over = "trials"
-        cols = {n: [r[n] for r in per_trial if r["n_steps"] > 0] for n in names}
+        cols = {n: [getattr(r, n) for r in per_trial if r.n_steps > 0] for n in names}
     else:
         over = "steps"
         cols = {n: [getattr(s, n) for s in good[0]] for n in names}
@@ -307,8 +324,7 @@ def summarize(groups: list[list[StepResult]], N_N: float) -> tuple[dict, dict, s
     k, sk = k_cr_table2(mean["A_mu"], sem["A_mu"], mean["B_mu"], sem["B_mu"], mean["L_um"], sem["L_um"], N_N)
     mean["k_cr_kN_per_m"], sem["k_cr_kN_per_m"] = k, sk
     # eq. (14) rise time, mean over steps
-    tr = [s.L_um * LN9 / abs(s.step.v2_um_s) for g in good for s in g]
-    mean["t_r_s"], sem["t_r_s"] = mean_sem(tr)
+    mean["t_r_s"], sem["t_r_s"] = mean_sem([s.t_r_s for g in good for s in g])
     return mean, sem, over, per_trial
 
 
@@ -727,7 +743,7 @@ def fit_whole_record(trial: TrialData, steps: list[Step] | None = None, *, stiff
                      velocity_method: str = "segments", max_points: int = 15000, trend: bool = False,
                      init: dict | None = None, k_fixed: float | None = None, law: str = "slip",
                      detrend: str = "none", uncertainty: str = "jacobian", seed: int = 0,
-                     progress=None, rise_guard_s: float = 0.5, profile: bool = False) -> dict:
+                     progress=None, rise_guard_s: float = 0.5, profile: bool = False) -> WholeRecordFit:
     """Fit mu0, A, B, L (and the machine stiffness ``k``, and a linear trend in slip) to the
     whole record by least squares (:mod:`rig.fitting`, trust region), with honest errors.
 
@@ -753,6 +769,8 @@ def fit_whole_record(trial: TrialData, steps: list[Step] | None = None, *, stiff
       time), ``mcmc:N`` (emcee). ``params_sd``, ``intervals``
       (68 %) and ``correlation``; ``err_corr`` is ``params_sd`` (kept for older readers) and
       ``err`` the plain Jacobian's.
+
+    Returns a :class:`WholeRecordFit`: its JSON and the unrounded values the analyses start from.
     """
     from rig.fitting.stats import information_criterion, parse_uncertainty
 
@@ -770,7 +788,7 @@ def fit_whole_record(trial: TrialData, steps: list[Step] | None = None, *, stiff
     t0 = time.perf_counter()
     fit = _least_squares(rec, prob, dict(init or {}), stiffness)
     if fit is None:
-        return {"ok": False, "reason": "least squares failed"}
+        return WholeRecordFit({"ok": False, "reason": "least squares failed"})
     unc, n_eff = _whole_record_uncertainty(rec, prob, fit, method, n_draws, seed, profile, progress)
     rep = _reported(prob, fit, unc, stiffness, detrend)
     sd, q = rep.pop("_sd"), rep.pop("_q")
@@ -797,32 +815,47 @@ def fit_whole_record(trial: TrialData, steps: list[Step] | None = None, *, stiff
                             rate_sd_mu_per_mm=rep["params_sd"]["rate_mu_per_mm"])
     kcr, skcr = k_cr_table2(q["A_mu"], sd["A_mu"], q["B_mu"], sd["B_mu"], q["L_um"], sd["L_um"], trial.normal_force_N)
     out.update(k_cr_kN_per_m=_r(kcr), k_cr_err_kN_per_m=_r(skcr))
-    out["_curve"] = (rec.t, prob.model(q), rec.mu, rec.sliding, q.get("rate_mu_per_mm", trend_fixed) * s_mm)
-    out["_params"] = dict(q)  # the fitted values unrounded, for the analyses that start from them (diagnose)
-    out["_resid"] = (rec.t[rec.sliding], r)
-    return out
+    return WholeRecordFit(out, params=dict(q), ssr=ssr, n_eff=n_eff,
+                          curve=(rec.t, prob.model(q), rec.mu, rec.sliding,
+                                 q.get("rate_mu_per_mm", trend_fixed) * s_mm),
+                          resid=(rec.t[rec.sliding], r))
 
 
-def compare_laws(fits: dict[str, dict], margin: float = 6.0) -> dict:
+@dataclass
+class LawComparison:
+    """Both state laws' whole-record fits compared (:func:`compare_laws`), unrounded; :meth:`report`
+    is ``laws.comparison`` of rig.identify/1."""
+    preferred_law: str
+    n_eff: float = math.nan
+    bic: dict = field(default_factory=dict)
+    delta_bic: float = math.nan
+    reason: str = ""
+
+    def report(self) -> dict:
+        if self.reason:
+            return {"preferred_law": self.preferred_law, "reason": self.reason}
+        return {"criterion": "BIC on the effective sample size", "n_eff": _r(self.n_eff, 4),
+                "bic": {k: _r(v) for k, v in self.bic.items()}, "delta_bic": _r(self.delta_bic),
+                "preferred_law": self.preferred_law}
+
+
+def compare_laws(fits: dict[str, WholeRecordFit], margin: float = 6.0) -> LawComparison:
     """Both laws side by side (xlook's qi.r and qi.d): the information criterion of each on one
     effective sample size (the better fit's: its residual is the closest to noise), and the law
     the record prefers: the one lower by more than ``margin`` (Kass & Raftery 1995: 6 is strong
-    evidence), else ``undecided``."""
-    ok = {k: w for k, w in fits.items() if w.get("params")}
+    evidence), else ``undecided``. From the fits' unrounded sums of squares and n_eff."""
+    ok = {k: w for k, w in fits.items() if w.params}
     if len(ok) < 2:
-        return {"preferred_law": "undecided", "reason": "a fit failed"}
+        return LawComparison("undecided", reason="a fit failed")
     from rig.fitting.stats import information_criterion
 
-    best = min(ok, key=lambda k: ok[k]["rms_mu"])
-    n_eff = float(ok[best]["n_eff"])
-    ic = {k: information_criterion(w["rms_mu"] ** 2 * w["n_points"], w["n_points"], n_eff, w["n_params"])
-          for k, w in ok.items()}
+    best = min(ok, key=lambda k: ok[k].ssr / max(ok[k].n_points, 1))
+    n_eff = ok[best].n_eff
+    ic = {k: information_criterion(w.ssr, w.n_points, n_eff, w.n_params) for k, w in ok.items()}
     lo = min(ic, key=ic.get)
     other = [k for k in ic if k != lo][0]
     d = ic[other] - ic[lo]
-    return {"criterion": "BIC on the effective sample size", "n_eff": _r(n_eff, 4),
-            "bic": {k: _r(v) for k, v in ic.items()}, "delta_bic": _r(d),
-            "preferred_law": lo if d > margin else "undecided"}
+    return LawComparison(lo if d > margin else "undecided", n_eff, ic, d)
 
 
 # ---------------------------------------------------------------------------
@@ -886,56 +919,98 @@ def decimated(trial: TrialData, max_samples: int = MAX_STEP_SAMPLES, target: int
 
 @dataclass
 class WholeRecordFit:
-    """One whole-record fit as :func:`fit_whole_record` returns it (its inside, the uncertainty, is
-    rig.fitting's), with typed access; :meth:`report` is its JSON (``whole_record`` of rig.identify/1)."""
-    fit: dict
+    """One whole-record fit (:func:`fit_whole_record`): its JSON (``whole_record`` of rig.identify/1, as
+    the fit and its uncertainty (rig.fitting) report it: :meth:`report`) and the unrounded numbers the
+    analyses start from (diagnose's prior, the law comparison, the figure)."""
+    reported: dict
+    params: dict = field(default_factory=dict)   # fitted and held values, unrounded (internal units); {} if failed
+    ssr: float = math.nan                        # sum of squared (time-weighted) residuals, in mu^2
+    n_eff: float = math.nan                      # the residual's effective sample size
+    curve: tuple | None = None                   # (t, model mu, measured mu, sliding mask, trend) of the bins
+    resid: tuple | None = None                   # (t, residual) of the compared bins
 
     @property
     def ok(self) -> bool:
-        return bool(self.fit.get("ok", True))
-
-    @property
-    def params(self) -> dict:
-        return self.fit.get("params", {})
+        return bool(self.reported.get("ok", True))
 
     @property
     def model(self) -> str:
-        return self.fit.get("model", "")
+        return self.reported.get("model", "")
 
     @property
-    def curve(self):
-        """(t, model mu, measured mu, sliding mask, trend line) for the figure; None when the fit failed."""
-        return self.fit.get("_curve")
+    def n_points(self) -> int:
+        return int(self.reported.get("n_points", 0))
+
+    @property
+    def n_params(self) -> int:
+        return int(self.reported.get("n_params", 0))
 
     def report(self) -> dict:
-        return {k: v for k, v in self.fit.items() if not k.startswith("_")}
+        return dict(self.reported)
 
 
 @dataclass
 class Identification:
     """What ``rig identify`` found, typed and unrounded: the steps (per trial), their mean and s.e.
     over steps (one trial) or trials (several; ``per_trial``: each trial's means), the whole-record fit
-    of each trial (and with ``law="both"`` both laws' and their comparison). ``report`` is the JSON
-    (rig.identify/1), rounded once when it is made (:meth:`make_report`)."""
+    of each trial (and with ``law="both"`` both laws' and their comparison), and the warnings judged on
+    these values. :meth:`report` is the JSON (rig.identify/1), rounded once, when it is made."""
     results: list[list[StepResult]]
     trials: list[TrialData]
     fits: list[WholeRecordFit]
-    laws: list[dict] = field(default_factory=list)   # per trial {law: fit dict} with --law both
-    comparisons: list[dict] = field(default_factory=list)
+    laws: list[dict[str, WholeRecordFit]] = field(default_factory=list)   # per trial {law: fit} with --law both
+    comparisons: list[LawComparison] = field(default_factory=list)
     mean: dict = field(default_factory=dict)
     sem: dict = field(default_factory=dict)
     sem_over: str = "steps"
-    per_trial: list[dict] = field(default_factory=list)
-    report: dict = field(default_factory=dict)
-
-    @property
-    def whole(self) -> list[dict]:
-        """The whole-record fits as dicts (the figure's curves included)."""
-        return [w.fit for w in self.fits]
+    per_trial: list[TrialMeans] = field(default_factory=list)
+    names: list[str] | None = None        # the files' names as given
+    velocity_method: str = "local_poly"
+    law: str | None = None                # the whole-record fits' law (slip, aging, both); None: no fit
+    stiffness_by_rule: bool = False       # the stiffness was chosen by the load-point rule
+    warnings: list[dict] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
 
     @property
     def steps(self) -> list[StepResult]:
         return [r for g in self.results for r in g]
+
+    @property
+    def n_steps(self) -> int:
+        """The accepted steps."""
+        return sum(1 for r in self.steps if r.ok)
+
+    @property
+    def rejected(self) -> list[StepResult]:
+        return [r for r in self.steps if not r.ok]
+
+    @property
+    def data(self):
+        """The report's ``data``: the files' names (one name for one file), else the trial's source."""
+        names = self.names
+        return names if names and len(names) > 1 else (names[0] if names else self.trials[0].source)
+
+    @property
+    def preferred_law(self) -> str:
+        """With ``law="both"``: the law every trial prefers, else ``undecided``."""
+        prefs = {c.preferred_law for c in self.comparisons}
+        return prefs.pop() if len(prefs) == 1 else "undecided"
+
+    def report(self) -> dict:
+        """The rig.identify/1 JSON: the numbers rounded here (6 significant figures,
+        :func:`rig.analysis.report.rounded`)."""
+        report = _report(self)
+        if self.law is not None:  # the whole-record fits
+            wr = [w.report() for w in self.fits]
+            report["whole_record"] = wr[0] if len(wr) == 1 else wr
+            report["law"] = self.law
+            if self.law == "both":
+                both = [{**{lw: f.report() for lw, f in fits.items()}, "comparison": c.report()}
+                        for fits, c in zip(self.laws, self.comparisons)]
+                report["laws"] = both[0] if len(both) == 1 else both
+                report["preferred_law"] = self.preferred_law
+        report["warnings"] = rounded_warnings(self.warnings)
+        return report
 
 
 def identify_trials(trials: list[TrialData], *, use_events: bool = True, velocity_method: str = "local_poly",
@@ -956,10 +1031,10 @@ def identify_trials(trials: list[TrialData], *, use_events: bool = True, velocit
 
     parse_uncertainty(uncertainty)
     laws = LAWS if law == "both" else (law,)
-    comparisons: list[dict] = []
-    per_law: list[dict] = []
+    comparisons: list[LawComparison] = []
+    per_law: list[dict[str, WholeRecordFit]] = []
     groups: list[list[StepResult]] = []
-    wholes: list[dict] = []
+    wholes: list[WholeRecordFit] = []
     trials = [decimated(tr) for tr in trials]
     for ti, tr in enumerate(trials):
         check_analysable(tr, "identify")
@@ -981,31 +1056,12 @@ def identify_trials(trials: list[TrialData], *, use_events: bool = True, velocit
             else:
                 wholes.append(fits[law])
     mean, sem, over, per_trial = summarize(groups, trials[0].normal_force_N)
-    idn = Identification(groups, trials, [WholeRecordFit(w) for w in wholes], per_law, comparisons, mean, sem, over,
-                         per_trial)
-    idn.report = make_report(idn, names, velocity_method, law if whole_record else None,
-                             whole_record and stiffness is None)
+    idn = Identification(groups, trials, wholes, per_law,
+                         comparisons, mean, sem, over, per_trial, names=names, velocity_method=velocity_method,
+                         law=law if whole_record else None, stiffness_by_rule=whole_record and stiffness is None)
+    idn.notes = _notes(trials, idn.stiffness_by_rule)
+    idn.warnings = result_warnings(idn)
     return idn
-
-
-def make_report(idn: Identification, names: list[str] | None, velocity_method: str, law: str | None,
-                stiffness_by_rule: bool) -> dict:
-    """The rig.identify/1 JSON of a typed identification: the numbers rounded here (6 significant
-    figures, :func:`rig.analysis.report.rounded`), the warnings judged on the report's values."""
-    report = _report(idn, names, velocity_method)
-    report["notes"] = _notes(idn.trials, stiffness_by_rule)
-    if law is not None:  # the whole-record fits
-        wr = [w.report() for w in idn.fits]
-        report["whole_record"] = wr[0] if len(wr) == 1 else wr
-        report["law"] = law
-        if law == "both":
-            both = [{**{lw: WholeRecordFit(f).report() for lw, f in fits.items()}, "comparison": c}
-                    for fits, c in zip(idn.laws, idn.comparisons)]
-            report["laws"] = both[0] if len(both) == 1 else both
-            prefs = {c["preferred_law"] for c in idn.comparisons}
-            report["preferred_law"] = prefs.pop() if len(prefs) == 1 else "undecided"
-    report["warnings"] = result_warnings(report)
-    return report
 
 
 def _fit_steps(tr: TrialData, ti: int, steps: list[Step], directions: str, rise_guard_s: float,
@@ -1024,11 +1080,10 @@ def _fit_steps(tr: TrialData, ti: int, steps: list[Step], directions: str, rise_
     return res
 
 
-def _report(idn: Identification, names: list[str] | None, velocity_method: str) -> dict:
-    """The per-step part of the ``rig.identify/1`` report: the steps, mean and s.e. over steps (one
-    trial) or trials (several), the rejected steps and, with several trials, each trial's means."""
-    trials, groups = idn.trials, idn.results
-    N_N = trials[0].normal_force_N
+def _report(idn: Identification) -> dict:
+    """The per-step part of the ``rig.identify/1`` report, rounded: the steps, mean and s.e. over steps
+    (one trial) or trials (several), the rejected steps and, with several trials, each trial's means."""
+    trials = idn.trials
     mean = {k_: _r(v) for k_, v in idn.mean.items()}
     sem = {k_: _r(v) for k_, v in idn.sem.items()}
     # the field's vocabulary beside the spec's names (rig.model.spec.rsf_vocabulary), of the rounded means
@@ -1036,25 +1091,23 @@ def _report(idn: Identification, names: list[str] | None, velocity_method: str) 
     sem.update({k_: v_ for k_, v_ in ((RSF_NAMES[k], sem.get(k)) for k in RSF_NAMES)})
     report = {
         "schema": SCHEMA,
-        "data": names if names and len(names) > 1 else (names[0] if names else trials[0].source),
-        "steps": [r.report() for g in groups for r in g],
+        "data": idn.data,
+        "steps": [r.report() for r in idn.steps],
         "mean": mean,
         "sem": sem,
         "sem_over": idn.sem_over,
-        "n_steps": sum(1 for g in groups for r in g if r.ok),
+        "n_steps": idn.n_steps,
         "n_trials": len(trials),
-        "normal_force_N": N_N,
-        "velocity_method": velocity_method,
-        "step_source": sorted({r.step.source for g in groups for r in g}),
+        "normal_force_N": trials[0].normal_force_N,
+        "velocity_method": idn.velocity_method,
+        "step_source": sorted({r.step.source for r in idn.steps}),
         "k_cr_note": "eq. (13), k_cr = (B_mu - A_mu) N / L with N the nominal per-rider normal force (Table 2 "
                      "convention); the moving test piece sees twice this (total friction 2 N mu): see rig stability",
     }
-    report["rejected_steps"] = [{"trial": r.trial, "t_s": _r(r.step.t_s), "reason": r.reason}
-                                for g in groups for r in g if not r.ok]
-    report["notes"] = []
+    report["rejected_steps"] = [{"trial": r.trial, "t_s": _r(r.step.t_s), "reason": r.reason} for r in idn.rejected]
+    report["notes"] = list(idn.notes)
     if len(trials) > 1:
-        report["per_trial"] = [{k: _r(v) if not isinstance(v, int) else v for k, v in row.items()}
-                               for row in idn.per_trial]
+        report["per_trial"] = [row.report() for row in idn.per_trial]
     return report
 
 
@@ -1070,28 +1123,31 @@ def _notes(trials: list[TrialData], stiffness_by_rule: bool) -> list[str]:
     return notes
 
 
-def step_where(step_json: dict, n_trials: int) -> str:
-    """The ``where`` of a step's warnings."""
-    return f"step at t = {step_json['t_s']:g} s" + (f" (trial {step_json['trial']})" if n_trials > 1 else "")
+def step_where(t_s: float, trial: int, n_trials: int) -> str:
+    """The ``where`` of a step's warnings (its time as the report gives it, 4 decimals)."""
+    return f"step at t = {round(t_s, 4):g} s" + (f" (trial {trial})" if n_trials > 1 else "")
 
 
-def result_warnings(report: dict) -> list[dict]:
+def result_warnings(idn: Identification) -> list[dict]:
     """Parameters that hit a fit bound or are not physical (:mod:`rig.model.checks`): the accepted
-    steps', the mean's and each whole-record fit's."""
+    steps', the mean's and each whole-record fit's (the last judged on its report)."""
     from rig.model.checks import check_params
 
+    n_trials = len(idn.trials)
     out = []
-    for s in report["steps"]:
-        if "rejected" not in s:
-            out += check_params({k: s[k] for k in ("A_mu", "B_mu", "L_um")}, where=step_where(s, report["n_trials"]))
-    out += check_params({k: report["mean"].get(k) for k in ("A_mu", "B_mu", "L_um", "k_cr_kN_per_m")},
-                        report["sem"], where=f"mean over {report['sem_over']}")
-    wr = report.get("whole_record")
-    wrs = [wr] if isinstance(wr, dict) else (wr or [])
-    for i, w in enumerate(wrs):
-        if "params" in w:
-            where = "whole-record fit" + (f" (trial {i})" if len(wrs) > 1 else "")
-            out += check_params({**w["params"], "k_cr_kN_per_m": w.get("k_cr_kN_per_m")}, w.get("err_corr"), where)
+    for r in idn.steps:
+        if r.ok:
+            out += check_params({"A_mu": r.A_mu, "B_mu": r.B_mu, "L_um": r.L_um}, where=r.where(n_trials))
+    out += check_params({k: idn.mean.get(k) for k in ("A_mu", "B_mu", "L_um", "k_cr_kN_per_m")},
+                        idn.sem, where=f"mean over {idn.sem_over}")
+    if idn.law is None:
+        return out
+    for i, w in enumerate(idn.fits):
+        rep = w.report()
+        if "params" in rep:
+            where = "whole-record fit" + (f" (trial {i})" if len(idn.fits) > 1 else "")
+            out += check_params({**rep["params"], "k_cr_kN_per_m": rep.get("k_cr_kN_per_m")}, rep.get("err_corr"),
+                                where)
     return out
 
 

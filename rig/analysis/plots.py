@@ -158,14 +158,14 @@ def build_identification(idn, max_steps: int = 9):
     from rig.model.checks import MARK
 
     plt = _plt()
-    rep = idn.report
-    warns = rep.get("warnings", [])
-    results = [r for g in idn.results for r in g][:max_steps]
-    n_more = sum(len(g) for g in idn.results) - len(results)
+    rep = idn.report()  # the title's numbers as the JSON has them
+    warns = rep["warnings"]
+    results = idn.steps[:max_steps]
+    n_more = len(idn.steps) - len(results)
     ncol = max(1, min(3, len(results)))
     nrow_steps = math.ceil(len(results) / ncol) if results else 0
     notes = [f"{MARK} {w['where']}: {w['message']}" for w in warns]
-    rejected = [f"rejected step at t = {g3(r['t_s'], 6)} s: {r['reason']}" for r in rep.get("rejected_steps", [])]
+    rejected = [f"rejected step at t = {g3(r.step.t_s, 6)} s: {r.reason}" for r in idn.rejected]
     if n_more:
         notes.append(f"{n_more} more step(s) not drawn (the first {len(results)} are)")
     foot = rejected + notes
@@ -192,7 +192,7 @@ def build_identification(idn, max_steps: int = 9):
 
 def _file_names(idn) -> list[str]:
     """The identified files' names (the report's ``data``), one per trial."""
-    data = idn.report.get("data")
+    data = idn.data
     names = [Path(d).name for d in data] if isinstance(data, list) else [Path(str(data)).name]
     return names if len(names) == len(idn.trials) else [f"trial {i}" for i in range(len(idn.trials))]
 
@@ -207,13 +207,13 @@ def _record_panels(ax, axv, idn, files: list[str]) -> list:
     t = tr.time_s[::step]
     own = f" ({files[0]})" if len(files) > 1 else ""
     ax.plot(t, tr.mu[::step], ".", ms=1.0, color="0.55", label=f"measured μ{own}", rasterized=True)
-    fits0 = idn.laws[0] if getattr(idn, "laws", None) else ({"": idn.whole[0]} if idn.whole else {})
+    fits0 = idn.laws[0] if idn.laws else ({"": idn.fits[0]} if idn.fits else {})
     for (lw, w0), col in zip(fits0.items(), ("C3", "C4")):
-        if w0.get("_curve") is None:
+        if w0.curve is None:
             continue
-        tc, mc, _, _, trend = w0["_curve"]
-        ax.plot(tc, mc, "-", color=col, lw=0.9, label=f"whole-record fit ({w0['model']}){own}")
-        d = w0.get("detrend", {})
+        tc, mc, _, _, trend = w0.curve
+        ax.plot(tc, mc, "-", color=col, lw=0.9, label=f"whole-record fit ({w0.model}){own}")
+        d = w0.reported.get("detrend", {})
         if d.get("method", "none") != "none" and col == "C3":
             # the trend (mu per mm of slip), drawn about the fit's mean level
             ax.plot(tc, float(np.nanmean(mc)) + trend - float(np.nanmean(trend)), "--", color="C1", lw=0.8,
@@ -223,7 +223,7 @@ def _record_panels(ax, axv, idn, files: list[str]) -> list:
             a.axvline(r.step.t_s, color="C0", lw=0.6, ls=":", label="velocity step" if (k == 0 and a is ax) else None)
     ax.set_ylabel("μ = F / (N1 + N2)")
     ax.tick_params(labelbottom=False)
-    v = estimate_velocity(t, tr.position_um[::step], idn.report.get("velocity_method", "local_poly"))
+    v = estimate_velocity(t, tr.position_um[::step], idn.velocity_method)
     axv.plot(t, v, "-", color="C2", lw=0.6)
     symlog_velocity(axv, v)
     axv.set_ylabel("v (µm/s)")
@@ -257,10 +257,8 @@ def _identification_title(rep: dict, files: list[str]) -> str:
 
 def _step_panel(a, idn, r, files: list[str]) -> None:
     """Friction after one step against slip: mu1, each window's eq. (12) fit, the window kept shaded."""
-    from rig.analysis.identify import step_where
     from rig.model.checks import flagged
 
-    rep = idn.report
     tr = idn.trials[r.trial]
     lo, hi = r.step.post
     pre = max(r.step.pre[0], r.step.i - 200)
@@ -277,7 +275,7 @@ def _step_panel(a, idn, r, files: list[str]) -> None:
         dd = np.linspace(0, max(d1, 1.0), 300)
         a.plot(dd, f["mu2"] + f["a"] * np.exp(-dd / f["L_um"]), "-" if best else ":",
                color="k" if best else "C4", lw=1.1 if best else 0.8)
-    fl = flagged(rep.get("warnings", []), step_where(r.to_json(), rep["n_trials"]))
+    fl = flagged(idn.warnings, r.where(len(idn.trials)))
     line2 = ", ".join(f"{lab} = {g3(val, 2 if lab in ('A', 'B') else 3)}{u}" + (" (!)" if key in fl else "")
                       for lab, key, val, u in (("A", "A_mu", r.A_mu, ""), ("B", "B_mu", r.B_mu, ""),
                                                ("L", "L_um", r.L_um, " µm")))

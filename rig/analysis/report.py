@@ -29,3 +29,8 @@ def fmt(v, nd: int = 4) -> str:
             return "-"
         return f"{v:.{nd}g}"
     return str(v)
+
+
+def rounded_warnings(warnings: list[dict]) -> list[dict]:
+    """Warnings (:mod:`rig.model.checks`: judged on unrounded values) for a report: each ``value`` rounded."""
+    return [{**w, "value": rounded(w["value"])} if "value" in w else dict(w) for w in warnings]

@@ -52,7 +52,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from rig.analysis.identify import identify_trials, k_cr_table2, mean_sem
-from rig.analysis.report import rounded as _r
+from rig.analysis.report import rounded as _r, rounded_warnings
 from rig.data import atomic_write_text
 from rig.model.paper import TABLE2
 from rig.model.spec import FrictionModel
@@ -139,16 +139,31 @@ def run_trial(lubricant: str, params: dict, *, mu0: float, engine: str = "sim", 
                                                              back_um=max(300.0, 6 * params["L_um"])),
                             seed=noise_seed, lubricant=lubricant).trial
     t_sim = time.perf_counter() - t0
-    rep = identify_trials([tr], directions="up", whole_record=whole_record).report
-    row = {"truth": {k_: _r(v) for k_, v in params.items()},
-           "recovered": {k_: rep["mean"][k_] for k_ in ("A_mu", "B_mu", "L_um")},
-           "n_steps": rep["n_steps"], "sim_s": round(t_sim, 2),
-           "steps": [{k_: s_[k_] for k_ in ("v1_um_s", "v2_um_s", "A_mu", "B_mu", "L_um", "r2", "window_um")}
-                     for s_ in rep["steps"]]}
+    idn = identify_trials([tr], directions="up", whole_record=whole_record)
+    # unrounded: the means over trials are taken of these (LubricantResult.report rounds)
+    row = {"truth": dict(params),
+           "recovered": {k_: idn.mean[k_] for k_ in ("A_mu", "B_mu", "L_um")},
+           "n_steps": idn.n_steps, "sim_s": t_sim,
+           "steps": [{"v1_um_s": r.step.v1_um_s, "v2_um_s": r.step.v2_um_s, "A_mu": r.A_mu, "B_mu": r.B_mu,
+                      "L_um": r.L_um, "r2": r.r2, "window_um": r.window_um} for r in idn.steps]}
     if whole_record:
-        w = rep["whole_record"]
-        row["whole_record"] = {k_: w["params"].get(k_) for k_ in ("A_mu", "B_mu", "L_um")}
+        row["whole_record"] = {k_: idn.fits[0].params.get(k_) for k_ in ("A_mu", "B_mu", "L_um")}
     return row
+
+
+def _trial_report(row: dict) -> dict:
+    """A trial's row (:func:`run_trial`) as rig.reproduce/1 has it: its numbers rounded."""
+    out = {}
+    for k_, v in row.items():
+        if k_ == "steps":
+            out[k_] = [{n: (x if n == "window_um" else _r(x)) for n, x in s_.items()} for s_ in v]
+        elif isinstance(v, dict):
+            out[k_] = {n: _r(x) for n, x in v.items()}
+        elif k_ == "sim_s":
+            out[k_] = round(v, 2)
+        else:
+            out[k_] = v
+    return out
 
 
 def run_trial_task(task: dict) -> dict:
@@ -210,20 +225,19 @@ def _map_trials(tasks: list[dict], progress=None, map_fn=None) -> list[dict]:
 
 @dataclass
 class MeanSem:
-    """Means and standard errors of the mean of A_mu, B_mu, L_um and eq. (13)'s k_cr over trials."""
+    """Means and standard errors of the mean of A_mu, B_mu, L_um and eq. (13)'s k_cr over trials, unrounded."""
     mean: dict
     sem: dict
 
     def report(self) -> dict:
-        return {"mean": self.mean, "sem": self.sem}
+        return {"mean": {k_: _r(v) for k_, v in self.mean.items()}, "sem": {k_: _r(v) for k_, v in self.sem.items()}}
 
 
 @dataclass
 class LubricantResult:
     """One lubricant's Table 2 row from simulated trials: the paper's values, the trials' truth, what
     the identification recovered (and the whole-record fit's), the check against the truth and the
-    identification's bias; :meth:`report` is its part of rig.reproduce/1. The means are of the
-    trials' reported (6-figure) values, as the JSON has always had them."""
+    identification's bias, all unrounded; :meth:`report` is its part of rig.reproduce/1, rounded."""
     lubricant: str
     n_trials: int
     engine: str
@@ -243,12 +257,16 @@ class LubricantResult:
 
     def report(self) -> dict:
         res = {"lubricant": self.lubricant, "n_trials": self.n_trials, "engine": self.engine, "mu0": self.mu0,
-               "trials": self.trials, "n_trials_identified": self.n_trials_identified,
+               "trials": [_trial_report(t) for t in self.trials], "n_trials_identified": self.n_trials_identified,
                "truth": self.truth.report(), "recovered": self.recovered.report()}
         if self.whole_record is not None:
             res["whole_record"] = self.whole_record.report()
-        res.update(paper=self.paper, checks=self.checks, truth_all_draws_mean=self.truth_all_draws_mean,
-                   n_flagged_k_cr_over_half_kp=sum(1 for t in self.trials if t["k_cr_over_half_kp"]), bias=self.bias)
+        checks = {k_: {"diff": _r(c["diff"]), "tolerance": _r(c["tolerance"]), "ok": c["ok"]}
+                  for k_, c in self.checks.items()}
+        res.update(paper=self.paper, checks=checks,
+                   truth_all_draws_mean={k_: _r(v) for k_, v in self.truth_all_draws_mean.items()},
+                   n_flagged_k_cr_over_half_kp=sum(1 for t in self.trials if t["k_cr_over_half_kp"]),
+                   bias={k_: {n: _r(x) for n, x in b.items()} for k_, b in self.bias.items()})
         return res
 
 
@@ -260,7 +278,7 @@ def _mean_sem_over(used: list[dict], key: str, N: float) -> MeanSem:
         mean[k_], sem[k_] = mean_sem([t[key][k_] for t in used if t[key].get(k_) is not None])
     mean["k_cr_kN_per_m"], sem["k_cr_kN_per_m"] = k_cr_table2(mean["A_mu"], sem["A_mu"], mean["B_mu"],
                                                               sem["B_mu"], mean["L_um"], sem["L_um"], N)
-    return MeanSem({k_: _r(v) for k_, v in mean.items()}, {k_: _r(v) for k_, v in sem.items()})
+    return MeanSem(mean, sem)
 
 
 def summarize_lubricant(lubricant: str, n_trials: int, engine: str, mu0: float, trials_out: list[dict],
@@ -288,21 +306,21 @@ def lubricant_result(lubricant: str, n_trials: int, engine: str, mu0: float, tri
     for k_ in ("A_mu", "B_mu", "L_um"):
         tol = paper[k_]["sem"] if paper[k_]["sem"] > 0 else A_NOISE_LEVEL
         d = res.recovered.mean[k_] - res.truth.mean[k_]
-        res.checks[k_] = {"diff": _r(d), "tolerance": _r(tol), "ok": bool(abs(d) <= tol)}
+        res.checks[k_] = {"diff": d, "tolerance": tol, "ok": bool(abs(d) <= tol)}
     # all draws (also those the identification could not use, e.g. a flagged trial that
     # stick-slipped): their mean is Table 2's population mean; the used trials' mean may be
     # shifted by that selection, which the paper's own trials (steady sliding only) share
-    res.truth_all_draws_mean = {k_: _r(np.mean([t["truth"][k_] for t in trials_out]))
+    res.truth_all_draws_mean = {k_: float(np.mean([t["truth"][k_] for t in trials_out]))
                                 for k_ in ("A_mu", "B_mu", "L_um")}
-    res.bias = identification_bias({"trials": trials_out, "paper": paper, "recovered": res.recovered.report(),
-                                    "truth": res.truth.report()})
+    res.bias = identification_bias({"trials": trials_out, "paper": paper, "recovered": {"mean": res.recovered.mean},
+                                    "truth": {"mean": res.truth.mean}})
     return res
 
 
 def identification_bias(res: dict) -> dict:
     """Per parameter: mean over trials of recovered/true - 1 (± sem) and the recovered
     mean's distance from Table 2 in the paper's standard errors. Over the trials the
-    means use (identified, not flagged ``k_cr_over_half_kp``)."""
+    means use (identified, not flagged ``k_cr_over_half_kp``). Unrounded."""
     used = [t for t in res["trials"] if t["n_steps"] > 0 and not t.get("k_cr_over_half_kp", False)]
     out = {}
     for k_ in ("A_mu", "B_mu", "L_um"):
@@ -311,10 +329,10 @@ def identification_bias(res: dict) -> dict:
         m, e = mean_sem(rel) if len(rel) >= 2 else (float("nan"), float("nan"))
         p = res["paper"][k_]
         tol = p["sem"] if p["sem"] > 0 else A_NOISE_LEVEL
-        out[k_] = {"recovered_vs_true_rel": _r(m), "recovered_vs_true_rel_sem": _r(e),
-                   "recovered_minus_paper": _r(res["recovered"]["mean"][k_] - p["mean"]),
-                   "vs_paper_z": _r((res["recovered"]["mean"][k_] - p["mean"]) / tol),
-                   "truth_vs_paper_z": _r((res["truth"]["mean"][k_] - p["mean"]) / tol)}
+        out[k_] = {"recovered_vs_true_rel": m, "recovered_vs_true_rel_sem": e,
+                   "recovered_minus_paper": res["recovered"]["mean"][k_] - p["mean"],
+                   "vs_paper_z": (res["recovered"]["mean"][k_] - p["mean"]) / tol,
+                   "truth_vs_paper_z": (res["truth"]["mean"][k_] - p["mean"]) / tol}
     return out
 
 
@@ -333,7 +351,7 @@ class ReproduceResult:
                "per_trial_sd": "Table-2 sem x sqrt(8); lognormal matched in mean and sd, no rejection",
                "lubricants": {lub: r.report() for lub, r in self.lubricants.items()}}
         if self.warnings is not None:
-            out["warnings"] = self.warnings
+            out["warnings"] = rounded_warnings(self.warnings)
         return out
 
 

@@ -422,11 +422,14 @@ def k_noise_criterion(lm: LoopModel, lvdt_sigma_um: float, lvdt_quantization_um:
 
 
 def fixture_statement(A_mu: float, B_mu: float, L_um: float, N_N: float = 100.0) -> str:
-    """The one statement on the moving test piece of the double-shear fixture."""
+    """The one statement on the moving test piece of the double-shear fixture: its k_cr, twice eq. (13)
+    per rider interface (Table 2's convention) of these same values (not Table 2's printed k_cr, which is
+    not eq. (13) of its printed means: boundary 15.1 against 14.8)."""
     k1 = (B_mu - A_mu) * N_N / L_um * 1e3
     return (f"moving test piece (double shear: friction 2 N mu, so A = 2 N A_mu = {2 * N_N * A_mu:.3g} N, "
             f"B = 2 N B_mu = {2 * N_N * B_mu:.3g} N): quasi-static k_cr = 2 N (B_mu - A_mu)/L = {2 * k1:.4g} kN/m, "
-            f"twice the paper's per-rider value (B_mu - A_mu) N / L = {k1:.4g} kN/m (Table 2, eq. 13)")
+            f"twice eq. (13) per rider interface, (B_mu - A_mu) N / L with N = {N_N:g} N (Table 2's convention), "
+            f"= {k1:.4g} kN/m")
 
 
 def per_interface_statement(A_mu: float, B_mu: float, L_um: float, N_N: float = 100.0) -> str:

@@ -137,7 +137,7 @@ def identify_file(item: tuple[str, dict]) -> dict[str, Any]:
 
     path, options = item
     tr = load_trial(path)
-    rep = identify_trials([tr], names=[str(path)], **(options or {})).report
+    rep = identify_trials([tr], names=[str(path)], **(options or {})).report()
     if not rep["steps"]:
         raise ValueError(f"{path}: no velocity steps found (ratio >= {options.get('min_ratio', 1.25)})")
     return {"path": str(path), "sha256": sha256_file(path), "report": _jsonable(rep)}

@@ -152,14 +152,13 @@ def identify_cmd(
         return
     trials = _load(data)
     idn = _identify(trials, data, json_out, options)
-    rep = idn.report
-    if not rep["steps"]:
+    if not idn.steps:
         _fail(f"{', '.join(map(str, data))}: no velocity steps found (ratio >= {min_ratio:g})")
-    rep.setdefault("warnings", []).extend(_calibration_warnings(trials, rep))  # issue 21
-    _print_identification(con, rep, names.value, [Path(p).name for p in data])
+    idn.warnings += _calibration_warnings(trials, idn)  # issue 21
+    _print_identification(con, idn, names.value, [Path(p).name for p in data])
     from rig.analysis.plots import plot_identification
 
-    emit_outputs(con, json_out, rep, plot, lambda path: plot_identification(idn, path))
+    emit_outputs(con, json_out, idn.report(), plot, lambda path: plot_identification(idn, path))
 
 
 def _check_uncertainty(uncertainty: str) -> None:
@@ -208,35 +207,32 @@ def _identify(trials, data: list[Path], json_out, options: dict):
             _fail(_named(str(exc), data))
 
 
-def _print_identification(con, rep: dict, names: str, files: list[str]) -> None:
-    """The tables and lines of identify: the steps, their mean, each file's whole-record fit (or both
-    laws), the rejected steps, warnings and notes."""
+def _print_identification(con, idn, names: str, files: list[str]) -> None:
+    """The tables and lines of identify (an :class:`~rig.analysis.identify.Identification`): the steps,
+    their mean, each file's whole-record fit (or both laws), the rejected steps, warnings and notes."""
     from rig.model.checks import MARK
 
-    warns = rep.get("warnings", [])
-    con.print(_steps_table(rep, names))
-    _print_mean(con, rep, names)
+    con.print(_steps_table(idn, names))
+    _print_mean(con, idn, names)
     many = len(files) > 1
-    if rep.get("law") == "both":
-        lw = rep.get("laws")
-        for i, both in enumerate([lw] if isinstance(lw, dict) else (lw or [])):
-            _print_laws(con, both, names, files[i] if many else None)
-    else:
-        wr = rep.get("whole_record")
-        wrs = [wr] if isinstance(wr, dict) else (wr or [])
-        for i, w in enumerate(wrs):
+    if idn.law == "both":
+        for i, (fits, c) in enumerate(zip(idn.laws, idn.comparisons)):
+            _print_laws(con, fits, c, names, files[i] if many else None)
+    elif idn.law is not None:
+        for i, w in enumerate(idn.fits):
             label = files[i] if many else None
-            if not w.get("ok", True) and "params" not in w:
-                con.print(f"whole-record fit{_of(label)} failed: {w.get('reason')}", markup=False, highlight=False)
+            if not w.params:
+                con.print(f"whole-record fit{_of(label)} failed: {w.reported.get('reason')}", markup=False,
+                          highlight=False)
                 continue
             where = "whole-record fit" + (f" (trial {i})" if many else "")  # the JSON's `where`
-            _print_whole(con, w, names, _flagged(warns, where), MARK, label)
-    for r in rep.get("rejected_steps", []):
-        con.print(f"rejected step at t = {_fmt(r['t_s'], 6)} s: {r['reason']}", markup=False, highlight=False)
-    for w in warns:
+            _print_whole(con, w, names, _flagged(idn.warnings, where), MARK, label)
+    for r in idn.rejected:
+        con.print(f"rejected step at t = {_fmt(r.step.t_s, 6)} s: {r.reason}", markup=False, highlight=False)
+    for w in idn.warnings:
         con.print(f"[yellow]warning {MARK}:[/yellow] {_named_trial(w['where'], files)}: {w['message']}",
                   highlight=False)
-    for note in rep.get("notes", []):
+    for note in idn.notes:
         con.print(f"[yellow]note:[/yellow] {note}", highlight=False)
 
 
@@ -261,41 +257,40 @@ def _flagged(warns: list[dict], where: str) -> set[str]:
     return flagged(warns, where)
 
 
-def _steps_table(rep: dict, names: str) -> Table:
+def _steps_table(idn, names: str) -> Table:
     """One row per step (eqs. 10-12), a flagged value marked."""
-    from rig.analysis.identify import step_where
     from rig.model.checks import MARK
 
-    warns = rep.get("warnings", [])
     table = Table(title="velocity steps (eqs. 10-12)")
     for c in ("trial", "t (s)", "v1 (µm/s)", "v2 (µm/s)", _rsf_label("A_mu", names), _rsf_label("B_mu", names),
               f"{_rsf_label('L', names)} (µm)", "r2", "window (µm)", "t_r (s)"):
         table.add_column(c, justify="right")
     table.add_column("accepted", justify="left", overflow="fold")
-    for s in rep["steps"]:
-        fl = _flagged(warns, step_where(s, rep["n_trials"]))
+    n_trials = len(idn.trials)
+    for r in idn.steps:
+        fl = _flagged(idn.warnings, r.where(n_trials))
 
-        def cell(k, nd, s=s, fl=fl):
-            return _fmt(s[k], nd) + (f" [yellow]{MARK}[/yellow]" if k in fl else "")
+        def cell(k, nd, r=r, fl=fl):
+            return _fmt(getattr(r, k), nd) + (f" [yellow]{MARK}[/yellow]" if k in fl else "")
 
-        table.add_row(str(s["trial"]), _fmt(s["t_s"], 6), _fmt(s["v1_um_s"]), _fmt(s["v2_um_s"]), cell("A_mu", 3),
-                      cell("B_mu", 3), cell("L_um", 3), _fmt(s["r2"], 2), _fmt(s["window_um"]), _fmt(s.get("t_r_s"), 3),
-                      f"[red]no: {s['rejected']}[/red]" if "rejected" in s else "yes")
+        table.add_row(str(r.trial), _fmt(r.step.t_s, 6), _fmt(r.step.v1_um_s), _fmt(r.step.v2_um_s),
+                      cell("A_mu", 3), cell("B_mu", 3), cell("L_um", 3), _fmt(r.r2, 2), _fmt(r.window_um),
+                      _fmt(r.t_r_s, 3), f"[red]no: {r.reason}[/red]" if not r.ok else "yes")
     return table
 
 
-def _print_mean(con, rep: dict, names: str) -> None:
+def _print_mean(con, idn, names: str) -> None:
     """Mean ± s.e. over steps (or trials), eq. (13)'s k_cr and eq. (14)'s t_r."""
     from rig.model.checks import MARK
 
-    m, e = rep["mean"], rep["sem"]
-    fl = _flagged(rep.get("warnings", []), f"mean over {rep['sem_over']}")
+    m, e = idn.mean, idn.sem
+    fl = _flagged(idn.warnings, f"mean over {idn.sem_over}")
 
     def mk(k):
         return f" [yellow]{MARK}[/yellow]" if k in fl else ""
 
-    n_rej = len(rep.get("rejected_steps", []))
-    con.print(f"mean ± s.e. over {rep['sem_over']} (n={rep['n_steps'] if rep['sem_over'] == 'steps' else rep['n_trials']}"
+    n_rej = len(idn.rejected)
+    con.print(f"mean ± s.e. over {idn.sem_over} (n={idn.n_steps if idn.sem_over == 'steps' else len(idn.trials)}"
               + (f"; {n_rej} step(s) rejected" if n_rej else "") + "): "
               f"{_rsf_label('A_mu', names)} = {_fmt(m['A_mu'], 3)} ± {_fmt(e['A_mu'], 2)}{mk('A_mu')}, "
               f"{_rsf_label('B_mu', names)} = {_fmt(m['B_mu'], 3)} ± {_fmt(e['B_mu'], 2)}{mk('B_mu')}, "
@@ -304,25 +299,23 @@ def _print_mean(con, rep: dict, names: str) -> None:
               f"t_r (eq. 14) = {_fmt(m['t_r_s'], 3)} s")
 
 
-def _calibration_warnings(trials, rep: dict) -> list[dict]:
+def _calibration_warnings(trials, idn) -> list[dict]:
     """Forces outside a channel's verified range; step effects (eqs. 10-12, in N of friction at the smallest
     velocity ratio: A ln(v2/v1) 2N, B ln(v2/v1) 2N, (A - B) ln(v2/v1) 2N) below its stated uncertainty."""
-    import math
-
     from rig.data import calibration_warnings
 
-    m = rep["mean"]
-    ratios = [s["v2_um_s"] / s["v1_um_s"] for s in rep["steps"] if s.get("v1_um_s")]
+    A, B = (v if math.isfinite(v) else None for v in (idn.mean["A_mu"], idn.mean["B_mu"]))
+    ratios = [r.step.v2_um_s / r.step.v1_um_s for r in idn.steps if r.step.v1_um_s]
     out = []
     for tr in trials:
         try:
             lnr, n2 = math.log(max(min(ratios), 1.0 / min(ratios))), 2.0 * tr.normal_force_N
         except (ValueError, TypeError):
             continue
-        effects = {"the direct effect A ln(v2/v1) 2N": m["A_mu"] * lnr * n2 if m.get("A_mu") is not None else None,
-                   "the evolution effect B ln(v2/v1) 2N": m["B_mu"] * lnr * n2 if m.get("B_mu") is not None else None,
-                   "the steady-state change (A - B) ln(v2/v1) 2N": (m["A_mu"] - m["B_mu"]) * lnr * n2
-                   if m.get("A_mu") is not None and m.get("B_mu") is not None else None}
+        effects = {"the direct effect A ln(v2/v1) 2N": A * lnr * n2 if A is not None else None,
+                   "the evolution effect B ln(v2/v1) 2N": B * lnr * n2 if B is not None else None,
+                   "the steady-state change (A - B) ln(v2/v1) 2N": (A - B) * lnr * n2
+                   if A is not None and B is not None else None}
         out += calibration_warnings(tr, effects)
     return out
 
@@ -331,10 +324,12 @@ _SPEC_KEYS = ("mu0", "A_mu", "B_mu", "L_um", "k_mu_per_um", "stiffness_kN_per_m"
 _RSF_KEYS = ("mu0", "a", "b", "Dc_um", "a_minus_b", "k_per_um", "stiffness_kN_per_m", "rate_mu_per_mm")
 
 
-def _print_whole(con, w: dict, names: str, fl=(), mark: str = "", label: str | None = None) -> None:
-    """One whole-record fit: each parameter with its s.e. and its 68 % interval where that is
-    asymmetric (L), the correlation of A, B, L, the trend and the information criterion."""
+def _print_whole(con, fit, names: str, fl=(), mark: str = "", label: str | None = None) -> None:
+    """One whole-record fit (a :class:`~rig.analysis.identify.WholeRecordFit`, shown as its report, the
+    uncertainty code's): each parameter with its s.e. and its 68 % interval where that is asymmetric (L),
+    the correlation of A, B, L, the trend and the information criterion."""
     keys = _RSF_KEYS if names == "rsf" else _SPEC_KEYS
+    w = fit.report()
     p, sd, iv = w["params"], w.get("params_sd", w.get("err_corr", {})), w.get("intervals", {})
     parts = []
     for k in keys:
@@ -366,16 +361,14 @@ def _print_whole(con, w: dict, names: str, fl=(), mark: str = "", label: str | N
         con.print("  stiffness held at the file's machine_stiffness_kN_per_m", highlight=False)
 
 
-def _print_laws(con, both: dict, names: str, label: str | None) -> None:
-    """--law both: the slip- and aging-law fits side by side and the law the record prefers (``label``:
-    the file's name when several are identified)."""
-    c = both["comparison"]
+def _print_laws(con, fits: dict, c, names: str, label: str | None) -> None:
+    """--law both: the slip- and aging-law fits side by side and the law the record prefers (``c``, a
+    :class:`~rig.analysis.identify.LawComparison`; ``label``: the file's name when several are identified)."""
     for lw in ("slip", "aging"):
         con.print(f"[bold]{lw} law[/bold]" + (f" ({label})" if label else "") + ":", highlight=False)
-        _print_whole(con, both[lw], names)
-    bic = c.get("bic", {})
-    con.print(f"preferred law: {c['preferred_law']} (BIC on n_eff {_fmt(c.get('n_eff'), 4)}: slip "
-              f"{_fmt(bic.get('slip'), 6)}, aging {_fmt(bic.get('aging'), 6)}; difference {_fmt(c.get('delta_bic'), 3)}, "
+        _print_whole(con, fits[lw], names)
+    con.print(f"preferred law: {c.preferred_law} (BIC on n_eff {_fmt(c.n_eff, 4)}: slip "
+              f"{_fmt(c.bic.get('slip'), 6)}, aging {_fmt(c.bic.get('aging'), 6)}; difference {_fmt(c.delta_bic, 3)}, "
               "6 or more decides)", highlight=False)
 
 
@@ -660,8 +653,8 @@ def _print_reproduce(con, res) -> None:
     for lub, r in res.lubricants.items():
         b = r.bias
         con.print(f"{lub}: identification bias, recovered/true - 1 (mean ± s.e. over trials): "
-                  + ", ".join(f"{k} {100 * (b[k]['recovered_vs_true_rel'] or 0):+.1f} ± "
-                              f"{100 * (b[k]['recovered_vs_true_rel_sem'] or 0):.1f} %" for k in b)
+                  + ", ".join(f"{k} {_pct(b[k]['recovered_vs_true_rel']):+.1f} ± "
+                              f"{_pct(b[k]['recovered_vs_true_rel_sem']):.1f} %" for k in b)
                   + "; recovered mean vs Table 2 (in the paper's s.e.): "
                   + ", ".join(f"{k} {b[k]['vs_paper_z']:+.2f}" for k in b))
     for lub, r in res.lubricants.items():
@@ -671,6 +664,11 @@ def _print_reproduce(con, res) -> None:
         bad = [k for k, v in r.checks.items() if not v["ok"]]
         con.print(f"{lub}: recovered - truth within the paper's s.e.: "
                   + ("all" if not bad else f"[red]not for {', '.join(bad)}[/red]") + f" ({r.engine})")
+
+
+def _pct(x) -> float:
+    """A fraction in %, 0 when there is none (fewer than two trials)."""
+    return 100 * x if x is not None and math.isfinite(x) else 0.0
 
 
 def _reproduce_warnings(res) -> list[dict]:

@@ -484,9 +484,9 @@ def identify_prior(trial: TrialData, steps: list | None = None) -> dict:
         w = fit_whole_record(trial, steps, stiffness=trial.is_load_point, max_points=6000)
     except (ValueError, ZeroDivisionError, FloatingPointError, IndexError, np.linalg.LinAlgError):
         return {}
-    if not w.get("params"):
+    if not w.params:
         return {}
-    p = w.get("_params") or w["params"]  # the fit's own numbers, unrounded (the report's are rounded)
+    p = w.params  # the fit's own numbers, unrounded (WholeRecordFit.params; its report's are rounded)
     out = {k: float(p[k]) for k in ("A_mu", "B_mu", "L_um", "stiffness_kN_per_m") if p.get(k) is not None}
     if not (0.0 <= out.get("A_mu", -1) < COEF_MAX_MU and abs(out.get("B_mu", 1)) < COEF_MAX_MU
             and 0.1 < out.get("L_um", 0) < 1e4):

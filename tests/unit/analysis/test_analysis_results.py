@@ -71,14 +71,23 @@ def _whole(A_mu: float) -> dict:
             "params_sd": {"mu0": 1e-4, "A_mu": 1e-4, "B_mu": 2e-4, "L_um": 1.0}, "k_cr_kN_per_m": 15.0, "rms_N": 0.2}
 
 
+def _identification(fits: list, n_trials: int, warnings: list[dict]):
+    """A typed identification with no step, ``fits`` its whole-record fits (their reports)."""
+    from rig.analysis.identify import Identification, WholeRecordFit
+
+    return Identification([[] for _ in range(n_trials)], [None] * n_trials,
+                          [WholeRecordFit(w, params=dict(w["params"])) for w in fits],
+                          mean=dict.fromkeys(("A_mu", "B_mu", "L_um", "k_cr_kN_per_m", "t_r_s"), 1.0),
+                          sem=dict.fromkeys(("A_mu", "B_mu", "L_um", "k_cr_kN_per_m"), 0.1),
+                          sem_over="trials" if n_trials > 1 else "steps", names=[f"f{i}" for i in range(n_trials)],
+                          law="slip", warnings=warnings)
+
+
 def test_several_files_are_told_apart_by_name():
-    rep = {"steps": [], "n_trials": 2, "n_steps": 0, "sem_over": "trials", "law": "slip",
-           "mean": dict.fromkeys(("A_mu", "B_mu", "L_um", "k_cr_kN_per_m", "t_r_s"), 1.0),
-           "sem": dict.fromkeys(("A_mu", "B_mu", "L_um", "k_cr_kN_per_m"), 0.1),
-           "whole_record": [_whole(1e-3), _whole(2e-3)],
-           "warnings": [{"param": "B_mu", "where": "whole-record fit (trial 1)", "message": "B < 0"}]}
+    warns = [{"param": "B_mu", "where": "whole-record fit (trial 1)", "message": "B < 0"}]
     con = _console()
-    A._print_identification(con, rep, "spec", ["first.csv", "second.mcap"])
+    A._print_identification(con, _identification([_whole(1e-3), _whole(2e-3)], 2, warns), "spec",
+                            ["first.csv", "second.mcap"])
     text = con.export_text()
     assert "warning (!): whole-record fit (second.mcap): B < 0" in text  # the JSON's '(trial 1)', named
     lines = [ln for ln in text.splitlines() if ln.startswith("whole-record fit")]
@@ -86,7 +95,7 @@ def test_several_files_are_told_apart_by_name():
     assert lines[0].startswith("whole-record fit of first.csv (") and lines[1].startswith("whole-record fit of "
                                                                                          "second.mcap (")
     con = _console()
-    A._print_identification(con, {**rep, "whole_record": _whole(1e-3), "n_trials": 1}, "spec", ["only.csv"])
+    A._print_identification(con, _identification([_whole(1e-3)], 1, warns), "spec", ["only.csv"])
     assert "whole-record fit (rate_state" in con.export_text()  # one file: no name needed
 
 
@@ -95,9 +104,9 @@ def test_figure_names_the_files():
 
     from rig.analysis.plots import _file_names
 
-    idn = SimpleNamespace(report={"data": ["/x/a.csv", "/y/b.mcap"]}, trials=[0, 1])
+    idn = SimpleNamespace(data=["/x/a.csv", "/y/b.mcap"], trials=[0, 1])
     assert _file_names(idn) == ["a.csv", "b.mcap"]
-    assert _file_names(SimpleNamespace(report={"data": "/x/a.csv"}, trials=[0])) == ["a.csv"]
+    assert _file_names(SimpleNamespace(data="/x/a.csv", trials=[0])) == ["a.csv"]
 
 
 def test_negative_A_is_not_physical_not_at_a_bound():

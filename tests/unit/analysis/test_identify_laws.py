@@ -35,7 +35,7 @@ def both_laws():
     out = {}
     for law, ext in (("slip", ()), ("aging", ("aging_law",))):
         tr = _record(ext)
-        out[law] = identify_trials([tr], law="both").report
+        out[law] = identify_trials([tr], law="both").report()
     return out
 
 
@@ -85,14 +85,14 @@ def test_detrend_linear_and_auto_recover_a_slip_trend():
     tr = synth.generate(fm, synth.paper_step_protocol(highs=(5.0, 10.0), pre_um=300.0, post_um=300.0,
                                                       back_um=300.0), seed=5).trial
     steps = detect_steps(tr)
-    lin = fit_whole_record(tr, steps, detrend="linear", max_points=4000)
+    lin = fit_whole_record(tr, steps, detrend="linear", max_points=4000).report()
     d = lin["detrend"]
     assert d["method"] == "linear"
     assert abs(d["rate_mu_per_mm"] - rate) < max(3 * d["rate_sd_mu_per_mm"], 0.1 * rate)
-    auto = fit_whole_record(tr, steps, detrend="auto", max_points=4000, init={"L_um": 19.0})
+    auto = fit_whole_record(tr, steps, detrend="auto", max_points=4000, init={"L_um": 19.0}).report()
     assert auto["detrend"]["rate_mu_per_mm"] == pytest.approx(rate, rel=0.3)
     assert auto["detrend"]["windows_s"]
-    none = fit_whole_record(tr, steps, detrend="none", max_points=4000)
+    none = fit_whole_record(tr, steps, detrend="none", max_points=4000).report()
     assert lin["rms_mu"] < none["rms_mu"]
     assert abs(lin["params"]["B_mu"] - TRUTH["B_mu"]) < abs(none["params"]["B_mu"] - TRUTH["B_mu"])
 
@@ -100,15 +100,15 @@ def test_detrend_linear_and_auto_recover_a_slip_trend():
 def test_bootstrap_and_mcmc_intervals():
     tr = _record(seed=7)
     steps = detect_steps(tr)
-    bs = fit_whole_record(tr, steps, uncertainty="bootstrap:12", max_points=1500, seed=1)
+    bs = fit_whole_record(tr, steps, uncertainty="bootstrap:12", max_points=1500, seed=1).report()
     assert bs["uncertainty"]["method"] == "bootstrap" and bs["uncertainty"]["n_samples"] >= 10
-    jac = fit_whole_record(tr, steps, max_points=1500)
+    jac = fit_whole_record(tr, steps, max_points=1500).report()
     for k in ("A_mu", "B_mu", "L_um"):
         assert bs["params_sd"][k] > 0
         # the two agree on the size of the error within a factor 3 (12 refits)
         assert jac["params_sd"][k] / 3 < bs["params_sd"][k] < 3 * jac["params_sd"][k]
     pytest.importorskip("emcee")
-    mc = fit_whole_record(tr, steps, uncertainty="mcmc:40", max_points=1500, seed=1)
+    mc = fit_whole_record(tr, steps, uncertainty="mcmc:40", max_points=1500, seed=1).report()
     assert mc["uncertainty"]["method"] == "mcmc" and 0 < mc["uncertainty"]["acceptance"] < 1
     for k in ("A_mu", "L_um"):
         lo, hi = mc["intervals"][k]
@@ -121,7 +121,7 @@ def test_known_machine_stiffness_is_held():
     k = 300.0  # kN/m: 10 x k_cr, rounds the peak (k_per_um 0.0015, Leeman 0.0028)
     tr = _record(("finite_stiffness",), seed=9, stiffness_kN_per_m=k)
     tr.metadata.update({"position_source": "load_point", "machine_stiffness_kN_per_m": f"{k:g}"})
-    w = identify_trials([tr]).report["whole_record"]
+    w = identify_trials([tr]).report()["whole_record"]
     assert w["stiffness_source"] == "metadata"
     assert w["params"]["stiffness_kN_per_m"] == pytest.approx(k, rel=1e-6)
     assert w["params"]["k_per_um"] == pytest.approx(k * 1e-3 / 200.0, rel=1e-6)
@@ -142,12 +142,12 @@ def test_fast_logging_after_the_step_does_not_change_the_fit():
     its errors of the uniformly logged one."""
     tr = _record(seed=11)
     steps = detect_steps(tr)
-    full = fit_whole_record(tr, steps, max_points=4000)
+    full = fit_whole_record(tr, steps, max_points=4000).report()
     t0 = steps[0].t_s
     keep = (tr.time_s >= t0 - 5.0) | (np.arange(len(tr)) % 10 == 0)
     thin = tr.__class__(time_s=tr.time_s[keep], position_um=tr.position_um[keep], friction_N=tr.friction_N[keep],
                         normal_1_N=tr.normal_1_N[keep], normal_2_N=tr.normal_2_N[keep], metadata=dict(tr.metadata))
-    part = fit_whole_record(thin, detect_steps(thin), max_points=4000)
+    part = fit_whole_record(thin, detect_steps(thin), max_points=4000).report()
     for k in ("A_mu", "B_mu", "L_um"):
         assert abs(part["params"][k] - full["params"][k]) < 3 * part["params_sd"][k], k
 

@@ -43,7 +43,7 @@ def test_leeman_step_found(leeman):
 
 def test_leeman_with_published_stiffness(leeman):
     """Stiffness held at the published k: every parameter within 1.5 published sigma."""
-    w = fit_whole_record(leeman, detect_steps(leeman), stiffness=True, k_fixed=K_PUBLISHED)
+    w = fit_whole_record(leeman, detect_steps(leeman), stiffness=True, k_fixed=K_PUBLISHED).report()
     for k, (val, sig) in PUBLISHED.items():
         assert abs(w["params"][k] - val) < 1.5 * sig, (k, w["params"][k])
     assert w["params"]["stiffness_kN_per_m"] == pytest.approx(560.0, rel=1e-3)
@@ -51,7 +51,7 @@ def test_leeman_with_published_stiffness(leeman):
 
 def test_leeman_stiffness_fitted(leeman):
     """Stiffness fitted too: within the combined (ours + published) 2 sigma, with honest errors."""
-    rep = identify_trials([leeman]).report  # auto: the file's position is the load point
+    rep = identify_trials([leeman]).report()  # auto: the file's position is the load point
     w = rep["whole_record"]
     assert w["model"] == "rate_state+finite_stiffness"
     for k, (val, sig) in PUBLISHED.items():
@@ -69,8 +69,8 @@ def test_leeman_rigid_is_biased(leeman):
     """Ignoring the machine's compliance (the paper's assumption, delta = x) biases L:
     the load point's displacement includes the spring's, so the slip scale looks longer."""
     steps = detect_steps(leeman)
-    w = fit_whole_record(leeman, steps, stiffness=False)
-    wk = fit_whole_record(leeman, steps, stiffness=True)
+    w = fit_whole_record(leeman, steps, stiffness=False).report()
+    wk = fit_whole_record(leeman, steps, stiffness=True).report()
     assert wk["rms_mu"] < w["rms_mu"]
 
 
@@ -91,7 +91,7 @@ def test_cli_runs_on_real_records(real_data_dir, tmp_path, name):
 
 def test_basalt_whole_record(real_data_dir):
     tr = read_csv(real_data_dir / "giacomel-basalt-brava.csv")
-    w = identify_trials([tr]).report["whole_record"]
+    w = identify_trials([tr]).report()["whole_record"]
     p, e = w["params"], w["err_corr"]
     assert 0.003 < p["A_mu"] < 0.03 and 0.003 < p["B_mu"] < 0.03
     assert 1.0 < p["L_um"] < 50.0
@@ -101,7 +101,7 @@ def test_basalt_whole_record(real_data_dir):
 def test_sepiolite_one_state_fits_badly(real_data_dir):
     """The README: one state variable fits this long transient badly (b < 0)."""
     tr = read_csv(real_data_dir / "giacomel-sepiolite-tr2.csv")
-    w = fit_whole_record(tr, detect_steps(tr), stiffness=True, max_points=3000)
+    w = fit_whole_record(tr, detect_steps(tr), stiffness=True, max_points=3000).report()
     assert w["params"]["B_mu"] < 0
 
 
@@ -113,7 +113,7 @@ def test_leeman_known_stiffness_intervals_cover_published(leeman):
 
     tr = copy.deepcopy(leeman)
     tr.metadata["machine_stiffness_kN_per_m"] = "560"
-    w = identify_trials([tr]).report["whole_record"]
+    w = identify_trials([tr]).report()["whole_record"]
     assert w["stiffness_source"] == "metadata" and w["params"]["k_per_um"] == pytest.approx(K_PUBLISHED, rel=1e-6)
     for ours, (k, (val, _)) in zip(("a", "b", "Dc_um"), PUBLISHED.items()):
         lo, hi = w["intervals"][ours]

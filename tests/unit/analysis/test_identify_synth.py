@@ -29,7 +29,7 @@ def boundary_25hz():
 
 def test_recovery_25hz_boundary(boundary_25hz):
     idn = identify_trials([r.trial for r in boundary_25hz], directions="up")
-    rep = idn.report
+    rep = idn.report()
     assert rep["n_steps"] == 9 and rep["sem_over"] == "trials"
     m, e = rep["mean"], rep["sem"]
     # within the paper's standard errors (Table 2) of the true values
@@ -47,7 +47,7 @@ def test_recovery_25hz_dry_uneven_sampling():
     rec = synth.generate(DRY, synth.paper_step_protocol(pre_um=400, back_um=400), seed=21, rate_hz=25.0,
                          jitter=0.6, gaps=6)
     idn = identify_trials([rec.trial], use_events=False)
-    rep = idn.report
+    rep = idn.report()
     assert rep["n_steps"] == 6  # three up, three down
     assert abs(rep["mean"]["A_mu"] - 2.8e-3) < 0.5e-3
     assert abs(rep["mean"]["B_mu"] - 9.4e-3) < 1.1e-3
@@ -61,7 +61,7 @@ def test_recovery_1khz():
                          seed=31, rate_hz=1000.0)
     assert len(rec.trial) > 500_000
     idn = identify_trials([rec.trial], directions="up")
-    rep = idn.report
+    rep = idn.report()
     assert rep["n_steps"] == 2
     assert abs(rep["mean"]["A_mu"] - 1.1e-3) < 0.15e-3
     assert abs(rep["mean"]["B_mu"] - 4.0e-3) < 0.4e-3
@@ -164,5 +164,5 @@ def test_measured_normals_are_used():
     # normals 10 % low on one rider: mu must follow the measured normals
     tr.normal_1_N = tr.normal_1_N * 0.9
     tr.friction_N = tr.friction_N * (tr.normal_1_N + tr.normal_2_N) / (tr.normal_1_N / 0.9 + tr.normal_2_N)
-    rep = identify_trials([tr], whole_record=False, directions="up").report
+    rep = identify_trials([tr], whole_record=False, directions="up").report()
     assert abs(rep["mean"]["B_mu"] - 4.0e-3) < 0.6e-3

@@ -75,7 +75,7 @@ def test_identify_figure_main_job_like():
     fig = plots.build_identification(idn)
     text = check_figure(fig, n_data_axes_min=2 + 3)
     assert "window kept" in text and "other μ2 windows" in text  # the shaded windows have a legend
-    assert f"mean over {idn.report['n_steps']} steps" in text
+    assert f"mean over {idn.report()['n_steps']} steps" in text
     assert "k_cr" not in fig.axes[0].get_title()  # shown only when flagged
     # fewer significant figures: no number in a title carries more than 4
     import re
@@ -95,7 +95,7 @@ def test_identify_figure_single_step_real_record_warns(real_data_dir):
 
 def test_identify_figure_all_steps_rejected(real_data_dir):
     idn = identify_files([real_data_dir / "giacomel-sepiolite-tr2.csv"])
-    assert idn.report["n_steps"] == 0
+    assert idn.report()["n_steps"] == 0
     fig = plots.build_identification(idn)
     text = check_figure(fig)
     assert "no accepted step (1 rejected)" in text
