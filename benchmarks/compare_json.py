@@ -251,8 +251,11 @@ def _leaves(doc, path: str = ""):
 def value_changes(base: str | None, work: str | None, limit: int = 40) -> list[str]:
     """The leaves of two JSON texts that differ, with the relative change of a number (and the keys
     only one side has); at most ``limit`` lines. The whole text when either side is not JSON."""
+    def parse(text):  # the masked wall clock as a string
+        return dict(_leaves(json.loads((text or "null").replace("<wall clock>", '"<wall clock>"'))))
+
     try:
-        b, w = dict(_leaves(json.loads(base or "null"))), dict(_leaves(json.loads(work or "null")))
+        b, w = parse(base), parse(work)
     except ValueError:
         return ["(not JSON on one side)"]
     out = []

@@ -90,6 +90,8 @@ def test_integral_term_raises_k_cr():
 def test_fixture_statement_doubles_table2():
     s = S.fixture_statement(1.1e-3, 4.0e-3, 19.2)
     assert "30.21 kN/m" in s and "15.1 kN/m" in s
+    # eq. (13) of these values, not "the paper's" (Table 2 prints 14.8 for boundary's means)
+    assert "paper's" not in s and "N = 100 N" in s
 
 
 @pytest.mark.parametrize("ki, lub", [(5.0, "boundary"), (0.0, "paraffin")])
