@@ -769,8 +769,6 @@ def fit_whole_record(trial: TrialData, steps: list[Step] | None = None, *, stiff
       time), ``mcmc:N`` (emcee). ``params_sd``, ``intervals``
       (68 %) and ``correlation``; ``err_corr`` is ``params_sd`` (kept for older readers) and
       ``err`` the plain Jacobian's.
-
-    Returns a :class:`WholeRecordFit`: its JSON and the unrounded values the analyses start from.
     """
     from rig.fitting.stats import information_criterion, parse_uncertainty
 

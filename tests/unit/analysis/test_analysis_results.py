@@ -156,3 +156,39 @@ def test_stability_report_typed_and_unrounded():
     k13 = doc["analyses"]["boundary"]["k_cr_eq13_kN_per_m"]
     assert math.isclose(k13, (4.0e-3 - 1.1e-3) * 100.0 / 19.2 * 1e3, rel_tol=1e-12)  # not rounded for display
     assert doc["analyses"]["boundary"]["statement"].startswith("moving test piece")
+
+
+def test_law_comparison_from_unrounded_sums_of_squares():
+    """compare_laws reads the fits' own SSR and n_eff (WholeRecordFit fields), not their rounded JSON."""
+    from rig.analysis.identify import WholeRecordFit, compare_laws
+    from rig.fitting.stats import information_criterion
+
+    def fit(ssr: float, n_eff: float) -> WholeRecordFit:
+        rep = {"n_points": 1000, "n_params": 5, "rms_mu": rounded(math.sqrt(ssr / 1000)), "n_eff": rounded(n_eff, 4)}
+        return WholeRecordFit(rep, params={"A_mu": 1e-3}, ssr=ssr, n_eff=n_eff)
+
+    slip, aging = fit(1.0e-5, 123.456789), fit(1.2e-5, 99.0)
+    c = compare_laws({"slip": slip, "aging": aging})
+    assert c.n_eff == 123.456789  # the better fit's, unrounded
+    assert c.bic["aging"] == information_criterion(1.2e-5, 1000, 123.456789, 5)
+    assert c.preferred_law == "slip" and c.delta_bic > 6
+    rep = c.report()
+    assert rep["n_eff"] == 123.5 and rep["bic"]["slip"] == rounded(c.bic["slip"]) and rep["preferred_law"] == "slip"
+    failed = compare_laws({"slip": slip, "aging": WholeRecordFit({"ok": False, "reason": "least squares failed"})})
+    assert failed.report() == {"preferred_law": "undecided", "reason": "a fit failed"}
+
+
+def test_reproduce_means_are_of_unrounded_trial_values():
+    """The means over trials are taken of the trials' own values; the report rounds once, rows included."""
+    from rig.analysis.reproduce import lubricant_result
+
+    rows = [{"truth": {"A_mu": 1.1e-3, "B_mu": 4.0e-3, "L_um": 19.0 + d}, "n_steps": 3, "sim_s": 0.123,
+             "recovered": {"A_mu": 1.1e-3, "B_mu": 4.0e-3, "L_um": 19.0 + d + 1e-6 / 3}, "steps": []}
+            for d in (0.0, 1.0000004)]
+    res = lubricant_result("boundary", 2, "synth", 0.12, rows, [False, False], False)
+    assert res.recovered.mean["L_um"] == pytest.approx(19.5000002 + 1e-6 / 3, rel=1e-15)
+    assert res.checks["L_um"]["diff"] == pytest.approx(1e-6 / 3, rel=1e-6)  # not lost to rounding
+    rep = res.report()
+    assert rep["recovered"]["mean"]["L_um"] == 19.5
+    assert rep["checks"]["L_um"]["diff"] == rounded(1e-6 / 3)
+    assert rep["trials"][1]["recovered"]["L_um"] == 20.0 and rep["trials"][0]["sim_s"] == 0.12

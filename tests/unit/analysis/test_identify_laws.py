@@ -12,6 +12,7 @@ import pytest
 from typer.testing import CliRunner
 
 from rig.analysis.identify import _time_weights, fit_whole_record, identify_trials
+from rig.analysis.report import rounded
 from rig.cli import app
 from rig.data import write_csv
 from rig.fitting.stats import effective_n, information_criterion
@@ -85,7 +86,10 @@ def test_detrend_linear_and_auto_recover_a_slip_trend():
     tr = synth.generate(fm, synth.paper_step_protocol(highs=(5.0, 10.0), pre_um=300.0, post_um=300.0,
                                                       back_um=300.0), seed=5).trial
     steps = detect_steps(tr)
-    lin = fit_whole_record(tr, steps, detrend="linear", max_points=4000).report()
+    fitted = fit_whole_record(tr, steps, detrend="linear", max_points=4000)
+    lin = fitted.report()
+    # the unrounded values the analyses start from (diagnose's prior), rounded once in the report
+    assert rounded(fitted.params["B_mu"]) == lin["params"]["B_mu"] and fitted.curve is not None
     d = lin["detrend"]
     assert d["method"] == "linear"
     assert abs(d["rate_mu_per_mm"] - rate) < max(3 * d["rate_sd_mu_per_mm"], 0.1 * rate)
