@@ -158,8 +158,7 @@ def build_identification(idn, max_steps: int = 9):
     from rig.model.checks import MARK
 
     plt = _plt()
-    rep = idn.report()  # the title's numbers as the JSON has them
-    warns = rep["warnings"]
+    warns = idn.warnings
     results = idn.steps[:max_steps]
     n_more = len(idn.steps) - len(results)
     ncol = max(1, min(3, len(results)))
@@ -178,7 +177,7 @@ def build_identification(idn, max_steps: int = 9):
     record_handles = _record_panels(ax, fig.add_subplot(gs[1, :], sharex=ax), idn, files)
     if not results:
         ax.legend(loc="best", markerscale=4)
-    ax.set_title(_identification_title(rep, files))
+    ax.set_title(_identification_title(idn, files))
     for k, r in enumerate(results):
         _step_panel(fig.add_subplot(gs[2 + k // ncol, k % ncol]), idn, r, files)
         if k % ncol == 0:
@@ -231,27 +230,28 @@ def _record_panels(ax, axv, idn, files: list[str]) -> list:
     return ax.get_legend_handles_labels()[0]
 
 
-def _identification_title(rep: dict, files: list[str]) -> str:
+def _identification_title(idn, files: list[str]) -> str:
     """The files, the mean A, B, L over steps (or trials), and one file's whole-record fit with its intervals."""
     from rig.model.checks import flagged
 
-    warns = rep.get("warnings", [])
+    warns = idn.warnings
     name = files[0] if len(files) == 1 else (", ".join(files) if len(files) <= 3 else f"{len(files)} files")
-    if rep["n_steps"]:
-        head = (f"{name}: {_title_params(rep['mean'], rep['sem'], flagged(warns, 'mean over ' + rep['sem_over']))} "
-                f"(mean over {_n(rep['n_steps'] if rep['sem_over'] == 'steps' else rep['n_trials'], rep['sem_over'])})")
+    if idn.n_steps:
+        n = idn.n_steps if idn.sem_over == "steps" else len(idn.trials)
+        head = (f"{name}: {_title_params(idn.mean, idn.sem, flagged(warns, 'mean over ' + idn.sem_over))} "
+                f"(mean over {_n(n, idn.sem_over)})")
     else:
-        head = f"{name}: no accepted step ({len(rep.get('rejected_steps', []))} rejected)"
-    wr = rep.get("whole_record")
-    if isinstance(wr, dict) and "params" in wr:
+        head = f"{name}: no accepted step ({len(idn.rejected)} rejected)"
+    wr = idn.fits[0].report() if idn.law is not None and len(idn.fits) == 1 else None
+    if wr is not None and "params" in wr:
         spec = {k: v for k, v in wr["params"].items() if k not in ("a", "b", "Dc_um", "a_minus_b", "k_per_um")}
         head += "\nwhole-record fit: " + _title_params({**spec, "k_cr_kN_per_m": wr.get("k_cr_kN_per_m")},
                                                         wr.get("err_corr"), flagged(warns, "whole-record fit"))
         unc = _uncertainty_line(wr)
         head += "\n" + unc if unc else ""
-        if isinstance(rep.get("laws"), dict):
-            c = rep["laws"]["comparison"]
-            head += f"\npreferred law: {c['preferred_law']} (ΔBIC {g3(c.get('delta_bic'), 3)}; 6 or more decides)"
+        if idn.law == "both" and len(idn.comparisons) == 1:
+            c = idn.comparisons[0]
+            head += f"\npreferred law: {c.preferred_law} (ΔBIC {g3(c.delta_bic, 3)}; 6 or more decides)"
     return head
 
 
