@@ -109,7 +109,6 @@ class StepResult:
         return d
 
 
-
 def _fit_exp(delta: np.ndarray, mu: np.ndarray, mu2: float, l_max: float):
     """Least squares ``mu = mu2 + a exp(-delta/L)`` with mu2 fixed: a linear for each L,
     L by a bounded 1-D search on ln L. Returns (a, L, r2)."""
@@ -815,8 +814,7 @@ def fit_whole_record(trial: TrialData, steps: list[Step] | None = None, *, stiff
     out.update(k_cr_kN_per_m=_r(kcr), k_cr_err_kN_per_m=_r(skcr))
     return WholeRecordFit(out, params=dict(q), ssr=ssr, n_eff=n_eff,
                           curve=(rec.t, prob.model(q), rec.mu, rec.sliding,
-                                 q.get("rate_mu_per_mm", trend_fixed) * s_mm),
-                          resid=(rec.t[rec.sliding], r))
+                                 q.get("rate_mu_per_mm", trend_fixed) * s_mm))
 
 
 @dataclass
@@ -925,7 +923,6 @@ class WholeRecordFit:
     ssr: float = math.nan                        # sum of squared (time-weighted) residuals, in mu^2
     n_eff: float = math.nan                      # the residual's effective sample size
     curve: tuple | None = None                   # (t, model mu, measured mu, sliding mask, trend) of the bins
-    resid: tuple | None = None                   # (t, residual) of the compared bins
 
     @property
     def ok(self) -> bool:
@@ -1054,9 +1051,9 @@ def identify_trials(trials: list[TrialData], *, use_events: bool = True, velocit
             else:
                 wholes.append(fits[law])
     mean, sem, over, per_trial = summarize(groups, trials[0].normal_force_N)
-    idn = Identification(groups, trials, wholes, per_law,
-                         comparisons, mean, sem, over, per_trial, names=names, velocity_method=velocity_method,
-                         law=law if whole_record else None, stiffness_by_rule=whole_record and stiffness is None)
+    idn = Identification(groups, trials, wholes, per_law, comparisons, mean, sem, over, per_trial, names=names,
+                         velocity_method=velocity_method, law=law if whole_record else None,
+                         stiffness_by_rule=whole_record and stiffness is None)
     idn.notes = _notes(trials, idn.stiffness_by_rule)
     idn.warnings = result_warnings(idn)
     return idn
