@@ -45,6 +45,8 @@ def stiffness_kN_per_m(trial: TrialData, given: float | None) -> tuple[float, st
         return v, "machine_stiffness_kN_per_m metadata", None
     from rig.analysis.identify import fit_whole_record
 
+    # the report's 6-figure stiffness, not WholeRecordFit.params: the file states the k it was corrected
+    # with (elastic_correction_kN_per_m, 6 figures), and its column must follow from that k exactly
     fit = fit_whole_record(trial, stiffness=True).report()
     k = (fit.get("params") or {}).get("stiffness_kN_per_m")
     if not fit.get("ok") or k is None or not math.isfinite(k) or k <= 0:
