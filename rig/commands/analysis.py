@@ -221,10 +221,6 @@ def _print_identification(con, idn, names: str, files: list[str]) -> None:
     elif idn.law is not None:
         for i, w in enumerate(idn.fits):
             label = files[i] if many else None
-            if not w.params:
-                con.print(f"whole-record fit{_of(label)} failed: {w.reported.get('reason')}", markup=False,
-                          highlight=False)
-                continue
             where = "whole-record fit" + (f" (trial {i})" if many else "")  # the JSON's `where`
             _print_whole(con, w, names, _flagged(idn.warnings, where), MARK, label)
     for r in idn.rejected:
@@ -330,6 +326,9 @@ def _print_whole(con, fit, names: str, fl=(), mark: str = "", label: str | None 
     the correlation of A, B, L, the trend and the information criterion."""
     keys = _RSF_KEYS if names == "rsf" else _SPEC_KEYS
     w = fit.report()
+    if not fit.params:
+        con.print(f"whole-record fit{_of(label)} failed: {w.get('reason')}", markup=False, highlight=False)
+        return
     p, sd, iv = w["params"], w.get("params_sd", w.get("err_corr", {})), w.get("intervals", {})
     parts = []
     for k in keys:
@@ -367,6 +366,9 @@ def _print_laws(con, fits: dict, c, names: str, label: str | None) -> None:
     for lw in ("slip", "aging"):
         con.print(f"[bold]{lw} law[/bold]" + (f" ({label})" if label else "") + ":", highlight=False)
         _print_whole(con, fits[lw], names)
+    if c.reason:
+        con.print(f"preferred law: {c.preferred_law} ({c.reason})", highlight=False)
+        return
     con.print(f"preferred law: {c.preferred_law} (BIC on n_eff {_fmt(c.n_eff, 4)}: slip "
               f"{_fmt(c.bic.get('slip'), 6)}, aging {_fmt(c.bic.get('aging'), 6)}; difference {_fmt(c.delta_bic, 3)}, "
               "6 or more decides)", highlight=False)

@@ -174,8 +174,14 @@ def test_law_comparison_from_unrounded_sums_of_squares():
     assert c.preferred_law == "slip" and c.delta_bic > 6
     rep = c.report()
     assert rep["n_eff"] == 123.5 and rep["bic"]["slip"] == rounded(c.bic["slip"]) and rep["preferred_law"] == "slip"
-    failed = compare_laws({"slip": slip, "aging": WholeRecordFit({"ok": False, "reason": "least squares failed"})})
+    lost = WholeRecordFit({"ok": False, "reason": "least squares failed"})
+    failed = compare_laws({"slip": slip, "aging": lost})
     assert failed.report() == {"preferred_law": "undecided", "reason": "a fit failed"}
+    con = _console()
+    A._print_laws(con, {"slip": lost, "aging": lost}, failed, "spec", None)  # no traceback: each says it failed
+    text = con.export_text()
+    assert text.count("whole-record fit failed: least squares failed") == 2
+    assert "preferred law: undecided (a fit failed)" in text
 
 
 def test_reproduce_means_are_of_unrounded_trial_values():
