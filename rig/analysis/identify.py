@@ -749,7 +749,7 @@ def _jackknife_floor(unc: dict, jk: dict, values: dict) -> None:
             unc["cov"][i, :] *= f
             unc["cov"][:, i] *= f
         raised.append(k_)
-    unc["jackknife"] = {"runs": jk["runs"], "sd": jk["sd"], "raised": raised}
+    unc["jackknife"] = {"runs": jk["runs"], "sd": {k_: _r(v_) for k_, v_ in jk["sd"].items()}, "raised": raised}
     unc["errors"] = unc.get("errors", "") + "; never below the leave-one-run-out jackknife's"
 
 
