@@ -511,7 +511,8 @@ def fit_baseline(grid: Grid, baseline: str, prior: dict | None = None) -> FitRes
         v1 = float(max(grid.v[j], 0.01))
         starts = [dict(s, v_init_um_s=v1 * f) for s in starts for f in (1.0, 0.01)]
         must = [dict(s, v_init_um_s=v1 * f) for s in must for f in (1.0, 0.01)]
-    return multistart(grid, "rate_state", [], starts, keep=3, must=must)
+    # coefficients over COEF_MAX_MU (a cancelling A ~ B ~ 0.05 minimum) lose to any physical fit
+    return multistart(grid, "rate_state", [], starts, keep=3, must=must, plausible=lambda p: not _coefs_too_large(p))
 
 
 def try_candidate(grid: Grid, cur: FitResult, cause: str, info: dict, prior: dict | None = None,
