@@ -694,32 +694,37 @@ def _whole_record_uncertainty(rec: _Record, prob: _Problem, fit, method: str, n_
     return unc, n_eff
 
 
+JACKKNIFE_GROUPS = 10  # at most this many refits
+
+
 def _run_jackknife(rec: _Record, prob: _Problem, fit) -> dict:
     """Leave-one-run-out jackknife (each run: a step from steady sliding, in the paper's protocol):
     the fit refitted without each run's compared bins (its starting state held at the full fit's),
-    ``{"runs": n, "sd": {name: sqrt((n-1)/n sum (p_i - mean)^2)}}``; ``{}`` with fewer than 3 runs.
+    ``{"runs", "groups": n, "sd": {name: sqrt((n-1)/n sum (p_i - mean)^2)}}`` (more than
+    JACKKNIFE_GROUPS runs are left out in n contiguous groups); ``{}`` with fewer than 3 runs.
     It sees what the residual does not: an error of the model's input that differs from run to run
     (the closed loop's velocity rise against the segments' ideal step, the fixture's slip)."""
 
     if len(rec.runs) < 3:
         return {}
     est = []
-    for j, (lo, hi) in enumerate(rec.runs):
+    # more runs than JACKKNIFE_GROUPS: left out in contiguous groups (the delete-a-group jackknife)
+    for grp in np.array_split(np.arange(len(rec.runs)), min(len(rec.runs), JACKKNIFE_GROUPS)):
         keep = rec.sliding.copy()
-        keep[lo:hi] = False
-        nm = prob.run_names[j]
+        for j in grp:
+            keep[rec.runs[j][0]:rec.runs[j][1]] = False
         if keep.sum() < 20 or keep.sum() == rec.sliding.sum():
             return {}
-        held = {nm: fit.params[nm]} if nm in fit.params else {}
-        pset = ParamSet([p for p in prob.pset.params if p.name != nm])
+        held = {prob.run_names[j]: fit.params[prob.run_names[j]] for j in grp if prob.run_names[j] in fit.params}
+        pset = ParamSet([p for p in prob.pset.params if p.name not in held])
         f = least_squares_fit(prob.resid(rec, keep, held), pset,
-                              [{k_: v_ for k_, v_ in fit.params.items() if k_ != nm}], **FIT_OPTS)
+                              [{k_: v_ for k_, v_ in fit.params.items() if k_ not in held}], **FIT_OPTS)
         if f is None:
             return {}
         est.append(f.params)
     n = len(est)
     names = [k_ for k_ in fit.params if not k_.startswith("v_init") and all(k_ in e for e in est)]
-    return {"runs": n, "sd": {k_: float(math.sqrt((n - 1) / n * np.sum(np.square(
+    return {"runs": len(rec.runs), "groups": n, "sd": {k_: float(math.sqrt((n - 1) / n * np.sum(np.square(
         np.array([e[k_] for e in est]) - np.mean([e[k_] for e in est]))))) for k_ in names}}
 
 
@@ -749,7 +754,7 @@ def _jackknife_floor(unc: dict, jk: dict, values: dict) -> None:
             unc["cov"][i, :] *= f
             unc["cov"][:, i] *= f
         raised.append(k_)
-    unc["jackknife"] = {"runs": jk["runs"], "sd": {k_: _r(v_) for k_, v_ in jk["sd"].items()}, "raised": raised}
+    unc["jackknife"] = {"runs": jk["runs"], "groups": jk["groups"], "sd": {k_: _r(v_) for k_, v_ in jk["sd"].items()}, "raised": raised}
     unc["errors"] = unc.get("errors", "") + "; never below the leave-one-run-out jackknife's"
 
 

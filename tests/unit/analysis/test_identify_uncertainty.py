@@ -43,7 +43,7 @@ def _unc(sd_A, sd_L):
 
 def test_the_jackknife_widens_only_the_errors_it_exceeds_and_keeps_the_correlation():
     unc = _unc(2e-5, 0.05)
-    _jackknife_floor(unc, {"runs": 3, "sd": {"A_mu": 1e-5, "L_um": 0.2}}, {"A_mu": 1e-3, "L_um": 20.0})
+    _jackknife_floor(unc, {"runs": 3, "groups": 3, "sd": {"A_mu": 1e-5, "L_um": 0.2}}, {"A_mu": 1e-3, "L_um": 20.0})
     assert unc["params_sd"]["A_mu"] == 2e-5  # the Jacobian's is larger: kept
     assert unc["params_sd"]["L_um"] == 0.2
     lo, hi = unc["intervals"]["L_um"]
