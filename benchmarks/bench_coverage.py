@@ -1,11 +1,12 @@
 """Coverage of the 68 % intervals: over simulated trials with known truth, how often each
 parameter's reported interval contains the truth (issue 20, Deliver 6: 55-80 % is honest).
 
-    nice -n 10 .venv/bin/python benchmarks/bench_coverage.py [--trials 20] [--engine sim|synth|both]
+    nice -n 10 .venv/bin/python benchmarks/bench_coverage.py [--trials 20] [--engine sim|main|synth|both|all]
         [--estimators "identify whole-record (jacobian),diagnose final model"]
 
 Trials: the paper's step protocol (rig.analysis.reproduce.step_recipe on the simulated rig, or
-the kinematic generator's paper_step_protocol), boundary lubricant, truth drawn per trial around
+the kinematic generator's paper_step_protocol) or the README's main job (``main``: its recipe on
+the simulated rig), boundary lubricant, truth drawn per trial around
 Table 2 (A, B, L within +-15 %), fixed seeds. Each trial's record goes to every estimator of
 :data:`ESTIMATORS`; an estimator returns ``{name: (value, lo, hi) or None}`` for A_mu, B_mu,
 L_um (None: no interval, left out of that row). To add one: write ``def est(trial) -> dict``
@@ -29,6 +30,10 @@ from rich.progress import Progress  # noqa: E402
 
 PARAMS = ("A_mu", "B_mu", "L_um")
 TRUTH = {"A_mu": 1.1e-3, "B_mu": 4.0e-3, "L_um": 19.2}
+MAIN_RECIPE = Path(__file__).resolve().parents[1] / "config" / "recipes" / "velocity-steps.yaml"
+LABELS = {"sim": "simulated rig (closed loop, paper protocol, 25 Hz)",
+          "main": "simulated rig (closed loop, the README's main job, 25 Hz)",
+          "synth": "generated (open loop, 25 Hz)"}
 
 
 def whole_record(trial) -> dict:
@@ -74,14 +79,18 @@ def make_trial(engine: str, k: int):
     rng = np.random.default_rng(1000 + k)
     truth = {p: TRUTH[p] * float(rng.uniform(0.85, 1.15)) for p in PARAMS}
     model = FrictionModel(params={"mu0": 0.1, **truth})
-    if engine == "sim":
+    if engine in ("sim", "main"):
         from rig.config.profile import default_profile_path, load_profile
+        from rig.config.recipe import load_recipe
         from rig.session.sim import simulate
 
         prof = load_profile(default_profile_path())
-        log, _ = simulate(step_recipe("boundary", seed=k, slip_before_um=max(120.0, 6.0 * truth["L_um"])),
-                          prof, model, seed=k)
-        return truth, log.trial_data(25.0, source=f"sim:{k}")
+        # main: the README's main job (config/recipes/velocity-steps.yaml: 40 µm/s², feed-forward on,
+        # 2 s holds; its planner's 6 L before each step), with this trial's truth and seed
+        recipe = load_recipe(MAIN_RECIPE) if engine == "main" else \
+            step_recipe("boundary", seed=k, slip_before_um=max(120.0, 6.0 * truth["L_um"]))
+        log, _ = simulate(recipe, prof, model, seed=k)
+        return truth, log.trial_data(25.0, source=f"{engine}:{k}")
     from rig.sim import synth
 
     return truth, synth.generate(model, synth.paper_step_protocol(), seed=k).trial
@@ -90,12 +99,12 @@ def make_trial(engine: str, k: int):
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--trials", type=int, default=20)
-    ap.add_argument("--engine", choices=("sim", "synth", "both"), default="both")
+    ap.add_argument("--engine", choices=("sim", "main", "synth", "both", "all"), default="both")
     ap.add_argument("--estimators", default="identify whole-record (jacobian)",
                     help=f"comma-separated names of ESTIMATORS (all: {', '.join(ESTIMATORS)})")
     a = ap.parse_args(argv)
     names = [n.strip() for n in a.estimators.split(",") if n.strip()]
-    engines = ("sim", "synth") if a.engine == "both" else (a.engine,)
+    engines = {"both": ("sim", "synth"), "all": ("sim", "main", "synth")}.get(a.engine, (a.engine,))
     hits = {(e, n): {p: [] for p in PARAMS} for e in engines for n in names}
     bias = {(e, n): {p: [] for p in PARAMS} for e in engines for n in names}
     pulls = {(e, n): {p: [] for p in PARAMS} for e in engines for n in names}
@@ -128,8 +137,7 @@ def main(argv=None) -> int:
         # pull: the error over the interval's half-width (1 for an honest interval, in rms)
         b = " | ".join(f"{100 * np.mean(bias[(e, n)][p]):+.1f} % "
                        f"({np.sqrt(np.mean(np.square(pulls[(e, n)][p]))):.2f})" for p in PARAMS)
-        label = "simulated rig (closed loop, 25 Hz)" if e == "sim" else "generated (open loop, 25 Hz)"
-        print(f"| {label} | {n} | {cov} | {b} |")
+        print(f"| {LABELS[e]} | {n} | {cov} | {b} |")
     return 0
 
 

@@ -342,8 +342,10 @@ def _print_whole(con, fit, names: str, fl=(), mark: str = "", label: str | None 
                 txt += f" [{_fmt(lo_hi[0], 4)}, {_fmt(lo_hi[1], 4)}]"
         src = k if names != "rsf" else {"a": "A_mu", "b": "B_mu", "Dc_um": "L_um"}.get(k, k)
         parts.append(txt + (f" [yellow]{mark}[/yellow]" if src in fl else ""))
-    unc = w.get("uncertainty", {}).get("method", "jacobian")
-    con.print(f"whole-record fit{_of(label)} ({w['model']}, velocity {w['velocity']}, {unc} errors, n_eff {_fmt(w.get('n_eff'), 4)} "
+    unc = w.get("uncertainty", {}).get("method", "jacobian") + " errors"
+    if w.get("uncertainty", {}).get("jackknife"):
+        unc += f" at least the leave-one-run-out jackknife's ({w['uncertainty']['jackknife']['runs']} runs)"
+    con.print(f"whole-record fit{_of(label)} ({w['model']}, velocity {w['velocity']}, {unc}, n_eff {_fmt(w.get('n_eff'), 4)} "
               f"of {w.get('n_points')}): {', '.join(parts)}; k_cr (eq. 13) = {_fmt(w.get('k_cr_kN_per_m'), 3)} kN/m; "
               f"rms {_fmt(w['rms_N'], 3)} N", highlight=False)
     c = w.get("correlation")

@@ -251,9 +251,11 @@ def cost_at(grid: Grid, baseline: str, extensions: list[str], params: dict[str, 
 
 
 def multistart(grid: Grid, baseline: str, extensions: list[str], starts: list[dict[str, float]],
-               keep: int = 2, max_nfev: int = 400, must: list[dict[str, float]] | None = None) -> FitResult:
+               keep: int = 2, max_nfev: int = 400, must: list[dict[str, float]] | None = None,
+               plausible=None) -> FitResult:
     """Rank starting points by cost, fit the best ``keep`` of them and every start of ``must``
-    (e.g. identify's whole-record fit, the current model), return the best fit."""
+    (e.g. identify's whole-record fit, the current model), return the best fit: of those off
+    their bounds and, with ``plausible`` (params -> bool), physical, the one of least cost."""
     costs = []
     for s in starts:
         try:
@@ -273,12 +275,14 @@ def multistart(grid: Grid, baseline: str, extensions: list[str], starts: list[di
             if len(ranked) < POLISH_KEEP and not any(_same_point(r.params, q) for q in ranked):
                 ranked.append(r.params)
     order = ranked + list(must or [])
-    best = None
+    best, best_rank = None, None
     for st in order:
         r = fit(grid, baseline, extensions, st, max_nfev=max_nfev)
         r.extra["at_bound"] = at_bound(r.params, grid)
-        if best is None or (r.extra["at_bound"], r.sse_fit) < (best.extra["at_bound"], best.sse_fit):
-            best = r
+        r.extra["implausible"] = plausible is not None and not plausible(r.params)
+        rank = (r.extra["at_bound"] or r.extra["implausible"], r.extra["at_bound"], r.sse_fit)
+        if best is None or rank < best_rank:
+            best, best_rank = r, rank
     return best
 
 

@@ -297,23 +297,25 @@ def _drop_reloading(slide_ok: np.ndarray, t: np.ndarray, x: np.ndarray, F: np.nd
         j = i
         while j < n and ok[j]:
             j += 1
-        if i > 0:
-            seg = F[i:j]
-            w = count[i:j]
-            order = np.argsort(seg)
-            cw = np.cumsum(w[order])
-            med = float(seg[order][np.searchsorted(cw, 0.5 * cw[-1])])
-            f0 = float(seg[0])
-            rise = med - f0
-            if abs(rise) > 5.0 * max(noise_N, 1e-9):
-                thr = f0 + frac * rise
-                reached = np.flatnonzero((seg - thr) * np.sign(rise) >= 0)
-                k = int(reached[0]) if reached.size else j - i
-                if k < j - i:
-                    kt = int(np.searchsorted(t[i:j], t[i + k] + settle_s))
-                    kx = int(np.argmax(np.append(x[i + k:j] - x[i + k] >= settle_um, True))) + k
-                    k = max(kt, kx)
-                ok[i:i + k] = False
+        seg = F[i:j]
+        w = count[i:j]
+        order = np.argsort(seg)
+        cw = np.cumsum(w[order])
+        med = float(seg[order][np.searchsorted(cw, 0.5 * cw[-1])])
+        f0 = float(seg[0])
+        rise = med - f0
+        # a run from the record's first bin re-loads too when its friction starts under half the
+        # sliding friction: a start from rest that the velocity estimate smeared into sliding (a
+        # transient of friction is a few per cent of it, never half)
+        if (i > 0 or abs(f0) < 0.5 * abs(med)) and abs(rise) > 5.0 * max(noise_N, 1e-9):
+            thr = f0 + frac * rise
+            reached = np.flatnonzero((seg - thr) * np.sign(rise) >= 0)
+            k = int(reached[0]) if reached.size else j - i
+            if k < j - i:
+                kt = int(np.searchsorted(t[i:j], t[i + k] + settle_s))
+                kx = int(np.argmax(np.append(x[i + k:j] - x[i + k] >= settle_um, True))) + k
+                k = max(kt, kx)
+            ok[i:i + k] = False
         i = j
     return ok
 

@@ -269,22 +269,6 @@ def profile_interval(residual: Callable[[dict], np.ndarray], pset: ParamSet, fit
     return [min(ends), max(ends)]
 
 
-def hac_cov(jac: np.ndarray, r: np.ndarray, lags: int) -> np.ndarray:
-    """Heteroscedasticity- and autocorrelation-consistent covariance (Newey & West 1987) of a
-    least-squares fit in its internal variables: ``B^-1 M B^-1`` with ``B = J^T J`` and ``M`` the
-    Bartlett-weighted sum of the score's autocovariances ``sum_k w_k sum_i g_i g_{i+k}^T``,
-    ``g_i = J_i r_i``, ``w_k = 1 - k / (lags + 1)``. Unlike one inflation factor for all, it lets
-    each parameter see the residual correlation where its information is (L's in the transients)."""
-    g = jac * r[:, None]
-    meat = g.T @ g
-    for k in range(1, max(int(lags), 0) + 1):
-        w = 1.0 - k / (lags + 1.0)
-        c = g[k:].T @ g[:-k]
-        meat += w * (c + c.T)
-    bread = np.linalg.pinv(jac.T @ jac)
-    return bread @ meat @ bread
-
-
 def _sample_summary(pset: ParamSet, samples: np.ndarray, method: str, **extra) -> dict:
     """sd, percentile intervals and correlation of parameter samples (rows; parameters' units)."""
     sd = {nm: float(np.std(samples[:, j], ddof=1)) for j, nm in enumerate(pset.names)}
@@ -394,4 +378,4 @@ def parse_uncertainty(text: str) -> tuple[str, int]:
 
 
 __all__ = ["Q_LO", "Q_HI", "autocorr", "block_bootstrap", "correlation_of", "correlation_time", "effective_n",
-           "hac_cov", "information_criterion", "jacobian_summary", "mcmc", "parse_uncertainty", "profile_interval"]
+           "information_criterion", "jacobian_summary", "mcmc", "parse_uncertainty", "profile_interval"]

@@ -204,23 +204,3 @@ def test_import_map_and_scale(tmp_path):
         res = CliRunner().invoke(app, ["import", str(src), "-o", str(bad), *args])
         assert res.exit_code == 2 and "Traceback" not in res.output, args
         assert not bad.exists()
-
-
-def test_hac_covariance_reduces_to_ols_for_white_noise_and_grows_for_correlated():
-    from rig.fitting.stats import hac_cov
-
-    rng = np.random.default_rng(2)
-    n = 4000
-    J = np.column_stack([np.ones(n), np.linspace(-1, 1, n)])
-    white = rng.standard_normal(n)
-    ols = np.linalg.inv(J.T @ J) * float(np.dot(white, white)) / n
-    assert np.allclose(np.diag(hac_cov(J, white, 0)), np.diag(ols), rtol=0.15)
-    # AR(1) residuals: the intercept's variance grows by about (1 + phi) / (1 - phi)
-    e = rng.standard_normal(n)
-    r = np.empty(n)
-    r[0] = e[0]
-    for i in range(1, n):
-        r[i] = 0.8 * r[i - 1] + e[i]
-    ols_r = np.linalg.inv(J.T @ J) * float(np.dot(r, r)) / n
-    ratio = hac_cov(J, r, 40)[0, 0] / ols_r[0, 0]
-    assert 5.0 < ratio < 12.0  # theory 9
