@@ -204,3 +204,33 @@ def test_small_real_time_chunks_are_compacted_at_close(tmp_path):
         m["trial_end"].pop("ended_utc")  # the two runs ended at different times
     assert ma == mb
     assert not list(tmp_path.glob(".*.tmp"))
+
+
+@pytest.mark.parametrize("ratio_int", [True, False])
+def test_compiled_encoder_stores_what_the_numpy_path_stores(ratio_int):
+    """The one-pass kernel (quantize, clip, zigzag varints without the GIL) gives the bytes of the numpy
+    path it replaces, on values over the whole range, at the clip limits and at half steps."""
+    from rig.log.loopblock import LoopBlockEncoder, _jit, _quant_pack_py
+    from rig.log.schemas import device_columns
+
+    cols = device_columns()
+    keys = ("t_s", "friction_N", "normal_1_N", "valve_cmd", "pid_i", "true_mu")
+    enc = LoopBlockEncoder(lambda k: cols.get(k, cols["t_s"]), 1000.0)
+    enc.plan(keys)
+    if not ratio_int:  # the display unit from the count's physical value (a layout with an offset)
+        enc._ratio_int = False
+        enc._ratio = enc._ratio_f_1d[:, None] * 1.0
+        enc._unit_off = np.linspace(-0.5, 0.5, len(enc._ints))[:, None]
+        enc._unit_off_1d = enc._unit_off[:, 0].copy()
+    rng = np.random.default_rng(7)
+    n = 500
+    m = np.stack([rng.normal(0, 1, n) * 10 ** rng.integers(-3, 6) for _ in enc._ints])
+    m[:, :4] = [1e300, -1e300, 0.005, -0.015]  # clipped, clipped, half steps
+    outs = []
+    for fn in (lambda o, e: _jit("quant", _quant_pack_py)(
+            m, enc._off_1d, enc._inv_q_1d, enc._lo_1d, enc._hi_1d, enc._ratio_i_1d, enc._ratio_f_1d,
+            enc._unit_off_1d, enc._ratio_int, o, e), lambda o, e: enc._pack_numpy(m, o, e, [], [])):
+        out, ends = np.zeros(m.size * 10, np.uint8), np.zeros(m.shape[0], np.int64)
+        fn(out, ends)
+        outs.append(out[:ends[-1]].tobytes())
+    assert outs[0] == outs[1] and len(outs[0]) >= m.size
