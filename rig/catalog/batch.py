@@ -132,6 +132,10 @@ if START_METHOD not in multiprocessing.get_all_start_methods():  # e.g. no forks
     START_METHOD = "spawn"
 
 
+#: imported by the forkserver last: numba's CPU target loaded once for all workers (rig.catalog.kernels_preload)
+KERNELS_PRELOAD = "rig.catalog.kernels_preload"
+
+
 def _forkserver_preload(modules: list[str]) -> None:
     """The modules the forkserver imports when it starts (the first cluster of this process;
     later calls change nothing once it runs)."""
@@ -176,7 +180,7 @@ def dask_client(jobs: int | None = None, scheduler: str | None = None, preload: 
 
     _restore_malloc_env()
     if START_METHOD == "forkserver":
-        _forkserver_preload(["distributed", *preload])
+        _forkserver_preload(["distributed", *preload, KERNELS_PRELOAD])
     with dask.config.set({**WORKER_CONFIG, "distributed.worker.multiprocessing-method": START_METHOD}):
         # no dashboard; the scheduler's own HTTP routes (health, metrics) on a free port rather
         # than 8787, which another cluster on the host may hold (a warning, and a wait)
