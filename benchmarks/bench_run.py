@@ -24,6 +24,11 @@ after; CPU figures are the stable ones.
 
     python benchmarks/bench_run.py [--repeat 3] [--recipe config/recipes/velocity-steps.yaml] [--json out.json]
 
+``--whole [help 'main job' 'one hour'] [--repeat 5] [--vs REF]``: each as a whole ``rig`` process, min /
+median / max of ``--repeat`` runs after an uncounted one, wall and CPU (user + system of the process, its
+threads included) beside the load average; ``--vs REF`` runs that commit's tree in turn (A B A B), so
+before and after are measured in one sitting.
+
 ``--phases``: one (default: one-hour, ``benchmarks/recipes/one-hour-slide.yaml``) trial phase by
 phase -- imports, plan, simulation, encoding, compression, fsync, the whole ``rig run`` process -- each
 beside the load average, and the log's size per hour in the protobuf and the v2 layouts, with the
@@ -267,6 +272,70 @@ def phases(recipe_path: Path, profile_path: Path, out_json: str | None = None) -
     return res
 
 
+WHOLE = {"help": ["--help"],
+         "main job": ["run", "config/recipes/velocity-steps.yaml", "--sim", "-q", "--yes", "--out", "{out}"],
+         "one hour": ["run", "benchmarks/recipes/one-hour-slide.yaml", "--sim", "-q", "--yes", "--out", "{out}"]}
+
+
+def _checkout(ref: str) -> Path | None:
+    """A tree of ``ref`` (git archive) in a temporary directory, run with this venv through PYTHONPATH (its
+    numba cache is its own: warmed by the first, uncounted run)."""
+    root = Path(tempfile.mkdtemp(prefix=f"bench_run_{ref}_"))
+    arch = subprocess.run(["git", "-C", str(REPO), "archive", ref], capture_output=True)
+    if arch.returncode != 0:
+        return None
+    subprocess.run(["tar", "-x", "-C", str(root)], input=arch.stdout, check=True)
+    return root
+
+
+def _one_process(tree: Path, args: list[str], out: Path) -> tuple[float, float]:
+    """(wall s, CPU s = user + system) of one fresh ``python -m rig.cli ARGS`` process in ``tree``."""
+    if out.exists():
+        out.unlink()
+    env = {**os.environ, "PYTHONPATH": str(tree)}
+    env.pop("PYTHONDONTWRITEBYTECODE", None)  # both trees with their .pyc, as an installed rig has them
+    w0 = time.perf_counter()
+    proc = subprocess.Popen([sys.executable, "-m", "rig.cli", *[a.format(out=out) for a in args]], cwd=tree,
+                            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    _, status, ru = os.wait4(proc.pid, 0)
+    wall = time.perf_counter() - w0
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    if proc.returncode != 0:
+        raise RuntimeError(f"rig {' '.join(args)} in {tree} exited {proc.returncode}")
+    return wall, ru.ru_utime + ru.ru_stime
+
+
+def whole(n: int, which: list[str], ref: str | None) -> dict:
+    """Whole-process figures of ``rig --help``, the main job (velocity steps, 655 s) and a one-hour trial:
+    min / median / max of ``n`` runs after one uncounted run (numba's cache warm), wall and CPU, each
+    beside the load average; with ``ref``, that commit's tree run in turn (A B A B ...) in the same sitting."""
+    trees = {"this tree": REPO}
+    if ref:
+        t = _checkout(ref)
+        if t is None:
+            raise SystemExit(f"git archive {ref} failed")
+        trees[ref] = t
+    out = Path(tempfile.mkdtemp(prefix="bench_run_whole_")) / "t.mcap"
+    res: dict = {}
+    for name in which:
+        args = WHOLE[name]
+        runs: dict = {k: [] for k in trees}
+        for tree in trees.values():
+            _one_process(tree, args, out)  # warm-up: numba's cache, the page cache
+        for _ in range(n):
+            for k, tree in trees.items():
+                runs[k].append(_one_process(tree, args, out))
+        for k, rs in runs.items():
+            walls, cpus = sorted(r[0] for r in rs), sorted(r[1] for r in rs)
+            row = {"wall_s": [walls[0], walls[len(walls) // 2], walls[-1]],
+                   "cpu_s": [cpus[0], cpus[len(cpus) // 2], cpus[-1]], "load": os.getloadavg()[0]}
+            res[f"{name} ({k})"] = row
+            print(f"  rig {name:9s} {k:10s} wall min/median/max {row['wall_s'][0]:6.2f} {row['wall_s'][1]:6.2f} "
+                  f"{row['wall_s'][2]:6.2f} s   CPU {row['cpu_s'][0]:6.2f} {row['cpu_s'][1]:6.2f} "
+                  f"{row['cpu_s'][2]:6.2f} s   ({_load()})", flush=True)
+    return res
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--phases", action="store_true", help="where the time of a one-hour trial goes, phase by "
@@ -278,7 +347,18 @@ def main(argv=None) -> int:
     ap.add_argument("--no-cli", action="store_true", help="skip the fresh-process runs")
     ap.add_argument("--json", default=None, help="also write the figures to this JSON file")
     ap.add_argument("--baseline", default=BASELINE, help="git commit whose rig/log.py is the 'before' writer")
+    ap.add_argument("--whole", nargs="*", choices=sorted(WHOLE), default=None, metavar="WHICH",
+                    help="whole-process figures (min/median/max of --repeat runs, wall and CPU) of: help, "
+                         "'main job', 'one hour' (default: all three)")
+    ap.add_argument("--vs", default=None, metavar="REF", help="with --whole: run this git commit's tree in turn, "
+                    "in the same sitting (before/after)")
     args = ap.parse_args(argv)
+    if args.whole is not None:
+        print(f"whole processes, numba cache warm ({_load()}, {os.cpu_count()} cores)")
+        res = whole(args.repeat, args.whole or list(WHOLE), args.vs)
+        if args.json:
+            Path(args.json).write_text(json.dumps(res, indent=2))
+        return 0
     if args.phases:
         rec = Path(args.recipe) if "--recipe" in (argv or sys.argv) else HOUR_RECIPE
         phases(rec, Path(args.profile), args.json)
