@@ -212,9 +212,17 @@ def phases(recipe_path: Path, profile_path: Path, out_json: str | None = None) -
     for _ in rig.run_blocks(plan.x_ref_um[:2000], block_ticks=1000, controller=plan.controller):
         pass  # numba's cache loaded
     rig = SimRig(profile, profile.friction_model(recipe.lubricant), recipe.normal_force_N, recipe.seed)
+    from rig.model.feedforward import friction_feedforward_for_plan, initial_velocity_um_s
+
+    w0, c0 = time.perf_counter(), time.process_time()
+    ff = friction_feedforward_for_plan(plan.controller, plan.x_ref_um, rig.dt_s, rig.friction_model,
+                                       2.0 * rig.normal_force_N,
+                                       initial_velocity_um_s(plan.x_ref_um, rig.rate_hz,
+                                                             profile.sim.initial_creep_um_s))
+    line("friction feed-forward (whole plan)", time.perf_counter() - w0, time.process_time() - c0)
     w0, c0 = time.perf_counter(), time.process_time()
     blocks = [{k: v.copy() for k, v in b.items()}
-              for b in rig.run_blocks(plan.x_ref_um, block_ticks=1000, controller=plan.controller)]
+              for b in rig.run_blocks(plan.x_ref_um, block_ticks=1000, controller=plan.controller, ff_N=ff)]
     line("simulation (closed loop, no log)", time.perf_counter() - w0, time.process_time() - c0,
          f"{plan.n_ticks / 1e6:.2f} M ticks")
     cols = device_columns()

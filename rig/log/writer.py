@@ -37,7 +37,8 @@ import numpy as np
 from mcap.writer import CompressionType, Writer
 
 from rig import __version__
-from rig.log.decimate import BlockMean, decimation_factor
+from rig.log import decimate as _decimate_mod
+from rig.log.decimate import MatrixBlockMean, decimation_factor
 from rig.log.loopblock import LOOP_BLOCK_SCHEMA, PROTO_ENCODING, LoopBlockEncoder
 from rig.log import loopblock as _loopblock
 from rig.log.schemas import (EVENTS_TOPIC, JSON_TOPICS, LOG25_TOPIC, MCAP_PROFILE, RAW_TOPIC, RAW_V2_ENCODING,
@@ -323,7 +324,7 @@ class TrialLogWriter:
         self.decimated_rate_hz = float(decimated_rate_hz)
         self._raw_every = max(1, int(round(self.loop_rate_hz / self.raw_rate_hz)))
         self._dec_every = decimation_factor(self.loop_rate_hz, self.decimated_rate_hz)
-        self._dec = BlockMean(self._dec_every)
+        self._dec: MatrixBlockMean | None = None  # made with the first block's plan (_decimate)
         self.start_time_ns = int(time.time_ns() if start_time_ns is None else start_time_ns)
         self._origin_ns = self.start_time_ns  # wall-clock ns of trial time 0 (re-anchored by anchor())
         self._anchored = False
@@ -405,6 +406,7 @@ class TrialLogWriter:
         so that the first block of a run is written as fast as the rest: call before a real-time loop
         starts."""
         _loopblock.warm_up()
+        _decimate_mod.warm_up()
 
     # -- listeners (live view hook) --------------------------------------------
     def add_listener(self, fn: Callable[[str, dict], None]) -> None:
@@ -554,28 +556,20 @@ class TrialLogWriter:
 
     def _decimate(self, arrays: dict[str, np.ndarray]) -> None:
         """The /log25 samples of a block: the device columns on their /raw grid (integer count times the
-        scale), stacked, and block means over each interval (:class:`rig.log.decimate.BlockMean`), in a
+        scale), stacked, and block means over each interval (:class:`rig.log.decimate.MatrixBlockMean`), in a
         few numpy calls per block."""
         if self._dec_plan is None:
             names = tuple(nm for nm in SAMPLE_FIELDS[:-1] if nm in arrays)
             cols = [self._enc.column(nm) for nm in names]
-            grid = [i for i, (nm, c) in enumerate(zip(names, cols)) if nm != "t_s" and np.dtype(c.dtype).kind == "i"]
-            self._dec_plan = (names, grid, np.array([[cols[i].offset] for i in grid]),
-                              np.array([[cols[i].scale] for i in grid]))
-        names, grid, off, scale = self._dec_plan
-        m = np.stack([arrays[nm] for nm in names])
-        if grid:
-            g = m[grid]
-            with np.errstate(invalid="ignore"):
-                g -= off
-                g /= scale
-                np.rint(g, out=g)
-                g *= scale
-                g += off
-            m[grid] = g
-        dec = self._dec.push({"m": m})
+            grid = [nm != "t_s" and np.dtype(c.dtype).kind == "i" for nm, c in zip(names, cols)]
+            self._dec_plan = (names,)
+            self._dec = MatrixBlockMean(self._dec_every, grid,
+                                        [c.offset if g else 0.0 for c, g in zip(cols, grid)],
+                                        [c.scale if g else 1.0 for c, g in zip(cols, grid)])
+        names = self._dec_plan[0]
+        dec = self._dec.push(np.stack([arrays[nm] for nm in names]))  # a copy: its grid rows are rounded in place
         if dec is not None:
-            self._emit_log25(names, dec["m"])
+            self._emit_log25(names, dec)
 
     def _emit_log25(self, names: tuple, m: np.ndarray) -> None:
         """Write decimated samples (rows of ``m``: the fields ``names``; block means, see rig.log.decimate)
@@ -690,9 +684,9 @@ class TrialLogWriter:
         if self.closed:
             return
         self.status = status
-        last = self._dec.flush()
+        last = self._dec.flush() if self._dec is not None else None
         if last is not None:  # the last, partial interval (mean of its ticks)
-            self._emit_log25(self._dec_plan[0], last["m"])
+            self._emit_log25(self._dec_plan[0], last)
         self.event(self.last_t_s, "log_end", status=status)
         # the counts of what the file holds (log_end included: `rig info` counts the same messages)
         end = {"status": status, "ticks": self.ticks, "duration_s": self.last_t_s,
