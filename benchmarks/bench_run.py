@@ -318,7 +318,9 @@ def whole(n: int, which: list[str], ref: str | None) -> dict:
     min / median / max of ``n`` runs after one uncounted run (numba's cache warm), wall and CPU, each
     beside the load average; with ``ref``, that commit's tree run in turn (A B A B ...) in the same sitting."""
     trees = {"this tree": REPO}
-    if ref:
+    if ref and Path(ref).is_dir():  # a tree already checked out (e.g. a copy of the other commit)
+        trees[Path(ref).name] = Path(ref)
+    elif ref:
         t = _checkout(ref)
         if t is None:
             raise SystemExit(f"git archive {ref} failed")
@@ -358,8 +360,8 @@ def main(argv=None) -> int:
     ap.add_argument("--whole", nargs="*", choices=sorted(WHOLE), default=None, metavar="WHICH",
                     help="whole-process figures (min/median/max of --repeat runs, wall and CPU) of: help, "
                          "'main job', 'one hour' (default: all three)")
-    ap.add_argument("--vs", default=None, metavar="REF", help="with --whole: run this git commit's tree in turn, "
-                    "in the same sitting (before/after)")
+    ap.add_argument("--vs", default=None, metavar="REF", help="with --whole: run this git commit's tree (or this "
+                    "directory's) in turn, in the same sitting (before/after)")
     args = ap.parse_args(argv)
     if args.whole is not None:
         print(f"whole processes, numba cache warm ({_load()}, {os.cpu_count()} cores)")
