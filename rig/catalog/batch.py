@@ -96,7 +96,7 @@ CONNECT_TIMEOUT_S = 10.0  # how long to try reaching --scheduler before giving u
 #   glibc hands every freed block above 64 kB back to the kernel and the next numpy temporary
 #   faults it in again; a reproduce trial then costs 22 % more CPU than in a plain process
 #   (10.8 s against 8.8 s for 24 trials, the same in a serial run given that variable);
-#   one BLAS/OpenMP thread per worker is kept (N workers on N cores);
+#   one BLAS/OpenMP/numba thread per worker is kept (N workers on N cores; rig has no parallel kernel);
 # - no statistical profiler in the workers (it samples the task's stack every 10 ms, 3-4 %
 #   of a task's CPU, for a dashboard that is off).
 WORKER_CONFIG = {
@@ -104,7 +104,8 @@ WORKER_CONFIG = {
     "distributed.admin.tick.limit": "60s",
     "distributed.worker.memory.spill": False,
     "distributed.worker.memory.target": False,
-    "distributed.nanny.pre-spawn-environ": {"OMP_NUM_THREADS": 1, "MKL_NUM_THREADS": 1, "OPENBLAS_NUM_THREADS": 1},
+    "distributed.nanny.pre-spawn-environ": {"OMP_NUM_THREADS": 1, "MKL_NUM_THREADS": 1, "OPENBLAS_NUM_THREADS": 1,
+                                            "NUMBA_NUM_THREADS": 1},
     "distributed.worker.profile.enabled": False,
 }
 
