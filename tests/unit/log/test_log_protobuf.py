@@ -207,10 +207,11 @@ def test_small_real_time_chunks_are_compacted_at_close(tmp_path):
 
 
 @pytest.mark.parametrize("ratio_int", [True, False])
-def test_compiled_encoder_stores_what_the_numpy_path_stores(ratio_int):
-    """The one-pass kernel (quantize, clip, zigzag varints without the GIL) gives the bytes of the numpy
-    path it replaces, on values over the whole range, at the clip limits and at half steps."""
-    from rig.log.loopblock import LoopBlockEncoder, _jit, _quant_pack_py
+def test_compiled_encoder_stores_the_counts_numpy_computes(ratio_int):
+    """The one-pass kernel (quantize, clip, zigzag varints without the GIL) stores, field by field, the
+    integers the numpy formula gives (the encoder before it), on values over the whole range, at the clip
+    limits, at half steps and with a NaN (stored as 0, its place recorded)."""
+    from rig.log.loopblock import LoopBlockEncoder, unpack_varints
     from rig.log.schemas import device_columns
 
     cols = device_columns()
@@ -219,18 +220,25 @@ def test_compiled_encoder_stores_what_the_numpy_path_stores(ratio_int):
     enc.plan(keys)
     if not ratio_int:  # the display unit from the count's physical value (a layout with an offset)
         enc._ratio_int = False
-        enc._ratio = enc._ratio_f_1d[:, None] * 1.0
-        enc._unit_off = np.linspace(-0.5, 0.5, len(enc._ints))[:, None]
-        enc._unit_off_1d = enc._unit_off[:, 0].copy()
+        enc._unit_off = np.linspace(-0.5, 0.5, len(enc._ints))
     rng = np.random.default_rng(7)
     n = 500
-    m = np.stack([rng.normal(0, 1, n) * 10 ** rng.integers(-3, 6) for _ in enc._ints])
+    m = np.stack([rng.normal(0, 1, n) * 10.0 ** rng.integers(-3, 6) for _ in enc._ints])
     m[:, :4] = [1e300, -1e300, 0.005, -0.015]  # clipped, clipped, half steps
-    outs = []
-    for fn in (lambda o, e: _jit("quant", _quant_pack_py)(
-            m, enc._off_1d, enc._inv_q_1d, enc._lo_1d, enc._hi_1d, enc._ratio_i_1d, enc._ratio_f_1d,
-            enc._unit_off_1d, enc._ratio_int, o, e), lambda o, e: enc._pack_numpy(m, o, e, [], [])):
-        out, ends = np.zeros(m.size * 10, np.uint8), np.zeros(m.shape[0], np.int64)
-        fn(out, ends)
-        outs.append(out[:ends[-1]].tobytes())
-    assert outs[0] == outs[1] and len(outs[0]) >= m.size
+    for nan in (False, True):
+        if nan:
+            m[2, 9] = np.nan
+        with np.errstate(invalid="ignore"):
+            q = np.rint((m - enc._off[:, None]) * enc._inv_q[:, None])
+        q[~np.isfinite(q)] = 0.0
+        q = np.clip(q, enc._lo[:, None], enc._hi[:, None]).astype(np.int64)
+        want = q * enc._ratio_i[:, None] if ratio_int else \
+            np.rint(q * enc._ratio_f[:, None] + enc._unit_off[:, None]).astype(np.int64)
+        out, ends, nan_f, nan_i = np.zeros(m.size * 10, np.uint8), np.zeros(m.shape[0], np.int64), [], []
+        if enc._quant(m, out, ends) < 0:
+            enc._pack_nonfinite(m, out, ends, nan_f, nan_i)
+        assert nan == bool(nan_f) and (not nan or (nan_f[0].tolist(), nan_i[0].tolist()) ==
+                                       ([enc._ints[2].number], [9]))
+        starts = np.concatenate(([0], ends[:-1]))
+        for r in range(m.shape[0]):
+            assert np.array_equal(unpack_varints(out[starts[r]:ends[r]], zigzag=True), want[r])
