@@ -258,7 +258,8 @@ class LoopBlockEncoder:
             self._unit_off = np.array([p.offset / p.unit_scale for p in ints])
             self._ratio_int = bool(np.allclose(self._ratio_f, np.rint(self._ratio_f), rtol=0, atol=1e-9)
                                    and not self._unit_off.any())
-            self._ratio_i = np.rint(self._ratio_f).astype(np.int64) if self._ratio_int else np.zeros(len(ints), np.int64)
+            self._ratio_i = np.rint(self._ratio_f).astype(np.int64) if self._ratio_int \
+                else np.zeros(len(ints), np.int64)
         return self.fields
 
     def schema(self) -> bytes:
