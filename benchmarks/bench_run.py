@@ -197,7 +197,6 @@ def phases(recipe_path: Path, profile_path: Path, out_json: str | None = None) -
 
     from rig.config.profile import load_profile
     from rig.config.recipe import compile_recipe, load_recipe
-    from rig.log import TrialLogWriter
     from rig.log.loopblock import LoopBlockEncoder
     from rig.log.schemas import ColumnsV2Encoder, device_columns
     from rig.sim import SimRig
@@ -239,6 +238,24 @@ def phases(recipe_path: Path, profile_path: Path, out_json: str | None = None) -
         v2.encode(b, float(b["t_s"][0]))
     line("  (encoding /raw as rig.columns.v2)", time.perf_counter() - w0, time.process_time() - c0)
     tmp = Path(tempfile.mkdtemp(prefix="bench_phases_"))
+    res["sizes_MB_per_hour"] = _log_phases(blocks, tmp, hours, line)
+    w0, r0 = time.perf_counter(), os.times()
+    subprocess.run([sys.executable, "-m", "rig.cli", "run", str(recipe_path), "--sim", "-q", "--yes", "--out",
+                    str(tmp / "whole.mcap")], check=True, cwd=REPO, capture_output=True)
+    r1 = os.times()
+    line("whole `rig run --sim -q` process", time.perf_counter() - w0,
+         (r1.children_user - r0.children_user) + (r1.children_system - r0.children_system),
+         f"{plan.duration_s:.0f} s simulated")
+    if out_json:
+        Path(out_json).write_text(json.dumps(res, indent=2))
+    return res
+
+
+def _log_phases(blocks: list, tmp: Path, hours: float, line) -> dict:
+    """The log's phases on the simulated blocks (without compression, zstd, fsync: each the difference
+    to the one before), and its size per hour in each raw layout, with the simulation's chunks and with
+    real-time ones (one per 1 s block, as the hardware writes)."""
+    from rig.log import TrialLogWriter
 
     def write(name, realtime=False, **kw):
         w = TrialLogWriter(tmp / f"{name}.mcap", threaded=False, **kw)
@@ -258,27 +275,16 @@ def phases(recipe_path: Path, profile_path: Path, out_json: str | None = None) -
     line("compression (zstd chunks)", z[0] - none[0], z[1] - none[1])
     f = write("fsync")
     line("fsync (every second of wall time)", f[0] - z[0], f[1] - z[1])
-    res["sizes_MB_per_hour"] = sizes = {"protobuf": f[2]}
+    sizes = {"protobuf": f[2]}
     sizes["protobuf, real-time chunks"] = write("rt", realtime=True, fsync=False)[2]
     sizes["v2 (before)"] = write("v2", fsync=False, raw_format="v2")[2]
     sizes["v2 (before), real-time chunks"] = write("v2rt", realtime=True, fsync=False, raw_format="v2")[2]
-    no_truth = [{k: v for k, v in b.items() if not k.startswith("true_") and k != "spool"} for b in blocks]
-    blocks[:] = no_truth
+    blocks = [{k: v for k, v in b.items() if not k.startswith("true_") and k != "spool"} for b in blocks]
     sizes["protobuf, hardware's columns (no sim truths/spool)"] = write("hw", fsync=False)[2]
     sizes["protobuf, hardware's columns, real-time chunks"] = write("hwrt", realtime=True, fsync=False)[2]
     for k, v in sizes.items():
         print(f"  size {k:52s} {v:6.1f} MB per hour of trial")
-    w0, r0 = time.perf_counter(), os.times()
-    subprocess.run([sys.executable, "-m", "rig.cli", "run", str(recipe_path), "--sim", "-q", "--yes", "--out",
-                    str(tmp / "whole.mcap")], check=True, cwd=REPO, capture_output=True)
-    r1 = os.times()
-    line("whole `rig run --sim -q` process", time.perf_counter() - w0,
-         (r1.children_user - r0.children_user) + (r1.children_system - r0.children_system),
-         f"{plan.duration_s:.0f} s simulated")
-    if out_json:
-        Path(out_json).write_text(json.dumps(res, indent=2))
-    return res
-
+    return sizes
 
 WHOLE = {"help": ["--help"],
          "main job": ["run", "config/recipes/velocity-steps.yaml", "--sim", "-q", "--yes", "--out", "{out}"],
@@ -346,7 +352,7 @@ def whole(n: int, which: list[str], ref: str | None) -> dict:
     return res
 
 
-def main(argv=None) -> int:
+def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--phases", action="store_true", help="where the time of a one-hour trial goes, phase by "
                     "phase (imports, plan, simulation, encoding, compression, fsync, the whole process), and "
@@ -362,7 +368,11 @@ def main(argv=None) -> int:
                          "'main job', 'one hour' (default: all three)")
     ap.add_argument("--vs", default=None, metavar="REF", help="with --whole: run this git commit's tree (or this "
                     "directory's) in turn, in the same sitting (before/after)")
-    args = ap.parse_args(argv)
+    return ap
+
+
+def main(argv=None) -> int:
+    args = _parser().parse_args(argv)
     if args.whole is not None:
         print(f"whole processes, numba cache warm ({_load()}, {os.cpu_count()} cores)")
         res = whole(args.repeat, args.whole or list(WHOLE), args.vs)
