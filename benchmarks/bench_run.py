@@ -24,6 +24,11 @@ after; CPU figures are the stable ones.
 
     python benchmarks/bench_run.py [--repeat 3] [--recipe config/recipes/velocity-steps.yaml] [--json out.json]
 
+``--whole [help 'main job' 'one hour'] [--repeat 5] [--vs REF]``: each as a whole ``rig`` process, min /
+median / max of ``--repeat`` runs after an uncounted one, wall and CPU (user + system of the process, its
+threads included) beside the load average; ``--vs REF`` runs that commit's tree in turn (A B A B), so
+before and after are measured in one sitting.
+
 ``--phases``: one (default: one-hour, ``benchmarks/recipes/one-hour-slide.yaml``) trial phase by
 phase -- imports, plan, simulation, encoding, compression, fsync, the whole ``rig run`` process -- each
 beside the load average, and the log's size per hour in the protobuf and the v2 layouts, with the
@@ -192,7 +197,6 @@ def phases(recipe_path: Path, profile_path: Path, out_json: str | None = None) -
 
     from rig.config.profile import load_profile
     from rig.config.recipe import compile_recipe, load_recipe
-    from rig.log import TrialLogWriter
     from rig.log.loopblock import LoopBlockEncoder
     from rig.log.schemas import ColumnsV2Encoder, device_columns
     from rig.sim import SimRig
@@ -207,9 +211,17 @@ def phases(recipe_path: Path, profile_path: Path, out_json: str | None = None) -
     for _ in rig.run_blocks(plan.x_ref_um[:2000], block_ticks=1000, controller=plan.controller):
         pass  # numba's cache loaded
     rig = SimRig(profile, profile.friction_model(recipe.lubricant), recipe.normal_force_N, recipe.seed)
+    from rig.model.feedforward import friction_feedforward_for_plan, initial_velocity_um_s
+
+    w0, c0 = time.perf_counter(), time.process_time()
+    ff = friction_feedforward_for_plan(plan.controller, plan.x_ref_um, rig.dt_s, rig.friction_model,
+                                       2.0 * rig.normal_force_N,
+                                       initial_velocity_um_s(plan.x_ref_um, rig.rate_hz,
+                                                             profile.sim.initial_creep_um_s))
+    line("friction feed-forward (whole plan)", time.perf_counter() - w0, time.process_time() - c0)
     w0, c0 = time.perf_counter(), time.process_time()
     blocks = [{k: v.copy() for k, v in b.items()}
-              for b in rig.run_blocks(plan.x_ref_um, block_ticks=1000, controller=plan.controller)]
+              for b in rig.run_blocks(plan.x_ref_um, block_ticks=1000, controller=plan.controller, ff_N=ff)]
     line("simulation (closed loop, no log)", time.perf_counter() - w0, time.process_time() - c0,
          f"{plan.n_ticks / 1e6:.2f} M ticks")
     cols = device_columns()
@@ -226,6 +238,24 @@ def phases(recipe_path: Path, profile_path: Path, out_json: str | None = None) -
         v2.encode(b, float(b["t_s"][0]))
     line("  (encoding /raw as rig.columns.v2)", time.perf_counter() - w0, time.process_time() - c0)
     tmp = Path(tempfile.mkdtemp(prefix="bench_phases_"))
+    res["sizes_MB_per_hour"] = _log_phases(blocks, tmp, hours, line)
+    w0, r0 = time.perf_counter(), os.times()
+    subprocess.run([sys.executable, "-m", "rig.cli", "run", str(recipe_path), "--sim", "-q", "--yes", "--out",
+                    str(tmp / "whole.mcap")], check=True, cwd=REPO, capture_output=True)
+    r1 = os.times()
+    line("whole `rig run --sim -q` process", time.perf_counter() - w0,
+         (r1.children_user - r0.children_user) + (r1.children_system - r0.children_system),
+         f"{plan.duration_s:.0f} s simulated")
+    if out_json:
+        Path(out_json).write_text(json.dumps(res, indent=2))
+    return res
+
+
+def _log_phases(blocks: list, tmp: Path, hours: float, line) -> dict:
+    """The log's phases on the simulated blocks (without compression, zstd, fsync: each the difference
+    to the one before), and its size per hour in each raw layout, with the simulation's chunks and with
+    real-time ones (one per 1 s block, as the hardware writes)."""
+    from rig.log import TrialLogWriter
 
     def write(name, realtime=False, **kw):
         w = TrialLogWriter(tmp / f"{name}.mcap", threaded=False, **kw)
@@ -245,29 +275,84 @@ def phases(recipe_path: Path, profile_path: Path, out_json: str | None = None) -
     line("compression (zstd chunks)", z[0] - none[0], z[1] - none[1])
     f = write("fsync")
     line("fsync (every second of wall time)", f[0] - z[0], f[1] - z[1])
-    res["sizes_MB_per_hour"] = sizes = {"protobuf": f[2]}
+    sizes = {"protobuf": f[2]}
     sizes["protobuf, real-time chunks"] = write("rt", realtime=True, fsync=False)[2]
     sizes["v2 (before)"] = write("v2", fsync=False, raw_format="v2")[2]
     sizes["v2 (before), real-time chunks"] = write("v2rt", realtime=True, fsync=False, raw_format="v2")[2]
-    no_truth = [{k: v for k, v in b.items() if not k.startswith("true_") and k != "spool"} for b in blocks]
-    blocks[:] = no_truth
+    blocks = [{k: v for k, v in b.items() if not k.startswith("true_") and k != "spool"} for b in blocks]
     sizes["protobuf, hardware's columns (no sim truths/spool)"] = write("hw", fsync=False)[2]
     sizes["protobuf, hardware's columns, real-time chunks"] = write("hwrt", realtime=True, fsync=False)[2]
     for k, v in sizes.items():
         print(f"  size {k:52s} {v:6.1f} MB per hour of trial")
-    w0, r0 = time.perf_counter(), os.times()
-    subprocess.run([sys.executable, "-m", "rig.cli", "run", str(recipe_path), "--sim", "-q", "--yes", "--out",
-                    str(tmp / "whole.mcap")], check=True, cwd=REPO, capture_output=True)
-    r1 = os.times()
-    line("whole `rig run --sim -q` process", time.perf_counter() - w0,
-         (r1.children_user - r0.children_user) + (r1.children_system - r0.children_system),
-         f"{plan.duration_s:.0f} s simulated")
-    if out_json:
-        Path(out_json).write_text(json.dumps(res, indent=2))
+    return sizes
+
+WHOLE = {"help": ["--help"],
+         "main job": ["run", "config/recipes/velocity-steps.yaml", "--sim", "-q", "--yes", "--out", "{out}"],
+         "one hour": ["run", "benchmarks/recipes/one-hour-slide.yaml", "--sim", "-q", "--yes", "--out", "{out}"]}
+
+
+def _checkout(ref: str) -> Path | None:
+    """A tree of ``ref`` (git archive) in a temporary directory, run with this venv through PYTHONPATH (its
+    numba cache is its own: warmed by the first, uncounted run)."""
+    root = Path(tempfile.mkdtemp(prefix=f"bench_run_{ref}_"))
+    arch = subprocess.run(["git", "-C", str(REPO), "archive", ref], capture_output=True)
+    if arch.returncode != 0:
+        return None
+    subprocess.run(["tar", "-x", "-C", str(root)], input=arch.stdout, check=True)
+    return root
+
+
+def _one_process(tree: Path, args: list[str], out: Path) -> tuple[float, float]:
+    """(wall s, CPU s = user + system) of one fresh ``python -m rig.cli ARGS`` process in ``tree``."""
+    if out.exists():
+        out.unlink()
+    env = {**os.environ, "PYTHONPATH": str(tree)}
+    env.pop("PYTHONDONTWRITEBYTECODE", None)  # both trees with their .pyc, as an installed rig has them
+    w0 = time.perf_counter()
+    proc = subprocess.Popen([sys.executable, "-m", "rig.cli", *[a.format(out=out) for a in args]], cwd=tree,
+                            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    _, status, ru = os.wait4(proc.pid, 0)
+    wall = time.perf_counter() - w0
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    if proc.returncode != 0:
+        raise RuntimeError(f"rig {' '.join(args)} in {tree} exited {proc.returncode}")
+    return wall, ru.ru_utime + ru.ru_stime
+
+
+def whole(n: int, which: list[str], ref: str | None) -> dict:
+    """Whole-process figures of ``rig --help``, the main job (velocity steps, 655 s) and a one-hour trial:
+    min / median / max of ``n`` runs after one uncounted run (numba's cache warm), wall and CPU, each
+    beside the load average; with ``ref``, that commit's tree run in turn (A B A B ...) in the same sitting."""
+    trees = {"this tree": REPO}
+    if ref and Path(ref).is_dir():  # a tree already checked out (e.g. a copy of the other commit)
+        trees[Path(ref).name] = Path(ref)
+    elif ref:
+        t = _checkout(ref)
+        if t is None:
+            raise SystemExit(f"git archive {ref} failed")
+        trees[ref] = t
+    out = Path(tempfile.mkdtemp(prefix="bench_run_whole_")) / "t.mcap"
+    res: dict = {}
+    for name in which:
+        args = WHOLE[name]
+        runs: dict = {k: [] for k in trees}
+        for tree in trees.values():
+            _one_process(tree, args, out)  # warm-up: numba's cache, the page cache
+        for _ in range(n):
+            for k, tree in trees.items():
+                runs[k].append(_one_process(tree, args, out))
+        for k, rs in runs.items():
+            walls, cpus = sorted(r[0] for r in rs), sorted(r[1] for r in rs)
+            row = {"wall_s": [walls[0], walls[len(walls) // 2], walls[-1]],
+                   "cpu_s": [cpus[0], cpus[len(cpus) // 2], cpus[-1]], "load": os.getloadavg()[0]}
+            res[f"{name} ({k})"] = row
+            print(f"  rig {name:9s} {k:10s} wall min/median/max {row['wall_s'][0]:6.2f} {row['wall_s'][1]:6.2f} "
+                  f"{row['wall_s'][2]:6.2f} s   CPU {row['cpu_s'][0]:6.2f} {row['cpu_s'][1]:6.2f} "
+                  f"{row['cpu_s'][2]:6.2f} s   ({_load()})", flush=True)
     return res
 
 
-def main(argv=None) -> int:
+def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--phases", action="store_true", help="where the time of a one-hour trial goes, phase by "
                     "phase (imports, plan, simulation, encoding, compression, fsync, the whole process), and "
@@ -278,7 +363,22 @@ def main(argv=None) -> int:
     ap.add_argument("--no-cli", action="store_true", help="skip the fresh-process runs")
     ap.add_argument("--json", default=None, help="also write the figures to this JSON file")
     ap.add_argument("--baseline", default=BASELINE, help="git commit whose rig/log.py is the 'before' writer")
-    args = ap.parse_args(argv)
+    ap.add_argument("--whole", nargs="*", choices=sorted(WHOLE), default=None, metavar="WHICH",
+                    help="whole-process figures (min/median/max of --repeat runs, wall and CPU) of: help, "
+                         "'main job', 'one hour' (default: all three)")
+    ap.add_argument("--vs", default=None, metavar="REF", help="with --whole: run this git commit's tree (or this "
+                    "directory's) in turn, in the same sitting (before/after)")
+    return ap
+
+
+def main(argv=None) -> int:
+    args = _parser().parse_args(argv)
+    if args.whole is not None:
+        print(f"whole processes, numba cache warm ({_load()}, {os.cpu_count()} cores)")
+        res = whole(args.repeat, args.whole or list(WHOLE), args.vs)
+        if args.json:
+            Path(args.json).write_text(json.dumps(res, indent=2))
+        return 0
     if args.phases:
         rec = Path(args.recipe) if "--recipe" in (argv or sys.argv) else HOUR_RECIPE
         phases(rec, Path(args.profile), args.json)

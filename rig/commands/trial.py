@@ -551,14 +551,15 @@ def _trial_metadata(inp: _Inputs, hw, *, uid: str, seed: int, k: int, n: int, gi
 
 def _make_backend(inp: _Inputs, hw, emu, seed: int, k: int, pace: float):
     """The trial's backend: the hardware's (``hw``, the emulated devices ``emu``) or the simulated rig's."""
-    from rig.session.hardware import HardwareBackend
-    from rig.session.sim import SimBackend
-
     recipe = inp.recipe
     try:
         if hw is not None:
+            from rig.session.hardware import HardwareBackend
+
             return HardwareBackend(hw, inp.profile, lubricant=recipe.lubricant if inp.lub_key else None,
                                    normal_force_N=recipe.normal_force_N, seed=seed, emulator=emu)
+        from rig.session.sim import SimBackend
+
         model = inp.fm if inp.fm is not None else inp.profile.friction_model(recipe.lubricant)
         block_ticks = max(1, int(round(recipe.log.block_s * inp.plan.loop_rate_hz)))
         return SimBackend(inp.profile, model, recipe.normal_force_N, seed, block_ticks=block_ticks, pace=pace)

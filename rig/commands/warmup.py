@@ -27,7 +27,7 @@ from rig.commands.common import EXIT_FAILED, console, fail
 _RIG = Path(__file__).resolve().parents[1]
 #: the modules whose numba kernels each command compiles on its first call
 SIM_KERNELS = ("sim/plant.py", "control.py", "model/friction.py", "model/sensors.py", "log/figures.py",
-               "log/loopblock.py")
+               "log/loopblock.py", "log/kernels.py")
 IDENTIFY_KERNELS = ("kinematics/velocity.py", "kinematics/steps.py", "model/forward.py", "model/loading.py",
                     "model/friction.py", "model/sensors.py")
 

@@ -90,5 +90,50 @@ class BlockMean:
         return {k: v.mean(axis=-1, keepdims=True) for k, v in rest.items()}
 
 
-__all__ = ["block_mean", "BlockMean", "boxcar_response", "decimation_factor"]
+def _kernels():
+    """:mod:`rig.log.kernels`, imported on first use (reading a log needs no numba)."""
+    from rig.log import kernels
+
+    return kernels
+
+
+class MatrixBlockMean:
+    """:class:`BlockMean` of one matrix of stacked float64 rows (samples along axis 1), compiled: one
+    pass per block without the GIL, each group's sum in numpy's own order, so the means are numpy's to
+    the bit (``tests/unit/log/test_log_mcap.py``). Rows where ``grid`` is true are first put on their
+    grid, ``rint((x - offset) / scale) * scale + offset`` (the device counts the /raw channel stores)."""
+
+    def __init__(self, n: int, grid, offset, scale):
+        self.n = int(n)
+        self.grid = np.asarray(grid, dtype=np.bool_)
+        self.offset = np.asarray(offset, dtype=np.float64)
+        self.scale = np.asarray(scale, dtype=np.float64)
+        self._carry = np.empty((self.grid.size, self.n))
+        self._n_carry = 0
+
+    def push(self, m: np.ndarray) -> np.ndarray | None:
+        """The means of the groups completed by ``m`` (rows x samples; its grid rows are rounded in place)."""
+        out = np.empty((m.shape[0], (self._n_carry + m.shape[1]) // self.n))
+        k, self._n_carry = _kernels().block_means(m, self.grid, self.offset, self.scale, self._carry,
+                                                  self._n_carry, self.n, out)
+        return out if k else None
+
+    def flush(self) -> np.ndarray | None:
+        """The last, partial group's mean (None: nothing carried)."""
+        if self._n_carry == 0:
+            return None
+        out = np.empty((self._carry.shape[0], 1))
+        _kernels().flush_means(self._carry, self._n_carry, out)
+        self._n_carry = 0
+        return out
+
+
+def warm_up() -> None:
+    """Compile (or load from the cache) the kernels now."""
+    mb = MatrixBlockMean(2, [True], [0.0], [1.0])
+    mb.push(np.zeros((1, 3)))
+    mb.flush()
+
+
+__all__ = ["block_mean", "BlockMean", "MatrixBlockMean", "boxcar_response", "decimation_factor"]
 

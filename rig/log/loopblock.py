@@ -184,12 +184,22 @@ def _varint(v: int) -> bytes:
     return bytes(out)
 
 
-def _pack_zigzag_py(vals, out, ends):  # pragma: no cover - compiled
-    """Zigzag varints of each row of ``vals`` (int64, rows x n) into ``out``; ``ends[r]`` = end of row r."""
+def _quant_pack_py(m, off, inv_q, lo, hi, ratio_i, ratio_f, unit_off, ratio_int, out, ends):  # pragma: no cover
+    """Each row of ``m`` (float64, rows x n) on its grid and packed as zigzag varints into ``out``
+    (``ends[r]`` = end of row r), in one pass without the GIL: the count ``rint((x - off) * inv_q)``
+    clipped to ``lo..hi``, stored times ``ratio_i`` (``ratio_int``) or as ``rint(count * ratio_f +
+    unit_off)``: the float operations, in their order, of the numpy encoder this replaced (its bytes:
+    ``tests/unit/log/test_log_protobuf.py``). Returns the bytes written, or -1 at the first non-finite
+    value (the caller then finds where: :meth:`LoopBlockEncoder._pack_nonfinite`)."""
     pos = 0
-    for r in range(vals.shape[0]):
-        for i in range(vals.shape[1]):
-            v = vals[r, i]
+    for r in range(m.shape[0]):
+        for i in range(m.shape[1]):
+            y = (m[r, i] - off[r]) * inv_q[r]
+            if not np.isfinite(y):
+                return -1
+            y = min(max(np.rint(y), lo[r]), hi[r])
+            qi = np.int64(y)
+            v = qi * ratio_i[r] if ratio_int else np.int64(np.rint(np.float64(qi) * ratio_f[r] + unit_off[r]))
             z = np.uint64((v << 1) ^ (v >> 63))
             while z >= np.uint64(0x80):
                 out[pos] = np.uint8((z & np.uint64(0x7F)) | np.uint64(0x80))
@@ -204,19 +214,22 @@ def _pack_zigzag_py(vals, out, ends):  # pragma: no cover - compiled
 _PACK: dict = {}
 
 
-def _pack_zigzag(vals: np.ndarray, out: np.ndarray, ends: np.ndarray) -> int:
-    """numba-compiled :func:`_pack_zigzag_py` (compiled on first use and cached; reading needs no numba)."""
-    fn = _PACK.get("jit")
-    if fn is None:
+def _jit(name: str, fn):
+    """numba-compiled ``fn`` (compiled on first use and cached, without the GIL: the writer's thread
+    encodes beside the loop; reading needs no numba)."""
+    jf = _PACK.get(name)
+    if jf is None:
         from numba import njit
 
-        fn = _PACK["jit"] = njit(cache=True)(_pack_zigzag_py)
-    return fn(vals, out, ends)
+        jf = _PACK[name] = njit(cache=True, nogil=True)(fn)
+    return jf
 
 
 def warm_up() -> None:
     """Compile (or load from the cache) the encoder's kernel now."""
-    _pack_zigzag(np.zeros((1, 1), np.int64), np.zeros(10, np.uint8), np.zeros(1, np.int64))
+    one, z1 = np.ones(1), np.zeros(1)
+    _jit("quant", _quant_pack_py)(np.zeros((1, 1)), z1, one, z1, one, np.ones(1, np.int64), one, z1, True,
+                                  np.zeros(10, np.uint8), np.zeros(1, np.int64))
 
 
 class LoopBlockEncoder:
@@ -236,15 +249,17 @@ class LoopBlockEncoder:
         self._int_tags = [_varint((p.number << 3) | 2) for p in ints]
         self._others = [p for p in self.fields if p.kind != "sint64"]
         self._other_tags = [_varint((p.number << 3) | 2) for p in self._others]
-        if ints:
-            self._off = np.array([p.offset for p in ints])[:, None]
-            self._inv_q = np.array([1.0 / p.quantum for p in ints])[:, None]
-            self._lo = np.array([p.lo for p in ints], dtype=float)[:, None]
-            self._hi = np.array([p.hi for p in ints], dtype=float)[:, None]
-            ratio = np.array([p.quantum / p.unit_scale for p in ints])
-            self._unit_off = np.array([p.offset / p.unit_scale for p in ints])[:, None]
-            self._ratio_int = bool(np.allclose(ratio, np.rint(ratio), rtol=0, atol=1e-9) and not self._unit_off.any())
-            self._ratio = np.rint(ratio).astype(np.int64)[:, None] if self._ratio_int else ratio[:, None]
+        if ints:  # the grids of the integer fields, one value per row (the kernel's arguments)
+            self._off = np.array([p.offset for p in ints], dtype=float)
+            self._inv_q = np.array([1.0 / p.quantum for p in ints])
+            self._lo = np.array([p.lo for p in ints], dtype=float)
+            self._hi = np.array([p.hi for p in ints], dtype=float)
+            self._ratio_f = np.array([p.quantum / p.unit_scale for p in ints])
+            self._unit_off = np.array([p.offset / p.unit_scale for p in ints])
+            self._ratio_int = bool(np.allclose(self._ratio_f, np.rint(self._ratio_f), rtol=0, atol=1e-9)
+                                   and not self._unit_off.any())
+            self._ratio_i = np.rint(self._ratio_f).astype(np.int64) if self._ratio_int \
+                else np.zeros(len(ints), np.int64)
         return self.fields
 
     def schema(self) -> bytes:
@@ -271,25 +286,11 @@ class LoopBlockEncoder:
             b = x.astype("<f8" if p.kind == "double" else "<f4").tobytes()
             tail += [tag, _varint(len(b)), b]
         if self._ints:
-            m = np.stack([block[p.key] for p in self._ints]).astype(np.float64)
-            m -= self._off
-            m *= self._inv_q
-            np.rint(m, out=m)
-            finite = np.isfinite(m)
-            if not finite.all():
-                bad_r, bad_i = np.nonzero(~finite)
-                nan_f.append(np.array([self._ints[r].number for r in bad_r], dtype=np.int64))
-                nan_i.append(bad_i.astype(np.int64))
-                m[~finite] = 0.0
-            np.clip(m, self._lo, self._hi, out=m)
-            q = m.astype(np.int64)
-            if self._ratio_int:
-                st = q * self._ratio
-            else:  # the display unit from the count's physical value
-                st = np.rint(q * self._ratio + self._unit_off).astype(np.int64)
-            out = np.empty(st.size * 10, np.uint8)
-            ends = np.empty(st.shape[0], np.int64)
-            _pack_zigzag(np.ascontiguousarray(st), out, ends)
+            m = np.stack([block[p.key] for p in self._ints]).astype(np.float64, copy=False)
+            out = np.empty(m.size * 10, np.uint8)
+            ends = np.empty(m.shape[0], np.int64)
+            if self._quant(m, out, ends) < 0:
+                self._pack_nonfinite(m, out, ends, nan_f, nan_i)
             start = 0
             for r, tag in enumerate(self._int_tags):
                 e = int(ends[r])
@@ -300,6 +301,21 @@ class LoopBlockEncoder:
                 b = b"".join(_varint(int(v)) for v in arr)
                 parts += [_varint((num << 3) | 2), _varint(len(b)), b]
         return b"".join(parts + tail)
+
+    def _quant(self, m: np.ndarray, out: np.ndarray, ends: np.ndarray) -> int:
+        """:func:`_quant_pack_py` of the integer rows ``m`` with this plan's grids."""
+        return _jit("quant", _quant_pack_py)(m, self._off, self._inv_q, self._lo, self._hi, self._ratio_i,
+                                             self._ratio_f, self._unit_off, self._ratio_int, out, ends)
+
+    def _pack_nonfinite(self, m: np.ndarray, out: np.ndarray, ends: np.ndarray, nan_f: list, nan_i: list) -> None:
+        """The integer rows of a block with a non-finite count: its positions go to ``nan_f``/``nan_i``
+        (field numbers, sample indexes) and those samples are stored as count 0."""
+        with np.errstate(invalid="ignore", over="ignore"):
+            finite = np.isfinite(np.rint((m - self._off[:, None]) * self._inv_q[:, None]))
+        bad_r, bad_i = np.nonzero(~finite)
+        nan_f.append(np.array([self._ints[r].number for r in bad_r], dtype=np.int64))
+        nan_i.append(bad_i.astype(np.int64))
+        self._quant(np.where(finite, m, self._off[:, None]), out, ends)  # x = offset: count 0
 
 
 # -- decoding -----------------------------------------------------------------------------------------------

@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 from mcap.records import (Attachment, Channel, Chunk, Footer, Header, Message, MessageIndex, Metadata, Schema)
 from mcap.data_stream import ReadDataStream
+from mcap.opcode import Opcode
 from mcap.stream_reader import StreamReader
 
 from rig.data import STANDARD_COLUMNS, DataFormatError, TrialData
@@ -240,6 +241,17 @@ class _Scan:
             c.complete = True
 
 
+class _Records(StreamReader):
+    """``mcap``'s StreamReader, but a MessageIndex record is read as its channel id only (all the scan
+    uses: the channels of a damaged chunk); its entries, 16 bytes per message read two ``read8`` calls
+    each, were 40 % of ``rig info``'s time, and the reader skips them in one read (its padding)."""
+
+    def _read_record(self, opcode: int, length: int):
+        if opcode == Opcode.MESSAGE_INDEX:
+            return MessageIndex(self._stream.read2(), [])
+        return super()._read_record(opcode, length)
+
+
 def _framing_error(exc: Exception) -> str:
     """What broke the file's framing, in one line."""
     name = type(exc).__name__
@@ -261,7 +273,7 @@ def scan(path: str | os.PathLike, topics: set[str] | None = None) -> LogContent:
     c = sc.c
     with open(path, "rb") as fh:
         try:
-            for rec in StreamReader(fh, emit_chunks=True, record_size_limit=max(64, path.stat().st_size)).records:
+            for rec in _Records(fh, emit_chunks=True, record_size_limit=max(64, path.stat().st_size)).records:
                 sc.record(rec)
         except Exception as exc:  # the point where the framing broke: keep everything before it
             c.error = _framing_error(exc)

@@ -37,7 +37,8 @@ import numpy as np
 from mcap.writer import CompressionType, Writer
 
 from rig import __version__
-from rig.log.decimate import BlockMean, decimation_factor
+from rig.log import decimate as _decimate_mod
+from rig.log.decimate import MatrixBlockMean, decimation_factor
 from rig.log.loopblock import LOOP_BLOCK_SCHEMA, PROTO_ENCODING, LoopBlockEncoder
 from rig.log import loopblock as _loopblock
 from rig.log.schemas import (EVENTS_TOPIC, JSON_TOPICS, LOG25_TOPIC, MCAP_PROFILE, RAW_TOPIC, RAW_V2_ENCODING,
@@ -75,6 +76,30 @@ def _message_index_class():
     return _MessageIndex
 
 
+def _log25_messages(names: list, specs: list, m: np.ndarray, cid: int, origin_ns: int, seq0: int
+                    ) -> tuple[list, np.ndarray]:
+    """The /log25 messages ``(channel, log_time, JSON, sequence)`` of decimated samples (columns of ``m``;
+    its rows the fields ``names`` but a last ``mu``, computed here) printed with ``specs``: one printf
+    template for the block's samples (one ``%`` and one split), or per sample with a non-finite value
+    (null); and ``m`` with its mu row."""
+    if names[-1] == "mu":
+        nn = m[names.index("normal_1_N")] + m[names.index("normal_2_N")]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            mu = np.where(nn != 0.0, m[names.index("friction_N")] / nn, np.nan)
+        m = np.vstack((m, mu))
+    k = m.shape[1]
+    if np.isfinite(m).all():
+        fmt = "{" + ",".join(f'"{nm}":{sp}' for nm, sp in zip(names, specs)) + "}"
+        payloads = ("\n".join([fmt] * k) % tuple(m.T.ravel().tolist())).encode().split(b"\n")
+    else:
+        payloads = [("{" + ",".join(f'"{nm}":' + (sp % v if math.isfinite(v) else "null")
+                                    for nm, sp, v in zip(names, specs, row)) + "}").encode() for row in m.T.tolist()]
+    # integer arithmetic: float64 cannot hold epoch ns exactly
+    rel = np.clip(np.rint(np.nan_to_num(m[0]) * 1e9), -4e18, 4e18).astype(np.int64)
+    ns = np.maximum(rel + np.int64(origin_ns), 0).tolist()
+    return list(zip([cid] * k, ns, payloads, range(seq0, seq0 + k))), m
+
+
 class _Sink:
     """Owns the ``mcap`` Writer and the file: messages, metadata, flush (+fsync), finish."""
 
@@ -85,10 +110,18 @@ class _Sink:
 
     def messages(self, items: list) -> None:
         """Add a batch of ``(channel_id, log_time, data, sequence)`` (``data`` may be a callable: a raw block
-        encoded here). Into the open chunk in one pass (:meth:`_add_batch`) where this ``mcap`` version's
+        encoded here; an item may be a callable returning such tuples: a block's 25 Hz messages). Into the
+        open chunk in one pass (:meth:`_add_batch`) where this ``mcap`` version's
         Writer has the expected internals, else message by message through its public ``add_message``."""
-        if any(callable(it[2]) for it in items):
-            items = [(cid, ns, data() if callable(data) else data, seq) for cid, ns, data, seq in items]
+        if any(type(it) is not tuple or callable(it[2]) for it in items):
+            flat: list = []
+            for it in items:
+                if type(it) is not tuple:  # the messages of a block's 25 Hz samples, printed here
+                    flat += it()
+                else:
+                    cid, ns, data, seq = it
+                    flat.append((cid, ns, data() if callable(data) else data, seq))
+            items = flat
         if self._fast:
             self._add_batch(items)
             return
@@ -323,7 +356,7 @@ class TrialLogWriter:
         self.decimated_rate_hz = float(decimated_rate_hz)
         self._raw_every = max(1, int(round(self.loop_rate_hz / self.raw_rate_hz)))
         self._dec_every = decimation_factor(self.loop_rate_hz, self.decimated_rate_hz)
-        self._dec = BlockMean(self._dec_every)
+        self._dec: MatrixBlockMean | None = None  # made with the first block's plan (_decimate)
         self.start_time_ns = int(time.time_ns() if start_time_ns is None else start_time_ns)
         self._origin_ns = self.start_time_ns  # wall-clock ns of trial time 0 (re-anchored by anchor())
         self._anchored = False
@@ -405,6 +438,7 @@ class TrialLogWriter:
         so that the first block of a run is written as fast as the rest: call before a real-time loop
         starts."""
         _loopblock.warm_up()
+        _decimate_mod.warm_up()
 
     # -- listeners (live view hook) --------------------------------------------
     def add_listener(self, fn: Callable[[str, dict], None]) -> None:
@@ -554,58 +588,40 @@ class TrialLogWriter:
 
     def _decimate(self, arrays: dict[str, np.ndarray]) -> None:
         """The /log25 samples of a block: the device columns on their /raw grid (integer count times the
-        scale), stacked, and block means over each interval (:class:`rig.log.decimate.BlockMean`), in a
-        few numpy calls per block."""
+        scale) and block means over each interval: one compiled pass over the stacked columns, without
+        the GIL (:class:`rig.log.decimate.MatrixBlockMean`)."""
         if self._dec_plan is None:
             names = tuple(nm for nm in SAMPLE_FIELDS[:-1] if nm in arrays)
             cols = [self._enc.column(nm) for nm in names]
-            grid = [i for i, (nm, c) in enumerate(zip(names, cols)) if nm != "t_s" and np.dtype(c.dtype).kind == "i"]
-            self._dec_plan = (names, grid, np.array([[cols[i].offset] for i in grid]),
-                              np.array([[cols[i].scale] for i in grid]))
-        names, grid, off, scale = self._dec_plan
-        m = np.stack([arrays[nm] for nm in names])
-        if grid:
-            g = m[grid]
-            with np.errstate(invalid="ignore"):
-                g -= off
-                g /= scale
-                np.rint(g, out=g)
-                g *= scale
-                g += off
-            m[grid] = g
-        dec = self._dec.push({"m": m})
+            grid = [nm != "t_s" and np.dtype(c.dtype).kind == "i" for nm, c in zip(names, cols)]
+            self._dec_plan = (names,)
+            self._dec = MatrixBlockMean(self._dec_every, grid,
+                                        [c.offset if g else 0.0 for c, g in zip(cols, grid)],
+                                        [c.scale if g else 1.0 for c, g in zip(cols, grid)])
+        names = self._dec_plan[0]
+        dec = self._dec.push(np.stack([arrays[nm] for nm in names]))  # a copy: its grid rows are rounded in place
         if dec is not None:
-            self._emit_log25(names, dec["m"])
+            self._emit_log25(names, dec)
 
     def _emit_log25(self, names: tuple, m: np.ndarray) -> None:
         """Write decimated samples (rows of ``m``: the fields ``names``; block means, see rig.log.decimate)
-        as /log25 messages, with mu; every sample's JSON from one printf template per block."""
+        as /log25 messages, with mu (:func:`_log25_messages`); threaded and with no listener, the messages
+        are made in the writer's thread, in the file's order (the loop's thread only counts them)."""
         names = list(names)
         if "normal_1_N" in names and "normal_2_N" in names:
-            nn = m[names.index("normal_1_N")] + m[names.index("normal_2_N")]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                mu = np.where(nn != 0.0, m[names.index("friction_N")] / nn, np.nan)
-            m = np.vstack((m, mu))
             names.append("mu")
         k = m.shape[1]
         specs = [self._dec_format(nm) for nm in names]
-        if np.isfinite(m).all():
-            fmt = "{" + ",".join(f'"{nm}":{sp}' for nm, sp in zip(names, specs)) + "}"
-            payloads = ("\n".join([fmt] * k) % tuple(m.T.ravel().tolist())).encode().split(b"\n")
+        args = (names, specs, m, self._chan[LOG25_TOPIC], self._origin_ns, self._seq[LOG25_TOPIC])
+        if self._threaded and not self._listeners:
+            self._batch.append(lambda: _log25_messages(*args)[0])
         else:
-            payloads = [("{" + ",".join(f'"{nm}":' + (sp % v if math.isfinite(v) else "null")
-                                        for nm, sp, v in zip(names, specs, row)) + "}").encode()
-                        for row in m.T.tolist()]
-        # integer arithmetic: float64 cannot hold epoch ns exactly
-        rel = np.clip(np.rint(np.nan_to_num(m[0]) * 1e9), -4e18, 4e18).astype(np.int64)
-        ns = np.maximum(rel + np.int64(self._origin_ns), 0).tolist()
-        seq0 = self._seq[LOG25_TOPIC]
-        cid = self._chan[LOG25_TOPIC]
-        self._batch.extend(zip([cid] * k, ns, payloads, range(seq0, seq0 + k)))
-        self._seq[LOG25_TOPIC] = seq0 + k
+            msgs, m = _log25_messages(*args)
+            self._batch.extend(msgs)
+            if self._listeners:
+                self._notify("samples", dict(zip(names, m)))
+        self._seq[LOG25_TOPIC] += k
         self.counts[LOG25_TOPIC] += k
-        if self._listeners:
-            self._notify("samples", dict(zip(names, m)))
 
     def _dec_format(self, name: str) -> str:
         """printf format of a /log25 field: the raw column's resolution (the same values as /raw), else repr."""
@@ -690,9 +706,9 @@ class TrialLogWriter:
         if self.closed:
             return
         self.status = status
-        last = self._dec.flush()
+        last = self._dec.flush() if self._dec is not None else None
         if last is not None:  # the last, partial interval (mean of its ticks)
-            self._emit_log25(self._dec_plan[0], last["m"])
+            self._emit_log25(self._dec_plan[0], last)
         self.event(self.last_t_s, "log_end", status=status)
         # the counts of what the file holds (log_end included: `rig info` counts the same messages)
         end = {"status": status, "ticks": self.ticks, "duration_s": self.last_t_s,

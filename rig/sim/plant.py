@@ -385,7 +385,7 @@ BLOCK_KEYS = ("t_s", "position_ref_um", "position_um", "friction_N", "normal_1_N
 N_OUT = len(BLOCK_KEYS)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def run_closed_loop(q, fp, fs, st, ring, c, cs, xref, ffref, i0, noise, j0, out, k0, count):
     """``count`` closed-loop ticks: sample sensors, controller (rig.control), advance plant.
 

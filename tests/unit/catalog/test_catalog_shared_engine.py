@@ -44,3 +44,31 @@ def test_one_job_or_a_scheduler_is_never_shared(monkeypatch):
         assert a is not b and a.serial
     with batch.engine(2, "tcp://127.0.0.1:1") as c:
         assert c.scheduler and not batch._SHARED
+
+
+def test_forked_workers_start_with_numbas_target_loaded(monkeypatch):
+    """The forkserver imports the task's module, then the module that loads numba's CPU target, so a
+    forked worker's first task does not pay it (a wrong name would be skipped silently by the server)."""
+    import importlib
+
+    import distributed
+    import pytest
+
+    seen: list[str] = []
+    monkeypatch.setattr(batch, "START_METHOD", "forkserver")
+    monkeypatch.setattr(batch, "_forkserver_preload", seen.extend)
+
+    class Stop(Exception):
+        pass
+
+    def no_cluster(*a, **k):
+        raise Stop
+
+    monkeypatch.setattr(distributed, "LocalCluster", no_cluster)
+    with pytest.raises(Stop), batch.dask_client(2, preload=["rig.catalog.tasks"]):
+        pass
+    assert seen[-1] == batch.KERNELS_PRELOAD and seen.index("rig.catalog.tasks") < len(seen) - 1
+    importlib.import_module(batch.KERNELS_PRELOAD)
+    from numba.core.registry import cpu_target
+
+    assert cpu_target.target_context._registries  # loaded: what the forked workers inherit

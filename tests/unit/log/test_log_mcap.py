@@ -493,3 +493,26 @@ def test_trial_end_counts_what_the_file_holds(tmp_path):
     assert int(end["events"]) == by_topic[EVENTS_TOPIC] >= 3  # log_start, velocity_step, log_end
     assert int(end["raw_blocks"]) == by_topic[RAW_TOPIC] == 12
     assert int(end["samples_decimated"]) == by_topic[LOG25_TOPIC] == 38  # 1500 ticks: 37 intervals of 40 + 1
+
+
+@pytest.mark.parametrize("n", [40, 7, 333])
+def test_compiled_block_means_are_numpys_to_the_bit(n):
+    """The writer's compiled 25 Hz decimation (rig.log.decimate.MatrixBlockMean: grid rounding and block
+    means in one pass) gives the bits of the numpy BlockMean it replaced, across blocks that end
+    mid-interval, with NaNs, and for the last partial interval."""
+    from rig.log.decimate import BlockMean, MatrixBlockMean
+
+    rng = np.random.default_rng(n)
+    off, scale = np.array([0.0, 0.5, 0.0]), np.array([1.0, 0.01, 1 / 32767])
+    mb, ref = MatrixBlockMean(n, [False, True, True], off, scale), BlockMean(n)
+    for size in (1000, 37, 999, 1, 2500):
+        m = rng.normal(0, 1, (3, size)) * np.array([[1e3], [10.0], [0.5]]) + 1e5 * (size == 37)
+        m[2, 0] = np.nan
+        g = m.copy()
+        with np.errstate(invalid="ignore"):
+            g[1:] = np.rint((g[1:] - off[1:, None]) / scale[1:, None]) * scale[1:, None] + off[1:, None]
+        got, want = mb.push(m), ref.push({"m": g})
+        assert (got is None) == (want is None)
+        if got is not None:
+            assert np.array_equal(got, want["m"], equal_nan=True)
+    assert np.array_equal(mb.flush(), ref.flush()["m"], equal_nan=True)

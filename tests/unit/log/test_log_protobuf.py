@@ -204,3 +204,41 @@ def test_small_real_time_chunks_are_compacted_at_close(tmp_path):
         m["trial_end"].pop("ended_utc")  # the two runs ended at different times
     assert ma == mb
     assert not list(tmp_path.glob(".*.tmp"))
+
+
+@pytest.mark.parametrize("ratio_int", [True, False])
+def test_compiled_encoder_stores_the_counts_numpy_computes(ratio_int):
+    """The one-pass kernel (quantize, clip, zigzag varints without the GIL) stores, field by field, the
+    integers the numpy formula gives (the encoder before it), on values over the whole range, at the clip
+    limits, at half steps and with a NaN (stored as 0, its place recorded)."""
+    from rig.log.loopblock import LoopBlockEncoder, unpack_varints
+    from rig.log.schemas import device_columns
+
+    cols = device_columns()
+    keys = ("t_s", "friction_N", "normal_1_N", "valve_cmd", "pid_i", "true_mu")
+    enc = LoopBlockEncoder(lambda k: cols.get(k, cols["t_s"]), 1000.0)
+    enc.plan(keys)
+    if not ratio_int:  # the display unit from the count's physical value (a layout with an offset)
+        enc._ratio_int = False
+        enc._unit_off = np.linspace(-0.5, 0.5, len(enc._ints))
+    rng = np.random.default_rng(7)
+    n = 500
+    m = np.stack([rng.normal(0, 1, n) * 10.0 ** rng.integers(-3, 6) for _ in enc._ints])
+    m[:, :4] = [1e300, -1e300, 0.005, -0.015]  # clipped, clipped, half steps
+    for nan in (False, True):
+        if nan:
+            m[2, 9] = np.nan
+        with np.errstate(invalid="ignore"):
+            q = np.rint((m - enc._off[:, None]) * enc._inv_q[:, None])
+        q[~np.isfinite(q)] = 0.0
+        q = np.clip(q, enc._lo[:, None], enc._hi[:, None]).astype(np.int64)
+        want = q * enc._ratio_i[:, None] if ratio_int else \
+            np.rint(q * enc._ratio_f[:, None] + enc._unit_off[:, None]).astype(np.int64)
+        out, ends, nan_f, nan_i = np.zeros(m.size * 10, np.uint8), np.zeros(m.shape[0], np.int64), [], []
+        if enc._quant(m, out, ends) < 0:
+            enc._pack_nonfinite(m, out, ends, nan_f, nan_i)
+        assert nan == bool(nan_f) and (not nan or (nan_f[0].tolist(), nan_i[0].tolist()) ==
+                                       ([enc._ints[2].number], [9]))
+        starts = np.concatenate(([0], ends[:-1]))
+        for r in range(m.shape[0]):
+            assert np.array_equal(unpack_varints(out[starts[r]:ends[r]], zigzag=True), want[r])

@@ -56,5 +56,5 @@ def test_warm_up_compiles_what_the_first_block_needs(tmp_path):
     w.warm_up()
     from rig.log import loopblock
 
-    assert loopblock._PACK.get("jit") is not None and loopblock._PACK["jit"].signatures
+    assert loopblock._PACK.get("quant") is not None and loopblock._PACK["quant"].signatures
     w.close(timeout_s=5)
