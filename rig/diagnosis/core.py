@@ -504,14 +504,54 @@ def fit_baseline(grid: Grid, baseline: str, prior: dict | None = None) -> FitRes
     # identify's whole-record fit (fitted whatever its cost at the start: a ranking by cost at the
     # starting point is what let the fit settle in a cancelling A ~ B ~ 0.05 minimum before)
     must = [{"mu0": p_ss["mu0"], "A_mu": prior["A_mu"], "B_mu": prior["B_mu"], "L_um": prior["L_um"]}] if prior else []
+    j = int(np.argmax(grid.sliding))
+    v1 = float(max(grid.v[j], 0.01))
     if not grid.sliding[: max(3, grid.t.size // 200)].any():
         # the record starts at rest (a hold before sliding): the state it starts in is unknown,
         # a nuisance parameter (the velocity whose steady state it is), fitted with everything else
-        j = int(np.argmax(grid.sliding))
-        v1 = float(max(grid.v[j], 0.01))
         starts = [dict(s, v_init_um_s=v1 * f) for s in starts for f in (1.0, 0.01)]
         must = [dict(s, v_init_um_s=v1 * f) for s in must for f in (1.0, 0.01)]
     return multistart(grid, "rate_state", [], starts, keep=3, must=must)
+
+
+# the start's state is searched from the steady state of the first velocity times these
+START_STATE_FACTORS = (0.1, 1.0, 10.0)
+
+
+def _start_state(grid: Grid, res: FitResult) -> FitResult:
+    """``res`` (started in the steady state of the first velocity), or the same model with the
+    state it starts in fitted (``v_init_um_s``, the speed whose steady state it is, a nuisance
+    parameter as for a start from rest) when that explains the fit blocks significantly better
+    (BIC falls by more than -MIN_DBIC, the extra parameter counted): a record cut out of a longer
+    run (a crop, a trim) starts mid-transient, e.g. a second after a velocity step whose direct
+    effect is cut off, and a steady start would make every model bend its a, b and L to the
+    first seconds. Every candidate then carries it (it is in the current model's parameters)."""
+    if "v_init_um_s" in res.params or res.baseline != "rate_state":
+        return res
+    v1 = float(max(grid.v[int(np.argmax(grid.sliding))], 0.01))
+    starts = [dict(res.params, v_init_um_s=v1 * f) for f in START_STATE_FACTORS]
+    free = multistart(grid, res.baseline, list(res.extensions), starts, keep=len(starts), max_nfev=120)
+    return free if delta_bic(grid, res, free) < MIN_DBIC else res
+
+
+def _free_start(s: "_Search", prior: dict, known: dict, warm: dict | None, progress=None) -> None:
+    """The start's state fitted where it is unknown (:func:`_start_state`), after the load point's
+    coupling: on a load-point record the spring, not the start, explains the first transient, so
+    the start is judged on the coupled model; where the coupling was refused on a steady start,
+    it is tried again from the rigid model with its start fitted (a record that starts
+    mid-transient: the spring then has the same start to work from)."""
+    cur = s.history[-1]
+    free = _start_state(s.grid, cur)
+    if free is cur:
+        return
+    s.history[-1] = free
+    if s.coupled:
+        s.chosen[-1][0].result = free
+    elif len(s.history) == 1:
+        s.base = free
+    if s.coupling_refused is not None:
+        s.coupling_refused = None
+        _couple(s, prior, known, warm, progress)
 
 
 def try_candidate(grid: Grid, cur: FitResult, cause: str, info: dict, prior: dict | None = None,
@@ -752,6 +792,7 @@ def _search(trial: TrialData, baseline: str, prior: dict, steps: list, known: di
     s = _Search(grid, base, [base], [], [])
     if load_point and baseline == "rate_state":
         _couple(s, prior, known, warm_coupling, progress)
+    _free_start(s, prior, known, warm_coupling, progress)
     cur, tried, chosen, history = s.history[-1], s.tried, s.chosen, s.history
     for round_no in range(max_rounds):
         cands, info = screen(grid, cur)
@@ -948,11 +989,9 @@ def _stability(main: _Search, split_causes: list[list[str]]) -> tuple[int, list[
     """(how many of the main split's causes are named, the fraction of all splits naming each): the
     causes in order until the first that most splits do not name (the coupling is always kept)."""
     n_splits = 1 + len(split_causes)
+    stab = [(1 + sum(c.cause in sc for sc in split_causes)) / n_splits for c, _, _ in main.chosen]
     kept = 0
-    stab = []
-    for i, (c, _, _) in enumerate(main.chosen):
-        st = (1 + sum(c.cause in sc for sc in split_causes)) / n_splits
-        stab.append(st)
+    for i, st in enumerate(stab):
         if st <= MIN_STABILITY and i >= int(main.coupled):
             break
         kept = i + 1
