@@ -818,6 +818,11 @@ def _search(trial: TrialData, baseline: str, prior: dict, steps: list, known: di
     return s
 
 
+def _significant(c: Candidate) -> bool:
+    """A hold-out gain of at least MIN_GAIN_PCT that the paired chunk z or the white-noise z supports."""
+    return c.gain_pct >= MIN_GAIN_PCT and (c.z >= MIN_Z or c.zw >= MIN_ZW)
+
+
 def _worsens(c: Candidate) -> bool:
     """The held-out data predicted worse with the candidate than without it, by the test a gain must
     pass with the sign reversed: a loss of at least MIN_GAIN_PCT that is significant (paired chunk z
@@ -1028,6 +1033,11 @@ def _findings(main: _Search, kept: int, stab: list[float], split_causes: list[li
             ev += "; not named: " + "; ".join(f"{o.cause} ({o.gain_pct:+.1f}%): {o.note}" for o in stronger)
         alts = _alternatives(grid, c, round_, [sc[i] if i < len(sc) else "none" for sc in split_causes
                                                if c.cause not in sc])
+        if i < int(main.coupled) and not _significant(c) and not any(a["cause"] == "none" for a in alts):
+            # the coupling is named as physics, but the held-out data do not test it
+            ev += (f"; the held-out data do not test the spring ({c.gain_pct:+.1f}%, not significant): its "
+                   "stiffness and the a, b it trades with are not determined by this record")
+            alts.append({"cause": "none", "params": {}, "gain_pct": 0.0, "delta_bic": 0.0})
         out.append(Finding(c.cause, {k: res.params[k] for k in CAUSES[c.cause].params}, ev, before.holdout_rms_N,
                            res.holdout_rms_N, c.gain_pct, c.delta_bic,
                            stability=stab[i] if (split_causes or i < int(main.coupled)) else None,
