@@ -50,7 +50,7 @@ import numpy as np
 from rig.analysis.report import rounded as _r  # the one rounding of the reports (6 significant figures)
 from rig.data import TrialData
 
-from .fit import FitResult, at_bound, delta_bic, evaluate, fit, multistart, profile
+from .fit import FitResult, at_bound, delta_bic, evaluate, fit, multistart, param, profile
 from rig.kinematics import velocity_changes
 from rig.model.forward import as_model
 from rig.model.spec import EXT_PARAMS, PLAUSIBLE, model_params
@@ -542,8 +542,8 @@ def _free_start(s: "_Search", prior: dict, known: dict, warm: dict | None, progr
     mid-transient: the spring then has the same start to work from)."""
     cur = s.history[-1]
     free = _start_state(s.grid, cur)
-    if free is cur:
-        return
+    if free is cur or (s.coupled and _bounded(free)):
+        return  # (a coupled fit that the free start runs to a bound keeps its steady start)
     s.history[-1] = free
     if s.coupled:
         s.chosen[-1][0].result = free
@@ -818,6 +818,26 @@ def _search(trial: TrialData, baseline: str, prior: dict, steps: list, known: di
     return s
 
 
+# a coupled fit with one of these on its fit bound (rig.model.spec.PARAMS) is not named: the model
+# with the spring does not describe the record (sepiolite velstep2: B = -0.2, L 840 um)
+CORE_BOUNDED = ("A_mu", "B_mu", "L_um", "stiffness_kN_per_m")
+
+
+def _bounded(res: FitResult) -> list[str]:
+    """The parameters of CORE_BOUNDED that ``res`` has on a bound."""
+    return [k for k in CORE_BOUNDED if k in res.params and _on_bound(k, res.params[k])]
+
+
+def _on_bound(name: str, value: float) -> bool:
+    """``value`` on (or within 1e-4 of the range from) a bound of the model's domain for ``name``
+    (``fit.param``, rig.model.spec.PARAMS; a ln-fitted one within 1 %). Not the record's own bound
+    on L (``Grid.max_state_um``): a trimmed 36 um record's L of 18 um is no runaway."""
+    p = param(name)
+    if p.log:
+        return p.at_bound(value)
+    return min(value - p.lo, p.hi - value) <= 1e-4 * (p.hi - p.lo)
+
+
 def _significant(c: Candidate) -> bool:
     """A hold-out gain of at least MIN_GAIN_PCT that the paired chunk z or the white-noise z supports."""
     return c.gain_pct >= MIN_GAIN_PCT and (c.z >= MIN_Z or c.zw >= MIN_ZW)
@@ -850,9 +870,12 @@ def _couple(s: _Search, prior: dict, known: dict, warm: dict | None, progress=No
         progress("the machine's coupling")
     cur = s.history[-1]
     c = try_candidate(s.grid, cur, "finite_stiffness", {}, prior, warm=warm)
-    if _worsens(c):
+    bound = _bounded(c.result)
+    if _worsens(c) or bound:
         c.note = (f"the held-out data get worse with it (hold-out RMS {cur.holdout_rms_N:.4g} -> "
-                  f"{c.result.holdout_rms_N:.4g} N, {c.gain_pct:+.1f}%)")
+                  f"{c.result.holdout_rms_N:.4g} N, {c.gain_pct:+.1f}%)" if not bound else
+                  f"its fit runs to the bound of {', '.join(f'{k} = {c.result.params[k]:.4g}' for k in bound)}: "
+                  "the one-state model with a spring does not describe this record")
         s.coupling_refused = c
         return
     why = ("the file states the machine stiffness (machine_stiffness_kN_per_m), held fixed" if known else
