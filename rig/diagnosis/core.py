@@ -530,7 +530,7 @@ def _start_state(grid: Grid, res: FitResult) -> FitResult:
         return res
     v1 = float(max(grid.v[int(np.argmax(grid.sliding))], 0.01))
     starts = [dict(res.params, v_init_um_s=v1 * f) for f in START_STATE_FACTORS]
-    free = multistart(grid, res.baseline, list(res.extensions), starts, keep=len(starts), max_nfev=120)
+    free = multistart(grid, res.baseline, list(res.extensions), starts, keep=1, max_nfev=120)
     return free if delta_bic(grid, res, free) < MIN_DBIC else res
 
 
