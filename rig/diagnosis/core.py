@@ -518,32 +518,37 @@ def fit_baseline(grid: Grid, baseline: str, prior: dict | None = None) -> FitRes
 START_STATE_FACTORS = (0.1, 1.0, 10.0)
 
 
-def _start_state(grid: Grid, res: FitResult) -> FitResult:
+def _start_state(grid: Grid, res: FitResult, decided: bool | None = None) -> FitResult:
     """``res`` (started in the steady state of the first velocity), or the same model with the
     state it starts in fitted (``v_init_um_s``, the speed whose steady state it is, a nuisance
     parameter as for a start from rest) when that explains the fit blocks significantly better
     (BIC falls by more than -MIN_DBIC, the extra parameter counted): a record cut out of a longer
     run (a crop, a trim) starts mid-transient, e.g. a second after a velocity step whose direct
     effect is cut off, and a steady start would make every model bend its a, b and L to the
-    first seconds. Every candidate then carries it (it is in the current model's parameters)."""
-    if "v_init_um_s" in res.params or res.baseline != "rate_state":
+    first seconds. Every candidate then carries it (it is in the current model's parameters).
+    ``decided``: the record's main split's answer, which a re-split takes (the state a record
+    starts in is the record's, not a split's: decided on each split, a re-split of a trimmed
+    drift record fitted it and its screen then missed the drift the main split names)."""
+    if "v_init_um_s" in res.params or res.baseline != "rate_state" or decided is False:
         return res
     v1 = float(max(grid.v[int(np.argmax(grid.sliding))], 0.01))
     starts = [dict(res.params, v_init_um_s=v1 * f) for f in START_STATE_FACTORS]
     free = multistart(grid, res.baseline, list(res.extensions), starts, keep=1, max_nfev=120)
-    return free if delta_bic(grid, res, free) < MIN_DBIC else res
+    return free if decided or delta_bic(grid, res, free) < MIN_DBIC else res
 
 
-def _free_start(s: "_Search", prior: dict, known: dict, warm: dict | None, progress=None) -> None:
+def _free_start(s: "_Search", prior: dict, known: dict, warm: dict | None, progress=None,
+                decided: bool | None = None) -> None:
     """The start's state fitted where it is unknown (:func:`_start_state`), after the load point's
     coupling: on a load-point record the spring, not the start, explains the first transient, so
     the start is judged on the coupled model; where the coupling was refused on a steady start,
     it is tried again from the rigid model with its start fitted (a record that starts
     mid-transient: the spring then has the same start to work from)."""
     cur = s.history[-1]
-    free = _start_state(s.grid, cur)
+    free = _start_state(s.grid, cur, decided)
     if free is cur or (s.coupled and _bounded(free)):
         return  # (a coupled fit that the free start runs to a bound keeps its steady start)
+    s.start_fitted = True
     s.history[-1] = free
     if s.coupled:
         s.chosen[-1][0].result = free
@@ -770,14 +775,17 @@ class _Search:
     # held-out data, left out (then it is here, not in ``chosen``)
     coupled: bool = False
     coupling_refused: Candidate | None = None
+    start_fitted: bool = False  # the state the record starts in is fitted (:func:`_start_state`)
 
 
 def _search(trial: TrialData, baseline: str, prior: dict, steps: list, known: dict, load_point: bool,
             n_blocks: int = 20, swap_aligned: bool = False, progress=None, max_rounds: int = MAX_FINDINGS,
-            align: bool = True, warm: list[dict] | None = None, warm_coupling: dict | None = None) -> _Search:
+            align: bool = True, warm: list[dict] | None = None, warm_coupling: dict | None = None,
+            start: bool | None = None) -> _Search:
     """One split of the record: the baseline, the machine's coupling (load point), then the loop of
     candidates until none passes. ``warm``: per round of the loop, each candidate's fit on another
-    split (``warm_coupling``: the coupling's)."""
+    split (``warm_coupling``: the coupling's); ``start``: whether the main split fitted the state
+    the record starts in (None: decide, on the main split)."""
     grid = prepare(trial, n_blocks=n_blocks, restart_guard_um=3.0 * prior["L_um"] if prior else 0.0,
                    step_times_s=np.array([s.t_s for s in steps]) if steps else np.zeros(0), align_to_steps=align)
     grid.known = dict(known)
@@ -792,7 +800,7 @@ def _search(trial: TrialData, baseline: str, prior: dict, steps: list, known: di
     s = _Search(grid, base, [base], [], [])
     if load_point and baseline == "rate_state":
         _couple(s, prior, known, warm_coupling, progress)
-    _free_start(s, prior, known, warm_coupling, progress)
+    _free_start(s, prior, known, warm_coupling, progress, start)
     cur, tried, chosen, history = s.history[-1], s.tried, s.chosen, s.history
     for round_no in range(max_rounds):
         cands, info = screen(grid, cur)
@@ -902,7 +910,8 @@ def _resplit_causes(args) -> list[str]:
         return _resplit_search(*args)
 
 
-def _resplit_search(trial, baseline, prior, steps, known, load_point, spec, rounds, warm, warm_coupling) -> list[str]:
+def _resplit_search(trial, baseline, prior, steps, known, load_point, spec, rounds, warm, warm_coupling,
+                    start) -> list[str]:
     a, b = spec.get("crop", (0.0, 0.0))
     if a or b:
         t = np.asarray(trial.time_s, dtype=float)
@@ -912,7 +921,7 @@ def _resplit_search(trial, baseline, prior, steps, known, load_point, spec, roun
     try:
         s = _search(trial, baseline, prior, steps, known, load_point, n_blocks=spec.get("n_blocks", 20),
                     swap_aligned=spec.get("swap_aligned", False), max_rounds=rounds, align=spec.get("align", True),
-                    warm=warm, warm_coupling=warm_coupling)
+                    warm=warm, warm_coupling=warm_coupling, start=start)
     except (ValueError, ZeroDivisionError, FloatingPointError, IndexError, KeyError):
         return ["(failed)"]  # counted as a split that does not name the cause
     return [c.cause for c, _, _ in s.chosen]
@@ -988,7 +997,7 @@ def diagnose(trial: TrialData, baseline: str = "rate_state", progress=None, n_bl
         warm = [{c.cause: dict(c.result.params) for c in round_} for round_ in main.tried[coupling:]]
         wc = main.chosen[0][0] if main.coupled else main.coupling_refused
         jobs = [(trial, baseline, prior, steps, known, load_point, spec, len(main.chosen) - coupling, warm,
-                 None if wc is None else dict(wc.result.params)) for spec in RESPLITS]
+                 None if wc is None else dict(wc.result.params), main.start_fitted) for spec in RESPLITS]
         split_causes = _run_resplits(jobs, t_loop > RESPLIT_PARALLEL_MIN_S, progress)
     kept, stab = _stability(main, split_causes)
     cur = main.history[kept]
