@@ -119,10 +119,18 @@ def diagnosis_warnings(rep: dict) -> list[dict]:
     (:mod:`rig.model.checks`)."""
     from rig.model.checks import check_params
 
-    out = check_params(rep["baseline"]["params"], where=f"baseline {rep['baseline']['model']}")
+    b = rep["baseline"]
+    out = check_params(b["params"], b.get("params_sd"), where=f"baseline {b['model']}")
     m = rep["model"]
+    where = "model " + " + ".join([m["baseline"], *m["extensions"]])
     if m["extensions"]:
-        out += check_params(m["params"], where="model " + " + ".join([m["baseline"], *m["extensions"]]))
+        # with the standard errors: a value whose error exceeds it is flagged "not determined"
+        out += check_params(m["params"], m.get("params_sd"), where=where)
+    if not m.get("params_sd"):
+        # the refit on all the data ran to a bound or failed (rig.diagnosis.core.refit_all): no errors
+        out.append({"param": None, "value": None, "kind": "undetermined", "where": where,
+                    "message": "no standard errors: its refit on all the data runs to a bound or fails, so its "
+                               "values are not determined by this record"})
     return out
 
 

@@ -19,13 +19,13 @@ import numpy as np
 from rig.model.forward import as_model, force_sensitivities, has_sensitivities, predict_force
 from rig.fitting import Param, ParamSet, least_squares_fit
 from rig.fitting.stats import comparison_n_eff, inflated_cov, information_criterion, time_cell_s
-from rig.model.spec import PARAMS, model_params
+from rig.model.spec import PARAMS, PLAUSIBLE, model_params
 from .prep import Grid
 
 # the periodic term is fitted as a cosine and a sine amplitude (linear), reported as
 # amplitude_mu and phase_rad; every other parameter as rig.model.spec.PARAMS declares it
 _REPARAM = {"_pc": Param("_pc", "1", -0.5, 0.5, scale=1e-3), "_ps": Param("_ps", "1", -0.5, 0.5, scale=1e-3)}
-_NOT_CHECKED = ("mu0", "amplitude_mu", "phase_rad")
+_NOT_CHECKED = ("mu0", "amplitude_mu", "phase_rad", "v_init_um_s")  # v_init: a nuisance (the start)
 # multistart: with more ranked starts than this, each gets a first pass of FIRST_PASS_NFEV evaluations
 # and only the best POLISH_KEEP distinct ones are fitted in full
 POLISH_KEEP = 2
@@ -35,12 +35,17 @@ FIRST_PASS_NFEV = 20
 _SENS_NAME = {"_pc": "periodic_cos_mu", "_ps": "periodic_sin_mu"}
 
 
-def param(name: str, grid: Grid | None = None) -> Param:
+def param(name: str, grid: Grid | None = None, spring: bool = False) -> Param:
     """The fitted parameter ``name`` (unit, bounds, scaling) of rig.model.spec.PARAMS; with a
-    ``grid``, the first state's ``L_um`` is bounded by the record (``Grid.max_state_um``)."""
+    ``grid``, the first state's ``L_um`` is bounded by the record (``Grid.max_state_um``). With a
+    ``spring`` (finite_stiffness), ``A_mu`` is at least its plausible floor (PLAUSIBLE): the
+    spring-slider's interface velocity is set by the direct effect, ``v = V0 exp((F/N - ...)/A)``
+    (eq. 5), and as A -> 0 it is not determined (the integration then reverses the interface)."""
     if name in _REPARAM:
         return _REPARAM[name]
     p = Param.of(name, PARAMS[name])
+    if spring and name == "A_mu":
+        p = replace(p, lo=max(p.lo, PLAUSIBLE["A_mu"].lo))
     if name == "L_um" and grid is not None:
         hi = grid.max_state_um
         if math.isfinite(hi) and 10.0 * p.lo < hi < p.hi:
@@ -147,7 +152,8 @@ def evaluate(grid: Grid, baseline: str, extensions: list[str], params: dict[str,
     bad = not np.all(np.isfinite(pred))
     sse_f = float(r2[fm].sum()) if not bad else math.inf
     sse_h = float(r2[hm].sum()) if not bad else math.inf
-    npar = len([nm for nm in model_params(baseline, extensions) if nm not in grid.known])
+    # the start's state (``v_init_um_s``), where it is fitted, is a parameter too
+    npar = len([nm for nm in model_params(baseline, extensions) if nm not in grid.known]) + ("v_init_um_s" in params)
     return FitResult(baseline, list(extensions), dict(params), pred, sse_f, sse_h, int(grid.count[fm].sum()),
                      int(grid.count[hm].sum()), npar, nfev, noise_corr=grid.noise_corr)
 
@@ -158,7 +164,7 @@ def fit(grid: Grid, baseline: str, extensions: list[str], init: dict[str, float]
     names = _free_names(baseline, extensions, init, grid.known)
     internal = _from_params(init)
     internal.update({k: v for k, v in grid.known.items() if k in model_params(baseline, extensions)})
-    pset = ParamSet([param(nm, grid) for nm in names])
+    pset = ParamSet([param(nm, grid, "finite_stiffness" in extensions) for nm in names])
     fixed = {k: v for k, v in internal.items() if k not in names and not k.startswith("_")
              and k not in ("amplitude_mu", "phase_rad")}
     if "position_periodic" not in extensions:

@@ -366,9 +366,13 @@ def _holdout_blocks(tk: np.ndarray, vs: np.ndarray, time_blk: np.ndarray, T: flo
         # boundaries decides whether the single step's peak is fitted or held out (held out whole, the
         # rigid fit never sees the direct effect: docs/diagnosis.md, "Rules learned from records")
         Tb = T / n_blocks
-        phase = (fwd[0] - 1.0 - tk[0]) % Tb
+        # the fit block starts at most a quarter block before the step (1 s, the change detector's
+        # window, only where blocks are long): a fixed 1 s lead on blocks shorter than it put the
+        # step of a 4.5 s record in a hold-out block once a trim changed the block length
+        lead = min(1.0, 0.25 * Tb)
+        phase = (fwd[0] - lead - tk[0]) % Tb
         blk = np.floor((tk - tk[0] - phase) / Tb).astype(np.int64) + 1
-        j = int(np.floor((fwd[0] - 1.0 - tk[0] - phase) / Tb + 1e-9)) + 1
+        j = int(np.floor((fwd[0] - lead - tk[0] - phase) / Tb + 1e-9)) + 1
         if j % 2:
             blk = blk + 1
         return blk, f"{n_blocks} time blocks phased to the step at {fwd[0]:.4g} s (fitted)"

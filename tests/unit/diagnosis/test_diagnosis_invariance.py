@@ -85,6 +85,24 @@ def test_same_causes_and_parameters_under_every_transformation(load_point_report
         assert abs(_params(rep)[k] - want) <= tol, (name, k, _params(rep)[k], want, tol)
 
 
+def test_trimmed_one_step_load_point_record_that_starts_mid_transient():
+    """A load-point record whose one step (10 -> 1 um/s at 2 s of 40 s) the 5 % trim cuts off: the
+    trimmed copy starts a second after the step, mid-transient, in a state no steady run set. The
+    start's state is fitted (diagnosis.md, "The start of a record"), so the coupling is named on
+    both, with the same parameters within their uncertainty (before, the trimmed copy named nothing:
+    fitted from a steady start, the coupling lost on the held-out data)."""
+    trial, _ = make_record(SynthSpec(protocol=[(2.0, 10.0), (38.0, 1.0)], duration_s=40.0, rate_hz=25.0,
+                                     params=dict(TRUTH), effects={"finite_stiffness": {"stiffness_kN_per_m": 300.0}},
+                                     with_ref=False, seed=5))
+    trial.metadata["position_source"] = "load_point"
+    ref, rep = diagnose(trial).report(), diagnose(TRANSFORMS["trim5"](trial)).report()
+    assert _causes(ref) == _causes(rep) == ["finite_stiffness"], (ref["findings"], rep["findings"])
+    sd, sd2 = ref["model"]["params_sd"], rep["model"]["params_sd"]
+    for k, v in _params(ref).items():
+        tol = max(2.0 * float(np.hypot(sd[k], sd2[k])), 0.25 * abs(v))
+        assert abs(_params(rep)[k] - v) <= tol, (k, _params(rep)[k], v, tol)
+
+
 def test_shift_is_exact_on_a_real_record(real_data_dir):
     """A clock from 1000 s and a position from 5 mm change nothing at all (the issue's table: they
     turned aging_law into none)."""
