@@ -668,7 +668,7 @@ def _least_squares(rec: _Record, prob: _Problem, init: dict, stiffness: bool):
 
 
 def _whole_record_uncertainty(rec: _Record, prob: _Problem, fit, method: str, n_draws: int, seed: int,
-                              profile: bool, progress) -> tuple[dict, float]:
+                              profile: bool, progress, jackknife: bool = True) -> tuple[dict, float]:
     """(params_sd, intervals, correlation and cov of :mod:`rig.fitting.stats`; the residual's n_eff).
     Jacobian errors: each parameter's variance inflated by n / n_eff of its score in time (as
     diagnose's); with ``profile``, L's interval from its profile likelihood, inflated alike."""
@@ -693,7 +693,7 @@ def _whole_record_uncertainty(rec: _Record, prob: _Problem, fit, method: str, n_
             lo_z, hi_z = math.log(piv[0]), math.log(piv[1])
             unc["intervals"]["L_um"] = [math.exp(zl - (zl - lo_z) * ratio), math.exp(zl + (hi_z - zl) * ratio)]
             unc["profile"] = ["L_um"]
-    if method == "jacobian":
+    if method == "jacobian" and jackknife:
         _jackknife_floor(unc, _run_jackknife(rec, prob, fit), {**prob.fixed, **fit.params})
     if method == "bootstrap":
         m_hat = prob.model({**prob.fixed, **fit.params})[rec.sliding]
@@ -842,7 +842,8 @@ def fit_whole_record(trial: TrialData, steps: list[Step] | None = None, *, stiff
                      velocity_method: str = "segments", max_points: int = 15000, trend: bool = False,
                      init: dict | None = None, k_fixed: float | None = None, law: str = "slip",
                      detrend: str = "none", uncertainty: str = "jacobian", seed: int = 0,
-                     progress=None, rise_guard_s: float = 0.5, profile: bool = False) -> WholeRecordFit:
+                     progress=None, rise_guard_s: float = 0.5, profile: bool = False,
+                     jackknife: bool = True) -> WholeRecordFit:
     """Fit mu0, A, B, L (and the machine stiffness ``k``, and a linear trend in slip) to the
     whole record by least squares (:mod:`rig.fitting`, trust region), with honest errors.
 
@@ -867,7 +868,9 @@ def fit_whole_record(trial: TrialData, steps: list[Step] | None = None, *, stiff
       interval from its profile likelihood), ``bootstrap:N`` (block bootstrap of the residuals in
       time), ``mcmc:N`` (emcee). ``params_sd``, ``intervals``
       (68 %) and ``correlation``; ``err_corr`` is ``params_sd`` (kept for older readers) and
-      ``err`` the plain Jacobian's.
+      ``err`` the plain Jacobian's. Jacobian errors are never below the leave-one-run-out
+      jackknife's; ``jackknife=False`` skips its refits where only the values are wanted (a
+      starting point: diagnose's prior).
     """
     from rig.fitting.stats import information_criterion, parse_uncertainty
 
@@ -886,7 +889,7 @@ def fit_whole_record(trial: TrialData, steps: list[Step] | None = None, *, stiff
     fit = _least_squares(rec, prob, dict(init or {}), stiffness)
     if fit is None:
         return WholeRecordFit({"ok": False, "reason": "least squares failed"})
-    unc, n_eff = _whole_record_uncertainty(rec, prob, fit, method, n_draws, seed, profile, progress)
+    unc, n_eff = _whole_record_uncertainty(rec, prob, fit, method, n_draws, seed, profile, progress, jackknife)
     rep = _reported(prob, fit, unc, stiffness, detrend)
     sd, q = rep.pop("_sd"), rep.pop("_q")
     r = fit.residuals

@@ -481,7 +481,7 @@ def identify_prior(trial: TrialData, steps: list | None = None) -> dict:
         steps = detect_steps(trial) if steps is None else steps
         if not steps:
             return {}
-        w = fit_whole_record(trial, steps, stiffness=trial.is_load_point, max_points=6000)
+        w = fit_whole_record(trial, steps, stiffness=trial.is_load_point, max_points=6000, jackknife=False)
     except (ValueError, ZeroDivisionError, FloatingPointError, IndexError, np.linalg.LinAlgError):
         return {}
     if not w.params:
@@ -504,15 +504,19 @@ def fit_baseline(grid: Grid, baseline: str, prior: dict | None = None) -> FitRes
     # identify's whole-record fit (fitted whatever its cost at the start: a ranking by cost at the
     # starting point is what let the fit settle in a cancelling A ~ B ~ 0.05 minimum before)
     must = [{"mu0": p_ss["mu0"], "A_mu": prior["A_mu"], "B_mu": prior["B_mu"], "L_um": prior["L_um"]}] if prior else []
-    j = int(np.argmax(grid.sliding))
-    v1 = float(max(grid.v[j], 0.01))
     if not grid.sliding[: max(3, grid.t.size // 200)].any():
         # the record starts at rest (a hold before sliding): the state it starts in is unknown,
         # a nuisance parameter (the velocity whose steady state it is), fitted with everything else
+        v1 = _first_velocity(grid)
         starts = [dict(s, v_init_um_s=v1 * f) for s in starts for f in (1.0, 0.01)]
         must = [dict(s, v_init_um_s=v1 * f) for s in must for f in (1.0, 0.01)]
     # coefficients over COEF_MAX_MU (a cancelling A ~ B ~ 0.05 minimum) lose to any physical fit
     return multistart(grid, "rate_state", [], starts, keep=3, must=must, plausible=lambda p: not _coefs_too_large(p))
+
+
+def _first_velocity(grid: Grid) -> float:
+    """The velocity of the first sliding bin (um/s, at least 0.01): the steady state a start's state is searched from."""
+    return float(max(grid.v[int(np.argmax(grid.sliding))], 0.01))
 
 
 # the start's state is searched from the steady state of the first velocity times these
@@ -532,7 +536,7 @@ def _start_state(grid: Grid, res: FitResult, decided: bool | None = None) -> Fit
     drift record fitted it and its screen then missed the drift the main split names)."""
     if "v_init_um_s" in res.params or res.baseline != "rate_state" or decided is False:
         return res
-    v1 = float(max(grid.v[int(np.argmax(grid.sliding))], 0.01))
+    v1 = _first_velocity(grid)
     starts = [dict(res.params, v_init_um_s=v1 * f) for f in START_STATE_FACTORS]
     free = multistart(grid, res.baseline, list(res.extensions), starts, keep=1, max_nfev=120)
     return free if decided or delta_bic(grid, res, free) < MIN_DBIC else res
@@ -559,15 +563,18 @@ def _free_start(s: "_Search", prior: dict, known: dict, warm: dict | None, progr
         c, before = s.chosen[-1][0], s.chosen[-1][1]
         # the coupling's figures are the refitted model's, judged against the same rigid model
         c.result = free
-        c.gain_pct = 100.0 * (before.holdout_rms_N - free.holdout_rms_N) / before.holdout_rms_N
-        c.delta_bic = delta_bic(s.grid, before, free)
-        c.z = paired_z(s.grid, before.pred, free.pred)
-        c.zw = white_z(s.grid, before.pred, free.pred)
+        c.gain_pct, c.delta_bic, c.z, c.zw = _compare(s.grid, before, free)
     elif len(s.history) == 1:
         s.base = free
     if s.coupling_refused is not None:
         s.coupling_refused = None
         _couple(s, prior, known, warm, progress)
+
+
+def _compare(grid: Grid, cur: FitResult, res: FitResult) -> tuple[float, float, float, float]:
+    """``res`` judged against ``cur``: (hold-out gain in %, BIC change, paired chunk z, white-noise z)."""
+    gain = 100.0 * (cur.holdout_rms_N - res.holdout_rms_N) / cur.holdout_rms_N
+    return gain, delta_bic(grid, cur, res), paired_z(grid, cur.pred, res.pred), white_z(grid, cur.pred, res.pred)
 
 
 def try_candidate(grid: Grid, cur: FitResult, cause: str, info: dict, prior: dict | None = None,
@@ -577,10 +584,7 @@ def try_candidate(grid: Grid, cur: FitResult, cause: str, info: dict, prior: dic
     besides the current model's with the cause's first start."""
     exts = list(cur.extensions) + [cause]
     res = _fit_candidate(grid, cur, cause, info, prior, warm)
-    gain = 100.0 * (cur.holdout_rms_N - res.holdout_rms_N) / cur.holdout_rms_N
-    dbic = delta_bic(grid, cur, res)
-    z = paired_z(grid, cur.pred, res.pred)
-    zw = white_z(grid, cur.pred, res.pred)
+    gain, dbic, z, zw = _compare(grid, cur, res)
     note = ""
     if gain < MIN_GAIN_PCT:
         note = f"hold-out gain under {MIN_GAIN_PCT:g}%"
