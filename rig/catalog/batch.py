@@ -6,9 +6,10 @@ item, in the input order. Nothing goes through shared globals: a task gets its
 inputs as arguments and returns its outputs as a value, so the same call runs
 
 - in this process (``jobs=1``, no Dask at all: the serial reference),
-- on a ``dask.distributed.LocalCluster`` of ``jobs`` worker *processes* with one
-  thread each (``jobs=None``: every core of the machine), or
-- on an existing cluster (``scheduler="tcp://HOST:PORT"``): the workers must have
+- in this process and ``jobs - 1`` worker *processes* of its own, one thread each, all
+  taking tasks from one queue (``jobs=None``: every core of the machine; a
+  ``ProcessPoolExecutor`` forked from a preloaded forkserver, no Dask), or
+- on an existing Dask cluster (``scheduler="tcp://HOST:PORT"``): the workers must have
   ``rig`` importable and see the same paths (a shared file system).
 
 A task that raises is caught on the worker and comes back as a failed
@@ -17,12 +18,13 @@ other tasks go on. ``progress(done, total, result)`` is called in the caller's
 process as each task finishes (in completion order), so a rich progress bar can
 follow the work.
 
-An :class:`Engine` holds one cluster for several runs (``rig identify DIR`` indexes and
+An :class:`Engine` holds one set of workers for several runs (``rig identify DIR`` indexes and
 analyses on one; ``mapper`` wraps one for ``rig reproduce`` and ``rig stability``); the
-commands' engines are this process's shared ones (:func:`shared_engine`): a cluster one
-command started serves the next commands of the same process and closes at exit; it
-orders the work longest first when given a ``cost`` and, for its own LocalCluster, computes
-in this process while the cluster starts (docs/scaling.md, "Where the time went").
+commands' engines are this process's shared ones (:func:`shared_engine`): workers one
+command started serve the next commands of the same process and stop at exit; it
+orders the work longest first when given a ``cost``, starts its workers only for a batch
+whose estimated work pays their start back, and computes in this process meanwhile
+(docs/scaling.md).
 
 Determinism: the tasks are pure functions of their arguments (seeds included),
 so a run on a cluster is bit for bit the serial run (``tests/system/catalog/test_batch.py``).
@@ -33,6 +35,9 @@ from __future__ import annotations
 import atexit
 import multiprocessing
 import os
+import queue
+import signal
+import sys
 import threading
 import time
 import traceback
@@ -69,13 +74,20 @@ def _guarded(fn: Callable, item: Any) -> TaskResult:
                           cpu_seconds=time.process_time() - c0)
 
 
-def _worker_name() -> str:
-    try:
-        from distributed import get_worker
+_POOL_WORKER = False  # set in a worker process of this engine's own pool (_pool_worker_init)
 
-        return str(get_worker().address)
-    except Exception:  # noqa: BLE001 - not on a worker: the local process
-        return f"local:{os.getpid()}"
+
+def _worker_name() -> str:
+    if _POOL_WORKER:
+        return f"pool:{os.getpid()}"
+    if "distributed" in sys.modules:  # never imported for it: a serial run would pay 0.3 s
+        try:
+            from distributed import get_worker
+
+            return str(get_worker().address)
+        except Exception:  # noqa: BLE001 - not on a worker: the local process
+            pass
+    return f"local:{os.getpid()}"
 
 
 def default_jobs() -> int:
@@ -196,33 +208,138 @@ def dask_client(jobs: int | None = None, scheduler: str | None = None, preload: 
             cluster.close()
 
 
-#: what starting our LocalCluster costs this process's batch, in seconds of work it could have done instead:
-#: the start (1.5-3 s here), the workers' imports (about 1 s) and their CPU on a machine whose cores the
-#: batch itself needs (docs/scaling.md). Work estimated below ``PAYBACK x`` this runs in this process.
-START_COST_S = 3.0
+def _pool_worker_init() -> None:
+    """A pool worker's start: one BLAS/OpenMP thread (N processes on N cores; the forkserver's numpy
+    started its pool with one thread per core), Ctrl-C left to the calling process (which stops the
+    batch), and the worker's name in its results."""
+    global _POOL_WORKER
+    _POOL_WORKER = True
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
+        os.environ[v] = "1"  # for the processes a task may start
+    try:
+        from threadpoolctl import threadpool_limits
+
+        threadpool_limits(1)
+    except ImportError:  # pragma: no cover - a dependency of rig
+        pass
+
+
+def _pool_context(preload: list[str]) -> Any:
+    """The multiprocessing context of the pool's workers: forked from a forkserver that imported
+    ``preload`` (the task's module: numpy, scipy, numba, rig) and numba's CPU target once, when it
+    is the first forkserver of this process (``START_METHOD``; later calls change nothing)."""
+    ctx = multiprocessing.get_context(START_METHOD)
+    if START_METHOD == "forkserver":
+        ctx.set_forkserver_preload(list(dict.fromkeys([*preload, KERNELS_PRELOAD])))
+    return ctx
+
+
+class _Pool:
+    """This process's own workers: ``workers`` processes (a ``ProcessPoolExecutor``, one task at a time
+    each), fed by a thread of this process from the batch's shared queue, while this process takes
+    tasks from the same queue itself (:func:`_share`). A worker that dies fails its task only; the
+    queue's other tasks are then run here (the pool is marked ``broken``)."""
+
+    def __init__(self, workers: int, preload: list[str]):
+        from concurrent.futures import ProcessPoolExecutor
+
+        self.workers = int(workers)
+        self.broken = False
+        self.executor = ProcessPoolExecutor(self.workers, mp_context=_pool_context(preload),
+                                            initializer=_pool_worker_init)
+
+    def close(self) -> None:
+        self.executor.shutdown(wait=True, cancel_futures=True)
+
+
+def _share(pool: _Pool, fn: Callable, items: list, order: list[int], record: Callable[[int, TaskResult], None],
+           local: Callable[[int], None]) -> None:
+    """Run ``items[order]`` (longest first) on the pool's workers and in this process together: each
+    takes the next task of the queue when it is free (list scheduling, so the batch ends within one
+    task of even); a feeder thread keeps every worker busy while this process computes."""
+    from concurrent.futures import FIRST_COMPLETED, wait
+    from concurrent.futures.process import BrokenProcessPool
+
+    todo = list(order)
+    lock = threading.Lock()
+
+    def take() -> int | None:
+        with lock:
+            return todo.pop(0) if todo else None
+
+    def feed() -> None:
+        running: dict = {}
+        while True:
+            while not pool.broken and len(running) < pool.workers and (i := take()) is not None:
+                try:
+                    running[pool.executor.submit(_guarded, fn, items[i])] = i
+                except (BrokenProcessPool, RuntimeError):  # the pool is gone: the caller runs the rest
+                    pool.broken = True
+                    with lock:
+                        todo.insert(0, i)
+            if not running:
+                return
+            finished, _ = wait(running, return_when=FIRST_COMPLETED)
+            for fut in finished:
+                i = running.pop(fut)
+                try:
+                    r = fut.result()
+                except Exception as exc:  # noqa: BLE001 - the worker died (BrokenProcessPool) or could not unpickle
+                    pool.broken = pool.broken or isinstance(exc, BrokenProcessPool)
+                    r = TaskResult(items[i], False, None, f"{type(exc).__name__}: {exc}".splitlines()[0],
+                                   worker="pool")
+                record(i, r)
+
+    feeder = threading.Thread(target=feed, name="rig-batch-feeder", daemon=True)
+    feeder.start()
+    try:
+        with _one_blas_thread():  # this process is one of the N workers now
+            while (i := take()) is not None:
+                local(i)
+    finally:
+        if todo:  # interrupted here: the workers get nothing more
+            with lock:
+                todo.clear()
+        feeder.join()
+
+
+@contextmanager
+def _one_blas_thread() -> Iterator[None]:
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # pragma: no cover - a dependency of rig
+        yield
+        return
+    with threadpool_limits(1):
+        yield
+
+
+#: what starting this process's own workers costs a batch, in seconds of wall time during which the
+#: batch has one worker fewer: the forkserver's imports (numpy, scipy, numba, rig, numba's CPU target:
+#: 1.2-1.5 s here, on a core this process does not use) before the first fork (milliseconds each).
+#: The work left must exceed ``PAYBACK x`` this for the workers to start (docs/scaling.md).
+START_COST_S = 1.5
 PAYBACK = 2.0
 
 
 class Engine:
-    """Where a batch's tasks run, for one or more :meth:`run` calls (one cluster for all).
+    """Where a batch's tasks run, for one or more :meth:`run` calls (one set of workers for all).
 
-    - ``jobs=1``, no ``scheduler``: serially in this process (no Dask);
-    - ``scheduler``: on that cluster, connected at the first run;
-    - otherwise a LocalCluster of ``jobs`` workers (default: every core), started **in the
-      background** at the first run with more than one task, its workers importing the task's
-      module before they join; meanwhile this process computes the batch's cheapest tasks
-      itself (the end of the longest-first order), one at a time, and hands the rest to the
-      workers once they are up. The start (1.5-3 s here) and the workers' imports (about 1 s)
-      then no longer leave this process idle; their CPU (the workers are forked from a
-      forkserver that imported everything once, see ``START_METHOD``) remains, which only a
-      batch of minutes amortises (docs/scaling.md).
+    - ``jobs=1``, no ``scheduler``: serially in this process (no Dask, no worker);
+    - ``scheduler`` (or a ``distributed.Client``): on that Dask cluster, connected at the first run;
+    - otherwise this process and ``jobs - 1`` worker processes of its own (default ``jobs``: every
+      core): a ``ProcessPoolExecutor`` whose workers are forked from a forkserver that imported
+      the task's module once (``START_METHOD``), one thread each. This process computes too: it and
+      the workers take the next task of one longest-first queue whenever they are free. No Dask
+      scheduler, nanny or worker here: the calling process spends milliseconds, not 0.4 s of CPU,
+      on starting them, and 0.25 ms per task instead of Dask's 4-14 ms (docs/scaling.md).
 
-    A batch never pays for a cluster it cannot use: with no cluster yet (and no ``scheduler``),
-    this process runs the batch's cheapest tasks first and, from their measured CPU times and the
-    tasks' ``cost`` (seconds per unit of cost; per task without one), estimates the rest; only
-    when the work left, shared by ``jobs`` workers, would save more than ``PAYBACK`` x
-    ``start_cost_s`` does the cluster start (in the background, this process going on meanwhile).
-    A short batch therefore runs as ``--jobs 1`` does; a long one grows onto the workers.
+    A batch never pays for workers it cannot use: with none started yet, this process runs the
+    batch's cheapest tasks first and, from their measured CPU times and the tasks' ``cost`` (seconds
+    per unit of cost; per task without one), estimates the rest; only when the work left exceeds
+    ``PAYBACK`` x ``start_cost_s`` do the workers start (this process going on meanwhile). A short
+    batch therefore runs as ``--jobs 1`` does; a long one grows onto the workers.
 
     The results do not depend on where a task ran (pure tasks: ``tests/system/catalog/test_batch.py``).
     """
@@ -235,11 +352,10 @@ class Engine:
             jobs = 1  # one core: a worker process would only add its start
         self.jobs, self.scheduler = jobs, scheduler
         self._client = client
+        self._pool: _Pool | None = None
         self._stack = ExitStack()
-        self._thread: threading.Thread | None = None
-        self._ready = threading.Event()
         self._error: BaseException | None = None
-        self.local_tasks = 0  # tasks this process ran while the cluster started (a figure for benchmarks)
+        self.local_tasks = 0  # tasks this process ran in the last parallel run (a figure for benchmarks)
         self.start_cost_s = float(start_cost_s)
         self.estimate_s: float | None = None  # the last estimate of the work left when the decision was made
 
@@ -247,79 +363,64 @@ class Engine:
     def serial(self) -> bool:
         return self._client is None and self.scheduler is None and self.jobs == 1
 
-    def _start(self, preload: list[str]) -> None:
-        def _run():
-            try:
-                self._client = self._stack.enter_context(dask_client(self.jobs, None, preload=preload))
-            except BaseException as exc:  # noqa: BLE001 - reported by client()
-                self._error = exc
-            finally:
-                self._ready.set()
-
-        self._thread = threading.Thread(target=_run, name="rig-cluster-start", daemon=True)
-        self._thread.start()
-
     def client(self) -> Any:
-        """The Dask client (waits for a cluster being started; raises its start's error)."""
-        if self._thread is not None:
-            self._thread.join()
-            if self._error is not None:
-                if isinstance(self._error, BatchError):
-                    raise self._error
-                raise BatchError(f"the local Dask cluster did not start: {type(self._error).__name__}: "
-                                 f"{self._error}") from self._error
-        elif self._client is None:
+        """The Dask client of ``scheduler`` (connected at the first call)."""
+        if self._client is None:
             self._client = self._stack.enter_context(dask_client(self.jobs, self.scheduler))
         return self._client
 
     def run(self, fn: Callable[[Any], Any], items: Iterable[Any], *,
             progress: Callable[[int, int, TaskResult], None] | None = None,
             cost: Callable[[Any], float] | None = None) -> list[TaskResult]:
-        """:func:`run_tasks` on this engine."""
+        """:func:`run_tasks` on this engine. ``progress`` is called under a lock, from this process's
+        thread or its feeder thread, as each task finishes."""
         items = list(items)
         n = len(items)
         out: list[TaskResult | None] = [None] * n
         order = lpt_order(items, cost)
         done = 0
+        lock = threading.Lock()
+
+        def _record(i, r):
+            nonlocal done
+            with lock:
+                out[i] = r
+                done += 1
+                if progress:
+                    progress(done, n, r)
 
         def _local(i):
-            nonlocal done
-            r = _guarded(fn, items[i])
-            out[i] = r
-            done += 1
-            if progress:
-                progress(done, n, r)
+            _record(i, _guarded(fn, items[i]))
+            self.local_tasks += 1
 
-        nothing_started = self._client is None and self._thread is None
-        if self.serial or (nothing_started and self.scheduler is None and n <= 1):  # one task: no cluster
-            for i in range(n):
-                _local(i)
-            return out  # type: ignore[return-value]
-        rest = order
-        if nothing_started and self.scheduler is None:
-            rest = self._in_process_until_long(items, rest, cost, _local)
-            if not rest:
-                return out  # type: ignore[return-value]
-            self._start([fn.__module__] if fn.__module__ not in ("__main__", "__mp_main__") else [])
-        if self._thread is not None:
-            # the cheapest tasks here while the cluster starts; the rest (longest first) to it
-            while len(rest) > 1 and not self._ready.is_set():
-                _local(rest[-1])
-                rest = rest[:-1]
-                self.local_tasks += 1
-        if rest:
-            d0 = done
-            sub = _run_on(self.client(), fn, [items[i] for i in rest],
-                          (lambda d, t, r: progress(d0 + d, n, r)) if progress else None)
-            for i, r in zip(rest, sub):
+        self.local_tasks = 0
+        if self.scheduler is not None or self._client is not None:
+            for i, r in zip(order, _run_on(self.client(), fn, [items[i] for i in order],
+                                           (lambda d, t, r: progress(d, n, r)) if progress else None)):
                 out[i] = r
+            return out  # type: ignore[return-value]
+        workers = (self.jobs or default_jobs()) - 1
+        rest = order
+        if workers >= 1 and n > 1 and (self._pool is None or self._pool.broken):
+            rest = self._in_process_until_long(items, rest, cost, _local)
+            if rest:
+                if self._pool is not None:  # a worker died in an earlier run: a new pool
+                    self._pool.close()
+                self._pool = _Pool(workers, [fn.__module__] if fn.__module__ not in ("__main__", "__mp_main__")
+                                   else [])
+        if workers >= 1 and len(rest) > 1 and self._pool is not None and not self._pool.broken:
+            _share(self._pool, fn, items, rest, _record, _local)
+        for i in rest:  # serially: --jobs 1, one task, or what a broken pool left
+            if out[i] is None:
+                _local(i)
         return out  # type: ignore[return-value]
 
     def _in_process_until_long(self, items: list, rest: list[int], cost, run_local) -> list[int]:
-        """Run the cheapest tasks here while the work left is too short for a cluster to pay back its
-        start; return the tasks left for the cluster (empty: all done here)."""
-        workers = self.jobs or default_jobs()
-        gain = 1.0 - 1.0 / max(1, workers)  # the share of the work left that the other workers take
+        """Run the cheapest tasks here while the work left is too short for the workers to pay back their
+        start; return the tasks left for them (empty: all done here). With this process computing
+        throughout, N processes finish work W (serial seconds) started after the workers' start s in
+        about s + (W - s) / N: they save (W - s)(1 - 1/N), nothing unless W > s; ``PAYBACK`` x s leaves
+        room for the estimate's error and for a loaded machine, where the start competes for a core."""
         costs = {i: max(0.0, float(cost(items[i]))) if cost is not None else 1.0 for i in rest}
         rates: list[float] = []
         while rest:
@@ -330,7 +431,7 @@ class Engine:
                 rate = later[len(later) // 2]
                 left = sum(costs[i] for i in rest) * rate
                 self.estimate_s = left
-                if left * gain > PAYBACK * self.start_cost_s:
+                if left > PAYBACK * self.start_cost_s:
                     return rest
             if self.start_cost_s <= 0 and len(rest) > 1:
                 return rest  # asked to always use the workers
@@ -348,30 +449,31 @@ class Engine:
         return rest
 
     def close(self) -> None:
-        if self._thread is not None:
-            self._thread.join()
+        if self._pool is not None:
+            self._pool.close()
+            self._pool = None
         self._stack.close()
 
 
-#: the engines of this process's own LocalClusters, by (jobs, start cost): a cluster one command
-#: started serves the next commands of the same process (closed at exit, :func:`close_shared`)
+#: the engines of this process's own workers, by (jobs, start cost): the workers one command
+#: started serve the next commands of the same process (closed at exit, :func:`close_shared`)
 _SHARED: dict[tuple, Engine] = {}
 _ATEXIT: list = []
 
 
 def _alive(eng: Engine) -> bool:
-    """False when the engine's cluster failed to start or its client is no longer running."""
-    if eng._error is not None:
+    """False when the engine's workers died or its Dask client is no longer running."""
+    if eng._error is not None or (eng._pool is not None and eng._pool.broken):
         return False
     client = eng._client
     return client is None or getattr(client, "status", "running") == "running"
 
 
 def shared_engine(jobs: int | None = None, start_cost_s: float = START_COST_S) -> Engine:
-    """This process's :class:`Engine` for ``jobs`` workers on its own LocalCluster: made at the first
+    """This process's :class:`Engine` for ``jobs`` processes of its own: made at the first
     call, kept for the later ones (``rig identify``, ``diagnose``, ``reproduce``, ``stability`` called
-    one after another in one process pay the cluster's start once), closed when the process exits.
-    One whose cluster died or did not start is replaced."""
+    one after another in one process pay the workers' start once), closed when the process exits.
+    One whose worker died is replaced."""
     key = (jobs, float(start_cost_s))
     eng = _SHARED.get(key)
     if eng is not None and not _alive(eng):
@@ -420,13 +522,13 @@ def run_tasks(fn: Callable[[Any], Any], items: Iterable[Any], *, jobs: int | Non
               start_cost_s: float = START_COST_S) -> list[TaskResult]:
     """Map ``fn`` (a top-level function of one plain argument) over ``items``.
 
-    ``jobs=1`` and no ``scheduler``/``client``: serial, in this process. Otherwise on Dask
+    ``jobs=1`` and no ``scheduler``/``client``: serial, in this process. Otherwise in parallel
     (see the module docstring): ``client`` a ``distributed.Client`` or an :class:`Engine`;
-    without one, an engine for this call alone (its LocalCluster starts while this process
+    without one, an engine for this call alone (its workers start while this process
     works, see :class:`Engine`). The results are in the order of ``items``; a failed task
     is a ``TaskResult`` with ``ok=False``; ``progress`` sees each one as it finishes.
 
-    ``cost(item)``, an estimate of a task's run time in any unit, orders the work on Dask:
+    ``cost(item)``, an estimate of a task's run time in any unit, orders the work:
     longest first (LPT), so that the batch does not end with one worker finishing a long task
     while the others are idle. It changes no result, only the order of completion. With an
     engine of its own, the work is estimated from it and measured CPU times, and a batch too short to

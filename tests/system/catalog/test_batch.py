@@ -184,8 +184,8 @@ def test_local_cluster_workers_and_longest_first_order():
 
 
 def test_short_batch_runs_in_this_process(files):
-    """A batch whose measured work is below what a cluster's start costs runs as --jobs 1 does: no
-    cluster (so --jobs N is never slower than serial on a short batch); the results are the same."""
+    """A batch whose measured work is below what the workers' start costs runs as --jobs 1 does: no
+    worker (so --jobs N is never slower than serial on a short batch); the results are the same."""
     from rig.catalog.batch import Engine
 
     root, good, bad = files
@@ -193,25 +193,51 @@ def test_short_batch_runs_in_this_process(files):
     eng = Engine(2, start_cost_s=600.0)
     try:
         par = eng.run(identify_file, items, cost=lambda it: 1.0)
+        assert eng._pool is None  # never started
     finally:
         eng.close()
-    assert eng._thread is None and eng._client is None  # never started
     assert all(r.worker.startswith("local") for r in par) and eng.estimate_s is not None
     serial = run_tasks(identify_file, items, jobs=1)
     assert [_canon(a.value) for a in serial] == [_canon(b.value) for b in par]
 
 
-def test_own_cluster_starts_while_this_process_works(files):
-    """run_tasks(jobs=2) with no cluster: this process runs the cheapest files while its
-    LocalCluster starts, the workers the rest; the results are the serial ones, in order."""
+def test_own_workers_and_this_process_share_the_batch(files):
+    """run_tasks(jobs=2) with no cluster: this process and its forked worker take the files from one
+    queue; the results are the serial ones, in order, each reported once."""
     root, good, bad = files
     items = [(str(p), {}) for p in good]
     serial = run_tasks(identify_file, items, jobs=1)
     seen = []
-    par = run_tasks(identify_file, items, jobs=2, cost=lambda it: int(it[0][-5]),  # t0..t5: t0 cheapest
-                    progress=lambda d, t, r: seen.append(d), start_cost_s=0.0)  # a cluster whatever the work
+    par = run_tasks(identify_file, items, jobs=2, cost=lambda it: int(it[0][-5]),
+                    progress=lambda d, t, r: seen.append(d), start_cost_s=0.0)  # workers whatever the work
     assert seen == list(range(1, len(items) + 1))
-    where = [r.worker.split(":")[0] for r in par]
-    assert "local" in where and "tcp" in where  # both took part
-    assert where[0] == "local"  # the cheapest first here (longest first on the workers)
+    where = {r.worker.split(":")[0] for r in par}
+    assert where <= {"local", "pool"} and "pool" in where
     assert [_canon(a.value) for a in serial] == [_canon(b.value) for b in par]
+
+
+def _dies_in_a_worker(x):
+    import os
+
+    from rig.catalog import batch
+
+    if batch._POOL_WORKER:
+        os._exit(3)
+    return x
+
+
+def test_a_dead_worker_fails_its_task_only():
+    """A worker process that dies (a crash in native code, the OOM killer) fails the task it ran; the
+    batch's other tasks finish in this process; the next run gets new workers."""
+    from rig.catalog.batch import Engine
+
+    eng = Engine(2, start_cost_s=0.0)
+    try:
+        res = eng.run(_dies_in_a_worker, list(range(8)))
+        assert [r.value for r in res if r.ok] == [r.item for r in res if r.ok]
+        failed = [r for r in res if not r.ok]
+        assert len(failed) == 1 and "BrokenProcessPool" in failed[0].error
+        again = eng.run(_dies_in_a_worker, list(range(8)))
+        assert len(again) == 8 and all(r.ok or "BrokenProcessPool" in r.error for r in again)
+    finally:
+        eng.close()
