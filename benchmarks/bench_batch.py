@@ -8,6 +8,8 @@ docs/scaling.md projects from.
     python benchmarks/bench_batch.py catalog         # indexing, unchanged-file check, result writes
     python benchmarks/bench_batch.py cli             # the commands end to end: `rig reproduce` and
                                                      # `rig identify DIR`, --jobs 1 against --jobs N
+    python benchmarks/bench_batch.py sizes           # `rig reproduce` at five batch sizes (1-30 s),
+                                                     # --jobs 1 against --jobs N, fresh processes
     options: --jobs N (default 2), --files N (default 50), --trials N (default 8), --rounds N
              (default 2; cli and reproduce), --json OUT
 
@@ -36,6 +38,7 @@ import os
 for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_v, "1")
 
+import contextlib  # noqa: E402
 import json  # noqa: E402
 import resource  # noqa: E402
 import subprocess  # noqa: E402
@@ -44,7 +47,18 @@ import tempfile  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-from rig.catalog.batch import dask_client, run_tasks  # noqa: E402
+from rig.catalog.batch import Engine, dask_client, run_tasks  # noqa: E402
+
+
+@contextlib.contextmanager
+def _warm_engine(jobs: int):
+    """The engine a `rig` command uses (this process and jobs - 1 forked workers), told to start its
+    workers whatever the work (start cost 0), so that the warm-up map starts them."""
+    eng = Engine(jobs, start_cost_s=0.0)
+    try:
+        yield eng
+    finally:
+        eng.close()
 
 
 def load() -> str:
@@ -100,7 +114,7 @@ def bench_identify(jobs: int, n_files: int) -> dict:
         rounds = [items[i:i + 10] for i in range(0, len(items), 10)]
         serial, par, t_serial, t_warm = [], [], 0.0, 0.0
         t0 = time.perf_counter()
-        with dask_client(jobs) as client:
+        with _warm_engine(jobs) as client:
             t_start = time.perf_counter() - t0
             run_tasks(identify_file, items[:jobs * 2], client=client)  # warm-up on every worker
             for rd in rounds:
@@ -181,7 +195,7 @@ def bench_reproduce(jobs: int, n_trials: int, rounds: int = 2) -> dict:
     print(f"reproduce: 3 lubricants x {n_trials} simulated trials (full simulated rig), {autogroup()}, {load()}")
     t_serial, t_warm, cpu_serial, cpu_warm = [], [], [], []
     t0 = time.perf_counter()
-    with dask_client(jobs) as client:
+    with _warm_engine(jobs) as client:
         t_start = time.perf_counter() - t0
         reproduce(2 * jobs, seed=99, map_fn=map_on(client))  # warm every worker, every lubricant
         serial = par = None
@@ -288,15 +302,58 @@ def bench_cli(jobs: int, n_files: int, n_trials: int, rounds: int = 2) -> dict:
 
 
 def bench_overhead(jobs: int, n: int = 2000) -> dict:
-    """Scheduler round trip per task: no-op tasks on a warm cluster."""
-    with dask_client(jobs) as client:
-        run_tasks(_noop, list(range(10)), client=client)
-        t0 = time.perf_counter()
-        run_tasks(_noop, list(range(n)), client=client)
-        dt = time.perf_counter() - t0
-    print(f"overhead: {n} no-op tasks on {jobs} workers: {dt:.2f} s = {dt / n * 1e3:.2f} ms per task "
-          f"(submit, schedule, run, gather, in order), {load()}")
-    return {"n": n, "seconds": dt, "per_task_ms": dt / n * 1e3, "jobs": jobs, "load_after": os.getloadavg()}
+    """Round trip per task, no-op tasks, warm: the engine's own workers (what `rig` uses without
+    --scheduler) against a Dask LocalCluster of as many workers (what it used before)."""
+    out = {}
+    for name, ctx in (("own workers", _warm_engine(jobs)), ("Dask LocalCluster", dask_client(jobs))):
+        with ctx as client:
+            run_tasks(_noop, list(range(10)), client=client)
+            t0 = time.perf_counter()
+            run_tasks(_noop, list(range(n)), client=client)
+            dt = time.perf_counter() - t0
+            if isinstance(client, Engine) and client._pool is not None:  # the workers' own round trip
+                t1 = time.perf_counter()
+                for f in [client._pool.executor.submit(_noop, i) for i in range(n)]:
+                    f.result()
+                rt = (time.perf_counter() - t1) / n * 1e3
+                print(f"overhead, a forked worker's round trip alone: {rt:.3f} ms per task, {load()}")
+        print(f"overhead, {name}: {n} no-op tasks, {jobs} processes: {dt:.2f} s = {dt / n * 1e3:.3f} ms per task "
+              f"(submit, run, gather, in order), {load()}")
+        out[name] = {"n": n, "seconds": dt, "per_task_ms": dt / n * 1e3, "jobs": jobs, "load_after": os.getloadavg()}
+    return out
+
+
+#: `rig reproduce` batches from 1 s to about 30 s of serial work (0.3-0.6 s per trial at rest)
+SIZES = (("2 trials", ["--trials", "2", "--lubricant", "boundary"]),
+         ("4 trials", ["--trials", "4", "--lubricant", "boundary"]),
+         ("8 trials", ["--trials", "8", "--lubricant", "dry"]),
+         ("24 trials", ["--trials", "8"]),
+         ("72 trials", ["--trials", "24"]))
+
+
+def bench_sizes(jobs: int, rounds: int = 3) -> dict:
+    """`rig reproduce` as a user runs it (fresh processes, start-up included) at every batch size,
+    --jobs 1 against --jobs N, interleaved (1, N, N, 1, ...): the target is --jobs N never more than
+    5 % slower at any size, and at least 1.6x on 2 cores for a batch of 30 s or more."""
+    print(f"sizes: fresh `rig reproduce` processes, --jobs 1 against --jobs {jobs}, min and median of "
+          f"{rounds} each, {autogroup()}, {load()}")
+    _timed(_rig() + ["reproduce", "--trials", "2", "--jobs", "1", "--lubricant", "dry"])  # numba cache, page cache
+    out = {}
+    for name, args in SIZES:
+        walls: dict[int, list] = {1: [], jobs: []}
+        loads = []
+        for k in range(2 * rounds):
+            j = 1 if k % 4 in (0, 3) else jobs
+            loads.append(os.getloadavg()[0])
+            w, _, _ = _timed(_rig() + ["reproduce", *args, "--jobs", str(j)])
+            walls[j].append(w)
+        s1, sn = min(walls[1]), min(walls[jobs])
+        print(f"  {name:9s}: --jobs 1 {s1:6.2f} s (median {_median(walls[1]):6.2f}), --jobs {jobs} {sn:6.2f} s "
+              f"(median {_median(walls[jobs]):6.2f}) -> {s1 / sn:.2f}x best, {_median(walls[1]) / _median(walls[jobs]):.2f}x "
+              f"median; load {min(loads):.2f}-{max(loads):.2f}")
+        out[name] = {"wall_s": {str(k): v for k, v in walls.items()}, "speedup_best": s1 / sn,
+                     "speedup_median": _median(walls[1]) / _median(walls[jobs]), "load_1min": loads}
+    return out
 
 
 def bench_catalog(n_files: int) -> dict:
@@ -357,12 +414,14 @@ def main(argv: list[str]) -> None:
             res[w] = bench_reproduce(jobs, n_trials, rounds)
         elif w == "cli":
             res[w] = bench_cli(jobs, n_files, n_trials, rounds)
+        elif w == "sizes":
+            res[w] = bench_sizes(jobs, rounds)
         elif w == "overhead":
             res[w] = bench_overhead(jobs)
         elif w == "catalog":
             res[w] = bench_catalog(n_files)
         else:
-            sys.exit(f"unknown benchmark {w!r}: identify | reproduce | overhead | catalog | cli")
+            sys.exit(f"unknown benchmark {w!r}: identify | reproduce | overhead | catalog | cli | sizes")
     if out:
         Path(out).write_text(json.dumps(res, indent=2) + "\n")
 

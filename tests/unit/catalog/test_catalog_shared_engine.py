@@ -72,3 +72,44 @@ def test_forked_workers_start_with_numbas_target_loaded(monkeypatch):
     from numba.core.registry import cpu_target
 
     assert cpu_target.target_context._registries  # loaded: what the forked workers inherit
+
+
+class _ThreadPool:
+    """batch._Pool's interface on threads: the engine's queue logic, in-process."""
+
+    def __init__(self, workers, preload):
+        from concurrent.futures import ThreadPoolExecutor
+
+        self.workers, self.broken, self.preload = workers, False, preload
+        self.executor = ThreadPoolExecutor(workers)
+
+    def close(self):
+        self.executor.shutdown()
+
+
+def _square(x):
+    return x * x
+
+
+def test_this_process_and_its_workers_share_one_queue(monkeypatch):
+    """Started workers and this process take tasks from one longest-first queue: every task runs once,
+    the results come back in the input order, progress counts each once, and the workers are
+    started with the task's module to preload."""
+    monkeypatch.setattr(batch, "_Pool", _ThreadPool)
+    eng = batch.Engine(3, start_cost_s=0.0)
+    seen = []
+    res = eng.run(_square, list(range(40)), cost=float, progress=lambda d, t, r: seen.append(d))
+    assert [r.value for r in res] == [x * x for x in range(40)] and all(r.ok for r in res)
+    assert sorted(seen) == list(range(1, 41))
+    assert eng._pool.workers == 2 and eng._pool.preload == [__name__]
+    eng.close()
+
+
+def test_a_short_batch_starts_no_worker(monkeypatch):
+    """The estimate: the tasks' measured CPU times per unit of cost, times the cost left; below
+    PAYBACK x the start cost, every task runs here (--jobs N as fast as --jobs 1)."""
+    monkeypatch.setattr(batch, "_Pool", _ThreadPool)
+    eng = batch.Engine(2, start_cost_s=1e6)
+    res = eng.run(_square, list(range(5)), cost=lambda x: 1.0)
+    assert eng._pool is None and eng.local_tasks == 5 and [r.value for r in res] == [0, 1, 4, 9, 16]
+    assert eng.estimate_s is not None and eng.estimate_s < batch.PAYBACK * eng.start_cost_s
