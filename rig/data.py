@@ -31,23 +31,14 @@ from pathlib import Path
 
 import numpy as np
 
+from rig.errors import DataFormatError  # noqa: F401 - defined without numpy, for rig info
+
 CSV_MAGIC = "rig-trial-csv"
 CSV_VERSION = "1"
 REQUIRED_COLUMNS = ("time_s", "position_um", "friction_N")
 OPTIONAL_COLUMNS = ("normal_1_N", "normal_2_N", "position_ref_um", "valve_cmd")
 STANDARD_COLUMNS = REQUIRED_COLUMNS + OPTIONAL_COLUMNS
 POSITION_SOURCES = ("on_sample", "load_point")  # measured-data.md: where position_um is measured
-
-
-class DataFormatError(ValueError):
-    """A data file breaks its format. ``str()`` names the file, the line and the fault."""
-
-    def __init__(self, path: str | os.PathLike, line: int | None, message: str):
-        self.path = str(path)
-        self.line = line
-        self.message = message
-        where = f"{self.path}, line {line}" if line is not None else self.path
-        super().__init__(f"{where}: {message}")
 
 
 class PartialLineWarning(UserWarning):

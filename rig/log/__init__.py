@@ -36,19 +36,22 @@ from pathlib import Path
 
 from typing import TYPE_CHECKING
 
-from rig.data import DataFormatError, TrialData, read_csv
+from rig.errors import DataFormatError
 from rig.log.reader import LogDamageWarning, read_log, read_metadata, read_trial, scan, trial_info
-from rig.log.schemas import (BLOCK_KEYS, EVENTS_TOPIC, LOG25_TOPIC, RAW_TOPIC, RAW_V1_ENCODING, RAW_V2_ENCODING,
-                             SAMPLE_FIELDS, STATS_TOPIC)
+from rig.log.topics import EVENTS_TOPIC, LOG25_TOPIC, RAW_TOPIC, STATS_TOPIC
 
 if TYPE_CHECKING:
+    from rig.data import TrialData
+    from rig.log.schemas import BLOCK_KEYS, RAW_V1_ENCODING, RAW_V2_ENCODING, SAMPLE_FIELDS
     from rig.log.csv_import import read_parquet, write_parquet, write_trial_data
     from rig.log.recover import recover
     from rig.log.writer import TrialLogWriter
 
-#: imported when first used, so that reading a log (rig info, export) does not load the writer's stack
+#: imported when first used, so that reading a log (rig info, export) does not load the writer's stack, and
+#: ``rig info`` (reader.trial_info) does not load numpy (the layouts' codecs, :mod:`rig.log.schemas`)
 _LAZY = {"TrialLogWriter": "rig.log.writer", "recover": "rig.log.recover", "read_parquet": "rig.log.csv_import",
-         "write_parquet": "rig.log.csv_import", "write_trial_data": "rig.log.csv_import"}
+         "write_parquet": "rig.log.csv_import", "write_trial_data": "rig.log.csv_import",
+         **dict.fromkeys(("BLOCK_KEYS", "RAW_V1_ENCODING", "RAW_V2_ENCODING", "SAMPLE_FIELDS"), "rig.log.schemas")}
 
 
 def __getattr__(name: str):
@@ -67,6 +70,8 @@ def load_trial(path: str | os.PathLike, *, strict: bool = False) -> TrialData:
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix == ".csv":
+        from rig.data import read_csv
+
         return read_csv(path)
     if suffix == ".parquet":
         from rig.log.csv_import import read_parquet

@@ -16,18 +16,26 @@ import os
 import struct
 import warnings
 import zlib
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from io import BytesIO
 from pathlib import Path
+from typing import TYPE_CHECKING, Any, Iterator
 
-import numpy as np
 from mcap.records import (Attachment, Channel, Chunk, Footer, Header, Message, MessageIndex, Metadata, Schema)
 from mcap.data_stream import ReadDataStream
 from mcap.opcode import Opcode
 from mcap.stream_reader import StreamReader
 
-from rig.data import STANDARD_COLUMNS, DataFormatError, TrialData
-from rig.log.loopblock import PROTO_ENCODING, decode_loop_blocks
-from rig.log.schemas import BLOCK_KEYS, EVENTS_TOPIC, LOG25_TOPIC, RAW_TOPIC, decode_raw
+from rig.errors import DataFormatError
+from rig.log.topics import EVENTS_TOPIC, LOG25_TOPIC, RAW_TOPIC
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from rig.data import TrialData
+# numpy, the data layer and the raw codecs are imported where a trial's samples are read (read_trial), not
+# at import: `rig info` (trial_info) reads a log's records only, and numpy's import was a quarter of its time
 
 
 class LogDamageWarning(UserWarning):
@@ -201,12 +209,12 @@ class _Scan:
                           "channel_ids": [], "error": error}
         self.c.damage.append(self.bad_chunk)
 
-    def chunk(self, rec: Chunk) -> None:
-        """A chunk: CRC and decompression checked, its records taken and counted; else it is damage."""
+    def chunk(self, rec: Chunk, data: bytes | Exception) -> None:
+        """A chunk, given its decompressed and CRC-checked records (or why they are not: :func:`_chunk_data`):
+        its records taken and counted; else it is damage."""
         self.bad_chunk = None
-        try:
-            data = _chunk_data(rec)
-        except Exception as exc:  # CRC mismatch, a decompression error
+        if isinstance(data, Exception):  # CRC mismatch, a decompression error
+            exc = data
             self._damaged(rec, "CRC mismatch" if "crc" in str(exc).lower() else f"{type(exc).__name__}: {exc}")
             return
         try:
@@ -219,10 +227,10 @@ class _Scan:
         for cid, (n, lo, hi) in stats.items():
             self.count(cid, n, lo, hi)
 
-    def record(self, rec) -> None:
+    def record(self, rec, data: bytes | Exception | None = None) -> None:
         c = self.c
         if isinstance(rec, Chunk):
-            self.chunk(rec)
+            self.chunk(rec, data)
         elif isinstance(rec, Message):
             self.count(rec.channel_id, 1, rec.log_time, rec.log_time)
             self.take(rec)
@@ -252,6 +260,39 @@ class _Records(StreamReader):
         return super()._read_record(opcode, length)
 
 
+def _checked_data(chunk: Chunk) -> bytes | Exception:
+    try:
+        return _chunk_data(chunk)
+    except Exception as exc:  # noqa: BLE001 - reported as the chunk's damage, in file order
+        return exc
+
+
+#: threads that decompress and CRC-check chunks ahead of the scan (zstd and zlib release the GIL): a
+#: log's chunks are checked on both cores while this thread parses the records in file order
+CHECK_THREADS = 2
+CHECK_AHEAD = 8  # chunks in flight at most (about 1 MB each decompressed)
+
+
+def _with_chunk_data(records: Iterator, pool) -> Iterator[tuple[Any, bytes | Exception | None]]:
+    """``(record, its chunk's checked data or the error)`` in file order, the chunks verified on ``pool``'s
+    threads up to ``CHECK_AHEAD`` ahead; an error of the framing is raised after the records before it."""
+    pending: deque = deque()
+    broken: Exception | None = None
+    try:
+        for rec in records:
+            pending.append((rec, pool.submit(_checked_data, rec) if isinstance(rec, Chunk) else None))
+            while len(pending) > CHECK_AHEAD:
+                rec0, fut = pending.popleft()
+                yield rec0, fut.result() if fut is not None else None
+    except Exception as exc:  # noqa: BLE001 - the point where the framing broke, raised after what came before
+        broken = exc
+    while pending:
+        rec0, fut = pending.popleft()
+        yield rec0, fut.result() if fut is not None else None
+    if broken is not None:
+        raise broken
+
+
 def _framing_error(exc: Exception) -> str:
     """What broke the file's framing, in one line."""
     name = type(exc).__name__
@@ -271,10 +312,11 @@ def scan(path: str | os.PathLike, topics: set[str] | None = None) -> LogContent:
     _sniff(path)
     sc = _Scan(topics)
     c = sc.c
-    with open(path, "rb") as fh:
+    with open(path, "rb") as fh, ThreadPoolExecutor(CHECK_THREADS, thread_name_prefix="rig-crc") as pool:
         try:
-            for rec in _Records(fh, emit_chunks=True, record_size_limit=max(64, path.stat().st_size)).records:
-                sc.record(rec)
+            records = _Records(fh, emit_chunks=True, record_size_limit=max(64, path.stat().st_size)).records
+            for rec, data in _with_chunk_data(records, pool):
+                sc.record(rec, data)
         except Exception as exc:  # the point where the framing broke: keep everything before it
             c.error = _framing_error(exc)
     if c.header is None:
@@ -342,6 +384,42 @@ def _channel_name(channel: str) -> str:
     raise ValueError(f"channel must be 'raw' or '25hz', not {channel!r}")
 
 
+def _raw_arrays(c: LogContent, path: Path) -> dict[str, np.ndarray]:
+    """The /raw channel's columns in physical units, in the loop's column order, whatever the layout
+    (protobuf blocks decoded together per channel; v2 counts, v1 floats, JSON blocks)."""
+    import numpy as np
+
+    from rig.log.loopblock import PROTO_ENCODING, decode_loop_blocks
+    from rig.log.schemas import BLOCK_KEYS, decode_raw
+
+    cols: dict[str, list[np.ndarray]] = {}
+    proto: dict[int, list[bytes]] = {}  # protobuf blocks, decoded together per channel
+    for m in c.messages:
+        if c.topic_of(m) != RAW_TOPIC:
+            continue
+        enc = c.channels[m.channel_id].message_encoding
+        if enc == PROTO_ENCODING:
+            proto.setdefault(m.channel_id, []).append(m.data)
+            continue
+        try:
+            fields = decode_raw(enc, m.data)
+        except (ValueError, KeyError, TypeError) as exc:
+            raise DataFormatError(path, None, f"raw block at log_time {m.log_time} ns: {exc}") from None
+        for k, arr in fields.items():
+            cols.setdefault(k, []).append(arr)
+    for cid, payloads in proto.items():
+        try:
+            fields = decode_loop_blocks(payloads, c.channels[cid].metadata["rig_columns"])
+        except (ValueError, KeyError, TypeError) as exc:
+            raise DataFormatError(path, None, f"raw channel ({RAW_TOPIC}, protobuf): {exc}") from None
+        for k, arr in fields.items():
+            cols.setdefault(k, []).append(arr)
+    # one column order whatever the layout (v2 grouped its columns by dtype): the loop's, then the rest
+    rank = {k: i for i, k in enumerate(BLOCK_KEYS)}
+    order = sorted(cols, key=lambda k: (rank.get(k, len(rank)), list(cols).index(k)))
+    return {k: np.concatenate(cols[k]) for k in order}
+
+
 def read_trial(path: str | os.PathLike, channel: str = "25hz", *, strict: bool = False) -> TrialData:
     """Read a trial log into :class:`TrialData` (events and metadata included).
 
@@ -360,34 +438,13 @@ def read_trial(path: str | os.PathLike, channel: str = "25hz", *, strict: bool =
     notes = [str(w.message) for w in caught if issubclass(w.category, LogDamageWarning)]
     for note in notes:
         warnings.warn(note, LogDamageWarning, stacklevel=2)
+    import numpy as np
+
+    from rig.data import STANDARD_COLUMNS, TrialData
+
     records = c.metadata_dict()
     if ch == "raw":
-        cols: dict[str, list[np.ndarray]] = {}
-        proto: dict[int, list[bytes]] = {}  # protobuf blocks, decoded together per channel
-        for m in c.messages:
-            if c.topic_of(m) != RAW_TOPIC:
-                continue
-            enc = c.channels[m.channel_id].message_encoding
-            if enc == PROTO_ENCODING:
-                proto.setdefault(m.channel_id, []).append(m.data)
-                continue
-            try:
-                fields = decode_raw(enc, m.data)
-            except (ValueError, KeyError, TypeError) as exc:
-                raise DataFormatError(path, None, f"raw block at log_time {m.log_time} ns: {exc}") from None
-            for k, arr in fields.items():
-                cols.setdefault(k, []).append(arr)
-        for cid, payloads in proto.items():
-            try:
-                fields = decode_loop_blocks(payloads, c.channels[cid].metadata["rig_columns"])
-            except (ValueError, KeyError, TypeError) as exc:
-                raise DataFormatError(path, None, f"raw channel ({RAW_TOPIC}, protobuf): {exc}") from None
-            for k, arr in fields.items():
-                cols.setdefault(k, []).append(arr)
-        # one column order whatever the layout (v2 grouped its columns by dtype): the loop's, then the rest
-        rank = {k: i for i, k in enumerate(BLOCK_KEYS)}
-        order = sorted(cols, key=lambda k: (rank.get(k, len(rank)), list(cols).index(k)))
-        arrays = {k: np.concatenate(cols[k]) for k in order}
+        arrays = _raw_arrays(c, path)
     else:
         rows = [json.loads(m.data) for m in c.messages if c.topic_of(m) == LOG25_TOPIC]
         names: list[str] = list(rows[0]) if rows else []

@@ -37,11 +37,7 @@ from typing import Any
 
 import numpy as np
 
-RAW_TOPIC = "/raw"
-LOG25_TOPIC = "/log25"
-EVENTS_TOPIC = "/events"
-STATS_TOPIC = "/loop_stats"
-MCAP_PROFILE = "rig-trial"
+from rig.log.topics import EVENTS_TOPIC, LOG25_TOPIC, MCAP_PROFILE, RAW_TOPIC, STATS_TOPIC  # noqa: F401 - re-exported
 #: the /log25 message fields (mu = friction / (normal_1 + normal_2), null where undefined)
 SAMPLE_FIELDS = ("t_s", "position_um", "friction_N", "normal_1_N", "normal_2_N", "position_ref_um", "valve_cmd",
                  "mu")
