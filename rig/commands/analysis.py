@@ -572,8 +572,8 @@ def reproduce_cmd(
                                                                 "kinematic generator."),
     json_out: Optional[Path] = typer.Option(None, "--json", help=JSON_HELP + " (rig.reproduce/1)"),
     plot: Optional[Path] = typer.Option(None, "--plot", help="Write a PNG (paper vs recovered vs truth)."),
-    jobs: Optional[int] = typer.Option(None, "--jobs", help="Trials on N worker processes (Dask; default: all "
-                                                            "cores; 1: serially in this process)."),
+    jobs: Optional[int] = typer.Option(None, "--jobs", help="Trials on N processes (this one and N-1 workers; "
+                                                            "default: all cores; 1: serially in this process)."),
     scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Run the trials on an existing Dask "
                                                                       "cluster, tcp://HOST:PORT."),
 ):

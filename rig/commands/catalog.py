@@ -62,7 +62,7 @@ def _check_jobs(jobs: Optional[int], scheduler: Optional[str]) -> None:
 def build_cmd(
     root: Path = typer.Argument(..., help="Directory of trial files (.mcap, .csv), searched recursively."),
     db: Optional[Path] = typer.Option(None, "--db", help="Catalogue file (default DIR/catalog.duckdb)."),
-    jobs: Optional[int] = typer.Option(1, "--jobs", help="Read files on N worker processes (Dask); 1: serially."),
+    jobs: Optional[int] = typer.Option(1, "--jobs", help="Read files on N processes (this one and N-1 workers); 1: serially."),
     scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Use an existing Dask cluster, tcp://HOST:PORT."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
 ):
