@@ -3,7 +3,7 @@
 - :mod:`rig.catalog.schema`: the tables (docs/catalog.md), versioned;
 - :mod:`rig.catalog.build`: incremental indexing, writing identify/diagnose results;
 - :mod:`rig.catalog.query`: SQL from Python;
-- :mod:`rig.catalog.batch`: the engine (serial, LocalCluster or a remote scheduler);
+- :mod:`rig.catalog.batch`: the engine (serial, this process and its own workers, or a Dask scheduler);
 - :mod:`rig.catalog.tasks`: the per-file tasks the engine runs.
 
 DuckDB and Dask are imported only when used.

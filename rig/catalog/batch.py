@@ -225,12 +225,21 @@ def _pool_worker_init() -> None:
         pass
 
 
+#: how this process's own workers start (``RIG_BATCH_POOL_START``): "fork" (Linux' default here): a copy of
+#: this process, made in milliseconds, with everything the batch's first tasks imported and loaded
+#: (numpy, scipy, numba's target and kernels, rig), forked from the main thread before any thread of the
+#: batch starts; "forkserver": from a server that imports the task's module first (1.2-1.5 s here, on the
+#: other core; the start for a platform without fork, or a process whose other threads make a fork unsafe)
+POOL_START = os.environ.get("RIG_BATCH_POOL_START", "fork")
+if POOL_START not in multiprocessing.get_all_start_methods():
+    POOL_START = START_METHOD
+
+
 def _pool_context(preload: list[str]) -> Any:
-    """The multiprocessing context of the pool's workers: forked from a forkserver that imported
-    ``preload`` (the task's module: numpy, scipy, numba, rig) and numba's CPU target once, when it
-    is the first forkserver of this process (``START_METHOD``; later calls change nothing)."""
-    ctx = multiprocessing.get_context(START_METHOD)
-    if START_METHOD == "forkserver":
+    """The multiprocessing context of the pool's workers (``POOL_START``); a forkserver imports ``preload``
+    (the task's module) and numba's CPU target once, when it is the first of this process."""
+    ctx = multiprocessing.get_context(POOL_START)
+    if POOL_START == "forkserver":
         ctx.set_forkserver_preload(list(dict.fromkeys([*preload, KERNELS_PRELOAD])))
     return ctx
 
@@ -268,16 +277,20 @@ def _share(pool: _Pool, fn: Callable, items: list, order: list[int], record: Cal
         with lock:
             return todo.pop(0) if todo else None
 
+    running: dict = {}
+
+    def fill() -> None:
+        while not pool.broken and len(running) < pool.workers and (i := take()) is not None:
+            try:
+                running[pool.executor.submit(_guarded, fn, items[i])] = i
+            except (BrokenProcessPool, RuntimeError):  # the pool is gone: the caller runs the rest
+                pool.broken = True
+                with lock:
+                    todo.insert(0, i)
+
     def feed() -> None:
-        running: dict = {}
         while True:
-            while not pool.broken and len(running) < pool.workers and (i := take()) is not None:
-                try:
-                    running[pool.executor.submit(_guarded, fn, items[i])] = i
-                except (BrokenProcessPool, RuntimeError):  # the pool is gone: the caller runs the rest
-                    pool.broken = True
-                    with lock:
-                        todo.insert(0, i)
+            fill()
             if not running:
                 return
             finished, _ = wait(running, return_when=FIRST_COMPLETED)
@@ -291,6 +304,7 @@ def _share(pool: _Pool, fn: Callable, items: list, order: list[int], record: Cal
                                    worker="pool")
                 record(i, r)
 
+    fill()  # the first tasks from this thread: a forking pool makes its workers now, before the feeder exists
     feeder = threading.Thread(target=feed, name="rig-batch-feeder", daemon=True)
     feeder.start()
     try:
@@ -316,10 +330,11 @@ def _one_blas_thread() -> Iterator[None]:
 
 
 #: what starting this process's own workers costs a batch, in seconds of wall time during which the
-#: batch has one worker fewer: the forkserver's imports (numpy, scipy, numba, rig, numba's CPU target:
-#: 1.2-1.5 s here, on a core this process does not use) before the first fork (milliseconds each).
-#: The work left must exceed ``PAYBACK x`` this for the workers to start (docs/scaling.md).
-START_COST_S = 1.5
+#: batch has one worker fewer: a fork of this process (milliseconds, then its copy-on-write page faults:
+#: 0.3 s is generous), or with a forkserver its imports (numpy, scipy, numba, rig, numba's CPU target:
+#: 1.2-1.5 s here, on a core this process does not use). The work left must exceed ``PAYBACK x`` this
+#: for the workers to start (docs/scaling.md).
+START_COST_S = 0.3 if POOL_START == "fork" else 1.5
 PAYBACK = 2.0
 
 

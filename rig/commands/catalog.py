@@ -218,7 +218,7 @@ def run_batch(kind: str, inputs: list[str], options: dict, *, jobs: Optional[int
     items = [(str(f), options) for f in files]
     try:
         with contextlib.ExitStack() as stack:
-            # one cluster for the indexing of new files and the analysis (none for --jobs 1 or one file)
+            # one engine (workers, cluster) for the indexing of new files and the analysis (none for --jobs 1 or one file)
             client = None
             if scheduler is not None or (jobs != 1 and len(items) > 1):
                 client = stack.enter_context(engine(jobs, scheduler))
