@@ -209,12 +209,20 @@ def dask_client(jobs: int | None = None, scheduler: str | None = None, preload: 
 
 
 def _pool_worker_init() -> None:
-    """A pool worker's start: one BLAS/OpenMP thread (N processes on N cores; the forkserver's numpy
-    started its pool with one thread per core), Ctrl-C left to the calling process (which stops the
-    batch), and the worker's name in its results."""
+    """A pool worker's start: one BLAS/OpenMP thread (N processes on N cores; the numpy it inherited
+    runs one thread per core), Ctrl-C left to the calling process (which stops the batch), and the
+    worker's name in its results."""
     global _POOL_WORKER
     _POOL_WORKER = True
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if POOL_START == "fork":  # the streams' locks as a thread of the parent (a progress bar) may have held them
+        for name, fd in (("stdout", 1), ("stderr", 2)):
+            old = getattr(sys, name)
+            try:
+                setattr(sys, name, open(fd, "w", buffering=1, closefd=False, encoding=getattr(old, "encoding", None),
+                                        errors="backslashreplace"))
+            except (OSError, ValueError):  # no such descriptor: keep the inherited object
+                pass
     for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
         os.environ[v] = "1"  # for the processes a task may start
     try:
@@ -344,11 +352,11 @@ class Engine:
     - ``jobs=1``, no ``scheduler``: serially in this process (no Dask, no worker);
     - ``scheduler`` (or a ``distributed.Client``): on that Dask cluster, connected at the first run;
     - otherwise this process and ``jobs - 1`` worker processes of its own (default ``jobs``: every
-      core): a ``ProcessPoolExecutor`` whose workers are forked from a forkserver that imported
-      the task's module once (``START_METHOD``), one thread each. This process computes too: it and
+      core): a ``ProcessPoolExecutor`` whose workers are forks of this process with everything loaded
+      (``POOL_START``), one thread each. This process computes too: it and
       the workers take the next task of one longest-first queue whenever they are free. No Dask
       scheduler, nanny or worker here: the calling process spends milliseconds, not 0.4 s of CPU,
-      on starting them, and 0.25 ms per task instead of Dask's 4-14 ms (docs/scaling.md).
+      on starting them, and 0.15 ms per task instead of Dask's 4-14 ms (docs/scaling.md).
 
     A batch never pays for workers it cannot use: with none started yet, this process runs the
     batch's cheapest tasks first and, from their measured CPU times and the tasks' ``cost`` (seconds
