@@ -269,6 +269,13 @@ class _Pool:
     def close(self) -> None:
         self.executor.shutdown(wait=True, cancel_futures=True)
 
+    def kill(self) -> None:
+        """Stop the workers now (their running tasks are lost); the pool is broken from here on."""
+        self.broken = True
+        for proc in list((getattr(self.executor, "_processes", None) or {}).values()):
+            proc.terminate()
+        self.executor.shutdown(wait=False, cancel_futures=True)
+
 
 def _share(pool: _Pool, fn: Callable, items: list, order: list[int], record: Callable[[int, TaskResult], None],
            local: Callable[[int], None]) -> None:
@@ -319,10 +326,12 @@ def _share(pool: _Pool, fn: Callable, items: list, order: list[int], record: Cal
         with _one_blas_thread():  # this process is one of the N workers now
             while (i := take()) is not None:
                 local(i)
+    except BaseException:  # Ctrl-C (or an error) here: the workers' tasks are abandoned, not waited for
+        with lock:
+            todo.clear()
+        pool.kill()
+        raise
     finally:
-        if todo:  # interrupted here: the workers get nothing more
-            with lock:
-                todo.clear()
         feeder.join()
 
 

@@ -113,3 +113,26 @@ def test_a_short_batch_starts_no_worker(monkeypatch):
     res = eng.run(_square, list(range(5)), cost=lambda x: 1.0)
     assert eng._pool is None and eng.local_tasks == 5 and [r.value for r in res] == [0, 1, 4, 9, 16]
     assert eng.estimate_s is not None and eng.estimate_s < batch.PAYBACK * eng.start_cost_s
+
+
+def _interrupted_here(x):
+    import threading
+
+    if x >= 3 and threading.current_thread() is threading.main_thread():
+        raise KeyboardInterrupt
+    return x
+
+
+def test_ctrl_c_in_this_process_stops_the_workers(monkeypatch):
+    """Ctrl-C while this process computes its share: the workers are stopped, not waited for, and the
+    interrupt reaches the caller."""
+    import pytest
+
+    killed = []
+    monkeypatch.setattr(batch, "_Pool", _ThreadPool)
+    monkeypatch.setattr(_ThreadPool, "kill", lambda self: killed.append(self), raising=False)
+    eng = batch.Engine(2, start_cost_s=0.0)
+    with pytest.raises(KeyboardInterrupt):
+        eng.run(_interrupted_here, list(range(50)))
+    assert killed == [eng._pool]
+    eng.close()
