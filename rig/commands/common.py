@@ -113,17 +113,14 @@ def _finite(obj: Any) -> Any:
         return {k: _finite(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
         return [_finite(v) for v in obj]
-    try:
-        import numpy as np
-
+    np = sys.modules.get("numpy")  # a numpy value exists only once numpy is imported (`rig info --json` never does)
+    if np is not None:
         if isinstance(obj, np.floating):
             return _finite(float(obj))
         if isinstance(obj, np.ndarray):
             return _finite(obj.tolist())
         if isinstance(obj, np.generic):
             return obj.item()
-    except ImportError:  # pragma: no cover
-        pass
     return obj
 
 
