@@ -21,6 +21,7 @@ decimated rate, ``("event", {t_s, kind, ...})`` and ``("loop_stats", {t_s,
 
 from __future__ import annotations
 
+import collections
 import datetime as _dt
 import json
 import math
@@ -30,6 +31,7 @@ import struct
 import threading
 import time
 import uuid
+import zlib
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
@@ -37,6 +39,7 @@ import numpy as np
 from mcap.writer import CompressionType, Writer
 
 from rig import __version__
+from rig.jitstart import preload_cython_blas
 from rig.log import decimate as _decimate_mod
 from rig.log.decimate import MatrixBlockMean, decimation_factor
 from rig.log.loopblock import LOOP_BLOCK_SCHEMA, PROTO_ENCODING, LoopBlockEncoder
@@ -100,13 +103,30 @@ def _log25_messages(names: list, specs: list, m: np.ndarray, cid: int, origin_ns
     return list(zip([cid] * k, ns, payloads, range(seq0, seq0 + k))), m
 
 
+def _zstd_chunk(comp, data: bytes) -> tuple[bytes, int]:
+    """A chunk's zstd frame and its uncompressed CRC (both without the GIL: the compressing thread runs
+    beside the writer's)."""
+    return comp.compress(data), zlib.crc32(data)
+
+
 class _Sink:
-    """Owns the ``mcap`` Writer and the file: messages, metadata, flush (+fsync), finish."""
+    """Owns the ``mcap`` Writer and the file: messages, metadata, flush (+fsync), finish.
+
+    A full zstd chunk is compressed in a thread of its own (``rig-log-zstd``) while the caller goes on
+    filling the next one, and written, in order, once compressed (:meth:`_finalize_async`): the same
+    bytes as the Writer's, the compression (half the log's CPU) beside the encoding. Everything that
+    writes a record outside the chunks (metadata, flush, finish) first writes the chunks in flight."""
+
+    #: compressed chunks in flight at most (1 MB each); the caller waits for the oldest beyond that
+    MAX_IN_FLIGHT = 4
 
     def __init__(self, fh, fsync: bool, compression: str, chunk_size: int):
         self.fh = fh
         self.fsync = fsync
         self.w = Writer(fh, chunk_size=chunk_size, compression=_COMPRESSION[compression])
+        self._zstd = compression == "zstd"
+        self._pool = None  # the compressing thread, started with the first full chunk
+        self._in_flight: collections.deque = collections.deque()
 
     def messages(self, items: list) -> None:
         """Add a batch of ``(channel_id, log_time, data, sequence)`` (``data`` may be a callable: a raw block
@@ -137,7 +157,9 @@ class _Sink:
         if ok is None:
             w = self.w
             ok = all(hasattr(w, a) for a in ("_Writer__chunk_builder", "_Writer__statistics",
-                                            "_Writer__chunk_size", "_Writer__finalize_chunk"))
+                                            "_Writer__chunk_size", "_Writer__finalize_chunk",
+                                            "_Writer__record_builder", "_Writer__stream",
+                                            "_Writer__chunk_indices", "_Writer__index_types", "_Writer__flush"))
             ok = ok and w._Writer__chunk_builder is not None and hasattr(w._Writer__chunk_builder, "record_writer")
             self._fast_ok = ok
         return ok
@@ -193,12 +215,78 @@ class _Sink:
             stats.message_end_time = max(stats.message_end_time, t_hi)
             stats.message_count += k
             if cb.count > limit:
-                w._Writer__finalize_chunk()
+                self._finalize_async() if self._zstd else w._Writer__finalize_chunk()
+
+    def _finalize_async(self) -> None:
+        """What ``Writer.__finalize_chunk`` does, with the compression and the CRC handed to the
+        compressing thread: the chunk's records are taken (the builder starts the next chunk at once)
+        and written by :meth:`_write_ready` once compressed, in order."""
+        w = self.w
+        cb = w._Writer__chunk_builder
+        if cb.num_messages == 0:
+            return
+        w._Writer__statistics.chunk_count += 1
+        data = cb.end()
+        indexes = list(cb.message_indices.items())
+        times = (cb.message_start_time, cb.message_end_time)
+        cb.reset()
+        if self._pool is None:
+            import concurrent.futures
+
+            import zstandard
+
+            self._pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="rig-log-zstd")
+            self._comp = zstandard.ZstdCompressor(level=3)  # zstandard.compress's level: the same bytes
+        self._in_flight.append((self._pool.submit(_zstd_chunk, self._comp, data), len(data), times, indexes))
+        self._write_ready(wait=len(self._in_flight) > self.MAX_IN_FLIGHT)
+
+    def _write_ready(self, wait: bool = False, every: bool = False) -> None:
+        """Write the compressed chunks in flight that are ready, in order (``wait``: at least the oldest;
+        ``every``: all of them); as ``Writer.__finalize_chunk`` writes a chunk, its index and its
+        message indexes."""
+        from mcap.records import Chunk, ChunkIndex
+        from mcap.writer import IndexType
+
+        w = self.w
+        q = self._in_flight
+        while q and (every or wait or q[0][0].done()):
+            wait = False
+            fut, size, (t0, t1), indexes = q.popleft()
+            comp, crc = fut.result()
+            rb, stream = w._Writer__record_builder, w._Writer__stream
+            w._Writer__flush()
+            start = stream.tell()
+            Chunk(compression="zstd", data=comp, message_start_time=t0, message_end_time=t1, uncompressed_crc=crc,
+                  uncompressed_size=size).write(rb)
+            ci = ChunkIndex(message_start_time=t0, message_end_time=t1, chunk_start_offset=start,
+                            chunk_length=rb.count, message_index_offsets={}, message_index_length=0,
+                            compression="zstd", compressed_size=len(comp), uncompressed_size=size)
+            w._Writer__flush()
+            mi_start = stream.tell()
+            if w._Writer__index_types & IndexType.MESSAGE:
+                for cid, index in indexes:
+                    ci.message_index_offsets[cid] = mi_start + rb.count
+                    index.write(rb)
+            ci.message_index_length = rb.count
+            w._Writer__flush()
+            w._Writer__chunk_indices.append(ci)
+
+    def _drain(self) -> None:
+        """Every chunk in flight written (before a record outside the chunks, a flush, the finish)."""
+        if self._in_flight:
+            self._write_ready(every=True)
+
+    def _stop_pool(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=False, cancel_futures=True)
+            self._pool = None
 
     def call(self, fn: Callable, *args) -> None:
+        self._drain()
         fn(self.w, *args)
 
     def flush(self) -> None:
+        self._drain()
         self.w.flush()
         self._sync()
 
@@ -211,11 +299,16 @@ class _Sink:
                 pass
 
     def finish(self) -> None:
-        self.w.finish()
-        self._sync()
+        try:
+            self._drain()
+            self.w.finish()
+            self._sync()
+        finally:
+            self._stop_pool()
         self.fh.close()
 
     def abort(self) -> None:
+        self._stop_pool()
         self.fh.close()
 
 
@@ -437,6 +530,7 @@ class TrialLogWriter:
         """Load and compile now what writing a block needs (numba and its cache for the /raw encoder),
         so that the first block of a run is written as fast as the rest: call before a real-time loop
         starts."""
+        preload_cython_blas()  # numba's target without scipy.linalg, when this is the process's first kernel
         _loopblock.warm_up()
         _decimate_mod.warm_up()
 
@@ -790,7 +884,7 @@ def compact_log(path: str | os.PathLike, chunk_size: int = COMPACT_CHUNK_SIZE) -
         return None
     before = path.stat().st_size
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-        sink = _Sink(fh, True, "zstd", chunk_size)
+        sink = _Sink(fh, False, "zstd", chunk_size)  # atomic_path fsyncs the finished copy
         w = sink.w
         w.start(profile=c.header.profile, library=c.header.library)
         sid = {i: w.register_schema(s.name, s.encoding, s.data) for i, s in sorted(c.schemas.items())}
@@ -804,7 +898,7 @@ def compact_log(path: str | os.PathLike, chunk_size: int = COMPACT_CHUNK_SIZE) -
                              media_type=a.media_type, data=a.data)
         sink.messages([(cid[m.channel_id], m.log_time, m.data, m.sequence) for m in c.messages
                        if m.channel_id in cid])
-        w.finish()
+        sink.finish()  # the chunks in flight, then the summary
     return {"bytes_before": before, "bytes_after": path.stat().st_size, "chunks_before": len(summary.chunk_indexes)}
 
 
