@@ -635,15 +635,9 @@ class TrialLogWriter:
 
         if isinstance(self._sink, _ThreadedSink):
             # the id is needed now: register synchronously, in order, through the queue
-            done = threading.Event()
-
-            def reg(w):
-                register(w)
-                done.set()
             self._send()
-            self._sink.call(reg)
-            while not done.wait(0.01):
-                self._sink._check()
+            self._sink.call(register)
+            self._writer_barrier()
         else:
             self._send()
             register(self._sink.w)
@@ -690,11 +684,15 @@ class TrialLogWriter:
             self.flush()
 
     _dec_plan: tuple | None = None
+    _dec_ticks = 0              # samples pushed into the decimation so far
+    _dec_in_writer = False      # the decimation runs in the writer's thread (threaded, nobody listens)
 
     def _decimate(self, arrays: dict[str, np.ndarray]) -> None:
         """The /log25 samples of a block: the device columns on their /raw grid (integer count times the
         scale) and block means over each interval: one compiled pass over the stacked columns, without
-        the GIL (:class:`rig.log.decimate.MatrixBlockMean`)."""
+        the GIL (:class:`rig.log.decimate.MatrixBlockMean`). Threaded and with no listener, the pass and
+        the messages run in the writer's thread, in order (the loop's thread only stacks the block's
+        columns: its copy); a listener (a live view) gets its samples in the loop's thread."""
         if self._dec_plan is None:
             names = tuple(nm for nm in SAMPLE_FIELDS[:-1] if nm in arrays)
             cols = [self._enc.column(nm) for nm in names]
@@ -703,30 +701,58 @@ class TrialLogWriter:
             self._dec = MatrixBlockMean(self._dec_every, grid,
                                         [c.offset if g else 0.0 for c, g in zip(cols, grid)],
                                         [c.scale if g else 1.0 for c, g in zip(cols, grid)])
+            self._dec_in_writer = self._threaded and not self._listeners
+        elif self._dec_in_writer and self._listeners:  # a listener came: the writer's pushes first
+            self._writer_barrier()
+            self._dec_in_writer = False
         names = self._dec_plan[0]
-        dec = self._dec.push(np.stack([arrays[nm] for nm in names]))  # a copy: its grid rows are rounded in place
+        m = np.stack([arrays[nm] for nm in names])  # a copy: its grid rows are rounded in place
+        n0 = self._dec_ticks
+        self._dec_ticks += m.shape[1]
+        if self._dec_in_writer:
+            k = self._dec_ticks // self._dec_every - n0 // self._dec_every  # the intervals this block completes
+            self._later_log25(names, k, lambda dec=self._dec: dec.push(m))
+            return
+        dec = self._dec.push(m)
         if dec is not None:
             self._emit_log25(names, dec)
 
-    def _emit_log25(self, names: tuple, m: np.ndarray) -> None:
-        """Write decimated samples (rows of ``m``: the fields ``names``; block means, see rig.log.decimate)
-        as /log25 messages, with mu (:func:`_log25_messages`); threaded and with no listener, the messages
-        are made in the writer's thread, in the file's order (the loop's thread only counts them)."""
+    def _log25_args(self, names: tuple, k: int) -> tuple:
+        """``_log25_messages``'s arguments but the samples, for ``k`` samples from now (counted here)."""
         names = list(names)
         if "normal_1_N" in names and "normal_2_N" in names:
             names.append("mu")
-        k = m.shape[1]
-        specs = [self._dec_format(nm) for nm in names]
-        args = (names, specs, m, self._chan[LOG25_TOPIC], self._origin_ns, self._seq[LOG25_TOPIC])
-        if self._threaded and not self._listeners:
-            self._batch.append(lambda: _log25_messages(*args)[0])
-        else:
-            msgs, m = _log25_messages(*args)
-            self._batch.extend(msgs)
-            if self._listeners:
-                self._notify("samples", dict(zip(names, m)))
+        args = (names, [self._dec_format(nm) for nm in names], self._chan[LOG25_TOPIC], self._origin_ns,
+                self._seq[LOG25_TOPIC])
         self._seq[LOG25_TOPIC] += k
         self.counts[LOG25_TOPIC] += k
+        return args
+
+    def _later_log25(self, names: tuple, k: int, means: Callable[[], np.ndarray | None]) -> None:
+        """The /log25 messages of ``k`` samples whose means ``means()`` computes in the writer's thread."""
+        names, specs, cid, origin, seq0 = self._log25_args(names, k)
+
+        def messages() -> list:
+            m = means()
+            return [] if m is None else _log25_messages(names, specs, m, cid, origin, seq0)[0]
+        self._batch.append(messages)
+
+    def _writer_barrier(self) -> None:
+        """Wait until the writer's thread has done everything queued so far."""
+        done = threading.Event()
+        self._send()
+        self._sink.call(lambda _w: done.set())
+        while not done.wait(0.01):
+            self._sink._check()
+
+    def _emit_log25(self, names: tuple, m: np.ndarray) -> None:
+        """Write decimated samples (rows of ``m``: the fields ``names``; block means, see rig.log.decimate)
+        as /log25 messages, with mu (:func:`_log25_messages`), and hand them to the listeners."""
+        args = self._log25_args(names, m.shape[1])
+        msgs, m = _log25_messages(args[0], args[1], m, *args[2:])
+        self._batch.extend(msgs)
+        if self._listeners:
+            self._notify("samples", dict(zip(args[0], m)))
 
     def _dec_format(self, name: str) -> str:
         """printf format of a /log25 field: the raw column's resolution (the same values as /raw), else repr."""
@@ -811,8 +837,9 @@ class TrialLogWriter:
         if self.closed:
             return
         self.status = status
-        last = self._dec.flush() if self._dec is not None else None
-        if last is not None:  # the last, partial interval (mean of its ticks)
+        if self._dec is not None and self._dec_in_writer:  # the last, partial interval (mean of its ticks)
+            self._later_log25(self._dec_plan[0], int(self._dec_ticks % self._dec_every > 0), self._dec.flush)
+        elif self._dec is not None and (last := self._dec.flush()) is not None:
             self._emit_log25(self._dec_plan[0], last)
         self.event(self.last_t_s, "log_end", status=status)
         # the counts of what the file holds (log_end included: `rig info` counts the same messages)
