@@ -35,6 +35,7 @@ that is a small capability protocol, asked with ``isinstance``: :class:`Pausable
 from __future__ import annotations
 
 import signal
+import sys
 import threading
 import time
 from dataclasses import dataclass, field
@@ -43,6 +44,11 @@ from typing import Any, Callable, Protocol, runtime_checkable
 
 from rig.log.figures import BlockFigures  # the figures of the logged samples (one accumulator)
 
+
+#: the interpreter's GIL switch interval while a trial runs (Python's default is 5 ms): the loop's thread
+#: gets the GIL back sooner after a kernel that released it while the log's writer thread runs Python
+#: (docs/trial.md, "third pass"); restored when the trial ends
+GIL_SWITCH_INTERVAL_S = 0.0005
 
 # the signals that ask for an operator's stop (safe stop, finished log, exit 130): Ctrl-C, SIGTERM
 # (a service manager, `kill`) and SIGHUP (the operator's terminal or SSH session went away: a trial
@@ -527,10 +533,12 @@ class TrialSession:
                                        "duration_s": float(plan.duration_s), "n_ticks": int(plan.n_ticks),
                                        **backend.describe()})
         t_wall0 = time.perf_counter()
-        next_stats = self.stats_every_s
+        self._next_stats = self.stats_every_s
         ending: Ending | None = None
         handled = 0  # signals turned into stop requests
         old = self._install_signals()
+        switch = sys.getswitchinterval()
+        sys.setswitchinterval(min(switch, GIL_SWITCH_INTERVAL_S))
         w.warm_up()  # numba & co. compiled/loaded now: the first second of the run is as durable as the rest
         self.figures.warm_up()
         self._logged = backend.block_logged if isinstance(backend, LoggerWatched) else None
@@ -554,23 +562,7 @@ class TrialSession:
                         if msg is None:
                             break
                         if type(msg) is Block:
-                            self._schedule_planned(float(msg.data["t_s"][-1]) + half_tick)
-                            self._in_write = time.monotonic()
-                            if msg.wall_ns is not None and anchor is not None and len(msg.data["t_s"]):
-                                anchor(float(msg.data["t_s"][-1]), msg.wall_ns)
-                            w.write_block(msg.data)
-                            self._in_write = None
-                            if self._logged is not None:
-                                self._logged()
-                            self.figures.add(msg.data)
-                            t = self.figures.last_t_s
-                            if t >= next_stats - half_tick:
-                                st = self.figures.window(rate)
-                                st.update(backend.stats_window())
-                                w.loop_stats(t, st)
-                                next_stats += self.stats_every_s
-                            if self.progress is not None:
-                                self.progress(t)
+                            self._on_block(msg, anchor, rate, half_tick)
                         else:
                             w.event(msg.t_s, msg.kind, **msg.data)
                             if msg.kind in ("pause", "resume", "runup_done", "pause_refused"):
@@ -588,6 +580,7 @@ class TrialSession:
             except Exception as exc:  # noqa: BLE001 - a failure while running (e.g. the log): stop the backend
                 ending = self._fail_stop(f"{type(exc).__name__}: {exc}")
         finally:
+            sys.setswitchinterval(switch)
             monitor.stop()
             if self.pause is not None:
                 self.pause.stop()
@@ -599,6 +592,28 @@ class TrialSession:
                 if ending is not None:
                     ending.message += f"; closing the backend failed: {exc}"
         return self._end(ending, time.perf_counter() - t_wall0)
+
+    def _on_block(self, msg: Block, anchor, rate: float, half_tick: float) -> None:
+        """One block: the planned events it reaches, the log (its clock anchored on the block's wall-clock
+        time), the figures, loop statistics every ``stats_every_s`` of trial time, the progress."""
+        w = self.writer
+        self._schedule_planned(float(msg.data["t_s"][-1]) + half_tick)
+        self._in_write = time.monotonic()
+        if msg.wall_ns is not None and anchor is not None and len(msg.data["t_s"]):
+            anchor(float(msg.data["t_s"][-1]), msg.wall_ns)
+        w.write_block(msg.data)
+        self._in_write = None
+        if self._logged is not None:
+            self._logged()
+        self.figures.add(msg.data)
+        t = self.figures.last_t_s
+        if t >= self._next_stats - half_tick:
+            st = self.figures.window(rate)
+            st.update(self.backend.stats_window())
+            w.loop_stats(t, st)
+            self._next_stats += self.stats_every_s
+        if self.progress is not None:
+            self.progress(t)
 
     # -- the plan's events, later by what pauses added -----------------------------------------------------
     def _schedule_planned(self, until_s: float | None = None) -> None:
