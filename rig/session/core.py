@@ -49,6 +49,23 @@ from rig.log.figures import BlockFigures  # the figures of the logged samples (o
 #: gets the GIL back sooner after a kernel that released it while the log's writer thread runs Python
 #: (docs/trial.md, "third pass"); restored when the trial ends
 GIL_SWITCH_INTERVAL_S = 0.0005
+_SWITCH = {"runs": 0, "saved": 0.005}  # trials running in this process, and the interval before the first
+_SWITCH_LOCK = threading.Lock()
+
+
+def short_gil_switch(on: bool) -> None:
+    """A trial starts (``on``) or ends: the first to start sets :data:`GIL_SWITCH_INTERVAL_S` (never longer
+    than what was set), the last to end restores what was there (sessions in several threads nest)."""
+    with _SWITCH_LOCK:
+        if on:
+            if _SWITCH["runs"] == 0:
+                _SWITCH["saved"] = sys.getswitchinterval()
+                sys.setswitchinterval(min(_SWITCH["saved"], GIL_SWITCH_INTERVAL_S))
+            _SWITCH["runs"] += 1
+        elif _SWITCH["runs"] > 0:
+            _SWITCH["runs"] -= 1
+            if _SWITCH["runs"] == 0:
+                sys.setswitchinterval(_SWITCH["saved"])
 
 # the signals that ask for an operator's stop (safe stop, finished log, exit 130): Ctrl-C, SIGTERM
 # (a service manager, `kill`) and SIGHUP (the operator's terminal or SSH session went away: a trial
@@ -537,8 +554,7 @@ class TrialSession:
         ending: Ending | None = None
         handled = 0  # signals turned into stop requests
         old = self._install_signals()
-        switch = sys.getswitchinterval()
-        sys.setswitchinterval(min(switch, GIL_SWITCH_INTERVAL_S))
+        short_gil_switch(True)
         w.warm_up()  # numba & co. compiled/loaded now: the first second of the run is as durable as the rest
         self.figures.warm_up()
         self._logged = backend.block_logged if isinstance(backend, LoggerWatched) else None
@@ -580,7 +596,7 @@ class TrialSession:
             except Exception as exc:  # noqa: BLE001 - a failure while running (e.g. the log): stop the backend
                 ending = self._fail_stop(f"{type(exc).__name__}: {exc}")
         finally:
-            sys.setswitchinterval(switch)
+            short_gil_switch(False)
             monitor.stop()
             if self.pause is not None:
                 self.pause.stop()
