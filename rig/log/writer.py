@@ -804,14 +804,14 @@ class TrialLogWriter:
             self._notify("event", rec)
 
     def loop_stats(self, t_s: float, stats: dict[str, Any]) -> None:
-        """Log loop statistics (numbers) at time ``t_s``."""
+        """Log loop statistics (numbers) at time ``t_s`` (threaded: printed as JSON in the writer's thread)."""
         rec = {"t_s": float(t_s)}
         for k, v in stats.items():
             if k == "t_s":
                 continue
             v = jsonable(v)
             rec[str(k)] = v if isinstance(v, (int, float)) or v is None else None
-        self._add(STATS_TOPIC, t_s, dumps(rec))
+        self._add(STATS_TOPIC, t_s, (lambda: dumps(rec)) if self._threaded and not self._listeners else dumps(rec))
         self._send()
         if self._listeners:
             self._notify("loop_stats", rec)
