@@ -104,8 +104,8 @@ def _log25_messages(names: list, specs: list, m: np.ndarray, cid: int, origin_ns
 
 
 #: zstd's level 3 (the ``mcap`` Writer's) with hash and chain tables of 2**14 entries instead of 2**17 / 2**16:
-#: the tables stay in the core's cache; measured on a simulated hour's chunks (bench_run.py --phases,
-#: docs/trial.md): 31 % less CPU for 1.8 % more bytes (51.3 against 50.4 MB per hour, load 10)
+#: the tables stay in the core's cache; measured on a simulated hour's 1 MB chunks (docs/trial.md, "third
+#: pass"): 31 % less CPU for 1.8 % more bytes (51.3 against 50.4 MB per hour, load 10.8)
 ZSTD_LEVEL = 3
 ZSTD_HASH_LOG = 14
 

@@ -554,12 +554,12 @@ class TrialSession:
         ending: Ending | None = None
         handled = 0  # signals turned into stop requests
         old = self._install_signals()
-        short_gil_switch(True)
         w.warm_up()  # numba & co. compiled/loaded now: the first second of the run is as durable as the rest
         self.figures.warm_up()
         self._logged = backend.block_logged if isinstance(backend, LoggerWatched) else None
         anchor = w.anchor if isinstance(w, Anchored) else None  # the log's clock: the samples' wall-clock time
         monitor = _WriterMonitor(self, poll_s=0.005)
+        short_gil_switch(True)  # undone in the finally below
         try:
             try:
                 backend.start(plan)
