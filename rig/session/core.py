@@ -35,7 +35,6 @@ that is a small capability protocol, asked with ``isinstance``: :class:`Pausable
 from __future__ import annotations
 
 import signal
-import sys
 import threading
 import time
 from dataclasses import dataclass, field
@@ -44,28 +43,6 @@ from typing import Any, Callable, Protocol, runtime_checkable
 
 from rig.log.figures import BlockFigures  # the figures of the logged samples (one accumulator)
 
-
-#: the interpreter's GIL switch interval while a trial runs (Python's default is 5 ms): the loop's thread
-#: gets the GIL back sooner after a kernel that released it while the log's writer thread runs Python
-#: (docs/trial.md, "third pass"); restored when the trial ends
-GIL_SWITCH_INTERVAL_S = 0.0005
-_SWITCH = {"runs": 0, "saved": 0.005}  # trials running in this process, and the interval before the first
-_SWITCH_LOCK = threading.Lock()
-
-
-def short_gil_switch(on: bool) -> None:
-    """A trial starts (``on``) or ends: the first to start sets :data:`GIL_SWITCH_INTERVAL_S` (never longer
-    than what was set), the last to end restores what was there (sessions in several threads nest)."""
-    with _SWITCH_LOCK:
-        if on:
-            if _SWITCH["runs"] == 0:
-                _SWITCH["saved"] = sys.getswitchinterval()
-                sys.setswitchinterval(min(_SWITCH["saved"], GIL_SWITCH_INTERVAL_S))
-            _SWITCH["runs"] += 1
-        elif _SWITCH["runs"] > 0:
-            _SWITCH["runs"] -= 1
-            if _SWITCH["runs"] == 0:
-                sys.setswitchinterval(_SWITCH["saved"])
 
 # the signals that ask for an operator's stop (safe stop, finished log, exit 130): Ctrl-C, SIGTERM
 # (a service manager, `kill`) and SIGHUP (the operator's terminal or SSH session went away: a trial
@@ -559,7 +536,6 @@ class TrialSession:
         self._logged = backend.block_logged if isinstance(backend, LoggerWatched) else None
         anchor = w.anchor if isinstance(w, Anchored) else None  # the log's clock: the samples' wall-clock time
         monitor = _WriterMonitor(self, poll_s=0.005)
-        short_gil_switch(True)  # undone in the finally below
         try:
             try:
                 backend.start(plan)
@@ -596,7 +572,6 @@ class TrialSession:
             except Exception as exc:  # noqa: BLE001 - a failure while running (e.g. the log): stop the backend
                 ending = self._fail_stop(f"{type(exc).__name__}: {exc}")
         finally:
-            short_gil_switch(False)
             monitor.stop()
             if self.pause is not None:
                 self.pause.stop()

@@ -160,28 +160,6 @@ def test_completed_run_logs_blocks_events_and_stats_every_second():
     assert log.summary["tracking_error_rms_um"] == pytest.approx(1.0)
 
 
-def test_the_gil_switch_interval_is_short_while_a_trial_runs_and_restored_after():
-    import sys
-
-    from rig.session.core import GIL_SWITCH_INTERVAL_S
-
-    seen: list = []
-
-    class Watching(ScriptedBackend):
-        def receive(self):
-            seen.append(sys.getswitchinterval())
-            return super().receive()
-
-    before = sys.getswitchinterval()
-    assert before > GIL_SWITCH_INTERVAL_S  # Python's 5 ms
-    res = run_trial(_plan(500), Watching(5), MemoryLog(), handle_signals=False)
-    assert res.status == "completed" and seen and all(v == pytest.approx(GIL_SWITCH_INTERVAL_S) for v in seen)
-    assert sys.getswitchinterval() == before
-    be = Watching(3, fail_at=1)  # a failing backend restores it too
-    assert run_trial(_plan(300), be, MemoryLog(), handle_signals=False).status == "failed"
-    assert sys.getswitchinterval() == before
-
-
 def test_ctrl_c_is_a_controlled_stop_and_the_backend_finishes():
     log = MemoryLog()
     be = ScriptedBackend(50, stop_after_request=3)  # the backend still sends 3 blocks (holding) after the request
