@@ -17,6 +17,7 @@ them its own way). A later ``import scipy.linalg`` works as usual.
 
 from __future__ import annotations
 
+import importlib.machinery
 import importlib.util
 import sys
 from pathlib import Path
@@ -39,7 +40,8 @@ def preload_cython_blas() -> bool:
         folder = Path(spec.submodule_search_locations[0]) / "linalg"
         loaded = {}
         for name, mod_name in zip(_NAMES, full):
-            files = sorted(folder.glob(f"{name}.*.so")) + sorted(folder.glob(f"{name}.*.pyd"))
+            files = [folder / (name + suffix) for suffix in importlib.machinery.EXTENSION_SUFFIXES]
+            files = [f for f in files if f.is_file()]  # this interpreter's extension file names, in its order
             if not files:
                 return False
             s = importlib.util.spec_from_file_location(mod_name, files[0])
