@@ -29,6 +29,9 @@ median / max of ``--repeat`` runs after an uncounted one, wall and CPU (user + s
 threads included) beside the load average; ``--vs REF`` runs that commit's tree in turn (A B A B), so
 before and after are measured in one sitting.
 
+``--threads [WHICH]``: each thread's CPU time (and when it ends) in a whole ``rig run`` process, min of
+``--repeat``: the simulation's (main) thread is the critical path, the writer and its zstd thread must keep up.
+
 ``--phases``: one (default: one-hour, ``benchmarks/recipes/one-hour-slide.yaml``) trial phase by
 phase -- imports, plan, simulation, encoding, compression, fsync, the whole ``rig run`` process -- each
 beside the load average, and the log's size per hour in the protobuf and the v2 layouts, with the
@@ -352,6 +355,56 @@ def whole(n: int, which: list[str], ref: str | None) -> dict:
     return res
 
 
+# a fresh ``rig`` process that reports, at exit, each thread's CPU time and its start and end (wall s from the
+# process's first line): the simulation's (main) thread, the log writer, its zstd thread, the monitor
+_THREADS_CODE = r"""
+import json, os, sys, threading, time, atexit, runpy
+W0 = time.perf_counter()
+res = {}
+_run = threading.Thread.run
+def run(self):
+    t0 = time.perf_counter()
+    try:
+        _run(self)
+    finally:
+        res[self.name] = {"cpu_s": time.thread_time(), "start_s": t0 - W0, "end_s": time.perf_counter() - W0}
+threading.Thread.run = run
+def report():
+    res["main"] = {"cpu_s": time.thread_time(), "start_s": 0.0, "end_s": time.perf_counter() - W0}
+    res["process"] = {"cpu_s": time.process_time(), "start_s": 0.0, "end_s": time.perf_counter() - W0}
+    os.write(2, ("RIG_THREADS " + json.dumps(res) + "\n").encode())
+atexit.register(report)
+sys.argv = ["rig"] + sys.argv[1:]
+runpy.run_module("rig.cli", run_name="__main__")
+"""
+
+
+def threads(which: list[str], n: int) -> dict:
+    """Each thread's CPU time in a whole ``rig run`` process (the main job, the one-hour trial): the critical
+    path is the simulation's (main) thread; the writer and its zstd thread must keep up beside it. Min of
+    ``n`` runs after an uncounted one, per thread, beside the load average."""
+    out = Path(tempfile.mkdtemp(prefix="bench_run_threads_")) / "t.mcap"
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
+    res: dict = {}
+    for name in which:
+        args = [a.format(out=out) for a in WHOLE[name]] + ["--overwrite"]
+        rows: dict = {}
+        for i in range(n + 1):
+            p = subprocess.run([sys.executable, "-c", _THREADS_CODE, *args], cwd=REPO, env=env, capture_output=True,
+                               text=True)
+            line = next((ln for ln in p.stderr.splitlines() if ln.startswith("RIG_THREADS ")), None)
+            if p.returncode != 0 or line is None:
+                raise SystemExit(f"rig {' '.join(args)} failed:\n{p.stderr[-2000:]}")
+            if i:
+                for th, v in json.loads(line[len("RIG_THREADS "):]).items():
+                    rows.setdefault(th.rstrip("_0123456789"), []).append(v)
+        res[name] = {th: {k: min(r[k] for r in v) for k in ("cpu_s", "end_s")} for th, v in rows.items()}
+        print(f"  rig {name}: min of {n} ({_load()})")
+        for th, v in res[name].items():
+            print(f"    {th:22s} CPU {v['cpu_s']:6.2f} s   ends at {v['end_s']:6.2f} s")
+    return res
+
+
 def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--phases", action="store_true", help="where the time of a one-hour trial goes, phase by "
@@ -366,6 +419,9 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--whole", nargs="*", choices=sorted(WHOLE), default=None, metavar="WHICH",
                     help="whole-process figures (min/median/max of --repeat runs, wall and CPU) of: help, "
                          "'main job', 'one hour' (default: all three)")
+    ap.add_argument("--threads", nargs="*", choices=sorted(k for k in WHOLE if k != "help"), default=None,
+                    metavar="WHICH", help="each thread's CPU time in a whole `rig run` process (min of --repeat "
+                    "runs): 'main job', 'one hour' (default: both)")
     ap.add_argument("--vs", default=None, metavar="REF", help="with --whole: run this git commit's tree (or this "
                     "directory's) in turn, in the same sitting (before/after)")
     return ap
@@ -376,6 +432,12 @@ def main(argv=None) -> int:
     if args.whole is not None:
         print(f"whole processes, numba cache warm ({_load()}, {os.cpu_count()} cores)")
         res = whole(args.repeat, args.whole or list(WHOLE), args.vs)
+        if args.json:
+            Path(args.json).write_text(json.dumps(res, indent=2))
+        return 0
+    if args.threads is not None:
+        print(f"threads of whole `rig run` processes, numba cache warm ({_load()}, {os.cpu_count()} cores)")
+        res = threads(args.threads or ["main job", "one hour"], args.repeat)
         if args.json:
             Path(args.json).write_text(json.dumps(res, indent=2))
         return 0

@@ -148,21 +148,35 @@ def plan_fields(keys, column) -> list[ProtoField]:
     return out
 
 
-def file_descriptor_set(fields: list[ProtoField]) -> bytes:
-    """The serialized ``google.protobuf.FileDescriptorSet`` of ``rig.LoopBlock`` with these columns."""
-    from google.protobuf import descriptor_pb2 as d
+# google/protobuf/descriptor.proto's numbers: FieldDescriptorProto's types and labels
+_PB_TYPES = {"double": 1, "float": 2, "uint32": 13, "sint64": 18}
+_PB_OPTIONAL, _PB_REPEATED = 1, 3
 
-    fds = d.FileDescriptorSet()
-    f = fds.file.add(name="rig/loop_block.proto", package="rig", syntax="proto3")
-    m = f.message_type.add(name="LoopBlock")
-    T = d.FieldDescriptorProto
-    types = {"double": T.TYPE_DOUBLE, "float": T.TYPE_FLOAT, "sint64": T.TYPE_SINT64, "uint32": T.TYPE_UINT32}
-    m.field.add(name="t0_s", number=F_T0, type=T.TYPE_DOUBLE, label=T.LABEL_OPTIONAL, json_name="t0_s")
-    m.field.add(name="rate_hz", number=F_RATE, type=T.TYPE_DOUBLE, label=T.LABEL_OPTIONAL, json_name="rate_hz")
-    for name, num, kind in (("nonfinite_field", F_NAN_FIELD, "uint32"), ("nonfinite_index", F_NAN_INDEX, "uint32"),
-                            ("t_s", F_T, "double")) + tuple((p.name, p.number, p.kind) for p in fields):
-        m.field.add(name=name, number=num, type=types[kind], label=T.LABEL_REPEATED, json_name=name)
-    return fds.SerializeToString()
+
+def _pb_len(num: int, payload: bytes) -> bytes:
+    """A length-delimited protobuf field (wire type 2)."""
+    return _varint((num << 3) | 2) + _varint(len(payload)) + payload
+
+
+def file_descriptor_set(fields: list[ProtoField]) -> bytes:
+    """The serialized ``google.protobuf.FileDescriptorSet`` of ``rig.LoopBlock`` with these columns: written
+    here field by field (the bytes ``descriptor_pb2`` serializes: ``tests/unit/log/test_log_protobuf.py``),
+    so that a trial does not import the protobuf package (20-40 ms of its start-up) to write its schema.
+
+    FileDescriptorSet{file(1): FileDescriptorProto{name(1), package(2), message_type(4): DescriptorProto{
+    name(1), field(2): FieldDescriptorProto{name(1), number(3), label(4), type(5), json_name(10)}}, syntax(12)}}."""
+    def field(name: str, num: int, kind: str, label: int) -> bytes:
+        b = name.encode()
+        return _pb_len(2, _pb_len(1, b) + b"\x18" + _varint(num) + b"\x20" + _varint(label) + b"\x28"
+                       + _varint(_PB_TYPES[kind]) + _pb_len(10, b))
+
+    cols = (("nonfinite_field", F_NAN_FIELD, "uint32"), ("nonfinite_index", F_NAN_INDEX, "uint32"),
+            ("t_s", F_T, "double")) + tuple((p.name, p.number, p.kind) for p in fields)
+    msg = (_pb_len(1, b"LoopBlock") + field("t0_s", F_T0, "double", _PB_OPTIONAL)
+           + field("rate_hz", F_RATE, "double", _PB_OPTIONAL)
+           + b"".join(field(name, num, kind, _PB_REPEATED) for name, num, kind in cols))
+    return _pb_len(1, _pb_len(1, b"rig/loop_block.proto") + _pb_len(2, b"rig") + _pb_len(4, msg)
+                   + _pb_len(12, b"proto3"))
 
 
 def channel_metadata(fields: list[ProtoField], rate_hz: float) -> dict[str, str]:

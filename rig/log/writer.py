@@ -21,6 +21,7 @@ decimated rate, ``("event", {t_s, kind, ...})`` and ``("loop_stats", {t_s,
 
 from __future__ import annotations
 
+import collections
 import datetime as _dt
 import json
 import math
@@ -30,6 +31,7 @@ import struct
 import threading
 import time
 import uuid
+import zlib
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
@@ -37,6 +39,7 @@ import numpy as np
 from mcap.writer import CompressionType, Writer
 
 from rig import __version__
+from rig.jitstart import preload_cython_blas
 from rig.log import decimate as _decimate_mod
 from rig.log.decimate import MatrixBlockMean, decimation_factor
 from rig.log.loopblock import LOOP_BLOCK_SCHEMA, PROTO_ENCODING, LoopBlockEncoder
@@ -100,13 +103,38 @@ def _log25_messages(names: list, specs: list, m: np.ndarray, cid: int, origin_ns
     return list(zip([cid] * k, ns, payloads, range(seq0, seq0 + k))), m
 
 
+#: zstd's level 3 (the ``mcap`` Writer's) with hash and chain tables of 2**14 entries instead of 2**17 / 2**16:
+#: the tables stay in the core's cache; measured on a simulated hour's 1 MB chunks (docs/trial.md, "third
+#: pass"): 31 % less CPU for 1.8 % more bytes (51.3 against 50.4 MB per hour, load 10.8)
+ZSTD_LEVEL = 3
+ZSTD_HASH_LOG = 14
+
+
+def _zstd_chunk(comp, data: bytes) -> tuple[bytes, int]:
+    """A chunk's zstd frame and its uncompressed CRC (both without the GIL: the compressing thread runs
+    beside the writer's)."""
+    return comp.compress(data), zlib.crc32(data)
+
+
 class _Sink:
-    """Owns the ``mcap`` Writer and the file: messages, metadata, flush (+fsync), finish."""
+    """Owns the ``mcap`` Writer and the file: messages, metadata, flush (+fsync), finish.
+
+    A full zstd chunk is compressed in a thread of its own (``rig-log-zstd``) while the caller goes on
+    filling the next one, and written, in order, once compressed (:meth:`_finalize_async`): the
+    Writer's records, the compression (half the log's CPU) beside the encoding, with tables that stay
+    in cache (``ZSTD_HASH_LOG``). Everything that
+    writes a record outside the chunks (metadata, flush, finish) first writes the chunks in flight."""
+
+    #: compressed chunks in flight at most (1 MB each); the caller waits for the oldest beyond that
+    MAX_IN_FLIGHT = 4
 
     def __init__(self, fh, fsync: bool, compression: str, chunk_size: int):
         self.fh = fh
         self.fsync = fsync
         self.w = Writer(fh, chunk_size=chunk_size, compression=_COMPRESSION[compression])
+        self._zstd = compression == "zstd"
+        self._pool = None  # the compressing thread, started with the first full chunk
+        self._in_flight: collections.deque = collections.deque()
 
     def messages(self, items: list) -> None:
         """Add a batch of ``(channel_id, log_time, data, sequence)`` (``data`` may be a callable: a raw block
@@ -137,7 +165,9 @@ class _Sink:
         if ok is None:
             w = self.w
             ok = all(hasattr(w, a) for a in ("_Writer__chunk_builder", "_Writer__statistics",
-                                            "_Writer__chunk_size", "_Writer__finalize_chunk"))
+                                            "_Writer__chunk_size", "_Writer__finalize_chunk",
+                                            "_Writer__record_builder", "_Writer__stream",
+                                            "_Writer__chunk_indices", "_Writer__index_types", "_Writer__flush"))
             ok = ok and w._Writer__chunk_builder is not None and hasattr(w._Writer__chunk_builder, "record_writer")
             self._fast_ok = ok
         return ok
@@ -193,12 +223,81 @@ class _Sink:
             stats.message_end_time = max(stats.message_end_time, t_hi)
             stats.message_count += k
             if cb.count > limit:
-                w._Writer__finalize_chunk()
+                self._finalize_async() if self._zstd else w._Writer__finalize_chunk()
+
+    def _finalize_async(self) -> None:
+        """What ``Writer.__finalize_chunk`` does, with the compression and the CRC handed to the
+        compressing thread: the chunk's records are taken (the builder starts the next chunk at once)
+        and written by :meth:`_write_ready` once compressed, in order."""
+        w = self.w
+        cb = w._Writer__chunk_builder
+        if cb.num_messages == 0:
+            return
+        w._Writer__statistics.chunk_count += 1
+        data = cb.end()
+        indexes = list(cb.message_indices.items())
+        times = (cb.message_start_time, cb.message_end_time)
+        cb.reset()
+        if self._pool is None:
+            import concurrent.futures
+
+            import zstandard
+
+            self._pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="rig-log-zstd")
+            self._comp = zstandard.ZstdCompressor(compression_params=zstandard.ZstdCompressionParameters.from_level(
+                ZSTD_LEVEL, hash_log=ZSTD_HASH_LOG, chain_log=ZSTD_HASH_LOG))
+        self._in_flight.append((self._pool.submit(_zstd_chunk, self._comp, data), len(data), times, indexes))
+        self._write_ready(wait=len(self._in_flight) > self.MAX_IN_FLIGHT)
+
+    def _write_ready(self, wait: bool = False, every: bool = False) -> None:
+        """Write the compressed chunks in flight that are ready, in order (``wait``: at least the oldest;
+        ``every``: all of them); as ``Writer.__finalize_chunk`` writes a chunk, its index and its
+        message indexes."""
+        from mcap.records import Chunk, ChunkIndex
+        from mcap.writer import IndexType
+
+        w = self.w
+        q = self._in_flight
+        while q and (every or wait or q[0][0].done()):
+            wait = False
+            fut, size, (t0, t1), indexes = q.popleft()
+            comp, crc = fut.result()
+            rb, stream = w._Writer__record_builder, w._Writer__stream
+            w._Writer__flush()
+            start = stream.tell()
+            Chunk(compression="zstd", data=comp, message_start_time=t0, message_end_time=t1, uncompressed_crc=crc,
+                  uncompressed_size=size).write(rb)
+            ci = ChunkIndex(message_start_time=t0, message_end_time=t1, chunk_start_offset=start,
+                            chunk_length=rb.count, message_index_offsets={}, message_index_length=0,
+                            compression="zstd", compressed_size=len(comp), uncompressed_size=size)
+            w._Writer__flush()
+            mi_start = stream.tell()
+            if w._Writer__index_types & IndexType.MESSAGE:
+                for cid, index in indexes:
+                    ci.message_index_offsets[cid] = mi_start + rb.count
+                    index.write(rb)
+            ci.message_index_length = rb.count
+            w._Writer__flush()
+            w._Writer__chunk_indices.append(ci)
+
+    def _drain(self) -> None:
+        """Every chunk in flight written (before a record outside the chunks, a flush, the finish)."""
+        if self._in_flight:
+            self._write_ready(every=True)
+
+    def _stop_pool(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=False, cancel_futures=True)
+            self._pool = None
 
     def call(self, fn: Callable, *args) -> None:
+        self._drain()
         fn(self.w, *args)
 
     def flush(self) -> None:
+        if self._zstd and self._fast:
+            self._finalize_async()  # the open chunk with the same compressor as the full ones
+        self._drain()
         self.w.flush()
         self._sync()
 
@@ -211,11 +310,16 @@ class _Sink:
                 pass
 
     def finish(self) -> None:
-        self.w.finish()
-        self._sync()
+        try:
+            self._drain()
+            self.w.finish()
+            self._sync()
+        finally:
+            self._stop_pool()
         self.fh.close()
 
     def abort(self) -> None:
+        self._stop_pool()
         self.fh.close()
 
 
@@ -437,6 +541,7 @@ class TrialLogWriter:
         """Load and compile now what writing a block needs (numba and its cache for the /raw encoder),
         so that the first block of a run is written as fast as the rest: call before a real-time loop
         starts."""
+        preload_cython_blas()  # numba's target without scipy.linalg, when this is the process's first kernel
         _loopblock.warm_up()
         _decimate_mod.warm_up()
 
@@ -530,15 +635,9 @@ class TrialLogWriter:
 
         if isinstance(self._sink, _ThreadedSink):
             # the id is needed now: register synchronously, in order, through the queue
-            done = threading.Event()
-
-            def reg(w):
-                register(w)
-                done.set()
             self._send()
-            self._sink.call(reg)
-            while not done.wait(0.01):
-                self._sink._check()
+            self._sink.call(register)
+            self._writer_barrier()
         else:
             self._send()
             register(self._sink.w)
@@ -585,11 +684,15 @@ class TrialLogWriter:
             self.flush()
 
     _dec_plan: tuple | None = None
+    _dec_ticks = 0              # samples pushed into the decimation so far
+    _dec_in_writer = False      # the decimation runs in the writer's thread (threaded, nobody listens)
 
     def _decimate(self, arrays: dict[str, np.ndarray]) -> None:
         """The /log25 samples of a block: the device columns on their /raw grid (integer count times the
         scale) and block means over each interval: one compiled pass over the stacked columns, without
-        the GIL (:class:`rig.log.decimate.MatrixBlockMean`)."""
+        the GIL (:class:`rig.log.decimate.MatrixBlockMean`). Threaded and with no listener, the pass and
+        the messages run in the writer's thread, in order (the loop's thread only stacks the block's
+        columns: its copy); a listener (a live view) gets its samples in the loop's thread."""
         if self._dec_plan is None:
             names = tuple(nm for nm in SAMPLE_FIELDS[:-1] if nm in arrays)
             cols = [self._enc.column(nm) for nm in names]
@@ -598,30 +701,58 @@ class TrialLogWriter:
             self._dec = MatrixBlockMean(self._dec_every, grid,
                                         [c.offset if g else 0.0 for c, g in zip(cols, grid)],
                                         [c.scale if g else 1.0 for c, g in zip(cols, grid)])
+            self._dec_in_writer = self._threaded and not self._listeners
+        elif self._dec_in_writer and self._listeners:  # a listener came: the writer's pushes first
+            self._writer_barrier()
+            self._dec_in_writer = False
         names = self._dec_plan[0]
-        dec = self._dec.push(np.stack([arrays[nm] for nm in names]))  # a copy: its grid rows are rounded in place
+        m = np.stack([arrays[nm] for nm in names])  # a copy: its grid rows are rounded in place
+        n0 = self._dec_ticks
+        self._dec_ticks += m.shape[1]
+        if self._dec_in_writer:
+            k = self._dec_ticks // self._dec_every - n0 // self._dec_every  # the intervals this block completes
+            self._later_log25(names, k, lambda dec=self._dec: dec.push(m))
+            return
+        dec = self._dec.push(m)
         if dec is not None:
             self._emit_log25(names, dec)
 
-    def _emit_log25(self, names: tuple, m: np.ndarray) -> None:
-        """Write decimated samples (rows of ``m``: the fields ``names``; block means, see rig.log.decimate)
-        as /log25 messages, with mu (:func:`_log25_messages`); threaded and with no listener, the messages
-        are made in the writer's thread, in the file's order (the loop's thread only counts them)."""
+    def _log25_args(self, names: tuple, k: int) -> tuple:
+        """``_log25_messages``'s arguments but the samples, for ``k`` samples from now (counted here)."""
         names = list(names)
         if "normal_1_N" in names and "normal_2_N" in names:
             names.append("mu")
-        k = m.shape[1]
-        specs = [self._dec_format(nm) for nm in names]
-        args = (names, specs, m, self._chan[LOG25_TOPIC], self._origin_ns, self._seq[LOG25_TOPIC])
-        if self._threaded and not self._listeners:
-            self._batch.append(lambda: _log25_messages(*args)[0])
-        else:
-            msgs, m = _log25_messages(*args)
-            self._batch.extend(msgs)
-            if self._listeners:
-                self._notify("samples", dict(zip(names, m)))
+        args = (names, [self._dec_format(nm) for nm in names], self._chan[LOG25_TOPIC], self._origin_ns,
+                self._seq[LOG25_TOPIC])
         self._seq[LOG25_TOPIC] += k
         self.counts[LOG25_TOPIC] += k
+        return args
+
+    def _later_log25(self, names: tuple, k: int, means: Callable[[], np.ndarray | None]) -> None:
+        """The /log25 messages of ``k`` samples whose means ``means()`` computes in the writer's thread."""
+        names, specs, cid, origin, seq0 = self._log25_args(names, k)
+
+        def messages() -> list:
+            m = means()
+            return [] if m is None else _log25_messages(names, specs, m, cid, origin, seq0)[0]
+        self._batch.append(messages)
+
+    def _writer_barrier(self) -> None:
+        """Wait until the writer's thread has done everything queued so far."""
+        done = threading.Event()
+        self._send()
+        self._sink.call(lambda _w: done.set())
+        while not done.wait(0.01):
+            self._sink._check()
+
+    def _emit_log25(self, names: tuple, m: np.ndarray) -> None:
+        """Write decimated samples (rows of ``m``: the fields ``names``; block means, see rig.log.decimate)
+        as /log25 messages, with mu (:func:`_log25_messages`), and hand them to the listeners."""
+        args = self._log25_args(names, m.shape[1])
+        msgs, m = _log25_messages(args[0], args[1], m, *args[2:])
+        self._batch.extend(msgs)
+        if self._listeners:
+            self._notify("samples", dict(zip(args[0], m)))
 
     def _dec_format(self, name: str) -> str:
         """printf format of a /log25 field: the raw column's resolution (the same values as /raw), else repr."""
@@ -673,14 +804,14 @@ class TrialLogWriter:
             self._notify("event", rec)
 
     def loop_stats(self, t_s: float, stats: dict[str, Any]) -> None:
-        """Log loop statistics (numbers) at time ``t_s``."""
+        """Log loop statistics (numbers) at time ``t_s`` (threaded: printed as JSON in the writer's thread)."""
         rec = {"t_s": float(t_s)}
         for k, v in stats.items():
             if k == "t_s":
                 continue
             v = jsonable(v)
             rec[str(k)] = v if isinstance(v, (int, float)) or v is None else None
-        self._add(STATS_TOPIC, t_s, dumps(rec))
+        self._add(STATS_TOPIC, t_s, (lambda: dumps(rec)) if self._threaded and not self._listeners else dumps(rec))
         self._send()
         if self._listeners:
             self._notify("loop_stats", rec)
@@ -706,8 +837,9 @@ class TrialLogWriter:
         if self.closed:
             return
         self.status = status
-        last = self._dec.flush() if self._dec is not None else None
-        if last is not None:  # the last, partial interval (mean of its ticks)
+        if self._dec is not None and self._dec_in_writer:  # the last, partial interval (mean of its ticks)
+            self._later_log25(self._dec_plan[0], int(self._dec_ticks % self._dec_every > 0), self._dec.flush)
+        elif self._dec is not None and (last := self._dec.flush()) is not None:
             self._emit_log25(self._dec_plan[0], last)
         self.event(self.last_t_s, "log_end", status=status)
         # the counts of what the file holds (log_end included: `rig info` counts the same messages)
@@ -790,7 +922,7 @@ def compact_log(path: str | os.PathLike, chunk_size: int = COMPACT_CHUNK_SIZE) -
         return None
     before = path.stat().st_size
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-        sink = _Sink(fh, True, "zstd", chunk_size)
+        sink = _Sink(fh, False, "zstd", chunk_size)  # atomic_path fsyncs the finished copy
         w = sink.w
         w.start(profile=c.header.profile, library=c.header.library)
         sid = {i: w.register_schema(s.name, s.encoding, s.data) for i, s in sorted(c.schemas.items())}
@@ -804,7 +936,7 @@ def compact_log(path: str | os.PathLike, chunk_size: int = COMPACT_CHUNK_SIZE) -
                              media_type=a.media_type, data=a.data)
         sink.messages([(cid[m.channel_id], m.log_time, m.data, m.sequence) for m in c.messages
                        if m.channel_id in cid])
-        w.finish()
+        sink.finish()  # the chunks in flight, then the summary
     return {"bytes_before": before, "bytes_after": path.stat().st_size, "chunks_before": len(summary.chunk_indexes)}
 
 

@@ -527,7 +527,7 @@ class TrialSession:
                                        "duration_s": float(plan.duration_s), "n_ticks": int(plan.n_ticks),
                                        **backend.describe()})
         t_wall0 = time.perf_counter()
-        next_stats = self.stats_every_s
+        self._next_stats = self.stats_every_s
         ending: Ending | None = None
         handled = 0  # signals turned into stop requests
         old = self._install_signals()
@@ -554,23 +554,7 @@ class TrialSession:
                         if msg is None:
                             break
                         if type(msg) is Block:
-                            self._schedule_planned(float(msg.data["t_s"][-1]) + half_tick)
-                            self._in_write = time.monotonic()
-                            if msg.wall_ns is not None and anchor is not None and len(msg.data["t_s"]):
-                                anchor(float(msg.data["t_s"][-1]), msg.wall_ns)
-                            w.write_block(msg.data)
-                            self._in_write = None
-                            if self._logged is not None:
-                                self._logged()
-                            self.figures.add(msg.data)
-                            t = self.figures.last_t_s
-                            if t >= next_stats - half_tick:
-                                st = self.figures.window(rate)
-                                st.update(backend.stats_window())
-                                w.loop_stats(t, st)
-                                next_stats += self.stats_every_s
-                            if self.progress is not None:
-                                self.progress(t)
+                            self._on_block(msg, anchor, rate, half_tick)
                         else:
                             w.event(msg.t_s, msg.kind, **msg.data)
                             if msg.kind in ("pause", "resume", "runup_done", "pause_refused"):
@@ -599,6 +583,28 @@ class TrialSession:
                 if ending is not None:
                     ending.message += f"; closing the backend failed: {exc}"
         return self._end(ending, time.perf_counter() - t_wall0)
+
+    def _on_block(self, msg: Block, anchor, rate: float, half_tick: float) -> None:
+        """One block: the planned events it reaches, the log (its clock anchored on the block's wall-clock
+        time), the figures, loop statistics every ``stats_every_s`` of trial time, the progress."""
+        w = self.writer
+        self._schedule_planned(float(msg.data["t_s"][-1]) + half_tick)
+        self._in_write = time.monotonic()
+        if msg.wall_ns is not None and anchor is not None and len(msg.data["t_s"]):
+            anchor(float(msg.data["t_s"][-1]), msg.wall_ns)
+        w.write_block(msg.data)
+        self._in_write = None
+        if self._logged is not None:
+            self._logged()
+        self.figures.add(msg.data)
+        t = self.figures.last_t_s
+        if t >= self._next_stats - half_tick:
+            st = self.figures.window(rate)
+            st.update(self.backend.stats_window())
+            w.loop_stats(t, st)
+            self._next_stats += self.stats_every_s
+        if self.progress is not None:
+            self.progress(t)
 
     # -- the plan's events, later by what pauses added -----------------------------------------------------
     def _schedule_planned(self, until_s: float | None = None) -> None:

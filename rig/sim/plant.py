@@ -48,6 +48,9 @@ from rig.model.friction import (P_A, P_MU0, P_STATE_ON, P_V0, P_VREG, S_THETA, S
                                 mu_regularized, periodic_term, wear_term)
 from rig.model.sensors import lowpass_tick, quantize
 from rig.control import controller_step_v
+from rig.jitstart import preload_cython_blas
+
+preload_cython_blas()  # the simulation's first kernel call loads numba's target without scipy.linalg
 
 # ---------------------------------------------------------------------------
 # plant parameter vector

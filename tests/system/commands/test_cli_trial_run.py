@@ -42,6 +42,18 @@ def short_steps(repo_root, tmp_path):
     return p
 
 
+def test_run_sim_never_imports_scipy_linalg(short_steps, tmp_path, repo_root):
+    """numba's first kernel call in `rig run --sim` finds scipy's cython_blas/cython_lapack preloaded
+    (rig.jitstart): the process runs its trial without the scipy.linalg package (0.1-0.25 s of start-up)."""
+    code = ("import runpy, sys\nsys.argv = ['rig', *sys.argv[1:]]\ntry:\n"
+            "    runpy.run_module('rig.cli', run_name='__main__')\nexcept SystemExit as e:\n    code = e.code\n"
+            "print('scipy.linalg' in sys.modules, 'scipy.linalg.cython_blas' in sys.modules)\n")
+    p = subprocess.run([sys.executable, "-c", code, "run", str(short_steps), "--sim", "-q", "--out",
+                        str(tmp_path / "t.mcap")], cwd=repo_root, capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0 and (tmp_path / "t.mcap").exists(), p.stderr
+    assert p.stdout.splitlines()[-1] == "False True", p.stdout
+
+
 def test_run_sim_end_to_end(short_steps, tmp_path, repo_root):
     out = tmp_path / "trial.mcap"
     res = runner.invoke(app, ["run", str(short_steps), "--sim", "--out", str(out), "--seed", "11", "-q"])

@@ -254,6 +254,33 @@ def test_mcap_reader_validates_every_chunk_crc(tmp_path, compression):
     assert len(read_trial(path, "raw")) == 4000
 
 
+def test_compressing_thread_and_decimation_in_the_writer_change_no_message(tmp_path):
+    """Full zstd chunks compressed in a thread of their own (written in order) and the 25 Hz decimation in
+    the writer's thread give the messages of an unthreaded, uncompressed log, CRCs and indexes valid; so
+    does a listener that comes after the first block (the decimation goes back to the loop's thread)."""
+    blocks = make_blocks(40)
+
+    def messages(path, listen_from=None, **kw):
+        got: list = []
+        w = TrialLogWriter(path, start_time_ns=T0_NS, metadata={"trial_uid": "u"}, flush_interval_s=1e9, **kw)
+        for i, b in enumerate(blocks):
+            if i == listen_from:
+                w.add_listener(lambda kind, payload: got.append(kind))
+            w.write_block(b)
+        w.close()
+        with open(path, "rb") as fh:
+            reader = make_reader(fh, validate_crcs=True)
+            msgs = [(c.topic, m.log_time, m.sequence, m.data) for _, c, m in reader.iter_messages()]
+            return msgs, reader.get_summary(), got
+
+    ref, _, _ = messages(tmp_path / "ref.mcap", threaded=False, compression="none")
+    fast, summary, _ = messages(tmp_path / "fast.mcap", chunk_size=20_000)
+    late, _, got = messages(tmp_path / "late.mcap", chunk_size=20_000, listen_from=20)
+    assert len(summary.chunk_indexes) > 5 and {ci.compression for ci in summary.chunk_indexes} == {"zstd"}
+    assert fast == ref and late == ref
+    assert sum(t == LOG25_TOPIC for t, *_ in ref) == 100 and got.count("samples") == 20
+
+
 def test_corrupt_chunk_is_named_skipped_and_never_carried_forward(tmp_path, corrupt_middle_chunk):
     blocks = make_blocks(60)
     good = tmp_path / "good.mcap"

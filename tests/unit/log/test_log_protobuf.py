@@ -242,3 +242,28 @@ def test_compiled_encoder_stores_the_counts_numpy_computes(ratio_int):
         starts = np.concatenate(([0], ends[:-1]))
         for r in range(m.shape[0]):
             assert np.array_equal(unpack_varints(out[starts[r]:ends[r]], zigzag=True), want[r])
+
+
+@pytest.mark.parametrize("keys", [tuple(BLOCK_KEYS), ("t_s", "position_um", "friction_N", "imported_thing")])
+def test_schema_written_by_hand_is_what_descriptor_pb2_serializes(keys):
+    """The FileDescriptorSet rig writes field by field (so a trial does not import protobuf) is the one the
+    protobuf package builds and serializes from the same fields."""
+    from google.protobuf import descriptor_pb2 as d
+
+    from rig.log.loopblock import (F_NAN_FIELD, F_NAN_INDEX, F_RATE, F_T, F_T0, file_descriptor_set,
+                                   plan_fields)
+    from rig.log.schemas import device_columns
+
+    cols = device_columns()
+    fields = plan_fields(keys, lambda k: cols.get(k, cols["t_s"]))
+    fds = d.FileDescriptorSet()
+    m = fds.file.add(name="rig/loop_block.proto", package="rig", syntax="proto3").message_type.add(name="LoopBlock")
+    T = d.FieldDescriptorProto
+    types = {"double": T.TYPE_DOUBLE, "float": T.TYPE_FLOAT, "sint64": T.TYPE_SINT64, "uint32": T.TYPE_UINT32}
+    for name, num in (("t0_s", F_T0), ("rate_hz", F_RATE)):
+        m.field.add(name=name, number=num, type=T.TYPE_DOUBLE, label=T.LABEL_OPTIONAL, json_name=name)
+    for name, num, kind in (("nonfinite_field", F_NAN_FIELD, "uint32"), ("nonfinite_index", F_NAN_INDEX, "uint32"),
+                            ("t_s", F_T, "double")) + tuple((p.name, p.number, p.kind) for p in fields):
+        m.field.add(name=name, number=num, type=types[kind], label=T.LABEL_REPEATED, json_name=name)
+    assert file_descriptor_set(fields) == fds.SerializeToString()
+    assert len(fields) == len(keys) - 1  # every column but t_s, a field of its own
