@@ -668,7 +668,8 @@ def _least_squares(rec: _Record, prob: _Problem, init: dict, stiffness: bool):
 
 
 def _whole_record_uncertainty(rec: _Record, prob: _Problem, fit, method: str, n_draws: int, seed: int,
-                              profile: bool, progress, jackknife: bool = True) -> tuple[dict, float]:
+                              profile: bool, progress, jackknife: bool = True,
+                              rigid: tuple | None = None) -> tuple[dict, float]:
     """(params_sd, intervals, correlation and cov of :mod:`rig.fitting.stats`; the residual's n_eff).
     Jacobian errors: each parameter's variance inflated by n / n_eff of its score in time (as
     diagnose's); with ``profile``, L's interval from its profile likelihood, inflated alike."""
@@ -695,6 +696,8 @@ def _whole_record_uncertainty(rec: _Record, prob: _Problem, fit, method: str, n_
             unc["profile"] = ["L_um"]
     if method == "jacobian" and jackknife:
         _jackknife_floor(unc, _run_jackknife(rec, prob, fit), {**prob.fixed, **fit.params})
+        if rigid is not None:  # (trial, k_fixed, law, detrend, s_mm, trend_fixed) of a rigid record's problem
+            _rise_floor(rec, prob, fit, lambda r_: _problem(r_, rigid[0], False, *rigid[1:]), unc)
     if method == "bootstrap":
         m_hat = prob.model({**prob.fixed, **fit.params})[rec.sliding]
 
@@ -917,8 +920,7 @@ def fit_whole_record(trial: TrialData, steps: list[Step] | None = None, *, stiff
 
     detrend = _checked_options(law, trend, detrend)
     method, n_draws = parse_uncertainty(uncertainty)
-    if stiffness:
-        max_points = min(max_points, 8000)
+    max_points = min(max_points, 8000) if stiffness else max_points
     rec = _binned_record(trial, detect_steps(trial) if steps is None else steps, stiffness, velocity_method,
                          max_points, rise_guard_s)
     F_per_mu = 2.0 * trial.normal_force_N
@@ -930,10 +932,8 @@ def fit_whole_record(trial: TrialData, steps: list[Step] | None = None, *, stiff
     fit = _least_squares(rec, prob, dict(init or {}), stiffness)
     if fit is None:
         return WholeRecordFit({"ok": False, "reason": "least squares failed"})
-    unc, n_eff = _whole_record_uncertainty(rec, prob, fit, method, n_draws, seed, profile, progress, jackknife)
-    if method == "jacobian" and jackknife and not stiffness:
-        _rise_floor(rec, prob, fit, lambda r_: _problem(r_, trial, stiffness, k_fixed, law, detrend, s_mm, trend_fixed),
-                    unc)
+    unc, n_eff = _whole_record_uncertainty(rec, prob, fit, method, n_draws, seed, profile, progress, jackknife,
+                                           None if stiffness else (trial, k_fixed, law, detrend, s_mm, trend_fixed))
     rep = _reported(prob, fit, unc, stiffness, detrend)
     sd, q = rep.pop("_sd"), rep.pop("_q")
     r = fit.residuals

@@ -79,8 +79,7 @@ def register(app: typer.Typer) -> None:
         rep = d.report()
         rep["data"] = str(data)
         rep["warnings"] = diagnosis_warnings(rep) + _calibration_warnings(trial, rep)  # issue 21
-        text = summary(dict(rep, _noise_N=d.grid.noise_N, _unnamed=d.unnamed,
-                            _kinematics=d.final_fit.extra.get("kinematics_set") if d.final_fit else None))
+        text = summary(dict(rep, _noise_N=d.grid.noise_N, _unnamed=d.unnamed, _kinematics=_kinematics_set(d)))
         if json_to_stdout(json_out):
             err_console.print(text, markup=False)
         else:
@@ -133,6 +132,11 @@ def diagnosis_warnings(rep: dict) -> list[dict]:
                     "message": "no standard errors: its refit on all the data runs to a bound or fails, so its "
                                "values are not determined by this record"})
     return out
+
+
+def _kinematics_set(d) -> list[str] | None:
+    """The final model's errors that its disagreement with identify's fit sets (core.uncertainty)."""
+    return d.final_fit.extra.get("kinematics_set") if d.final_fit is not None else None
 
 
 def _or(names: list[str]) -> str:
