@@ -1,8 +1,10 @@
 """Coverage of the 68 % intervals: over simulated trials with known truth, how often each
 parameter's reported interval contains the truth (issue 20, Deliver 6: 55-80 % is honest).
 
-    nice -n 10 .venv/bin/python benchmarks/bench_coverage.py [--trials 20] [--engine sim|main|synth|both|all]
-        [--estimators "identify whole-record (jacobian),diagnose final model"]
+    nice -n 10 .venv/bin/python benchmarks/bench_coverage.py [--trials 20] [--first 0]
+        [--engine sim|main|synth|both|all]
+        [--estimators "identify whole-record (jacobian),diagnose final model"] [--out rows.json]
+    .venv/bin/python benchmarks/bench_coverage.py --merge a.json b.json   # one table of saved runs
 
 Trials: the paper's step protocol (rig.analysis.reproduce.step_recipe on the simulated rig, or
 the kinematic generator's paper_step_protocol) or the README's main job (``main``: its recipe on
@@ -11,12 +13,19 @@ Table 2 (A, B, L within +-15 %), fixed seeds. Each trial's record goes to every 
 :data:`ESTIMATORS`; an estimator returns ``{name: (value, lo, hi) or None}`` for A_mu, B_mu,
 L_um (None: no interval, left out of that row). To add one: write ``def est(trial) -> dict``
 and register it in ESTIMATORS; the table gains its rows. Prints a line per trial, then the
-table (markdown: coverage, mean bias, rms pull = error / half-width) beside os.getloadavg().
+table (markdown: coverage with its binomial standard error, mean bias, rms pull = error /
+half-width) beside os.getloadavg(). The binomial noise matters: over n trials a true coverage
+p = 0.68 is counted with a standard error sqrt(p (1 - p) / n), 10.4 points at 20 trials (a
+true 68 % falls outside 55-80 % about 1 time in 4) and 7.4 at 40; a row is only "off" when its
+count is more than about two standard errors outside the 55-80 % band. ``--out`` saves each
+trial's values (JSON) so that runs over disjoint trials (``--first``) make one table (``--merge``).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import math
 import os
 import sys
 import time
@@ -96,48 +105,90 @@ def make_trial(engine: str, k: int):
     return truth, synth.generate(model, synth.paper_step_protocol(), seed=k).trial
 
 
+def binomial_se(k: int, n: int, p: float = 0.68) -> float:
+    """Standard error of a coverage counted over n trials, at the nominal p (a fraction)."""
+    return math.sqrt(p * (1.0 - p) / n) if n else float("nan")
+
+
+def verdict(k: int, n: int, lo: float = 0.55, hi: float = 0.80) -> str:
+    """'in', 'low' or 'high' when k/n is more than two binomial standard errors outside [lo, hi],
+    else 'in (noise)' when outside the band but within two standard errors of it."""
+    if not n:
+        return "-"
+    f, se = k / n, binomial_se(k, n)
+    if f < lo - 2 * se:
+        return "low"
+    if f > hi + 2 * se:
+        return "high"
+    return "in" if lo <= f <= hi else "in (noise)"
+
+
+def run_trials(engines, names, first: int, n: int, prog) -> list[dict]:
+    """Each trial's estimates as rows {engine, estimator, trial, param, truth, value, lo, hi}."""
+    rows = []
+    task = prog.add_task("trials", total=n * len(engines))
+    for e in engines:
+        for k in range(first, first + n):
+            truth, tr = make_trial(e, k)
+            for name in names:
+                res = ESTIMATORS[name](tr)
+                for p in PARAMS:
+                    if res[p] is not None:
+                        rows.append({"engine": e, "estimator": name, "trial": k, "param": p,
+                                     "truth": truth[p], "value": res[p][0], "lo": res[p][1], "hi": res[p][2]})
+                prog.console.print(f"{e} {k} {name}: " + " ".join(
+                    f"{p} {res[p][0]:.4g} [{res[p][1]:.4g}, {res[p][2]:.4g}] (truth {truth[p]:.4g})"
+                    if res[p] else f"{p} -" for p in PARAMS))
+            prog.advance(task)
+    return rows
+
+
+def table(rows: list[dict]) -> list[str]:
+    """Markdown: per (records, estimator), each parameter's coverage +- its binomial standard error
+    (count, and whether it is off beyond the noise), mean bias and rms pull."""
+    out = ["| records | estimator | " + " | ".join(f"{p}: covered (68 %) +- se" for p in PARAMS) + " | " +
+           " | ".join(f"{p}: mean bias (rms pull)" for p in PARAMS) + " |",
+           "|---|---|" + "---|" * (2 * len(PARAMS))]
+    keys = list(dict.fromkeys((r["engine"], r["estimator"]) for r in rows))
+    for e, name in keys:
+        cov, bias = [], []
+        for p in PARAMS:
+            rr = [r for r in rows if (r["engine"], r["estimator"], r["param"]) == (e, name, p)]
+            k = sum(r["lo"] <= r["truth"] <= r["hi"] for r in rr)
+            n = len(rr)
+            b = [(r["value"] - r["truth"]) / r["truth"] for r in rr]
+            # pull: the error over the interval's half-width (1 for an honest interval, in rms)
+            pull = [(r["value"] - r["truth"]) / max(0.5 * (r["hi"] - r["lo"]), 1e-300) for r in rr]
+            cov.append(f"{100 * k / max(n, 1):.0f} +- {100 * binomial_se(k, n):.0f} % ({k}/{n}, {verdict(k, n)})")
+            bias.append(f"{100 * np.mean(b):+.1f} % ({np.sqrt(np.mean(np.square(pull))):.2f})" if n else "-")
+        out.append(f"| {LABELS[e]} | {name} | " + " | ".join(cov) + " | " + " | ".join(bias) + " |")
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--trials", type=int, default=20)
+    ap.add_argument("--first", type=int, default=0, help="first trial's index (seeds 1000 + k and k)")
     ap.add_argument("--engine", choices=("sim", "main", "synth", "both", "all"), default="both")
     ap.add_argument("--estimators", default="identify whole-record (jacobian)",
                     help=f"comma-separated names of ESTIMATORS (all: {', '.join(ESTIMATORS)})")
+    ap.add_argument("--out", type=Path, help="save each trial's values here (JSON)")
+    ap.add_argument("--merge", type=Path, nargs="+", help="print one table of saved runs, run nothing")
     a = ap.parse_args(argv)
+    if a.merge:
+        rows = [r for f in a.merge for r in json.loads(f.read_text())]
+        print("\n".join(table(rows)))
+        return 0
     names = [n.strip() for n in a.estimators.split(",") if n.strip()]
     engines = {"both": ("sim", "synth"), "all": ("sim", "main", "synth")}.get(a.engine, (a.engine,))
-    hits = {(e, n): {p: [] for p in PARAMS} for e in engines for n in names}
-    bias = {(e, n): {p: [] for p in PARAMS} for e in engines for n in names}
-    pulls = {(e, n): {p: [] for p in PARAMS} for e in engines for n in names}
     t0 = time.perf_counter()
     with Progress() as prog:
-        task = prog.add_task("trials", total=a.trials * len(engines))
-        for e in engines:
-            for k in range(a.trials):
-                truth, tr = make_trial(e, k)
-                for n in names:
-                    res = ESTIMATORS[n](tr)
-                    for p in PARAMS:
-                        if res[p] is None:
-                            continue
-                        v, lo, hi = res[p]
-                        hits[(e, n)][p].append(lo <= truth[p] <= hi)
-                        bias[(e, n)][p].append((v - truth[p]) / truth[p])
-                        pulls[(e, n)][p].append((v - truth[p]) / max(0.5 * (hi - lo), 1e-300))
-                    prog.console.print(f"{e} {k} {n}: " + " ".join(
-                        f"{p} {res[p][0]:.4g} [{res[p][1]:.4g}, {res[p][2]:.4g}] (truth {truth[p]:.4g})"
-                        if res[p] else f"{p} -" for p in PARAMS))
-                prog.advance(task)
-    print(f"\n{a.trials} trials per engine, {time.perf_counter() - t0:.0f} s, load average "
+        rows = run_trials(engines, names, a.first, a.trials, prog)
+    if a.out:
+        a.out.write_text(json.dumps(rows))
+    print(f"\n{a.trials} trials per engine (from {a.first}), {time.perf_counter() - t0:.0f} s, load average "
           f"{', '.join(f'{x:.2f}' for x in os.getloadavg())}\n")
-    print("| records | estimator | " + " | ".join(f"{p}: covered (68 %)" for p in PARAMS) + " | " +
-          " | ".join(f"{p}: mean bias (rms pull)" for p in PARAMS) + " |")
-    print("|---|---|" + "---|" * (2 * len(PARAMS)))
-    for (e, n), h in hits.items():
-        cov = " | ".join(f"{100 * np.mean(h[p]):.0f} % ({sum(h[p])}/{len(h[p])})" for p in PARAMS)
-        # pull: the error over the interval's half-width (1 for an honest interval, in rms)
-        b = " | ".join(f"{100 * np.mean(bias[(e, n)][p]):+.1f} % "
-                       f"({np.sqrt(np.mean(np.square(pulls[(e, n)][p]))):.2f})" for p in PARAMS)
-        print(f"| {LABELS[e]} | {n} | {cov} | {b} |")
+    print("\n".join(table(rows)))
     return 0
 
 

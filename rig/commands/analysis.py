@@ -345,6 +345,9 @@ def _print_whole(con, fit, names: str, fl=(), mark: str = "", label: str | None 
     unc = w.get("uncertainty", {}).get("method", "jacobian") + " errors"
     if w.get("uncertainty", {}).get("jackknife"):
         unc += f" at least the leave-one-run-out jackknife's ({w['uncertainty']['jackknife']['runs']} runs)"
+    rise = w.get("uncertainty", {}).get("velocity_rise", {}).get("raised")
+    if rise:
+        unc += f"; {', '.join(rise)} at least the change with the steps' estimated velocity"
     con.print(f"whole-record fit{_of(label)} ({w['model']}, velocity {w['velocity']}, {unc}, n_eff {_fmt(w.get('n_eff'), 4)} "
               f"of {w.get('n_points')}): {', '.join(parts)}; k_cr (eq. 13) = {_fmt(w.get('k_cr_kN_per_m'), 3)} kN/m; "
               f"rms {_fmt(w['rms_N'], 3)} N", highlight=False)

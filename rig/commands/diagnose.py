@@ -79,7 +79,7 @@ def register(app: typer.Typer) -> None:
         rep = d.report()
         rep["data"] = str(data)
         rep["warnings"] = diagnosis_warnings(rep) + _calibration_warnings(trial, rep)  # issue 21
-        text = summary(dict(rep, _noise_N=d.grid.noise_N, _unnamed=d.unnamed))
+        text = summary(dict(rep, _noise_N=d.grid.noise_N, _unnamed=d.unnamed, _kinematics=_kinematics_set(d)))
         if json_to_stdout(json_out):
             err_console.print(text, markup=False)
         else:
@@ -134,6 +134,11 @@ def diagnosis_warnings(rep: dict) -> list[dict]:
     return out
 
 
+def _kinematics_set(d) -> list[str] | None:
+    """The final model's errors that its disagreement with identify's fit sets (core.uncertainty)."""
+    return d.final_fit.extra.get("kinematics_set") if d.final_fit is not None else None
+
+
 def _or(names: list[str]) -> str:
     return names[0] if len(names) == 1 else ", ".join(names[:-1]) + " or " + names[-1]
 
@@ -182,6 +187,10 @@ def summary(rep: dict) -> str:
                  + ": " + ", ".join(f"{k}={v:.4g}" + (f" ± {sd[k]:.2g}" if sd.get(k) is not None else "")
                                     + (f" {MARK}" if k in fl else "") for k, v in m["params"].items())
                  + f"; hold-out RMS {rep['holdout_rms_N']:.4g} N")
+    if rep.get("_kinematics"):
+        lines.append(f"  the errors of {', '.join(rep['_kinematics'])} are the final model's disagreement with identify's "
+                     "whole-record fit of the same record (its segments' velocities, each run's start and the measured "
+                     "normal forces), wider than the fit's own: the two kinematics differ (docs/validation.md, Coverage)")
     for w in rep.get("warnings", []):
         lines.append(f"  warning (!): {w['where']}: {w['message']}")
     return "\n".join(lines)

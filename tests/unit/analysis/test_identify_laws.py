@@ -106,7 +106,9 @@ def test_bootstrap_and_mcmc_intervals():
     steps = detect_steps(tr)
     bs = fit_whole_record(tr, steps, uncertainty="bootstrap:12", max_points=1500, seed=1).report()
     assert bs["uncertainty"]["method"] == "bootstrap" and bs["uncertainty"]["n_samples"] >= 10
-    jac = fit_whole_record(tr, steps, max_points=1500).report()
+    # the Jacobian's own errors (no floors: the jackknife and the velocity-rise floor see input errors
+    # that no resampling of the residuals does)
+    jac = fit_whole_record(tr, steps, max_points=1500, jackknife=False).report()
     for k in ("A_mu", "B_mu", "L_um"):
         assert bs["params_sd"][k] > 0
         # the two agree on the size of the error within a factor 3 (12 refits)

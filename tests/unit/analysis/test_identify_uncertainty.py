@@ -60,3 +60,24 @@ def test_without_a_jackknife_the_errors_are_the_jacobians():
     unc = _unc(2e-5, 0.05)
     _jackknife_floor(unc, {}, {"A_mu": 1e-3, "L_um": 20.0})
     assert unc["params_sd"] == {"A_mu": 2e-5, "L_um": 0.05} and "jackknife" not in unc
+
+
+def test_the_errors_are_never_below_the_change_with_the_steps_estimated_velocity():
+    from rig.analysis.identify import fit_whole_record
+    from rig.model.spec import FrictionModel
+    from rig.sim import synth
+
+    # three short steps up and down (about 1 s to generate): the floor needs steps, not their length
+    protocol = synth.paper_step_protocol(pre_um=100.0, post_um=120.0, back_um=100.0)
+    trial = synth.generate(FrictionModel.for_lubricant("boundary", 0.12), protocol, seed=4, rate_hz=25.0).trial
+    w = fit_whole_record(trial, max_points=2000)
+    rise = w.reported["uncertainty"]["velocity_rise"]
+    assert set(rise["sd"]) == {"A_mu", "B_mu", "L_um"} and rise["window_s"] > 0
+    sd = w.reported["params_sd"]
+    # the floor is the disagreement of two fits of the same record: never zero, never above the reported error
+    assert rise["sd"]["A_mu"] > 0
+    for k, s in rise["sd"].items():
+        assert sd[k] >= 0.999 * s
+    # a starting point (diagnose's prior) pays for no second fit
+    quick = fit_whole_record(trial, max_points=2000, jackknife=False)
+    assert "velocity_rise" not in quick.reported["uncertainty"]
