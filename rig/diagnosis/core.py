@@ -99,6 +99,8 @@ class Candidate:
     note: str = ""
     zw: float = 0.0
     info: dict = field(default_factory=dict)  # the screening figures of its round
+    # a load-point coupling's parameters on a bound (:func:`_couple`): named, with "none" beside it
+    undetermined: list[str] = field(default_factory=list)
 
 
 @dataclass
@@ -887,7 +889,7 @@ def _untested_coupling(c: Candidate) -> str:
     one (its own standard error) above its threshold. A z within one of the threshold passes on
     one copy of a record and fails on another (Leeman: white z 6.0 on the original, 2.9 decimated),
     so the answer there is the same on every copy: the coupling, with "none" beside it."""
-    bound = getattr(c, "undetermined", [])
+    bound = c.undetermined
     if bound:
         return (f"its fit runs to the bound of {', '.join(f'{k} = {c.result.params[k]:.4g}' for k in bound)}: "
                 "the one-state model with a spring does not determine these on this record")
