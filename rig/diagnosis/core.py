@@ -1231,16 +1231,16 @@ def _kinematics_floor(d: Diagnosis, prior: dict) -> None:
 
 def _undetermined_floor(d: Diagnosis, main: _Search, kept: int) -> None:
     """When the load point's coupling was found on a bound (:func:`_couple`: the record does not
-    determine it), the final model's refit on all sliding data is a second estimate of the same
-    parameters from the same record as its fit on the fit blocks: each error is never below their
-    disagreement (``extra["split_fit_sd"]``). Sepiolite velstep2: the split fit has A on its floor
-    and k 1163 kN/m, the refit A 0.0118 and k 483 +- 90; decimated, k 1221 and 210 +- 80, which the
-    Jacobian's errors called different answers. The likelihood has two valleys; neither is the answer."""
+    determine it), the final model's refit on all sliding data is a second valley of the same
+    likelihood, and its Jacobian's errors describe that valley only: the final model is reported
+    without errors (``extra["undetermined"]``; every value "not determined", as the command's
+    warnings say). Sepiolite velstep2: the fit-block fit has A on its floor and k 1163 kN/m, the
+    refit A 0.0118 and k 483 +- 90; decimated, k 1221 and 210 +- 80; trimmed, B on its bound: the
+    Jacobian's errors called these three answers, where the record gives none."""
     res = d.final_fit
     if res is None or not main.coupled or kept < 1 or not main.chosen[0][0].undetermined:
         return
-    res.extra["split_fit_sd"] = {k: abs(float(v) - float(d.final.params[k])) for k, v in res.params.items()
-                                 if k in d.final.params and k not in d.grid.known}
+    res.extra["undetermined"] = list(main.chosen[0][0].undetermined)
 
 
 def _as_final(f: Finding, d: Diagnosis) -> None:
@@ -1309,7 +1309,7 @@ def uncertainty(grid: Grid, res: FitResult, names: list[str] | None = None) -> d
     the likelihood in L is) and ``correlation`` of A, B and L, for ``names`` (all by default)."""
     from .fit import covariance
 
-    cv = covariance(grid, res)
+    cv = None if res.extra.get("undetermined") else covariance(grid, res)  # :func:`_undetermined_floor`
     if cv is None:
         return {}
     nm, vals, cov = cv
@@ -1317,8 +1317,7 @@ def uncertainty(grid: Grid, res: FitResult, names: list[str] | None = None) -> d
     # never below the split-half spread (:func:`split_sd`): errors in the kinematics (a step's rise
     # as the line fit sees it) move A and B without showing in the residual
     spl, kin = res.extra.get("split_sd", {}), res.extra.get("kinematics_sd", {})
-    fsd = res.extra.get("split_fit_sd", {})  # :func:`_undetermined_floor`
-    sd = np.array([max(sd_j[i], spl.get(n, 0.0), kin.get(n, 0.0), fsd.get(n, 0.0)) for i, n in enumerate(nm)])
+    sd = np.array([max(sd_j[i], spl.get(n, 0.0), kin.get(n, 0.0)) for i, n in enumerate(nm)])
     want = nm if names is None else [n for n in names if n in nm]
     out: dict = {"params_sd": {n: _r(sd[nm.index(n)]) for n in want}}
     iv = {}
