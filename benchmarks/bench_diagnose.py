@@ -4,6 +4,7 @@
     python benchmarks/bench_diagnose.py real         # the 75,220-row real record (velstep2), read + diagnosed
     python benchmarks/bench_diagnose.py clean N      # false-finding rate over N clean records
     python benchmarks/bench_diagnose.py accuracy N   # per cause: named and within 25 %, over N seeds
+                                                     # (BENCH_EFFECTS=a,b: only those causes)
     python benchmarks/bench_diagnose.py coverage N   # the final model's 68 % intervals: how often they cover the truth
     ... [NOISE_SCALE]: records' sensor noise in units of the profile's (2 = the paper's ± as 1 sigma)
 """
@@ -76,7 +77,10 @@ def clean(n):
 
 
 def accuracy(n):
-    for eff in EFFECTS:
+    import os
+
+    only = [e for e in os.environ.get("BENCH_EFFECTS", "").split(",") if e]
+    for eff in [e for e in EFFECTS if not only or e in only]:
         ok = 0
         named = 0
         errs = []

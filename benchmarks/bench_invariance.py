@@ -7,9 +7,11 @@ project has x every harmless transformation -> causes and parameters, with a ver
     python benchmarks/bench_invariance.py real basalt   # only the records whose label contains "basalt"
 
 The causes column gives each finding's `stability` (when under 1) and `alternatives` in brackets.
-Verdict per row: "same" when the causes are those of the original and every parameter is within
-twice the joint standard error of the two estimates (original and transformed) or 25 % (a
-stiffness and a force drift scaled with the forces under "scale"); otherwise what differs.
+Verdict per row (rig.diagnosis.transforms.differences, the spec's test): "same" when the causes are
+those of the original and every parameter is within twice the joint standard error of the two
+estimates (original and transformed) or 25 % (a stiffness and a force drift scaled with the forces
+under "scale", a position period's phase moved with the first position); a parameter both reports
+flag as not determined ("(nd)" in the table) agrees. Otherwise what differs.
 Printed with the load average (2 cores shared).
 """
 
@@ -23,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from rig.diagnosis import diagnose
-from rig.diagnosis.transforms import TRANSFORMS, expected
+from rig.diagnosis.transforms import TRANSFORMS, differences, not_determined, origin_moved_um
 from rig.sim.synth import SynthSpec, make_record, random_effect
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -65,28 +67,17 @@ def _row(rep):
     alts = {f["cause"]: ([f"stability {f['stability']:.1f}"] if f.get("stability") not in (None, 1.0) else [])
             + [a["cause"] for a in f.get("alternatives", [])] for f in rep["findings"]}
     params = {k: v for k, v in rep["model"]["params"].items() if k != "mu0" and k != "v_init_um_s"}
-    return causes, alts, params, rep["model"].get("params_sd", {})
+    return causes, alts, params
 
 
-def verdict(ref, got, name) -> str:
-    rc, _, rp, rsd = ref
-    gc, _, gp, gsd = got
-    if gc != rc:
-        return "causes differ"
-    off = []
-    for k, v in rp.items():
-        if v is None or gp.get(k) is None:
-            continue
-        want = expected(k, v, name)
-        joint = float(np.hypot(expected(k, rsd.get(k) or 0.0, name), gsd.get(k) or 0.0))
-        tol = max(2.0 * joint, 0.25 * abs(want))
-        if abs(gp[k] - want) > tol:
-            off.append(f"{k} {gp[k]:.3g} vs {want:.3g}")
-    return "same" if not off else "params differ: " + ", ".join(off)
+def verdict(ref: dict, got: dict, name: str, origin_um: float) -> str:
+    """"same", or what differs (rig.diagnosis.transforms.differences: the spec's test)."""
+    return "; ".join(differences(ref, got, name, origin_um)) or "same"
 
 
-def fmt(params) -> str:
-    return " ".join(f"{k}={v:.3g}" for k, v in params.items() if v is not None)
+def fmt(params, loose=()) -> str:
+    """``name=value``, with "(nd)" beside a value its report flags as not determined."""
+    return " ".join(f"{k}={v:.3g}" + (" (nd)" if k in loose else "") for k, v in params.items() if v is not None)
 
 
 def main(which: str = "all") -> int:
@@ -113,18 +104,20 @@ def main(which: str = "all") -> int:
                 t2 = trial if name == "orig" else TRANSFORMS[name](trial)
                 t0 = time.perf_counter()
                 try:
-                    row = _row(diagnose(t2, baseline=baseline).report())
+                    rep = diagnose(t2, baseline=baseline).report()
                 except ValueError as exc:
-                    row = (["(error: " + str(exc)[:60] + ")"], {}, {}, {})
+                    rep = {"findings": [{"cause": "(error: " + str(exc)[:60] + ")"}], "model": {"params": {}}}
+                row = _row(rep)
                 dt = time.perf_counter() - t0
                 if ref is None:
-                    ref, v = row, "(reference)"
+                    ref, v = rep, "(reference)"
                 else:
-                    v = verdict(ref, row, name)
+                    v = verdict(ref, rep, name, origin_moved_um(trial, t2, name))
                     n_all += 1
                     n_same += v == "same"
                 cz = ", ".join(c + (f" ({'/'.join(row[1][c])})" if row[1].get(c) else "") for c in row[0]) or "none"
-                line = f"| {label} | {name} | {cz} | {fmt(row[2])} | {v} | {dt:.1f} s |"
+                nd = not_determined(rep) if rep["model"]["params"] else set()
+                line = f"| {label} | {name} | {cz} | {fmt(row[2], nd)} | {v} | {dt:.1f} s |"
                 lines.append(line)
                 bar.console.print(line)
                 bar.advance(task)

@@ -127,10 +127,11 @@ def diagnosis_warnings(rep: dict) -> list[dict]:
         # with the standard errors: a value whose error exceeds it is flagged "not determined"
         out += check_params(m["params"], m.get("params_sd"), where=where)
     if not m.get("params_sd"):
-        # the refit on all the data ran to a bound or failed (rig.diagnosis.core.refit_all): no errors
+        # a fit on a bound (rig.diagnosis.core._undetermined_floor) or a refit on all the data that ran to
+        # a bound or failed (rig.diagnosis.core.refit_all): no errors
         out.append({"param": None, "value": None, "kind": "undetermined", "where": where,
-                    "message": "no standard errors: its refit on all the data runs to a bound or fails, so its "
-                               "values are not determined by this record"})
+                    "message": "no standard errors: its fit (or its refit on all the data) runs to a bound or "
+                               "fails, so its values are not determined by this record"})
     return out
 
 

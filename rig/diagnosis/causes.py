@@ -35,6 +35,11 @@ from .prep import Grid
 
 EFFECT_MIN_NOISE = 0.5      # second state: its steady-state effect 2 N |B2| ln(v_hi/v_lo) >= this x noise
 STIFF_MIN_SLIP_FRAC = 0.05  # finite stiffness: the slip the spring takes up in a transient >= this x L
+# finite stiffness: a spring far softer than the record's own force-displacement secant after a step
+# (stiffness_floor_kN_per_m) cannot make the force rise as fast as it does; "far": this factor below
+STIFF_FLOOR_FACTOR = 3.0
+STIFF_SECANT_MIN_UM = 3.0   # the secant over at least this much load-point travel (position noise ~0.2 um)
+STIFF_SECANT_PRE_S = 1.0    # measured from this long before the step (its detected time may be late)
 # two slip-law states of opposite sign must differ in length by at least this factor
 MIN_OPPOSITE_STATE_RATIO = 3.0
 
@@ -186,6 +191,41 @@ def _stiff_plausible(p, grid):
     dF = _force_scale(grid) * (abs(p.get("A_mu", 0.0)) + abs(p.get("B_mu", p.get("c_mu", 0.0))))
     # the spring must take up a slip the data can tell from rigid
     return dF / (p["stiffness_kN_per_m"] * 1e-3) >= STIFF_MIN_SLIP_FRAC * p.get("L_um", 20.0)
+
+
+def stiffness_floor_kN_per_m(grid: Grid) -> float:
+    """The lowest stiffness between the measured position and the interface that the record's own
+    force rise after its steps allows, over STIFF_FLOOR_FACTOR (kN/m; 0 where no step bounds it).
+
+    With ``F = k (x - delta)`` (eq. 1's spring; x the measured position, delta the interface's slip)
+    and an interface that slides forward (``d delta >= 0``), every change of force obeys
+    ``dF <= k dx``: the secant ``(F - F_0) / (x - x_0)`` from the steady force before a step is a lower
+    bound on k, largest early in an up-step's rise (the load point runs ahead of an interface still at
+    the old speed). Measured from STIFF_SECANT_PRE_S before the step (a late step time would
+    steepen it), over at least STIFF_SECANT_MIN_UM of travel, with the force change reduced by three
+    standard errors; the largest over the steps and their first minute. Sepiolite velstep1: 564 kN/m
+    (its coupled fits: 341 kN/m; the trimmed copy's 0.7 kN/m made the 2 N rise take 3 mm of slip).
+    A force proportional to the normal force scales with it, as the stiffness does."""
+    st = grid.step_times_s
+    if st is None or st.size == 0:
+        return 0.0
+    t, x, F, c = grid.t, grid.x, grid.F_mean, np.maximum(grid.count, 1e-9)
+    sd = np.maximum(np.sqrt(np.maximum(grid.ss_within, 0.0) / c), grid.noise_N) / np.sqrt(c)
+    best = 0.0
+    for ts in st:
+        pre = (t < ts) & (t > ts - 30.0) & (grid.v > 0.0)  # sliding forward (not a fitted bin: a start)
+        post = (t > ts) & (t < ts + 60.0)
+        if pre.sum() < 3 or not post.any():
+            continue
+        F0 = float(np.average(F[pre], weights=c[pre]))
+        sd0 = float(np.sqrt(np.average((F[pre] - F0) ** 2, weights=c[pre]) / pre.sum()))
+        x0 = float(np.interp(ts - STIFF_SECANT_PRE_S, t, x))
+        dx = x[post] - x0
+        dF = F[post] - F0 - 3.0 * np.hypot(sd[post], sd0)
+        ok = dx >= STIFF_SECANT_MIN_UM
+        if ok.any():
+            best = max(best, float(np.max(dF[ok] / dx[ok])))
+    return best * 1e3 / STIFF_FLOOR_FACTOR  # N/um -> kN/m
 
 
 def _stiff_evidence(p, grid, info):

@@ -37,7 +37,8 @@ _SENS_NAME = {"_pc": "periodic_cos_mu", "_ps": "periodic_sin_mu"}
 
 def param(name: str, grid: Grid | None = None, spring: bool = False) -> Param:
     """The fitted parameter ``name`` (unit, bounds, scaling) of rig.model.spec.PARAMS; with a
-    ``grid``, the first state's ``L_um`` is bounded by the record (``Grid.max_state_um``). With a
+    ``grid``, the first state's ``L_um`` is bounded by the record (``Grid.max_state_um``), and the
+    stiffness from below (``Grid.stiffness_floor_kN_per_m``). With a
     ``spring`` (finite_stiffness), ``A_mu`` is at least its plausible floor (PLAUSIBLE): the
     spring-slider's interface velocity is set by the direct effect, ``v = V0 exp((F/N - ...)/A)``
     (eq. 5), and as A -> 0 it is not determined (the integration then reverses the interface)."""
@@ -46,6 +47,8 @@ def param(name: str, grid: Grid | None = None, spring: bool = False) -> Param:
     p = Param.of(name, PARAMS[name])
     if spring and name == "A_mu":
         p = replace(p, lo=max(p.lo, PLAUSIBLE["A_mu"].lo))
+    if name == "stiffness_kN_per_m" and grid is not None and grid.stiffness_floor_kN_per_m > p.lo:
+        p = replace(p, lo=grid.stiffness_floor_kN_per_m)  # what the record's slope allows (causes.py)
     if name == "L_um" and grid is not None:
         hi = grid.max_state_um
         if math.isfinite(hi) and 10.0 * p.lo < hi < p.hi:

@@ -121,6 +121,9 @@ class Grid:
     step_times_s: np.ndarray | None = None
     # parameters the file states (measured-data.md: machine_stiffness_kN_per_m), held fixed in every fit
     known: dict = field(default_factory=dict)
+    # the lowest stiffness the record's own force-displacement slope allows (kN/m; 0: no bound), the lower
+    # fit bound of stiffness_kN_per_m (rig.diagnosis.causes.stiffness_floor_kN_per_m)
+    stiffness_floor_kN_per_m: float = 0.0
 
     @property
     def n_raw(self) -> int:

@@ -8,9 +8,12 @@ and the sweep (benchmarks/bench_invariance.py) use these, one definition each.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from rig.data import TrialData
+from rig.model.checks import check_params
 
 
 def _copy(trial: TrialData, **changes) -> TrialData:
@@ -20,7 +23,10 @@ def _copy(trial: TrialData, **changes) -> TrialData:
     return t
 
 
-def shift(trial: TrialData, dt_s: float = 1000.0, dx_um: float = 5000.0) -> TrialData:
+SHIFT_S, SHIFT_UM = 1000.0, 5000.0
+
+
+def shift(trial: TrialData, dt_s: float = SHIFT_S, dx_um: float = SHIFT_UM) -> TrialData:
     """Time and position shifted by constants (a clock that starts at 1000 s, a position from 5 mm)."""
     ref = None if trial.position_ref_um is None else trial.position_ref_um + dx_um
     return _copy(trial, time_s=trial.time_s + dt_s, position_um=trial.position_um + dx_um, position_ref_um=ref)
@@ -90,4 +96,55 @@ def expected(name: str, value: float, transform: str) -> float:
     return value
 
 
-__all__ = ["shift", "decimate", "switch_rate", "trim", "scale_forces", "TRANSFORMS", "expected", "SCALE_FACTOR"]
+def origin_moved_um(trial: TrialData, transformed: TrialData, name: str) -> float:
+    """How far a transformation moved the record's first position, the origin of every position the
+    diagnosis measures (``prep.canonical``), beside a "shift" (µm): a trim starts later on the slip."""
+    return float(transformed.position_um[0] - trial.position_um[0]) - (SHIFT_UM if name == "shift" else 0.0)
+
+
+def not_determined(rep: dict) -> set[str]:
+    """The final model's parameters a diagnosis report flags as not determined: on a bound, an error
+    at least as large as the value (whatever else is flagged: a B < 0 with an error of 3 B), or no
+    errors at all (the refit on all the data ran to a bound or failed)."""
+    m = rep["model"]
+    sd = m.get("params_sd")
+    if not sd:
+        return set(m["params"])
+    out = {w["param"] for w in check_params(m["params"], sd) if w["kind"] == "at_bound"}
+    return out | {k for k, v in m["params"].items() if v is not None and sd.get(k) is not None
+                  and math.isfinite(sd[k]) and sd[k] >= abs(v) and v != 0.0}
+
+
+def differences(ref: dict, got: dict, name: str, origin_um: float = 0.0) -> list[str]:
+    """What differs between the diagnosis reports of a record (``ref``) and of its copy transformed by
+    ``name`` (diagnosis.md, "The answer depends on the physics only"): the causes named, or a
+    parameter of the final model off by more than twice the two estimates' joint reported error and
+    25 % (a phase: 0.25 rad), after the transformation's own effect (:func:`expected`; a
+    position-periodic phase moves by 2 pi ``origin_um`` / wavelength, :func:`origin_moved_um`). A
+    parameter both reports flag as not determined agrees: the record does not fix it either way.
+    Empty: the same answer."""
+    causes = [[f["cause"] for f in r["findings"]] for r in (ref, got)]
+    if causes[0] != causes[1]:
+        return [f"causes differ: {causes[1]} vs {causes[0]}"]
+    rp, gp = ref["model"]["params"], got["model"]["params"]
+    rsd, gsd = ref["model"].get("params_sd") or {}, got["model"].get("params_sd") or {}
+    loose = not_determined(ref) & not_determined(got)
+    off = []
+    for k, v in rp.items():
+        if k in ("mu0", "v_init_um_s") or k in loose or v is None or gp.get(k) is None:
+            continue
+        want = expected(k, v, name)
+        joint = float(np.hypot(expected(k, rsd.get(k) or 0.0, name), gsd.get(k) or 0.0))
+        d = gp[k] - want
+        if k == "phase_rad":
+            d = math.remainder(d - 2.0 * math.pi * origin_um / float(rp.get("wavelength_um") or math.inf), 2 * math.pi)
+            tol = max(2.0 * joint, 0.25)
+        else:
+            tol = max(2.0 * joint, 0.25 * abs(want))
+        if abs(d) > tol:
+            off.append(f"{k} {gp[k]:.3g} vs {want:.3g}")
+    return ["params differ: " + ", ".join(off)] if off else []
+
+
+__all__ = ["shift", "decimate", "switch_rate", "trim", "scale_forces", "TRANSFORMS", "expected", "SCALE_FACTOR",
+           "differences", "not_determined", "origin_moved_um"]
