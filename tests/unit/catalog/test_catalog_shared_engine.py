@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import threading
+
 from rig.catalog import batch
 
 
@@ -115,11 +117,19 @@ def test_a_short_batch_starts_no_worker(monkeypatch):
     assert eng.estimate_s is not None and eng.estimate_s < batch.PAYBACK * eng.start_cost_s
 
 
-def _interrupted_here(x):
-    import threading
+_MAIN_TOOK_ONE = threading.Event()
 
-    if x >= 3 and threading.current_thread() is threading.main_thread():
-        raise KeyboardInterrupt
+
+def _interrupted_here(x):
+    """Ctrl-C in this process on its first task after the workers started; a worker's task waits until
+    then (else a fast worker thread could drain the queue before this process takes a task: a race the
+    test lost under load)."""
+    if threading.current_thread() is threading.main_thread():
+        if x >= 3:
+            _MAIN_TOOK_ONE.set()
+            raise KeyboardInterrupt
+    else:
+        _MAIN_TOOK_ONE.wait(10.0)
     return x
 
 
@@ -131,6 +141,7 @@ def test_ctrl_c_in_this_process_stops_the_workers(monkeypatch):
     killed = []
     monkeypatch.setattr(batch, "_Pool", _ThreadPool)
     monkeypatch.setattr(_ThreadPool, "kill", lambda self: killed.append(self), raising=False)
+    _MAIN_TOOK_ONE.clear()
     eng = batch.Engine(2, start_cost_s=0.0)
     with pytest.raises(KeyboardInterrupt):
         eng.run(_interrupted_here, list(range(50)))
