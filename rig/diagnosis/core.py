@@ -1086,14 +1086,12 @@ def diagnose(trial: TrialData, baseline: str = "rate_state", progress=None, n_bl
     _undetermined_floor(d, main, kept)
     for i, f in enumerate(findings):
         _as_final(f, d)
-        if i < coupling and not f.uncertainty.get("params_sd") and not any(a["cause"] == "none"
-                                                                             for a in f.alternatives):
+        if i < coupling and not f.uncertainty.get("params_sd"):
             # the coupling whose final model the record does not determine (no errors: its refit on all
             # the data ran to a bound or failed) is named as physics, with "none" beside it, as on a
             # bound (_untested_coupling): velstep1's trimmed copy, the only one of six without it
-            f.evidence += ("; the final model has no standard errors (its refit on all the data runs to a "
-                           "bound or fails): this record does not determine the spring")
-            f.alternatives.append({"cause": "none", "params": {}, "gain_pct": 0.0, "delta_bic": 0.0})
+            _none_beside(f, "the final model has no standard errors (its refit on all the data runs to a "
+                            "bound or fails): this record does not determine the spring")
     d.timings = {"prepare_s": t_prep, "fit_s": t_loop, "total_s": _time.perf_counter() - t0,
                  "n_samples": int(len(trial)), "n_bins": int(grid.t.size), "n_splits": 1 + len(split_causes)}
     return d
@@ -1161,17 +1159,26 @@ def _findings(main: _Search, kept: int, stab: list[float], split_causes: list[li
             ev += "; not named: " + "; ".join(f"{o.cause} ({o.gain_pct:+.1f}%): {o.note}" for o in stronger)
         alts = _alternatives(grid, c, round_, [sc[i] if i < len(sc) else "none" for sc in split_causes
                                                if c.cause not in sc])
-        if i < int(main.coupled) and not any(a["cause"] == "none" for a in alts):
-            untested = _untested_coupling(c)
-            if untested:
-                # the coupling is named as physics, but the held-out data do not test it
-                ev += "; " + untested
-                alts.append({"cause": "none", "params": {}, "gain_pct": 0.0, "delta_bic": 0.0})
         out.append(Finding(c.cause, {k: res.params[k] for k in CAUSES[c.cause].params}, ev, before.holdout_rms_N,
                            res.holdout_rms_N, c.gain_pct, c.delta_bic,
                            stability=stab[i] if (split_causes or i < int(main.coupled)) else None,
                            alternatives=alts))
+        if i < int(main.coupled) and (untested := _untested_coupling(c)):
+            _none_beside(out[-1], untested)  # the coupling is named as physics, but the held-out data do not test it
     return out
+
+
+def _none_alternative() -> dict:
+    """The alternative "none": the record explains the held-out data about as well without the cause."""
+    return {"cause": "none", "params": {}, "gain_pct": 0.0, "delta_bic": 0.0}
+
+
+def _none_beside(f: Finding, why: str) -> None:
+    """"none" listed beside ``f`` and ``why`` added to its evidence; nothing when "none" is there already."""
+    if any(a["cause"] == "none" for a in f.alternatives):
+        return
+    f.evidence += "; " + why
+    f.alternatives.append(_none_alternative())
 
 
 def _final_models(d: Diagnosis, progress=None) -> None:
@@ -1278,8 +1285,8 @@ def _alternatives(grid: Grid, chosen: Candidate, round_: list[Candidate], instea
             out.append({"cause": cz, "params": {k: _r(o.result.params[k]) for k in CAUSES[cz].params},
                         "gain_pct": _r(o.gain_pct, 4), "delta_bic": _r(o.delta_bic, 6)})
         else:
-            out.append({"cause": cz, "params": {}, "gain_pct": 0.0 if cz == "none" else None, "delta_bic": 0.0
-                        if cz == "none" else None})
+            out.append(_none_alternative() if cz == "none" else {"cause": cz, "params": {}, "gain_pct": None,
+                                                                  "delta_bic": None})
     return out
 
 
