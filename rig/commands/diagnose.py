@@ -53,8 +53,14 @@ def register(app: typer.Typer) -> None:
             if json_out or plot or model_out:
                 fail("--json, --plot and --model-out are for single runs; a batch writes its results into the "
                      "catalogue")
-            run_batch("diagnose", [str(data)], {"baseline": baseline}, jobs=jobs, scheduler=scheduler, db=db,
-                      summarize=diagnose_summary)
+            from rig.diagnosis.parallel import inner_jobs
+
+            # the batch runs one record per process (``jobs`` of them, default every core): a record's own
+            # work (its candidates, re-splits, final model) then forks no helpers of its own, so that the
+            # calling process's records do not add two processes to the batch's N on N cores
+            with inner_jobs(jobs):
+                run_batch("diagnose", [str(data)], {"baseline": baseline}, jobs=jobs, scheduler=scheduler, db=db,
+                          summarize=diagnose_summary)
             return
         for opt, p, sfx in (("--json", json_out, ()), ("--plot", plot, (".png",)),
                             ("--model-out", model_out, (".yaml", ".yml"))):

@@ -55,6 +55,7 @@ from rig.kinematics import velocity_changes
 from rig.model.forward import as_model
 from rig.model.spec import EXT_PARAMS, PLAUSIBLE, model_params
 from .causes import CAUSES, PERIODIC_SEARCH_CYCLES, rate_starts, slip_of, stiffness_floor_kN_per_m
+from .parallel import can_fork, fork_map, inner_workers, one_blas_thread
 from .prep import Grid, canonical, prepare
 
 # a finding must matter in practice, not only pass a significance test (docs/diagnosis.md):
@@ -536,23 +537,40 @@ def _start_state(grid: Grid, res: FitResult, decided: bool | None = None) -> Fit
     ``decided``: the record's main split's answer, which a re-split takes (the state a record
     starts in is the record's, not a split's: decided on each split, a re-split of a trimmed
     drift record fitted it and its screen then missed the drift the main split names)."""
-    if "v_init_um_s" in res.params or res.baseline != "rate_state" or decided is False:
-        return res
+    free = _free_fit(grid, res, decided)
+    return _start_decided(grid, res, free, decided)
+
+
+def _start_to_fit(res: FitResult, decided: bool | None) -> bool:
+    """The state ``res`` starts in is to be fitted (:func:`_start_state`)."""
+    return "v_init_um_s" not in res.params and res.baseline == "rate_state" and decided is not False
+
+
+def _free_fit(grid: Grid, res: FitResult, decided: bool | None) -> FitResult | None:
+    """``res``'s model with the state it starts in fitted (None: not to be fitted)."""
+    if not _start_to_fit(res, decided):
+        return None
     v1 = _first_velocity(grid)
     starts = [dict(res.params, v_init_um_s=v1 * f) for f in START_STATE_FACTORS]
-    free = multistart(grid, res.baseline, list(res.extensions), starts, keep=1, max_nfev=120)
+    return multistart(grid, res.baseline, list(res.extensions), starts, keep=1, max_nfev=120)
+
+
+def _start_decided(grid: Grid, res: FitResult, free: FitResult | None, decided: bool | None) -> FitResult:
+    """``free`` (:func:`_free_fit`) where the start is decided or the BIC asks for it, else ``res``."""
+    if free is None:
+        return res
     return free if decided or delta_bic(grid, res, free) < MIN_DBIC else res
 
 
 def _free_start(s: "_Search", prior: dict, known: dict, warm: dict | None, progress=None,
-                decided: bool | None = None) -> None:
+                decided: bool | None = None, free: FitResult | None = None) -> None:
     """The start's state fitted where it is unknown (:func:`_start_state`), after the load point's
     coupling: on a load-point record the spring, not the start, explains the first transient, so
     the start is judged on the coupled model; where the coupling was refused on a steady start,
     it is tried again from the rigid model with its start fitted (a record that starts
     mid-transient: the spring then has the same start to work from)."""
     cur = s.history[-1]
-    free = _start_state(s.grid, cur, decided)
+    free = _start_state(s.grid, cur, decided) if free is None else _start_decided(s.grid, cur, free, decided)
     if free is cur or (s.coupled and _bounded(free)):
         return  # (a coupled fit that the free start runs to a bound keeps its steady start)
     if free.holdout_rms_N > cur.holdout_rms_N * (1.0 + MIN_GAIN_PCT / 100.0):
@@ -581,12 +599,13 @@ def _compare(grid: Grid, cur: FitResult, res: FitResult) -> tuple[float, float, 
 
 
 def try_candidate(grid: Grid, cur: FitResult, cause: str, info: dict, prior: dict | None = None,
-                  warm: dict | None = None) -> Candidate:
+                  warm: dict | None = None, fmap=None) -> Candidate:
     """Fit ``cause`` jointly with the current model and judge it on the hold-out blocks. ``warm``:
     the same candidate's fit on another split of the record (a re-split), its one starting point
-    besides the current model's with the cause's first start."""
+    besides the current model's with the cause's first start; ``fmap``: how its starts' full fits
+    run (:func:`rig.diagnosis.fit.multistart`)."""
     exts = list(cur.extensions) + [cause]
-    res = _fit_candidate(grid, cur, cause, info, prior, warm)
+    res = _fit_candidate(grid, cur, cause, info, prior, warm, fmap)
     gain, dbic, z, zw = _compare(grid, cur, res)
     note = ""
     if gain < MIN_GAIN_PCT:
@@ -607,7 +626,7 @@ def try_candidate(grid: Grid, cur: FitResult, cause: str, info: dict, prior: dic
 
 
 def _fit_candidate(grid: Grid, cur: FitResult, cause: str, info: dict, prior: dict | None,
-                   warm: dict | None) -> FitResult:
+                   warm: dict | None, fmap=None) -> FitResult:
     """The joint fit of the current model and ``cause`` on the fit blocks, from the cause's starts
     (and a re-split's ``warm`` fit, or identify's whole-record fit for a spring or a second state)."""
     exts = list(cur.extensions) + [cause]
@@ -630,7 +649,8 @@ def _fit_candidate(grid: Grid, cur: FitResult, cause: str, info: dict, prior: di
             must = [dict(q, stiffness_kN_per_m=k0), dict(cur.params, stiffness_kN_per_m=k0)]
         else:
             must = [dict(q, B2_mu=0.5 * abs(prior["B_mu"]) + 5e-4, L2_um=5.0 * prior["L_um"])]
-    res = multistart(grid, cur.baseline, exts, starts, keep=min(keep, len(starts)), max_nfev=120, must=must)
+    res = multistart(grid, cur.baseline, exts, starts, keep=min(keep, len(starts)), max_nfev=120, must=must,
+                     fmap=fmap)
     if cause == "finite_stiffness" and res.sse_fit > cur.sse_fit:
         # the nested comparison at the better of the two fits: the extended model contains the current
         # one (k -> infinity), so a fit that ends worse on the fit blocks is stuck; from the current model
@@ -779,6 +799,9 @@ RESPLITS = ({"n_blocks": 16, "align": False}, {"n_blocks": 24, "swap_aligned": T
 MIN_STABILITY = 0.5  # named on more than this fraction of all splits (main + RESPLITS)
 RESPLIT_PARALLEL_MIN_S = 3.0  # a main search shorter than this runs its re-splits in-process
 CANDIDATES_PARALLEL_MIN_S = 1.0  # a baseline fit longer than this: a round's candidates on both cores
+# on grids this large (a spring's fit takes seconds), a load-point coupling's starts are fitted on both cores,
+# and the final model beside the residual's search for unexplained structure
+PARALLEL_MIN_BINS = 5000
 PROFILE_MAX_BINS_SPRING = 2000  # profile likelihood of a model with a spring only on grids this small
 
 
@@ -821,21 +844,25 @@ def _search(trial: TrialData, baseline: str, prior: dict, steps: list, known: di
     t_cur = _time.perf_counter()
     if load_point and baseline == "rate_state":
         _couple(s, prior, known, warm_coupling, progress)
-    _free_start(s, prior, known, warm_coupling, progress, start)
     # the candidates' cost is the current model's: a coupled one (a spring solved per bin) costs
     # several times the rigid baseline's fit
-    t_base = max(t_base, _time.perf_counter() - t_cur if s.coupled else 0.0)
+    t_pre = max(t_base, _time.perf_counter() - t_cur if s.coupled else 0.0)
+    first = None
+    if t_pre > CANDIDATES_PARALLEL_MIN_S and _start_to_fit(s.history[-1], start) and inner_workers() > 1 \
+            and can_fork():
+        first = _free_start_beside_round(s, prior, known, warm, warm_coupling, progress, start)
+        t_base = t_pre
+    else:
+        _free_start(s, prior, known, warm_coupling, progress, start)
+        t_base = max(t_base, _time.perf_counter() - t_cur if s.coupled else 0.0)
     cur, tried, chosen, history = s.history[-1], s.tried, s.chosen, s.history
     for round_no in range(max_rounds):
-        cands, info = screen(grid, cur)
-        w = warm[round_no] if warm and round_no < len(warm) else {}
-        # the candidates of a round are independent: both cores where the fits are slow
-        # the costliest first (the most starts fitted in full), so that the other core is never idle at the end
-        # (the results in the screen's order again: the report's order does not depend on the cores)
-        order = sorted(range(len(cands)), key=lambda i: -CAUSES[cands[i]].keep)
-        done = _fork_map(_try_job, [(grid, cur, cands[i], info, prior, w.get(cands[i])) for i in order],
-                         t_base > CANDIDATES_PARALLEL_MIN_S, progress, lambda j: f"trying {j[2]}")
-        results = [r for _, r in sorted(zip(order, done))]
+        if round_no == 0 and first is not None:
+            cands, info, results = first
+        else:
+            cands, info = screen(grid, cur)
+            w = warm[round_no] if warm and round_no < len(warm) else {}
+            results = _round(grid, cur, cands, info, prior, w, t_base > CANDIDATES_PARALLEL_MIN_S, progress)
         tried.append(results)
         acc = [c for c in results if c.accepted]
         if not acc:
@@ -851,6 +878,62 @@ def _search(trial: TrialData, baseline: str, prior: dict, steps: list, known: di
         cur = best.result
         history.append(cur)
     return s
+
+
+def _round_jobs(grid: Grid, cur: FitResult, cands: list[str], info: dict, prior: dict, w: dict) -> list:
+    """A round's candidate fits as :func:`_run_job` jobs, the costliest first (the most starts fitted
+    in full), so that no core is idle at the end; with the index of each in ``cands``."""
+    order = sorted(range(len(cands)), key=lambda i: -CAUSES[cands[i]].keep)
+    return [(i, (try_candidate, (grid, cur, cands[i], info, prior, w.get(cands[i])))) for i in order]
+
+
+def _round(grid: Grid, cur: FitResult, cands: list[str], info: dict, prior: dict, w: dict, parallel: bool,
+           progress=None) -> list[Candidate]:
+    """The candidates of a round, fitted and judged (independent: on the cores :mod:`.parallel`
+    allows where the fits are slow); in the screen's order, whatever the cores."""
+    jobs = _round_jobs(grid, cur, cands, info, prior, w)
+    done = fork_map(_run_job, [j for _, j in jobs], parallel, progress, lambda j: f"trying {j[1][2]}")
+    return [r for _, r in sorted(zip([i for i, _ in jobs], done))]
+
+
+def _forked_fits(args_list: list) -> list[FitResult]:
+    """:func:`rig.diagnosis.fit.fit` ``(*args)`` for each of ``args_list``, on the cores :mod:`.parallel` allows."""
+    return fork_map(_run_job, [(fit, a) for a in args_list], True)
+
+
+def _run_job(job):
+    """``fn(*args)`` of a job ``(fn, args)`` (a worker of :func:`fork_map`)."""
+    import warnings
+
+    fn, args = job
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # a forked worker writes nothing (a stream's lock may be held at the fork)
+        return fn(*args)
+
+
+def _free_start_beside_round(s: _Search, prior: dict, known: dict, warm: list[dict] | None,
+                             warm_coupling: dict | None, progress, start: bool | None):
+    """:func:`_free_start` with the first round's candidates fitted beside it, from the model as it is
+    (the start's fit is one job among them, listed first): the start is rarely fitted (none of the
+    real records' originals fit it), and then the round's fits are dropped (the jobs not yet begun
+    are cancelled) and made again from the new model. Returns (candidates, screen info, results) of
+    the first round, or None when the start changed the model."""
+    cur = s.history[-1]
+    cands, info = screen(s.grid, cur)
+    w = warm[0] if warm else {}
+    jobs = _round_jobs(s.grid, cur, cands, info, prior, w)
+
+    def changed(i: int, free) -> bool:
+        if i:
+            return False
+        _free_start(s, prior, known, warm_coupling, progress, start, free=free)
+        return s.history[-1] is not cur
+
+    done = fork_map(_run_job, [(_free_fit, (s.grid, cur, start))] + [j for _, j in jobs], True, progress,
+                    lambda j: "the start's state" if j[0] is _free_fit else f"trying {j[1][2]}", stop=changed)
+    if s.history[-1] is not cur:
+        return None
+    return cands, info, [r for _, r in sorted(zip([i for i, _ in jobs], done[1:]))]
 
 
 def _best(grid: Grid, acc: list[Candidate]) -> tuple[Candidate, str]:
@@ -941,7 +1024,9 @@ def _couple(s: _Search, prior: dict, known: dict, warm: dict | None, progress=No
     if progress:
         progress("the machine's coupling")
     cur = s.history[-1]
-    c = try_candidate(s.grid, cur, "finite_stiffness", {}, prior, warm=warm)
+    # its starts' fits on the cores where a spring's fit is slow (a long record)
+    fmap = _forked_fits if s.grid.t.size >= PARALLEL_MIN_BINS else None
+    c = try_candidate(s.grid, cur, "finite_stiffness", {}, prior, warm=warm, fmap=fmap)
     sl = s.grid.sliding
     # the spring's integration reverses the friction where the record slides forward: the interface
     # overshoots the load point by F/k (Leeman trimmed, A at its floor: a hold-out RMS 33 times the rigid one's)
@@ -994,63 +1079,18 @@ def _resplit_search(trial, baseline, prior, steps, known, load_point, spec, roun
 
 
 def _run_resplits(jobs: list, parallel: bool, progress=None) -> list[list[str]]:
-    return _fork_map(_resplit_causes, jobs, parallel, progress, lambda j: "re-splits")
-
-
-def _try_job(args) -> Candidate:
-    """One candidate's fit and judgement (a worker of :func:`_search`'s rounds)."""
-    import warnings
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # a forked worker writes nothing (a stream's lock may be held at the fork)
-        return try_candidate(*args)
-
-
-def _one_blas_thread() -> None:
-    """A forked worker's BLAS on one thread: the parent's pool of one thread per core, inherited by
-    every worker, oversubscribed both cores (velstep2's two-state candidate: 9.3 s alone, 17.3 s
-    beside another worker)."""
-    from threadpoolctl import threadpool_limits
-
-    threadpool_limits(1)
-
-
-def _fork_map(fn, jobs: list, parallel: bool, progress=None, what=None) -> list:
-    """``[fn(j) for j in jobs]``, in order, on both cores when ``parallel`` (forked workers: they
-    start at once with the compiled kernels, where spawn would re-import everything; ``RIG_JOBS=N``
-    sets their number). Forked only from the main thread of a main process (a batch worker, with its
-    own threads or as a daemon, and a worker of this function run them in-process); ``progress`` is
-    called in this process, ``what(job)`` its message."""
-    if parallel and len(jobs) > 1:
-        import concurrent.futures as cf
-        import multiprocessing as mp
-        import os
-        import threading
-
-        n = min(len(jobs), int(os.environ.get("RIG_JOBS", "0") or 0) or min(2, os.cpu_count() or 1))
-        if (n > 1 and "fork" in mp.get_all_start_methods() and threading.current_thread() is threading.main_thread()
-                and mp.current_process().name == "MainProcess"):
-            try:
-                with cf.ProcessPoolExecutor(n, mp_context=mp.get_context("fork"), initializer=_one_blas_thread) as ex:
-                    out = []
-                    for j, r in zip(jobs, ex.map(fn, jobs)):
-                        if progress:
-                            progress(what(j))
-                        out.append(r)
-                    return out
-            except (OSError, AssertionError, cf.process.BrokenProcessPool):
-                pass  # no processes here (a daemon worker may not fork its own): in-process
-    out = []
-    for j in jobs:
-        if progress:
-            progress(what(j))
-        out.append(fn(j))
-    return out
+    return fork_map(_resplit_causes, jobs, parallel, progress, lambda j: "re-splits")
 
 
 def diagnose(trial: TrialData, baseline: str = "rate_state", progress=None, n_blocks: int = 20,
              resplits: bool = True) -> Diagnosis:
-    """Run the whole diagnosis on a trial; see the module docstring."""
+    """Run the whole diagnosis on a trial; see the module docstring. BLAS on one thread throughout
+    (:mod:`rig.diagnosis.parallel`: the same numbers, less CPU)."""
+    with one_blas_thread():
+        return _diagnose(trial, baseline, progress, n_blocks, resplits)
+
+
+def _diagnose(trial: TrialData, baseline: str, progress, n_blocks: int, resplits: bool) -> Diagnosis:
     from rig.analysis.identify import check_analysable
 
     t0 = _time.perf_counter()
@@ -1077,11 +1117,15 @@ def diagnose(trial: TrialData, baseline: str = "rate_state", progress=None, n_bl
     kept, stab = _stability(main, split_causes)
     cur = main.history[kept]
     findings = _findings(main, kept, stab, split_causes)
-    d = Diagnosis(data=str(trial.source), baseline=main.base, findings=findings,
-                  unexplained=find_unexplained(grid, cur), final=cur, grid=grid, history=main.history[: kept + 1],
-                  tried=main.tried)
+    d = Diagnosis(data=str(trial.source), baseline=main.base, findings=findings, unexplained=[], final=cur,
+                  grid=grid, history=main.history[: kept + 1], tried=main.tried)
     d.unnamed = _unnamed(main, kept, stab)
-    _final_models(d, progress)
+    if progress:
+        progress("the final model and what it leaves")
+    # independent: side by side where the record is long (the final model's profile, the residual's profiles)
+    d.unexplained, (d.baseline_fit, d.final_fit) = fork_map(
+        _run_job, [(find_unexplained, (grid, cur)), (_final_fits, (d,))], grid.t.size >= PARALLEL_MIN_BINS)
+    d.baseline_all, d.final_all = d.baseline_fit.params, d.final_fit.params
     _kinematics_floor(d, prior)
     _undetermined_floor(d, main, kept)
     for i, f in enumerate(findings):
@@ -1220,6 +1264,12 @@ def _final_models(d: Diagnosis, progress=None) -> None:
         split_sd(grid, base, d.baseline_fit)
         if d.final_fit is not d.baseline_fit:
             split_sd(grid, cur, d.final_fit)
+
+
+def _final_fits(d: Diagnosis) -> tuple[FitResult, FitResult]:
+    """:func:`_final_models` of ``d``: (baseline, final model), refitted on all sliding data."""
+    _final_models(d)
+    return d.baseline_fit, d.final_fit
 
 
 def _kinematics_floor(d: Diagnosis, prior: dict) -> None:

@@ -176,33 +176,48 @@ def fit(grid: Grid, baseline: str, extensions: list[str], init: dict[str, float]
     w = np.sqrt(grid.count[m])
     Fm = grid.F_mean[m]
 
+    jac, sens = None, None
+    if has_sensitivities(baseline, extensions):
+        # exact Jacobian along the same integration (rig.model.forward.force_sensitivities): one
+        # kernel pass instead of one model evaluation per parameter; the rest by differences
+        sens_names = [_SENS_NAME.get(nm, nm) for nm in names]
+
+        def sens(free: dict) -> tuple[np.ndarray, np.ndarray]:
+            p = _fold({**fixed, **free})
+            v_init = p.get("v_init_um_s")
+            F, cols = force_sensitivities(as_model(baseline, extensions, p), grid.t, grid.x, grid.v, grid.N_tot,
+                                          grid.N_nom, sens_names, None if v_init is None else float(v_init))
+            J = np.full((Fm.size, len(names)), np.nan)
+            for j, nm in enumerate(sens_names):
+                if nm in cols:
+                    J[:, j] = -w * cols[nm][m]
+            return F, J
+
+        def jac(free: dict) -> np.ndarray:
+            hit = cached.pop(_key(free), None)
+            return hit if hit is not None else sens(free)[1]
+
+    # with a spring, the force of the sensitivity pass is the plain pass's, bit for bit (the same kernel,
+    # rig.model.loading.stiff_series_sens) at 1.0-1.2x its cost: each residual keeps its Jacobian for the
+    # step's jac call at the same point (one pass per step, not two: velstep2's coupled fits, 19,446 bins)
+    merged = sens is not None and "finite_stiffness" in extensions and "time_delay" not in extensions
+    cached: dict = {}
+
     def resid(free: dict) -> np.ndarray:
         p = _fold({**fixed, **free})
         try:
-            pr = predict(grid, baseline, extensions, p)
+            if merged:
+                pr, J = sens(free)
+                cached.clear()
+                cached[_key(free)] = J
+            else:
+                pr = predict(grid, baseline, extensions, p)
         except (ValueError, ZeroDivisionError, OverflowError):
             return np.full(Fm.size, 1e6)
         r = w * (Fm - pr[m])
         if not np.all(np.isfinite(r)):
             return np.full(Fm.size, 1e6)
         return r
-
-    jac = None
-    if has_sensitivities(baseline, extensions):
-        # exact Jacobian along the same integration (rig.model.forward.force_sensitivities): one
-        # kernel pass instead of one model evaluation per parameter; the rest by differences
-        sens_names = [_SENS_NAME.get(nm, nm) for nm in names]
-
-        def jac(free: dict) -> np.ndarray:
-            p = _fold({**fixed, **free})
-            v_init = p.get("v_init_um_s")
-            _, cols = force_sensitivities(as_model(baseline, extensions, p), grid.t, grid.x, grid.v, grid.N_tot,
-                                          grid.N_nom, sens_names, None if v_init is None else float(v_init))
-            J = np.full((Fm.size, len(names)), np.nan)
-            for j, nm in enumerate(sens_names):
-                if nm in cols:
-                    J[:, j] = -w * cols[nm][m]
-            return J
 
     out = least_squares_fit(resid, pset, [internal], max_nfev=max_nfev, diff_step=1e-6, xtol=1e-8, ftol=1e-9,
                             x_scale=1.0, jac=jac)
@@ -212,6 +227,11 @@ def fit(grid: Grid, baseline: str, extensions: list[str], init: dict[str, float]
     if out is not None and out.jac is not None:
         res.extra["jac"] = (pset, np.asarray(out.extra["z"]), np.asarray(out.jac), np.asarray(out.residuals), m)
     return res
+
+
+def _key(free: dict) -> tuple:
+    """A parameter point as a dict key (the exact values: a Jacobian is reused only at its own point)."""
+    return tuple(sorted(free.items()))
 
 
 def _cov_internal(grid: Grid, res: FitResult):
@@ -280,10 +300,12 @@ def cost_at(grid: Grid, baseline: str, extensions: list[str], params: dict[str, 
 
 def multistart(grid: Grid, baseline: str, extensions: list[str], starts: list[dict[str, float]],
                keep: int = 2, max_nfev: int = 400, must: list[dict[str, float]] | None = None,
-               plausible=None) -> FitResult:
+               plausible=None, fmap=None) -> FitResult:
     """Rank starting points by cost, fit the best ``keep`` of them and every start of ``must``
     (e.g. identify's whole-record fit, the current model), return the best fit: of those off
-    their bounds and, with ``plausible`` (params -> bool), physical, the one of least cost."""
+    their bounds and, with ``plausible`` (params -> bool), physical, the one of least cost.
+    ``fmap(args_list)``: the full fits :func:`fit` ``(*args)``, in order (independent: the caller
+    may run them on several cores); in this process by default."""
     costs = []
     for s in starts:
         try:
@@ -302,10 +324,9 @@ def multistart(grid: Grid, baseline: str, extensions: list[str], starts: list[di
         for r in first:
             if len(ranked) < POLISH_KEEP and not any(_same_point(r.params, q) for q in ranked):
                 ranked.append(r.params)
-    order = ranked + list(must or [])
+    args = [(grid, baseline, extensions, st, max_nfev) for st in ranked + list(must or [])]
     best, best_rank = None, None
-    for st in order:
-        r = fit(grid, baseline, extensions, st, max_nfev=max_nfev)
+    for r in (fmap(args) if fmap is not None and len(args) > 1 else [fit(*a) for a in args]):
         r.extra["at_bound"] = at_bound(r.params, grid)
         r.extra["implausible"] = plausible is not None and not plausible(r.params)
         rank = (r.extra["at_bound"] or r.extra["implausible"], r.extra["at_bound"], r.sse_fit)
