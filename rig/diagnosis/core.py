@@ -51,6 +51,7 @@ from rig.analysis.report import rounded as _r  # the one rounding of the reports
 from rig.data import TrialData
 
 from .fit import FitResult, at_bound, delta_bic, evaluate, fit, multistart, param, profile
+from .intervals import undetermined_intervals
 from rig.kinematics import velocity_changes
 from rig.model.forward import as_model
 from rig.model.spec import EXT_PARAMS, PLAUSIBLE, model_params
@@ -1130,7 +1131,7 @@ def _diagnose(trial: TrialData, baseline: str, progress, n_blocks: int, resplits
     _undetermined_floor(d, main, kept)
     for i, f in enumerate(findings):
         _as_final(f, d)
-        if i < coupling and not f.uncertainty.get("params_sd"):
+        if i < coupling and (d.final_fit.extra.get("undetermined") or not f.uncertainty.get("params_sd")):
             # the coupling whose final model the record does not determine (no errors: its refit on all
             # the data ran to a bound or failed) is named as physics, with "none" beside it, as on a
             # bound (_untested_coupling): velstep1's trimmed copy, the only one of six without it
@@ -1293,11 +1294,18 @@ def _undetermined_floor(d: Diagnosis, main: _Search, kept: int) -> None:
     without errors (``extra["undetermined"]``; every value "not determined", as the command's
     warnings say). Sepiolite velstep2: the fit-block fit has A on its floor and k 1163 kN/m, the
     refit A 0.0118 and k 483 +- 90; decimated, k 1221 and 210 +- 80; trimmed, B on its bound: the
-    Jacobian's errors called these three answers, where the record gives none."""
+    Jacobian's errors called these three answers, where the record gives none.
+
+    On grids small enough for a spring's profile (``PROFILE_MAX_BINS_SPRING``), A, B, L and k then
+    carry the intervals a profile over each one's domain gives (:mod:`rig.diagnosis.intervals`), and
+    the half-widths as their errors: honest about how little the record says (Leeman trimmed past
+    its step: A on its floor, but anything up to the original's value explains the copy as well)."""
     res = d.final_fit
     if res is None or not main.coupled or kept < 1 or not main.chosen[0][0].undetermined:
         return
     res.extra["undetermined"] = list(main.chosen[0][0].undetermined)
+    if d.grid.t.size <= PROFILE_MAX_BINS_SPRING:
+        res.extra["domain_intervals"] = undetermined_intervals(d.grid, res, list(CORE_BOUNDED), COEF_MAX_MU)
 
 
 def _as_final(f: Finding, d: Diagnosis) -> None:
@@ -1366,7 +1374,11 @@ def uncertainty(grid: Grid, res: FitResult, names: list[str] | None = None) -> d
     the likelihood in L is) and ``correlation`` of A, B and L, for ``names`` (all by default)."""
     from .fit import covariance
 
-    cv = None if res.extra.get("undetermined") else covariance(grid, res)  # :func:`_undetermined_floor`
+    if res.extra.get("undetermined"):  # :func:`_undetermined_floor`: the profiles over the domain, or nothing
+        div = {n: v for n, v in res.extra.get("domain_intervals", {}).items() if names is None or n in names}
+        return {"params_sd": {n: _r((hi - lo) / 2.0) for n, (lo, hi) in div.items()},
+                "intervals": {n: [_r(lo), _r(hi)] for n, (lo, hi) in div.items()}} if div else {}
+    cv = covariance(grid, res)
     if cv is None:
         return {}
     nm, vals, cov = cv

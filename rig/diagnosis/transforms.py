@@ -115,34 +115,65 @@ def not_determined(rep: dict) -> set[str]:
                   and math.isfinite(sd[k]) and sd[k] >= abs(v) and v != 0.0}
 
 
+# "within its reported uncertainty": at two standard errors (the 95 % a consistency check is read at;
+# two honest estimates of one value differ by more than one error of each about half the time)
+K_SD = 2.0
+
+
+def _region(rep: dict, k: str, scale: float = 1.0) -> tuple[float, float] | None:
+    """The reported uncertainty of the final model's ``k`` at ``K_SD`` errors: its interval
+    (``intervals``, one error each side, skewed as the likelihood is) where the report gives one,
+    else the value's +- ``params_sd``, each side K_SD times as far from the value; None without
+    either. Times ``scale`` (a transformation's own effect, :func:`expected`)."""
+    m = rep["model"]
+    v = m["params"].get(k)
+    iv = (m.get("intervals") or {}).get(k)
+    sd = (m.get("params_sd") or {}).get(k)
+    if v is None:
+        return None
+    if iv is not None and None not in iv:
+        lo, hi = v - K_SD * max(v - iv[0], 0.0), v + K_SD * max(iv[1] - v, 0.0)
+    elif sd is not None and math.isfinite(sd):
+        lo, hi = v - K_SD * sd, v + K_SD * sd
+    else:
+        return None
+    return (lo * scale, hi * scale) if scale > 0 else (hi * scale, lo * scale)
+
+
+def _within(x: float, region: tuple[float, float] | None) -> bool:
+    return region is not None and region[0] <= x <= region[1]
+
+
 def differences(ref: dict, got: dict, name: str, origin_um: float = 0.0) -> list[str]:
     """What differs between the diagnosis reports of a record (``ref``) and of its copy transformed by
     ``name`` (diagnosis.md, "The answer depends on the physics only"): the causes named, or a
-    parameter of the final model off by more than twice the two estimates' joint reported error and
-    25 % (a phase: 0.25 rad), after the transformation's own effect (:func:`expected`; a
-    position-periodic phase moves by 2 pi ``origin_um`` / wavelength, :func:`origin_moved_um`). A
-    parameter both reports flag as not determined agrees: the record does not fix it either way.
-    Empty: the same answer."""
+    parameter of the final model that agrees neither within 25 % (a phase: 0.25 rad) nor within the
+    reported uncertainty -- the original's value inside the copy's interval (``intervals``, else
+    +- ``params_sd``; at ``K_SD`` errors), or the copy's inside the original's --, after the transformation's own effect
+    (:func:`expected`; a position-periodic phase moves by 2 pi ``origin_um`` / wavelength,
+    :func:`origin_moved_um`). A parameter both reports flag as not determined and give no uncertainty
+    for agrees: neither says anything about it. Empty: the same answer."""
     causes = [[f["cause"] for f in r["findings"]] for r in (ref, got)]
     if causes[0] != causes[1]:
         return [f"causes differ: {causes[1]} vs {causes[0]}"]
     rp, gp = ref["model"]["params"], got["model"]["params"]
     rsd, gsd = ref["model"].get("params_sd") or {}, got["model"].get("params_sd") or {}
-    loose = not_determined(ref) & not_determined(got)
+    loose = {k for k in not_determined(ref) & not_determined(got) if k not in rsd and k not in gsd}
     off = []
     for k, v in rp.items():
         if k in ("mu0", "v_init_um_s") or k in loose or v is None or gp.get(k) is None:
             continue
         want = expected(k, v, name)
-        joint = float(np.hypot(expected(k, rsd.get(k) or 0.0, name), gsd.get(k) or 0.0))
         d = gp[k] - want
         if k == "phase_rad":
             d = math.remainder(d - 2.0 * math.pi * origin_um / float(rp.get("wavelength_um") or math.inf), 2 * math.pi)
-            tol = max(2.0 * joint, 0.25)
-        else:
-            tol = max(2.0 * joint, 0.25 * abs(want))
-        if abs(d) > tol:
-            off.append(f"{k} {gp[k]:.3g} vs {want:.3g}")
+            if abs(d) > max(K_SD * max(rsd.get(k) or 0.0, gsd.get(k) or 0.0), 0.25):
+                off.append(f"{k} {gp[k]:.3g} vs {want:.3g}")
+            continue
+        scale = expected(k, 1.0, name)
+        if abs(d) <= 0.25 * abs(want) or _within(want, _region(got, k)) or _within(gp[k], _region(ref, k, scale)):
+            continue
+        off.append(f"{k} {gp[k]:.3g} vs {want:.3g}")
     return ["params differ: " + ", ".join(off)] if off else []
 
 
