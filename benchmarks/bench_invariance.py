@@ -8,10 +8,11 @@ project has x every harmless transformation -> causes and parameters, with a ver
 
 The causes column gives each finding's `stability` (when under 1) and `alternatives` in brackets.
 Verdict per row (rig.diagnosis.transforms.differences, the spec's test): "same" when the causes are
-those of the original and every parameter is within twice the joint standard error of the two
-estimates (original and transformed) or 25 % (a stiffness and a force drift scaled with the forces
-under "scale", a position period's phase moved with the first position); a parameter both reports
-flag as not determined ("(nd)" in the table) agrees. Otherwise what differs.
+those of the original and every parameter is within 25 % or within the reported uncertainty (the
+original's value inside the copy's interval or +- error, or the copy's inside the original's, at
+two errors; a stiffness and a force drift scaled with the forces under "scale", a position period's
+phase moved with the first position); a parameter both reports flag as not determined ("(nd)" in
+the table) and give no uncertainty for agrees. Otherwise what differs.
 Printed with the load average (2 cores shared).
 """
 
