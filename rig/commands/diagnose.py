@@ -47,20 +47,13 @@ def register(app: typer.Typer) -> None:
         from rig.log import load_trial
 
         baseline = baseline.value
-        from rig.commands.catalog import diagnose_summary, is_batch, run_batch
+        from rig.commands.catalog import is_batch
 
         if is_batch([str(data)], jobs, scheduler, db):
             if json_out or plot or model_out:
                 fail("--json, --plot and --model-out are for single runs; a batch writes its results into the "
                      "catalogue")
-            from rig.diagnosis.parallel import inner_jobs
-
-            # the batch runs one record per process (``jobs`` of them, default every core): a record's own
-            # work (its candidates, re-splits, final model) then forks no helpers of its own, so that the
-            # calling process's records do not add two processes to the batch's N on N cores
-            with inner_jobs(jobs):
-                run_batch("diagnose", [str(data)], {"baseline": baseline}, jobs=jobs, scheduler=scheduler, db=db,
-                          summarize=diagnose_summary)
+            _batch(data, baseline, jobs, scheduler, db)
             return
         for opt, p, sfx in (("--json", json_out, ()), ("--plot", plot, (".png",)),
                             ("--model-out", model_out, (".yaml", ".yml"))):
@@ -108,6 +101,19 @@ def register(app: typer.Typer) -> None:
             except OSError as exc:
                 fail(f"cannot write {model_out}: {exc.strerror or exc}", EXIT_FAILED)
             con.print(f"wrote {model_out} (the final model, for `rig run --sim --friction-model`)", markup=False)
+
+
+def _batch(data: Path, baseline: str, jobs: Optional[int], scheduler: Optional[str], db: Optional[Path]) -> None:
+    """``rig diagnose DIR``: each file on its own, in parallel, into the catalogue. The batch runs one
+    record per process (``jobs`` of them, default every core): a record's own work (its candidates,
+    re-splits, final model) then forks no helpers of its own (rig.diagnosis.parallel.inner_jobs), so
+    that the calling process's records do not add two processes to the batch's N on N cores."""
+    from rig.commands.catalog import diagnose_summary, run_batch
+    from rig.diagnosis.parallel import inner_jobs
+
+    with inner_jobs(jobs):
+        run_batch("diagnose", [str(data)], {"baseline": baseline}, jobs=jobs, scheduler=scheduler, db=db,
+                  summarize=diagnose_summary)
 
 
 def _calibration_warnings(trial, rep: dict) -> list[dict]:
