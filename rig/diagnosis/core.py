@@ -849,8 +849,9 @@ def _search(trial: TrialData, baseline: str, prior: dict, steps: list, known: di
     # several times the rigid baseline's fit
     t_pre = max(t_base, _time.perf_counter() - t_cur if s.coupled else 0.0)
     first = None
-    if t_pre > CANDIDATES_PARALLEL_MIN_S and _start_to_fit(s.history[-1], start) and inner_workers() > 1 \
-            and can_fork():
+    # (a re-split that takes the main split's fitted start fits it first: it is certain to change the model)
+    if t_pre > CANDIDATES_PARALLEL_MIN_S and start is None and _start_to_fit(s.history[-1], start) \
+            and inner_workers() > 1 and can_fork():
         first = _free_start_beside_round(s, prior, known, warm, warm_coupling, progress, start)
         t_base = t_pre
     else:

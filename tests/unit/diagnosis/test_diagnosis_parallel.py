@@ -66,3 +66,39 @@ def test_fork_map_stops_where_asked():
     seen = []
     out = parallel.fork_map(lambda j: seen.append(j) or j * 10, [1, 2, 3, 4], False, stop=lambda i, r: r == 20)
     assert out == [10, 20] and seen == [1, 2]
+
+
+@pytest.mark.parametrize("trimmed", [False, True])
+def test_start_beside_the_first_round_gives_the_same_report(monkeypatch, trimmed):
+    """The start's state fitted beside the first round's candidates (core._free_start_beside_round, on
+    slow coupled fits) reports what fitting it first does: where the start is kept steady (the whole
+    record) and where it is fitted (trimmed a second after its only step: the round is made again).
+    Run in-process here (the fork map's serial path, with the same stop rule)."""
+    from rig.diagnosis import core, diagnose
+    from rig.diagnosis.transforms import trim
+    from rig.sim.synth import SynthSpec, make_record
+
+    trial, _ = make_record(SynthSpec(protocol=[(2.0, 10.0), (38.0, 1.0)], duration_s=40.0, rate_hz=25.0,
+                                     params={"mu0": 0.11, "A_mu": 1.1e-3, "B_mu": 4.0e-3, "L_um": 19.2},
+                                     effects={"finite_stiffness": {"stiffness_kN_per_m": 300.0}}, with_ref=False,
+                                     seed=5))
+    trial.metadata["position_source"] = "load_point"
+    if trimmed:
+        trial = trim(trial)
+    plain = diagnose(trial).report()
+    calls = []
+    real = core._free_start_beside_round
+
+    def spy(*a, **k):
+        out = real(*a, **k)
+        calls.append(out is None)  # None: the start changed the model, the round was made again
+        return out
+
+    monkeypatch.setattr(core, "CANDIDATES_PARALLEL_MIN_S", -1.0)
+    monkeypatch.setattr(core, "inner_workers", lambda: 2)
+    monkeypatch.setattr(core, "can_fork", lambda: True)
+    monkeypatch.setattr(parallel, "can_fork", lambda: False)  # the jobs themselves in this process
+    monkeypatch.setattr(core, "_free_start_beside_round", spy)
+    beside = diagnose(trial).report()
+    assert calls and calls[0] is trimmed
+    assert beside == plain
