@@ -89,8 +89,8 @@ def fork_map(fn: Callable, jobs: list, parallel: bool, progress=None, what=None,
     everything), in this process otherwise or where :func:`can_fork` says no. Jobs are handed out
     in the order given (costliest first keeps every helper busy to the end). ``progress`` is called
     in this process, ``what(job)`` its message. ``stop(i, result)``, called in this process as each
-    result comes in order: True ends the map there (the jobs not yet begun are cancelled; the list
-    returned is shorter)."""
+    result comes in order: True ends the map there (the jobs not yet begun are cancelled, the helpers
+    still computing are ended; the list returned is shorter)."""
     n = min(len(jobs), inner_workers()) if parallel else 1
     if n > 1 and can_fork():
         import concurrent.futures as cf
@@ -107,6 +107,10 @@ def fork_map(fn: Callable, jobs: list, parallel: bool, progress=None, what=None,
                     if stop is not None and stop(i, out[-1]):
                         for g in futures[i + 1:]:
                             g.cancel()
+                        # the helpers still computing a job no one will read: ended, not waited for
+                        # (pure fits, no files or locks of this process)
+                        for p in list((getattr(ex, "_processes", None) or {}).values()):
+                            p.terminate()
                         break
                 return out
         except (OSError, AssertionError, cf.process.BrokenProcessPool):
