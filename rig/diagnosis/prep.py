@@ -522,7 +522,11 @@ def _at_rest(tk: np.ndarray, xk: np.ndarray, vs: np.ndarray) -> np.ndarray:
     hi = np.searchsorted(tk, tk + REST_WINDOW_S, side="right")
     i = np.arange(tk.size)
     n_b, n_a = i - lo + 1, hi - i
-    ok = (n_b >= 3) & (n_a >= 3)
+    # both windows at least half their length: near the record's ends the two means lie too close in
+    # time for a slide to move them apart by the threshold
+    span_b = tk - tk[lo]
+    span_a = tk[np.maximum(hi - 1, i)] - tk
+    ok = (n_b >= 3) & (n_a >= 3) & (span_b >= 0.5 * REST_WINDOW_S) & (span_a >= 0.5 * REST_WINDOW_S)
     before = (c[i + 1] - c[lo]) / np.maximum(n_b, 1)
     after = (c[hi] - c[i]) / np.maximum(n_a, 1)
     sigma = _robust_noise(xk) * np.sqrt(1.0 / np.maximum(n_b, 1) + 1.0 / np.maximum(n_a, 1))
