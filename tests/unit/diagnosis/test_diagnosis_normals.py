@@ -1,4 +1,4 @@
-"""The reported models multiply mu by the measured normal forces where they vary (core.reported_grid),
+"""The reported rigid models multiply mu by the measured normal forces where they vary (core.reported_grid),
 as identify divides friction by them: friction follows the normal force on every rig, and a model held
 to the nominal load read its 0.1 % fall along each slide on the simulated rig as a slower decay (L +5 %,
 docs/validation.md "Coverage"). The decisions keep the nominal load (diagnosis.md)."""
@@ -28,23 +28,30 @@ def _record():
     return trial
 
 
+def _rigid(grid):
+    return evaluate(grid, "rate_state", [], dict(TRUTH))
+
+
 def _errors(grid):
-    res = refit_all(grid, evaluate(grid, "rate_state", [], dict(TRUTH)))
+    res = refit_all(grid, _rigid(grid))
     return {k: abs(res.params[k] / TRUTH[k] - 1.0) for k in ("A_mu", "B_mu", "L_um")}
 
 
 def test_the_reported_fit_follows_the_measured_normals_and_the_nominal_one_does_not():
     grid = prepare(_record())
-    rep = reported_grid(grid)
+    rep = reported_grid(grid, _rigid(grid))
     assert rep.normals_in_model and not grid.normals_in_model
     nominal, measured = _errors(grid), _errors(rep)
     assert max(measured.values()) < 0.05, measured
     assert max(nominal.values()) > 2.0 * max(measured.values()), (nominal, measured)
 
 
-def test_a_record_whose_normals_do_not_vary_keeps_its_grid():
+def test_a_record_whose_normals_do_not_vary_or_a_named_cause_keeps_its_grid():
+    grid = prepare(_record())
+    lag = evaluate(grid, "rate_state", ["sensor_lag"], dict(TRUTH, tau_s=0.5))
+    assert reported_grid(grid, lag) is grid
     trial = _record()
     trial.normal_1_N = np.full(len(trial), 100.0)
     trial.normal_2_N = np.full(len(trial), 100.0)
     grid = prepare(trial)
-    assert reported_grid(grid) is grid
+    assert reported_grid(grid, _rigid(grid)) is grid
