@@ -882,8 +882,12 @@ def _held_stiffness(trial: TrialData, stiffness: bool, k_fixed: float | None) ->
     return k_fixed, ("fitted" if k_fixed is None else ("metadata" if k_meta is not None and k_meta > 0 else "given"))
 
 
+# the whole-record fit's most time bins (:func:`_time_bins`; the main job's 650 s at 25 Hz: 2-row bins)
+WHOLE_RECORD_MAX_POINTS = 15000
+
+
 def fit_whole_record(trial: TrialData, steps: list[Step] | None = None, *, stiffness: bool = False,
-                     velocity_method: str = "segments", max_points: int = 15000, trend: bool = False,
+                     velocity_method: str = "segments", max_points: int = WHOLE_RECORD_MAX_POINTS, trend: bool = False,
                      init: dict | None = None, k_fixed: float | None = None, law: str = "slip",
                      detrend: str = "none", uncertainty: str = "jacobian", seed: int = 0,
                      progress=None, rise_guard_s: float = 0.5, profile: bool = False,

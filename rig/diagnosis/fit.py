@@ -134,11 +134,19 @@ def _from_params(params):
     return p
 
 
+def _model(grid: Grid, baseline: str, extensions: list[str], params: dict[str, float]):
+    """The model as the forward model runs it on ``grid``: with the measured normal forces where
+    the grid says every model has them (``Grid.normals_in_model``)."""
+    if grid.normals_in_model and "normal_force_variation" not in extensions:
+        extensions = list(extensions) + ["normal_force_variation"]
+    return as_model(baseline, extensions, params)
+
+
 def predict(grid: Grid, baseline: str, extensions: list[str], params: dict[str, float]) -> np.ndarray:
     """The forward model (rig.model.forward) on the grid; ``v_init_um_s`` in params is the
     speed whose steady state the record starts in."""
     v_init = params.get("v_init_um_s")
-    return predict_force(as_model(baseline, extensions, params), grid.t, grid.x, grid.v, grid.N_tot, grid.N_nom,
+    return predict_force(_model(grid, baseline, extensions, params), grid.t, grid.x, grid.v, grid.N_tot, grid.N_nom,
                          None if v_init is None else float(v_init))
 
 
@@ -185,7 +193,7 @@ def fit(grid: Grid, baseline: str, extensions: list[str], init: dict[str, float]
         def sens(free: dict) -> tuple[np.ndarray, np.ndarray]:
             p = _fold({**fixed, **free})
             v_init = p.get("v_init_um_s")
-            F, cols = force_sensitivities(as_model(baseline, extensions, p), grid.t, grid.x, grid.v, grid.N_tot,
+            F, cols = force_sensitivities(_model(grid, baseline, extensions, p), grid.t, grid.x, grid.v, grid.N_tot,
                                           grid.N_nom, sens_names, None if v_init is None else float(v_init))
             J = np.full((Fm.size, len(names)), np.nan)
             for j, nm in enumerate(sens_names):
@@ -266,7 +274,8 @@ def _without_normal_wander(grid: Grid, res: FitResult, r: np.ndarray, mask: np.n
     noise about A, B and L, and counted as such it widened their errors twice over (pull 0.5; docs/
     validation.md, "Coverage"). The errors of the model then are those of the friction coefficient over
     the measured normals, as identify's whole-record fit computes them."""
-    if not (grid.has_normals and grid.normals_vary) or "normal_force_variation" in res.extensions:
+    if not (grid.has_normals and grid.normals_vary) or "normal_force_variation" in res.extensions \
+            or grid.normals_in_model:
         return r
     w = np.sqrt(grid.count[mask])
     q = w * res.pred[mask] * (grid.N_tot[mask] / (2.0 * grid.N_nom) - 1.0)

@@ -124,6 +124,9 @@ class Grid:
     # the lowest stiffness the record's own force-displacement slope allows (kN/m; 0: no bound), the lower
     # fit bound of stiffness_kN_per_m (rig.diagnosis.causes.stiffness_floor_kN_per_m)
     stiffness_floor_kN_per_m: float = 0.0
+    # every model on this grid multiplies mu by the measured N1 + N2 (the reported refits: friction
+    # follows the normal force on every rig; rig.diagnosis.core.reported_grid), not 2 N_nom
+    normals_in_model: bool = False
 
     @property
     def n_raw(self) -> int:

@@ -36,10 +36,11 @@ def test_the_rigid_baselines_errors_are_never_below_its_disagreement_with_identi
     p = {"mu0": 0.1, "A_mu": 1.0e-3, "B_mu": 4.0e-3, "L_um": 19.6}
     prior = {"A_mu": 1.1e-3, "B_mu": 4.0e-3, "L_um": 19.2}
     rigid = SimpleNamespace(params=p, extensions=[], baseline="rate_state", extra={})
-    _kinematics_floor(SimpleNamespace(final_fit=rigid, grid=SimpleNamespace(known={})), prior)
+    _kinematics_floor(SimpleNamespace(final_fit=rigid, grid=SimpleNamespace(known={})), lambda: prior)
     kin = rigid.extra["kinematics_sd"]
     assert abs(kin["A_mu"] - 1e-4) < 1e-12 and kin["B_mu"] == 0.0 and abs(kin["L_um"] - 0.4) < 1e-9
     # a named cause changes the model: identify's fit is no estimate of its parameters
     spring = SimpleNamespace(params=p, extensions=["finite_stiffness"], baseline="rate_state", extra={})
-    _kinematics_floor(SimpleNamespace(final_fit=spring, grid=SimpleNamespace(known={})), prior)
+    _kinematics_floor(SimpleNamespace(final_fit=spring, grid=SimpleNamespace(known={})),
+                      lambda: 1 / 0)  # never asked for
     assert "kinematics_sd" not in spring.extra
