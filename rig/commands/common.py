@@ -306,7 +306,7 @@ class _QuickCoercion:
     """typer's conversion of one parameter's value, without the pydantic ``TypeAdapter`` typer 0.29 builds
     for every parameter of the invoked command (given or not: 3-8 ms each, and pydantic's import) where the
     result is plain: no value (None, or ``()`` for a list), a str for a ``str``, an int / float / bool that
-    already is one (a default; no min/max), a path (typer's own checks, on ``Path(value)``: what pydantic
+    already is one (a default) within its min/max, a path (typer's own checks, on ``Path(value)``: what pydantic
     makes of a str). Anything else goes to typer's own conversion, built then."""
 
     def __init__(self, coerce_path, build):
@@ -318,7 +318,8 @@ class _QuickCoercion:
         d = param.type_descriptor
         ann, info = d.annotation, d.parameter_info
         if info.parser is None and d.file_annotation is None and not (param.multiple or param.nargs != 1):
-            if type(value) is ann and ann in (str, int, float, bool) and info.min is None and info.max is None:
+            if type(value) is ann and ann in (str, int, float, bool) and (info.min is None or value >= info.min) \
+                    and (info.max is None or value <= info.max):
                 return value
             path_type = info.path_type or ann
             if isinstance(ann, type) and issubclass(ann, Path) and path_type is ann and isinstance(value, (str, Path)):

@@ -643,8 +643,9 @@ class TrialLogWriter:
             register(self._sink.w)
         self._raw_keys = keys
 
-    def write_block(self, block: dict[str, np.ndarray]) -> None:
-        """Log one block of loop samples (all keys as arrays of equal length; ``t_s`` required)."""
+    def write_block(self, block: dict[str, np.ndarray], *, frozen: bool = False) -> None:
+        """Log one block of loop samples (all keys as arrays of equal length; ``t_s`` required). ``frozen``:
+        the caller never writes these arrays again, so the writer's thread encodes them without a copy."""
         if self.closed:
             raise RuntimeError("log closed")
         arrays = block if all(type(v) is np.ndarray and v.dtype == np.float64 for v in block.values()) \
@@ -667,8 +668,8 @@ class TrialLogWriter:
                     raise ValueError(f"raw block keys changed: {self._raw_keys} -> {keys}")
                 self._raw_channel(keys)
             t0 = float(tr[0])
-            if self._threaded:  # encode in the writer thread, from a copy (the loop may reuse its arrays)
-                copy = {k: v.copy() for k, v in raw.items()}
+            if self._threaded:  # encode in the writer thread, from a copy unless frozen (the loop may reuse its arrays)
+                copy = raw if frozen and raw is block else {k: v.copy() for k, v in raw.items()}
                 self._add(RAW_TOPIC, t0, lambda: self._raw_enc.encode(copy, t0))
             else:
                 self._add(RAW_TOPIC, t0, self._raw_enc.encode(raw, t0))
