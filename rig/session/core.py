@@ -596,7 +596,10 @@ class TrialSession:
         self._in_write = time.monotonic()
         if msg.wall_ns is not None and anchor is not None and len(msg.data["t_s"]):
             anchor(float(msg.data["t_s"][-1]), msg.wall_ns)
-        w.write_block(msg.data, frozen=msg.frozen)
+        if msg.frozen:
+            w.write_block(msg.data, frozen=True)
+        else:
+            w.write_block(msg.data)
         self._in_write = None
         if self._logged is not None:
             self._logged()
