@@ -112,7 +112,8 @@ def aot_in_use() -> bool:
     return _State.lazy and not _State.jitted
 
 
-def _symbol(module: str, name: str) -> str:
+def aot_symbol(module: str, name: str) -> str:
+    """The name of kernel ``module.name`` in the built module."""
     return module.replace(".", "_") + "__" + name.lstrip("_")
 
 
@@ -240,6 +241,19 @@ def aot_path(key: str | None = None) -> Path:
     return aot_dir() / (_module_name(key or aot_key()) + importlib.machinery.EXTENSION_SUFFIXES[0])
 
 
+def load_aot(key: str | None = None):
+    """The built module for ``key`` (default: the current sources'), imported from its file (OSError or
+    ImportError when it is not there or does not load)."""
+    key = key or aot_key()
+    path = aot_path(key)
+    if not path.is_file():
+        raise FileNotFoundError(path)
+    spec = importlib.util.spec_from_file_location(_module_name(key), path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
 def prefer_aot() -> str | None:
     """Use the ahead-of-time kernels in this process, when built from the current sources: call before the
     kernels' modules are imported. Returns None when they are used, else why not (``RIG_AOT=0``, not built
@@ -248,17 +262,14 @@ def prefer_aot() -> str | None:
         return "RIG_AOT=0"
     try:
         key = aot_key()
-        path = aot_path(key)
-        if not path.is_file():
+        if not aot_path(key).is_file():
             failed = _failed_path(key)
             return f"its build failed (see {failed})" if failed.is_file() else "not built yet"
-        spec = importlib.util.spec_from_file_location(_module_name(key), path)
-        mod = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(mod)
+        mod = load_aot(key)
     except (ImportError, OSError) as exc:
         return f"cannot load it ({exc})"
-    _State.aot = {f"{m}:{n}": (getattr(mod, _symbol(m, n)),) + _checks(codes)
-                  for m, n, _, codes in AOT_KERNELS if hasattr(mod, _symbol(m, n))}
+    _State.aot = {f"{m}:{n}": (getattr(mod, aot_symbol(m, n)),) + _checks(codes)
+                  for m, n, _, codes in AOT_KERNELS if hasattr(mod, aot_symbol(m, n))}
     _State.lazy = True
     return None
 
@@ -269,9 +280,12 @@ def build_aot(out_dir: Path | None = None) -> Path:
     thread encodes beside the simulation). Writes beside, then renames: a half-built module is never seen.
     Returns its path."""
     import tempfile
+    import warnings
 
-    from numba.pycc import CC
-    import numba.pycc.compiler as pycc_compiler
+    with warnings.catch_warnings():  # pycc is "pending deprecation" since numba 0.57; nothing replaces it yet
+        warnings.simplefilter("ignore")
+        from numba.pycc import CC
+        import numba.pycc.compiler as pycc_compiler
 
     out_dir = Path(out_dir) if out_dir is not None else aot_dir()
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -288,7 +302,7 @@ def build_aot(out_dir: Path | None = None) -> Path:
     cc.verbose = False
     for module, fn_name, ret, codes in AOT_KERNELS:
         fn = getattr(importlib.import_module(module), fn_name)
-        cc.export(_symbol(module, fn_name), aot_signature(ret, codes))(getattr(fn, "py_func", fn))
+        cc.export(aot_symbol(module, fn_name), aot_signature(ret, codes))(getattr(fn, "py_func", fn))
     with tempfile.TemporaryDirectory(dir=out_dir) as tmp:
         cc.output_dir = tmp
         flags, pycc_compiler.Flags = pycc_compiler.Flags, _NoGilFlags
@@ -302,6 +316,9 @@ def build_aot(out_dir: Path | None = None) -> Path:
     if aot_key() != key:
         target.unlink()
         raise RuntimeError("the kernels' sources changed during the build")
+    for old in out_dir.glob("rig_kernels_*"):  # earlier sources' modules (a process that loaded one keeps it)
+        if not old.name.startswith(name):
+            old.unlink(missing_ok=True)
     return target
 
 
