@@ -675,7 +675,7 @@ class TrialLogWriter:
                 self._add(RAW_TOPIC, t0, self._raw_enc.encode(raw, t0))
         # decimated per-sample channel: block means of the device values over each interval of
         # _dec_every ticks counted from the trial's first (rig.log.decimate: the anti-aliased 25 Hz log)
-        self._decimate(arrays)
+        self._decimate(arrays, frozen and arrays is block)
         self.ticks += n
         self.last_t_s = float(t[-1])
         if self._pending and self._pending[0]["t_s"] <= self.last_t_s + 0.5 / self.loop_rate_hz:
@@ -688,12 +688,13 @@ class TrialLogWriter:
     _dec_ticks = 0              # samples pushed into the decimation so far
     _dec_in_writer = False      # the decimation runs in the writer's thread (threaded, nobody listens)
 
-    def _decimate(self, arrays: dict[str, np.ndarray]) -> None:
+    def _decimate(self, arrays: dict[str, np.ndarray], frozen: bool = False) -> None:
         """The /log25 samples of a block: the device columns on their /raw grid (integer count times the
         scale) and block means over each interval: one compiled pass over the stacked columns, without
         the GIL (:class:`rig.log.decimate.MatrixBlockMean`). Threaded and with no listener, the pass and
         the messages run in the writer's thread, in order (the loop's thread only stacks the block's
-        columns: its copy); a listener (a live view) gets its samples in the loop's thread."""
+        columns: its copy; a frozen block is stacked there too); a listener (a live view) gets its samples
+        in the loop's thread."""
         if self._dec_plan is None:
             names = tuple(nm for nm in SAMPLE_FIELDS[:-1] if nm in arrays)
             cols = [self._enc.column(nm) for nm in names]
@@ -707,13 +708,15 @@ class TrialLogWriter:
             self._writer_barrier()
             self._dec_in_writer = False
         names = self._dec_plan[0]
-        m = np.stack([arrays[nm] for nm in names])  # a copy: its grid rows are rounded in place
         n0 = self._dec_ticks
-        self._dec_ticks += m.shape[1]
+        self._dec_ticks += arrays[names[0]].shape[0]
         if self._dec_in_writer:
             k = self._dec_ticks // self._dec_every - n0 // self._dec_every  # the intervals this block completes
-            self._later_log25(names, k, lambda dec=self._dec: dec.push(m))
+            cols = [arrays[nm] for nm in names]
+            m = None if frozen else np.stack(cols)  # a copy: its grid rows are rounded in place
+            self._later_log25(names, k, lambda dec=self._dec: dec.push(np.stack(cols) if m is None else m))
             return
+        m = np.stack([arrays[nm] for nm in names])
         dec = self._dec.push(m)
         if dec is not None:
             self._emit_log25(names, dec)
