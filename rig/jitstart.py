@@ -256,10 +256,12 @@ def load_aot(key: str | None = None):
 
 def prefer_aot() -> str | None:
     """Use the ahead-of-time kernels in this process, when built from the current sources: call before the
-    kernels' modules are imported. Returns None when they are used, else why not (``RIG_AOT=0``, not built
-    yet, a failed build: the JIT kernels are used)."""
+    kernels' modules are imported. Returns None when they are used, else why not (``RIG_AOT=0``, numba
+    already imported, not built yet, a failed build: the JIT kernels are used)."""
     if os.environ.get("RIG_AOT", "1") == "0":
         return "RIG_AOT=0"
+    if "numba" in sys.modules:  # nothing to gain (a test session, a script): its kernels stay numba's
+        return "numba is loaded"
     try:
         key = aot_key()
         if not aot_path(key).is_file():

@@ -365,7 +365,7 @@ def _aot_note(why: str) -> None:
     sources, start its build in the background (once; later runs load it)."""
     from rig.jitstart import start_aot_build
 
-    if why == "RIG_AOT=0":
+    if why in ("RIG_AOT=0", "numba is loaded"):
         return
     if why == "not built yet":
         if start_aot_build():

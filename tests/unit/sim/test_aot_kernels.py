@@ -3,6 +3,8 @@ Python functions, the same numbers to the bit; a call the exported signature doe
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 import pytest
 
@@ -97,6 +99,8 @@ def test_prefer_aot_says_why_not(monkeypatch, tmp_path):
     monkeypatch.setenv("RIG_AOT", "0")
     assert jitstart.prefer_aot() == "RIG_AOT=0"
     monkeypatch.delenv("RIG_AOT")
+    assert jitstart.prefer_aot() == "numba is loaded"  # this process's kernels are numba's already
+    monkeypatch.delitem(sys.modules, "numba")
     monkeypatch.setenv("RIG_AOT_DIR", str(tmp_path))
     assert jitstart.prefer_aot() == "not built yet"
     jitstart._failed_path(jitstart.aot_key()).write_text("gcc: not found")
