@@ -328,23 +328,48 @@ def _failed_path(key: str) -> Path:
     return aot_dir() / f"{_module_name(key)}.failed"
 
 
+#: a build's lock older than this is taken for a build that died (a build takes a minute or two)
+AOT_LOCK_STALE_S = 900.0
+
+
+def _take_lock(lock: Path) -> bool:
+    """Create ``lock`` atomically (``O_EXCL``: of two processes starting at once, one gets it); a lock older
+    than ``AOT_LOCK_STALE_S`` is removed first. True when this process holds it."""
+    import time
+
+    try:
+        if time.time() - lock.stat().st_mtime >= AOT_LOCK_STALE_S:
+            lock.unlink(missing_ok=True)
+    except FileNotFoundError:
+        pass
+    try:
+        fd = os.open(lock, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+    except FileExistsError:
+        return False
+    with os.fdopen(fd, "w") as fh:
+        fh.write(str(os.getpid()))
+    return True
+
+
 def start_aot_build() -> bool:
     """Start :func:`build_aot` in a detached process at low priority (``nice 10``), unless one is building
-    for these sources (its lock is younger than 15 min) or their build failed. True when started."""
+    for these sources (it holds their lock, :func:`_take_lock`) or their build failed. True when started."""
     import subprocess
-    import time
 
     key = aot_key()
     lock = aot_dir() / f"{_module_name(key)}.lock"
     try:
         lock.parent.mkdir(parents=True, exist_ok=True)
-        if _failed_path(key).exists() or (lock.exists() and time.time() - lock.stat().st_mtime < 900):
+        if _failed_path(key).exists() or not _take_lock(lock):
             return False
-        lock.write_text(str(os.getpid()))
+    except OSError:
+        return False
+    try:
         subprocess.Popen([sys.executable, "-c", f"from rig.jitstart import _build_main; _build_main({key!r})"],
                          stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                          start_new_session=True)
     except OSError:
+        lock.unlink(missing_ok=True)
         return False
     return True
 

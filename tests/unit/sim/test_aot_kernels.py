@@ -106,3 +106,33 @@ def test_prefer_aot_says_why_not(monkeypatch, tmp_path):
     jitstart._failed_path(jitstart.aot_key()).write_text("gcc: not found")
     assert "build failed" in jitstart.prefer_aot()
     assert not jitstart._State.lazy and not jitstart.aot_in_use()
+
+
+def test_one_background_build_at_a_time(monkeypatch, tmp_path):
+    """Of several `rig run --sim` processes that find the kernels unbuilt, one starts the build: the lock is
+    taken atomically; a build's lock older than AOT_LOCK_STALE_S (a build that died) is taken over; a
+    failed start leaves no lock behind."""
+    import os
+    import subprocess
+
+    monkeypatch.setenv("RIG_AOT_DIR", str(tmp_path))
+    started = []
+    monkeypatch.setattr(subprocess, "Popen", lambda *a, **kw: started.append(a))
+    assert jitstart.start_aot_build() and not jitstart.start_aot_build() and len(started) == 1
+    lock = tmp_path / f"{jitstart._module_name(jitstart.aot_key())}.lock"
+    old = lock.stat().st_mtime - jitstart.AOT_LOCK_STALE_S - 1
+    os.utime(lock, (old, old))
+    assert jitstart.start_aot_build() and len(started) == 2
+    lock.unlink()
+
+    def no_fork(*a, **kw):
+        raise OSError("fork failed")
+    monkeypatch.setattr(subprocess, "Popen", no_fork)
+    assert not jitstart.start_aot_build() and not lock.exists()
+
+
+def test_the_test_session_starts_no_background_build():
+    """tests/conftest.py: the suite's `rig run --sim` processes never leave a detached build behind."""
+    import os
+
+    assert os.environ.get("RIG_AOT") == "0"
