@@ -84,22 +84,26 @@ def _log25_messages(names: list, specs: list, m: np.ndarray, cid: int, origin_ns
     """The /log25 messages ``(channel, log_time, JSON, sequence)`` of decimated samples (columns of ``m``;
     its rows the fields ``names`` but a last ``mu``, computed here) printed with ``specs``: one printf
     template for the block's samples (one ``%`` and one split), or per sample with a non-finite value
-    (null); and ``m`` with its mu row."""
+    (null); and ``m`` with its mu row. The block's fixed costs kept low (no ``errstate``, no NaN pass over
+    finite times): the writer's thread runs this for every block."""
     if names[-1] == "mu":
         nn = m[names.index("normal_1_N")] + m[names.index("normal_2_N")]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            mu = np.where(nn != 0.0, m[names.index("friction_N")] / nn, np.nan)
+        mu = np.full(nn.shape, np.nan)
+        np.divide(m[names.index("friction_N")], nn, out=mu, where=nn != 0.0)
         m = np.vstack((m, mu))
     k = m.shape[1]
+    t = m[0]
     if np.isfinite(m).all():
         fmt = "{" + ",".join(f'"{nm}":{sp}' for nm, sp in zip(names, specs)) + "}"
         payloads = ("\n".join([fmt] * k) % tuple(m.T.ravel().tolist())).encode().split(b"\n")
     else:
         payloads = [("{" + ",".join(f'"{nm}":' + (sp % v if math.isfinite(v) else "null")
                                     for nm, sp, v in zip(names, specs, row)) + "}").encode() for row in m.T.tolist()]
+        t = np.nan_to_num(t)
     # integer arithmetic: float64 cannot hold epoch ns exactly
-    rel = np.clip(np.rint(np.nan_to_num(m[0]) * 1e9), -4e18, 4e18).astype(np.int64)
-    ns = np.maximum(rel + np.int64(origin_ns), 0).tolist()
+    rel = np.minimum(np.maximum(np.rint(t * 1e9), -4e18), 4e18).astype(np.int64)
+    rel += np.int64(origin_ns)
+    ns = np.maximum(rel, 0).tolist()
     return list(zip([cid] * k, ns, payloads, range(seq0, seq0 + k))), m
 
 
@@ -815,8 +819,10 @@ class TrialLogWriter:
                 continue
             v = jsonable(v)
             rec[str(k)] = v if isinstance(v, (int, float)) or v is None else None
-        self._add(STATS_TOPIC, t_s, (lambda: dumps(rec)) if self._threaded and not self._listeners else dumps(rec))
-        self._send()
+        later = self._threaded and not self._listeners
+        self._add(STATS_TOPIC, t_s, (lambda: dumps(rec)) if later else dumps(rec))
+        if not later:  # threaded: sent with the next block's messages (one hand-over per block), or at a flush
+            self._send()
         if self._listeners:
             self._notify("loop_stats", rec)
 
