@@ -103,49 +103,8 @@ def _log25_messages(names: list, specs: list, m: np.ndarray, cid: int, origin_ns
     # integer arithmetic: float64 cannot hold epoch ns exactly
     rel = np.minimum(np.maximum(np.rint(t * 1e9), -4e18), 4e18).astype(np.int64)
     rel += np.int64(origin_ns)
-    return [_Run(cid, np.maximum(rel, 0), payloads, seq0)] if k else [], m
-
-
-class _Run:
-    """Consecutive messages of one channel (a block's /log25 samples): ``ns`` (int64 log times, ascending),
-    ``payloads``, sequence numbers from ``seq0``; written as a whole by :meth:`_Sink._add_batch` (headers,
-    message index and statistics in a few array operations instead of a record per message)."""
-
-    __slots__ = ("cid", "ns", "payloads", "seq0")
-
-    #: a message record's header: opcode 5, record length, channel, sequence, log time, publish time (31 bytes)
-    HEAD = np.dtype([("op", "u1"), ("len", "<u8"), ("ch", "<u2"), ("seq", "<u4"), ("lt", "<u8"), ("pt", "<u8")])
-
-    def __init__(self, cid: int, ns: np.ndarray, payloads: list, seq0: int):
-        self.cid, self.ns, self.payloads, self.seq0 = cid, ns, payloads, seq0
-
-    def tuples(self) -> list:
-        """The messages as ``(channel_id, log_time, data, sequence)``."""
-        k = len(self.payloads)
-        return list(zip([self.cid] * k, self.ns.tolist(), self.payloads, range(self.seq0, self.seq0 + k)))
-
-    def records(self, pos: int, limit: int) -> tuple:
-        """The records of the leading messages that start at or before ``limit`` (the first in any case) when
-        the first starts at ``pos`` (as ``Writer.add_message`` fills a chunk): ``(bytes, their message index entries, count,
-        first and last log time, the rest as a _Run or None)``."""
-        lens = np.fromiter(map(len, self.payloads), np.int64, len(self.payloads))
-        starts = np.empty(lens.size, np.int64)
-        starts[0] = pos
-        np.cumsum(lens[:-1] + 31, out=starts[1:])
-        starts[1:] += pos
-        k = max(1, int(np.searchsorted(starts, limit, side="right")))
-        h = np.empty(k, self.HEAD)
-        h["op"] = 5
-        h["len"] = lens[:k] + 22
-        h["ch"] = self.cid
-        h["seq"] = np.arange(self.seq0, self.seq0 + k)
-        h["lt"] = h["pt"] = ns = self.ns[:k]
-        hb = h.tobytes()
-        parts = [None] * (2 * k)
-        parts[::2] = [hb[j:j + 31] for j in range(0, 31 * k, 31)]
-        parts[1::2] = self.payloads[:k]
-        rest = None if k == lens.size else _Run(self.cid, self.ns[k:], self.payloads[k:], self.seq0 + k)
-        return b"".join(parts), list(zip(ns.tolist(), starts[:k].tolist())), k, int(ns.min()), int(ns.max()), rest
+    ns = np.maximum(rel, 0).tolist()
+    return list(zip([cid] * k, ns, payloads, range(seq0, seq0 + k))), m
 
 
 #: zstd's level 3 (the ``mcap`` Writer's) with hash and chain tables of 2**14 entries instead of 2**17 / 2**16:
@@ -189,9 +148,7 @@ class _Sink:
         if any(type(it) is not tuple or callable(it[2]) for it in items):
             flat: list = []
             for it in items:
-                if type(it) is _Run:
-                    flat.append(it)
-                elif type(it) is not tuple:  # the messages of a block's 25 Hz samples, printed here
+                if type(it) is not tuple:  # the messages of a block's 25 Hz samples, printed here
                     flat += it()
                 else:
                     cid, ns, data, seq = it
@@ -200,7 +157,6 @@ class _Sink:
         if self._fast:
             self._add_batch(items)
             return
-        items = [m for it in items for m in (it.tuples() if type(it) is _Run else (it,))]
         add = self.w.add_message
         for cid, ns, data, seq in items:
             add(cid, log_time=ns, data=data, publish_time=ns, sequence=seq)
@@ -238,29 +194,9 @@ class _Sink:
             pos = buf.tell()
             parts = []
             t_lo = t_hi = None
-            nmsg = 0
-            while i < n and (pos <= limit or not nmsg):  # as add_message: one at least, then the size check
-                if type(items[i]) is _Run:  # a block's /log25 messages at once
-                    cid = items[i].cid
-                    data, recs, k, lo, hi, rest = items[i].records(pos, limit)
-                    if rest is None:
-                        i += 1
-                    else:  # the chunk is full: the rest goes into the next
-                        items[i] = rest
-                    mi = idx.get(cid)
-                    if mi is None:
-                        mi = idx[cid] = _MessageIndex(channel_id=cid, records=[])
-                    mi.records += recs
-                    parts.append(data)
-                    pos += len(data)
-                    counts[cid] += k
-                    nmsg += k
-                    t_lo = lo if t_lo is None else min(t_lo, lo)
-                    t_hi = hi if t_hi is None else max(t_hi, hi)
-                    continue
+            while i < n and (pos <= limit or not parts):  # as add_message: one at least, then the size check
                 cid, ns, data, seq = items[i]
                 i += 1
-                nmsg += 1
                 mi = idx.get(cid)
                 if mi is None:
                     mi = idx[cid] = _MessageIndex(channel_id=cid, records=[])
@@ -277,26 +213,21 @@ class _Sink:
                 elif ns > t_hi:
                     t_hi = ns
             buf.write(b"".join(parts))
-            self._count(cb, stats, nmsg, t_lo, t_hi)
+            k = len(parts) // 2
+            if cb.num_messages == 0:
+                cb.message_start_time, cb.message_end_time = t_lo, t_hi
+            else:
+                cb.message_start_time = min(cb.message_start_time, t_lo)
+                cb.message_end_time = max(cb.message_end_time, t_hi)
+            cb.num_messages += k
+            if stats.message_count == 0:
+                stats.message_start_time = t_lo
+            else:
+                stats.message_start_time = min(stats.message_start_time, t_lo)
+            stats.message_end_time = max(stats.message_end_time, t_hi)
+            stats.message_count += k
             if cb.count > limit:
                 self._finalize_async() if self._zstd else w._Writer__finalize_chunk()
-
-    @staticmethod
-    def _count(cb, stats, k: int, t_lo: int, t_hi: int) -> None:
-        """The open chunk's and the file's message counts and time range, after ``k`` messages from ``t_lo``
-        to ``t_hi``."""
-        if cb.num_messages == 0:
-            cb.message_start_time, cb.message_end_time = t_lo, t_hi
-        else:
-            cb.message_start_time = min(cb.message_start_time, t_lo)
-            cb.message_end_time = max(cb.message_end_time, t_hi)
-        cb.num_messages += k
-        if stats.message_count == 0:
-            stats.message_start_time = t_lo
-        else:
-            stats.message_start_time = min(stats.message_start_time, t_lo)
-        stats.message_end_time = max(stats.message_end_time, t_hi)
-        stats.message_count += k
 
     def _finalize_async(self) -> None:
         """What ``Writer.__finalize_chunk`` does, with the compression and the CRC handed to the

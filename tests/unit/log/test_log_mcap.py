@@ -546,11 +546,11 @@ def test_compiled_block_means_are_numpys_to_the_bit(n):
     assert np.array_equal(mb.flush(), ref.flush()["m"], equal_nan=True)
 
 
-def test_a_blocks_25hz_messages_written_at_once_are_the_writers_records(tmp_path, monkeypatch):
-    """The /log25 messages of a block written as one run (rig.log.writer._Run: headers, message index and
-    statistics in array operations, a run split where a chunk fills) give the bytes of the ``mcap`` Writer's
-    own ``add_message``, message by message: chunks, message indexes, chunk indexes and statistics; with
-    chunks small enough that most runs are split, and a block with non-finite values."""
+def test_the_writers_records_in_one_pass_are_the_mcap_writers_own(tmp_path, monkeypatch):
+    """The writer's one pass over a batch of messages (rig.log.writer._Sink._add_batch: no record object per
+    message) gives the bytes of the ``mcap`` Writer's own ``add_message``, message by message: chunks,
+    message indexes, chunk indexes and statistics; with chunks small enough that most blocks' 25 Hz messages
+    are split across two, and a block with non-finite values."""
     from rig.log import writer as writer_mod
 
     blocks = make_blocks(8, n=1000)  # 25 samples at 25 Hz per block
