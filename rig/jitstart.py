@@ -332,13 +332,25 @@ def _failed_path(key: str) -> Path:
 AOT_LOCK_STALE_S = 900.0
 
 
+def _holder_gone(lock: Path) -> bool:
+    """The process a lock names (its build) has ended."""
+    try:
+        os.kill(int(lock.read_text().strip()), 0)
+    except ProcessLookupError:
+        return True
+    except (OSError, ValueError):  # alive but not ours, being written, unreadable: not gone
+        return False
+    return False
+
+
 def _take_lock(lock: Path) -> bool:
     """Create ``lock`` atomically (``O_EXCL``: of two processes starting at once, one gets it); a lock older
-    than ``AOT_LOCK_STALE_S`` is removed first. True when this process holds it."""
+    than ``AOT_LOCK_STALE_S`` or whose build has ended (a killed build) is removed first. True when this
+    process holds it."""
     import time
 
     try:
-        if time.time() - lock.stat().st_mtime >= AOT_LOCK_STALE_S:
+        if time.time() - lock.stat().st_mtime >= AOT_LOCK_STALE_S or _holder_gone(lock):
             lock.unlink(missing_ok=True)
     except FileNotFoundError:
         pass
@@ -349,6 +361,25 @@ def _take_lock(lock: Path) -> bool:
     with os.fdopen(fd, "w") as fh:
         fh.write(str(os.getpid()))
     return True
+
+
+def build_aot_once(poll_s: float = 0.5) -> Path:
+    """The module for the current sources, built here unless it is there; while another process builds it
+    (a `rig run --sim`'s background build holds the lock), wait for that one instead of building it twice
+    (until its lock goes or is stale), then build only if it did not."""
+    import time
+
+    key = aot_key()
+    lock = aot_dir() / f"{_module_name(key)}.lock"
+    lock.parent.mkdir(parents=True, exist_ok=True)
+    while not aot_path(key).is_file():
+        if _take_lock(lock):
+            try:
+                return build_aot()
+            finally:
+                lock.unlink(missing_ok=True)
+        time.sleep(poll_s)
+    return aot_path(key)
 
 
 def start_aot_build() -> bool:
@@ -365,9 +396,10 @@ def start_aot_build() -> bool:
     except OSError:
         return False
     try:
-        subprocess.Popen([sys.executable, "-c", f"from rig.jitstart import _build_main; _build_main({key!r})"],
-                         stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                         start_new_session=True)
+        p = subprocess.Popen([sys.executable, "-c", f"from rig.jitstart import _build_main; _build_main({key!r})"],
+                             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                             start_new_session=True)
+        lock.write_text(str(p.pid))  # the build's own: this process ends first
     except OSError:
         lock.unlink(missing_ok=True)
         return False

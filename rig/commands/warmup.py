@@ -73,11 +73,10 @@ def _warm_simulation() -> float:
 def _build_run_kernels() -> float:
     """The run path's kernels ahead of time (rig.jitstart.build_aot: numba.pycc; `rig run --sim` then loads
     them without numba). Nothing to do when they are built for these sources."""
-    from rig.jitstart import aot_path, build_aot
+    from rig.jitstart import build_aot_once
 
     t0 = time.perf_counter()
-    if not aot_path().is_file():
-        build_aot()
+    build_aot_once()  # or waits for a `rig run --sim`'s build in the background
     return time.perf_counter() - t0
 
 

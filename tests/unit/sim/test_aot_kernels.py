@@ -117,12 +117,21 @@ def test_one_background_build_at_a_time(monkeypatch, tmp_path):
 
     monkeypatch.setenv("RIG_AOT_DIR", str(tmp_path))
     started = []
-    monkeypatch.setattr(subprocess, "Popen", lambda *a, **kw: started.append(a))
+
+    class Build:  # the detached build: this process stands for it (alive)
+        pid = os.getpid()
+
+        def __init__(self, *a, **kw):
+            started.append(a)
+    monkeypatch.setattr(subprocess, "Popen", Build)
     assert jitstart.start_aot_build() and not jitstart.start_aot_build() and len(started) == 1
     lock = tmp_path / f"{jitstart._module_name(jitstart.aot_key())}.lock"
+    assert lock.read_text() == str(os.getpid())
     old = lock.stat().st_mtime - jitstart.AOT_LOCK_STALE_S - 1
     os.utime(lock, (old, old))
     assert jitstart.start_aot_build() and len(started) == 2
+    lock.write_text("2147483646")  # a build that was killed: no such process
+    assert jitstart.start_aot_build() and len(started) == 3
     lock.unlink()
 
     def no_fork(*a, **kw):
@@ -136,3 +145,26 @@ def test_the_test_session_starts_no_background_build():
     import os
 
     assert os.environ.get("RIG_AOT") == "0"
+
+
+def test_warmup_waits_for_a_build_in_the_background_instead_of_building_twice(monkeypatch, tmp_path):
+    """rig.jitstart.build_aot_once: while another live process holds the build's lock, it waits; when that
+    build has written the module, it returns it without building; with no lock, it builds (once)."""
+    import os
+
+    monkeypatch.setenv("RIG_AOT_DIR", str(tmp_path))
+    key = jitstart.aot_key()
+    lock = tmp_path / f"{jitstart._module_name(key)}.lock"
+    lock.write_text(str(os.getpid()))  # a live build
+    built = []
+    monkeypatch.setattr(jitstart, "build_aot", lambda: built.append(1) or jitstart.aot_path(key))
+    sleeps = []
+
+    def sleep(s):  # the other build finishes while this one waits
+        sleeps.append(s)
+        jitstart.aot_path(key).write_bytes(b"")
+        lock.unlink()
+    monkeypatch.setattr("time.sleep", sleep)
+    assert jitstart.build_aot_once() == jitstart.aot_path(key) and built == [] and len(sleeps) == 1
+    jitstart.aot_path(key).unlink()
+    assert jitstart.build_aot_once() == jitstart.aot_path(key) and built == [1] and not lock.exists()
