@@ -54,7 +54,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from rig.jitstart import kernel
 
 # controller parameter vector
 C_KP = 0
@@ -144,7 +144,7 @@ def new_controller_state() -> np.ndarray:
     return s
 
 
-@njit(cache=True)
+@kernel
 def pid_step(c, s, x_ref_um, x_meas_um, v_ref_um_s=math.nan, ff_N=0.0):
     """One PID tick (LinuxCNC order) with FF1 and a feed-forward force ``ff_N`` (N). Returns
     (output_N, p_N, i_N, d_N); updates ``s``. ``v_ref_um_s`` NaN: the backward difference of
@@ -192,7 +192,7 @@ def pid_step(c, s, x_ref_um, x_meas_um, v_ref_um_s=math.nan, ff_N=0.0):
     return out, p, i, d
 
 
-@njit(cache=True)
+@kernel
 def dither_step(c, s, pid_out_N):
     """Dither value (N) for this tick: a_n cos(2 pi f n dt); advances the tick counter."""
     alpha = c[C_DALPHA]
@@ -211,7 +211,7 @@ def dither_step(c, s, pid_out_N):
     return amp * math.cos(2.0 * math.pi * ph)
 
 
-@njit(cache=True)
+@kernel
 def controller_step_v(c, s, x_ref_um, x_meas_um, v_ref_um_s, ff_N=0.0):
     """One tick: PID (+ FF1) + dither -> valve command, clamped to ±1. Returns
     (valve_cmd, p_N, i_N, d_N, dither_N). ``v_ref_um_s``: the planner's reference velocity

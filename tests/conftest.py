@@ -2,12 +2,19 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
+
+# A test session's `rig run --sim` processes (subprocesses and CliRunner calls alike) use numba's JIT kernels
+# and never start the detached build of the ahead-of-time ones (rig.jitstart.start_aot_build), which would
+# outlive the session; the tests of those kernels set RIG_AOT themselves (tests/unit/sim/test_aot_kernels.py,
+# tests/system/commands/test_cli_trial_run.py).
+os.environ["RIG_AOT"] = "0"
 
 
 @pytest.fixture(scope="session")

@@ -288,6 +288,7 @@ class RigGroup(TyperGroup):
 
     def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
         tidy_help(self)
+        quick_coercion(self)
         with _CleanWarnings():
             try:
                 return super().main(args=args, prog_name=prog_name, complete_var=complete_var,
@@ -299,6 +300,67 @@ class RigGroup(TyperGroup):
                 if standalone_mode:
                     sys.exit(int(code))
                 return int(code)
+
+
+class _QuickCoercion:
+    """typer's conversion of one parameter's value, without the pydantic ``TypeAdapter`` typer 0.29 builds
+    for every parameter of the invoked command (given or not: 3-8 ms each, and pydantic's import) where the
+    result is plain: no value (None, or ``()`` for a list), a str for a ``str``, an int / float / bool that
+    already is one (a default) within its min/max, a path (typer's own checks, on ``Path(value)``: what pydantic
+    makes of a str). Anything else goes to typer's own conversion, built then."""
+
+    def __init__(self, coerce_path, build):
+        self._coerce_path, self._build, self._slow = coerce_path, build, None
+
+    def coerce(self, value, param, ctx):
+        if value is None:
+            return () if param.multiple or param.nargs == -1 else None
+        d = param.type_descriptor
+        ann, info = d.annotation, d.parameter_info
+        if info.parser is None and d.file_annotation is None and not (param.multiple or param.nargs != 1):
+            if type(value) is ann and ann in (str, int, float, bool) and (info.min is None or value >= info.min) \
+                    and (info.max is None or value <= info.max):
+                return value
+            path_type = info.path_type or ann
+            if isinstance(ann, type) and issubclass(ann, Path) and path_type is ann and isinstance(value, (str, Path)):
+                return self._coerce_path(Path(value) if type(value) is str else value, info, path_type=path_type,
+                                         param=param, ctx=ctx)
+        if self._slow is None:
+            self._slow = self._build(d)
+        return self._slow.coerce(value, param=param, ctx=ctx)
+
+
+def quick_coercion(cmd) -> None:
+    """Give every parameter of ``cmd`` and its subcommands, their help option included (made on first use),
+    a :class:`_QuickCoercion` (typer 0.29's private ``_runtime_param`` hook; nothing changes where typer has
+    no such hook)."""
+    try:
+        from typer._coercion import build_runtime_param
+        from typer._param_types import coerce_cli_path
+    except ImportError:
+        return
+
+    def quick(p) -> None:
+        if getattr(p, "_runtime_param", 0) is None and hasattr(p, "type_descriptor"):
+            p._runtime_param = _QuickCoercion(coerce_cli_path, build_runtime_param)
+
+    def walk(c) -> None:
+        for p in getattr(c, "params", ()):
+            quick(p)
+        help_option = getattr(c, "get_help_option", None)
+        if help_option is not None and not getattr(help_option, "_rig_quick", False):
+            def get_help_option(ctx, _orig=help_option):
+                opt = _orig(ctx)
+                if opt is not None:
+                    quick(opt)
+                return opt
+
+            get_help_option._rig_quick = True
+            c.get_help_option = get_help_option
+        for sub in getattr(c, "commands", {}).values():
+            walk(sub)
+
+    walk(cmd)
 
 
 _METAVARS = {"float": "NUMBER", "int": "INTEGER", "str": "TEXT"}

@@ -7,7 +7,8 @@ loads it from there. Each command compiles only what it calls, so the first
 the identification kernels. pip cannot run code at install time, hence this
 command: it runs a short simulated trial (logged to a temporary file, so the
 log's kernels compile too) and identifies a synthetic velocity-step record (and,
-with ``--all``, diagnoses it), writing nothing but the cache. The groups compile
+with ``--all``, diagnoses it), writing nothing but the cache, and builds the run
+path's kernels ahead of time (:func:`rig.jitstart.build_aot`). The groups compile
 in parallel processes (numba compiles in one thread per process), one per core.
 
 :func:`cold_kernels` tells a command whether its first call will compile, so
@@ -69,6 +70,16 @@ def _warm_simulation() -> float:
     return time.perf_counter() - t0
 
 
+def _build_run_kernels() -> float:
+    """The run path's kernels ahead of time (rig.jitstart.build_aot: numba.pycc; `rig run --sim` then loads
+    them without numba). Nothing to do when they are built for these sources."""
+    from rig.jitstart import build_aot_once
+
+    t0 = time.perf_counter()
+    build_aot_once()  # or waits for a `rig run --sim`'s build in the background
+    return time.perf_counter() - t0
+
+
 def _synthetic_steps():
     """A synthetic record of the paper's velocity steps (boundary lubricant, one 1 -> 5 µm/s step)."""
     from rig.config.profile import default_profile_path, load_profile
@@ -107,13 +118,16 @@ def warmup_command(
 ):
     """Compile the simulation and identification kernels (numba) now; later commands start fast.
 
-    Writes nothing but numba's cache (beside the sources). Run it once after
+    Writes nothing but numba's cache (beside the sources) and the run's kernels
+    compiled ahead of time (`rig run --sim` loads them without numba; a C
+    compiler is needed, else the run uses numba's JIT). Run it once after
     installing; running it again is quick (everything is cached).
     """
     from concurrent.futures import ProcessPoolExecutor
 
     t0 = time.perf_counter()
-    jobs = {"simulation": _warm_simulation, "identification": _warm_identification}
+    jobs = {"simulation": _warm_simulation, "identification": _warm_identification,
+            "run (ahead of time)": _build_run_kernels}
     if all_:
         jobs["diagnosis"] = _warm_diagnosis
     workers = max(1, min(len(jobs), os.cpu_count() or 1))

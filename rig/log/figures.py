@@ -61,9 +61,9 @@ def _block_stats(ref, pos, f, n1, n2, valve, acc) -> None:
     """numba-compiled :func:`_block_stats_py` (compiled on first use, so reading a log needs no numba)."""
     fn = _JIT.get("stats")
     if fn is None:
-        from numba import njit
+        from rig.jitstart import kernel
 
-        fn = _JIT["stats"] = njit(cache=True)(_block_stats_py)
+        fn = _JIT["stats"] = kernel(_block_stats_py)
     fn(ref, pos, f, n1, n2, valve, acc)
 
 

@@ -5,10 +5,10 @@ use by that class, so that reading a log needs no numba."""
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from rig.jitstart import kernel
 
 
-@njit(cache=True, nogil=True)
+@kernel(nogil=True)
 def _leaf_sum(a, lo, n):
     """numpy's ``pairwise_sum`` for n <= 128 values: eight running sums, then the rest one by one."""
     if n < 8:
@@ -37,7 +37,7 @@ def _leaf_sum(a, lo, n):
     return res
 
 
-@njit(cache=True, nogil=True)
+@kernel(nogil=True)
 def pairwise_sum(a, lo, n):
     """Sum of ``a[lo:lo + n]`` in numpy's order for contiguous float64 (its ``pairwise_sum``: blocks of up
     to 128 values summed by :func:`_leaf_sum`, longer runs split in two halves whose sums are added, left
@@ -74,7 +74,7 @@ def pairwise_sum(a, lo, n):
     return vals[0]
 
 
-@njit(cache=True, nogil=True)
+@kernel(nogil=True)
 def block_means(m, grid, off, scale, carry, n_carry, n, out):
     """One block of :class:`MatrixBlockMean`: rows ``grid`` of ``m`` put on their grid in place
     (``rint((x - off) / scale) * scale + off``), then the means of the complete groups of ``n`` of
@@ -102,7 +102,7 @@ def block_means(m, grid, off, scale, carry, n_carry, n, out):
     return k, rest
 
 
-@njit(cache=True, nogil=True)
+@kernel(nogil=True)
 def flush_means(carry, n_carry, out):
     for r in range(carry.shape[0]):
         out[r, 0] = pairwise_sum(carry[r], 0, n_carry) / n_carry

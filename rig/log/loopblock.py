@@ -233,9 +233,9 @@ def _jit(name: str, fn):
     encodes beside the loop; reading needs no numba)."""
     jf = _PACK.get(name)
     if jf is None:
-        from numba import njit
+        from rig.jitstart import kernel
 
-        jf = _PACK[name] = njit(cache=True, nogil=True)(fn)
+        jf = _PACK[name] = kernel(fn, nogil=True)
     return jf
 
 

@@ -84,22 +84,26 @@ def _log25_messages(names: list, specs: list, m: np.ndarray, cid: int, origin_ns
     """The /log25 messages ``(channel, log_time, JSON, sequence)`` of decimated samples (columns of ``m``;
     its rows the fields ``names`` but a last ``mu``, computed here) printed with ``specs``: one printf
     template for the block's samples (one ``%`` and one split), or per sample with a non-finite value
-    (null); and ``m`` with its mu row."""
+    (null); and ``m`` with its mu row. The block's fixed costs kept low (no ``errstate``, no NaN pass over
+    finite times): the writer's thread runs this for every block."""
     if names[-1] == "mu":
         nn = m[names.index("normal_1_N")] + m[names.index("normal_2_N")]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            mu = np.where(nn != 0.0, m[names.index("friction_N")] / nn, np.nan)
+        mu = np.full(nn.shape, np.nan)
+        np.divide(m[names.index("friction_N")], nn, out=mu, where=nn != 0.0)
         m = np.vstack((m, mu))
     k = m.shape[1]
+    t = m[0]
     if np.isfinite(m).all():
         fmt = "{" + ",".join(f'"{nm}":{sp}' for nm, sp in zip(names, specs)) + "}"
         payloads = ("\n".join([fmt] * k) % tuple(m.T.ravel().tolist())).encode().split(b"\n")
     else:
         payloads = [("{" + ",".join(f'"{nm}":' + (sp % v if math.isfinite(v) else "null")
                                     for nm, sp, v in zip(names, specs, row)) + "}").encode() for row in m.T.tolist()]
+        t = np.nan_to_num(t)
     # integer arithmetic: float64 cannot hold epoch ns exactly
-    rel = np.clip(np.rint(np.nan_to_num(m[0]) * 1e9), -4e18, 4e18).astype(np.int64)
-    ns = np.maximum(rel + np.int64(origin_ns), 0).tolist()
+    rel = np.minimum(np.maximum(np.rint(t * 1e9), -4e18), 4e18).astype(np.int64)
+    rel += np.int64(origin_ns)
+    ns = np.maximum(rel, 0).tolist()
     return list(zip([cid] * k, ns, payloads, range(seq0, seq0 + k))), m
 
 
@@ -190,7 +194,7 @@ class _Sink:
             pos = buf.tell()
             parts = []
             t_lo = t_hi = None
-            while i < n and pos <= limit:
+            while i < n and (pos <= limit or not parts):  # as add_message: one at least, then the size check
                 cid, ns, data, seq = items[i]
                 i += 1
                 mi = idx.get(cid)
@@ -643,8 +647,9 @@ class TrialLogWriter:
             register(self._sink.w)
         self._raw_keys = keys
 
-    def write_block(self, block: dict[str, np.ndarray]) -> None:
-        """Log one block of loop samples (all keys as arrays of equal length; ``t_s`` required)."""
+    def write_block(self, block: dict[str, np.ndarray], *, frozen: bool = False) -> None:
+        """Log one block of loop samples (all keys as arrays of equal length; ``t_s`` required). ``frozen``:
+        the caller never writes these arrays again, so the writer's thread encodes them without a copy."""
         if self.closed:
             raise RuntimeError("log closed")
         arrays = block if all(type(v) is np.ndarray and v.dtype == np.float64 for v in block.values()) \
@@ -667,14 +672,14 @@ class TrialLogWriter:
                     raise ValueError(f"raw block keys changed: {self._raw_keys} -> {keys}")
                 self._raw_channel(keys)
             t0 = float(tr[0])
-            if self._threaded:  # encode in the writer thread, from a copy (the loop may reuse its arrays)
-                copy = {k: v.copy() for k, v in raw.items()}
+            if self._threaded:  # encode in the writer thread, from a copy unless frozen (the loop may reuse its arrays)
+                copy = raw if frozen and raw is block else {k: v.copy() for k, v in raw.items()}
                 self._add(RAW_TOPIC, t0, lambda: self._raw_enc.encode(copy, t0))
             else:
                 self._add(RAW_TOPIC, t0, self._raw_enc.encode(raw, t0))
         # decimated per-sample channel: block means of the device values over each interval of
         # _dec_every ticks counted from the trial's first (rig.log.decimate: the anti-aliased 25 Hz log)
-        self._decimate(arrays)
+        self._decimate(arrays, frozen and arrays is block)
         self.ticks += n
         self.last_t_s = float(t[-1])
         if self._pending and self._pending[0]["t_s"] <= self.last_t_s + 0.5 / self.loop_rate_hz:
@@ -687,12 +692,13 @@ class TrialLogWriter:
     _dec_ticks = 0              # samples pushed into the decimation so far
     _dec_in_writer = False      # the decimation runs in the writer's thread (threaded, nobody listens)
 
-    def _decimate(self, arrays: dict[str, np.ndarray]) -> None:
+    def _decimate(self, arrays: dict[str, np.ndarray], frozen: bool = False) -> None:
         """The /log25 samples of a block: the device columns on their /raw grid (integer count times the
         scale) and block means over each interval: one compiled pass over the stacked columns, without
         the GIL (:class:`rig.log.decimate.MatrixBlockMean`). Threaded and with no listener, the pass and
         the messages run in the writer's thread, in order (the loop's thread only stacks the block's
-        columns: its copy); a listener (a live view) gets its samples in the loop's thread."""
+        columns: its copy; a frozen block is stacked there too); a listener (a live view) gets its samples
+        in the loop's thread."""
         if self._dec_plan is None:
             names = tuple(nm for nm in SAMPLE_FIELDS[:-1] if nm in arrays)
             cols = [self._enc.column(nm) for nm in names]
@@ -706,13 +712,15 @@ class TrialLogWriter:
             self._writer_barrier()
             self._dec_in_writer = False
         names = self._dec_plan[0]
-        m = np.stack([arrays[nm] for nm in names])  # a copy: its grid rows are rounded in place
         n0 = self._dec_ticks
-        self._dec_ticks += m.shape[1]
+        self._dec_ticks += arrays[names[0]].shape[0]
         if self._dec_in_writer:
             k = self._dec_ticks // self._dec_every - n0 // self._dec_every  # the intervals this block completes
-            self._later_log25(names, k, lambda dec=self._dec: dec.push(m))
+            cols = [arrays[nm] for nm in names]
+            m = None if frozen else np.stack(cols)  # a copy: its grid rows are rounded in place
+            self._later_log25(names, k, lambda dec=self._dec: dec.push(np.stack(cols) if m is None else m))
             return
+        m = np.stack([arrays[nm] for nm in names])
         dec = self._dec.push(m)
         if dec is not None:
             self._emit_log25(names, dec)
@@ -811,8 +819,10 @@ class TrialLogWriter:
                 continue
             v = jsonable(v)
             rec[str(k)] = v if isinstance(v, (int, float)) or v is None else None
-        self._add(STATS_TOPIC, t_s, (lambda: dumps(rec)) if self._threaded and not self._listeners else dumps(rec))
-        self._send()
+        later = self._threaded and not self._listeners
+        self._add(STATS_TOPIC, t_s, (lambda: dumps(rec)) if later else dumps(rec))
+        if not later:  # threaded: sent with the next block's messages (one hand-over per block), or at a flush
+            self._send()
         if self._listeners:
             self._notify("loop_stats", rec)
 

@@ -20,7 +20,7 @@ and position-periodic friction is evaluated at the interface's position.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from rig.jitstart import kernel
 
 from rig.model import sensors
 from rig.model import friction as fr
@@ -46,7 +46,7 @@ def cumulative_slip_um(t_s: np.ndarray, v_um_s: np.ndarray) -> np.ndarray:
     return out
 
 
-@njit(cache=True)
+@kernel
 def _memoryless_series(p, v, x, slip):
     """mu_ss(v) of a memoryless (steady_state) law with the periodic/wear terms via mu_of."""
     n = v.shape[0]

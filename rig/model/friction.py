@@ -31,7 +31,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from rig.jitstart import kernel
 
 V0_UM_S = 1.0  # reference velocity V0 (µm/s), diagnosis.md and Table 2
 
@@ -61,7 +61,7 @@ S_SLIP = 2
 N_STATE = 3
 
 
-@njit(cache=True)
+@kernel
 def mu_regularized(v_um_s, theta_total, mu0, a, v0, v_reg):
     """Friction coefficient for velocity ``v`` and total state, arcsinh form of eq. (5).
 
@@ -81,7 +81,7 @@ def mu_regularized(v_um_s, theta_total, mu0, a, v0, v_reg):
     return base * v_um_s / math.sqrt(v_um_s * v_um_s + v_reg * v_reg)
 
 
-@njit(cache=True)
+@kernel
 def dmu_dv(v_um_s, theta_total, mu0, a, v0, v_reg):
     """d mu / d v (s/µm) of :func:`mu_regularized`, for implicit solvers."""
     base = mu0 + theta_total
@@ -97,7 +97,7 @@ def dmu_dv(v_um_s, theta_total, mu0, a, v0, v_reg):
     return base * v_reg * v_reg / (v_um_s * v_um_s + v_reg * v_reg) ** 1.5
 
 
-@njit(cache=True)
+@kernel
 def slip_law(theta, v_abs, dslip, b, l_um, v0):
     """Exact Ruina slip-law update of a state over slip ``dslip`` at constant speed (eq. 6)."""
     if b == 0.0 or dslip <= 0.0:
@@ -107,7 +107,7 @@ def slip_law(theta, v_abs, dslip, b, l_um, v0):
     return th_ss + (theta - th_ss) * math.exp(-dslip / l_um)
 
 
-@njit(cache=True)
+@kernel
 def aging_law(theta, v_abs, dt_s, b, l_um, v0):
     """Exact Dieterich aging-law update over ``dt`` at constant speed.
 
@@ -125,7 +125,7 @@ def aging_law(theta, v_abs, dt_s, b, l_um, v0):
     return b * math.log(phi)
 
 
-@njit(cache=True)
+@kernel
 def periodic_term(p, x_um):
     """Position-periodic friction (diagnosis.md ``position_periodic``), evaluated at the
     interface's position along the test piece ``x_um`` (the slip, not the LVDT reading, when
@@ -135,7 +135,7 @@ def periodic_term(p, x_um):
     return p[P_AMP] * math.sin(2.0 * math.pi * x_um / p[P_WAVE] + p[P_PHASE])
 
 
-@njit(cache=True)
+@kernel
 def wear_term(p, s):
     """Slip wear drift (``slip_wear_drift``): rate_mu_per_mm times the accumulated slip (mm)."""
     if p[P_WEAR] == 0.0:
@@ -143,13 +143,13 @@ def wear_term(p, s):
     return p[P_WEAR] * s[S_SLIP] * 1e-3
 
 
-@njit(cache=True)
+@kernel
 def theta_steady(p, v_um_s):
     """Steady-state theta (first state) at speed v: -B ln(v/V0)."""
     return -p[P_B] * math.log(max(abs(v_um_s), 1e-12) / p[P_V0])
 
 
-@njit(cache=True)
+@kernel
 def init_state(p, s, v_um_s):
     """Put the state at steady state for sliding at ``v`` (slip accumulator untouched)."""
     vv = max(abs(v_um_s), 1e-12)
@@ -157,7 +157,7 @@ def init_state(p, s, v_um_s):
     s[S_THETA2] = -p[P_B2] * math.log(vv / p[P_V0])
 
 
-@njit(cache=True)
+@kernel
 def advance_state(p, s, v_um_s, dt_s):
     """Advance the state over ``dt`` at constant velocity ``v`` (exact for constant v)."""
     v_abs = abs(v_um_s)
@@ -172,7 +172,7 @@ def advance_state(p, s, v_um_s, dt_s):
     s[S_SLIP] += dslip
 
 
-@njit(cache=True)
+@kernel
 def mu_of(p, s, v_um_s, x_um):
     """Friction coefficient for the current state, velocity and position."""
     theta_total = s[S_THETA2]
@@ -192,14 +192,14 @@ def mu_of(p, s, v_um_s, x_um):
     return mu - extra
 
 
-@njit(cache=True)
+@kernel
 def mu_step(p, s, v_um_s, dt_s, x_um):
     """Advance the state by ``dt`` at ``v`` and return mu at the end of the step."""
     advance_state(p, s, v_um_s, dt_s)
     return mu_of(p, s, v_um_s, x_um)
 
 
-@njit(cache=True)
+@kernel
 def mu_series(p, t_s, v_um_s, x_um, v_init_um_s):
     """Friction coefficient along a whole record of kinematics (analysis forward model).
 
@@ -230,7 +230,7 @@ D_PER_COS = N_PARAMS + 1  # d/d c of the periodic term written c cos(2 pi x / wa
 D_PER_SIN = N_PARAMS + 2  # d/d s of the same (c = amplitude sin(phase), s = amplitude cos(phase))
 
 
-@njit(cache=True)
+@kernel
 def mu_regularized_grad(v_um_s, theta_total, mu0, a, v0, v_reg):
     """(mu, d mu/d base, d mu/d a, d mu/d v) of :func:`mu_regularized`, base = mu0 + theta_total."""
     base = mu0 + theta_total
@@ -252,7 +252,7 @@ def mu_regularized_grad(v_um_s, theta_total, mu0, a, v0, v_reg):
     return base * r, r, 0.0, base * v_reg * v_reg / den ** 1.5
 
 
-@njit(cache=True)
+@kernel
 def init_state_sens(p, v_init_um_s, dv_init, cols, dth, dth2):
     """The states' steady state at ``v_init_um_s`` (:func:`init_state`: theta = -B ln(v/V0), eq. 6)
     and their derivatives, written into ``dth`` and ``dth2`` (per column of ``cols``; D_V_INIT with
@@ -278,7 +278,7 @@ def init_state_sens(p, v_init_um_s, dv_init, cols, dth, dth2):
     return th, th2
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def _slip_law_sens(dth, cols, e, lv, th, thss, dslip, l_um, col_b, col_l):
     """One interval of a slip-law state's sensitivities, in place: theta' = th_ss + (theta - th_ss) E
     (eq. 6, E = exp(-dslip / L), th_ss = -B ln(v/V0) = -B ``lv``) gives dtheta'/dq = E dtheta/dq
@@ -293,7 +293,7 @@ def _slip_law_sens(dth, cols, e, lv, th, thss, dslip, l_um, col_b, col_l):
         dth[j] = d
 
 
-@njit(cache=True)
+@kernel
 def mu_series_sens(p, t_s, v_um_s, x_um, v_init_um_s, cols):
     """:func:`mu_series` (the same numbers) and its exact derivatives d mu / d p[cols[j]].
 

@@ -27,7 +27,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from rig.jitstart import kernel
 
 from rig.model.friction import (D_PER_COS, D_PER_SIN, D_V_INIT, N_STATE, P_A, P_AMP, P_B, P_B2, P_L, P_L2, P_MU0,
                                 P_PHASE, P_STATE_ON, P_V0, P_VREG, P_WAVE, P_WEAR, advance_state, init_state, init_state_sens,
@@ -48,7 +48,7 @@ def lvdt_to_interface_compliance_um_per_N(fixture_compliance_um_per_N: float,
 VS = 1e-3  # µm/s, scale of the signed velocity variable of the stiffness solver
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def _bracketed_newton(u, g, dg, lo, hi):
     """One step of the spring balance's root finder on an increasing g(u) (the root is unique): the
     bracket (lo, hi) shrunk by the sign of g(u), then the next u, a Newton step inside it, else
@@ -63,7 +63,7 @@ def _bracketed_newton(u, g, dg, lo, hi):
     return un, lo, hi
 
 
-@njit(cache=True)
+@kernel
 def stiff_series(p, t, x, v, nfac, k, v_init):
     """Friction force with a spring ``k`` (N/µm) between the LVDT position ``x`` and the interface."""
     n = t.shape[0]
@@ -121,7 +121,7 @@ def stiff_series(p, t, x, v, nfac, k, v_init):
 D_STIFF = D_PER_SIN + 1
 
 
-@njit(cache=True)
+@kernel
 def _spring_step(p, on, th, th2, slip, xi, vv, dt, nf, k):
     """The interval's spring balance at interface velocity ``vv`` from state (th, th2, slip, xi):
     returns g = mu(vv, state advanced at vv, x_i + vv dt) N + k vv dt, dg/dvv, and the pieces the
@@ -177,7 +177,7 @@ def _spring_step(p, on, th, th2, slip, xi, vv, dt, nf, k):
     return (mut * nf + k * vv * dt, dmudv * nf + k * dt, thn, th2n, e, e2, lv, dthv, dth2v, gb, ga, mut)
 
 
-@njit(cache=True)
+@kernel
 def _dmu_dq(p, cols, on, gb, ga, sg, xn, slip_tot, dth, dth2, dxn, dsl, out):
     """d mu / d p[cols[j]] at the interface position ``xn`` given the states' sensitivities (dth,
     dth2), the position's (dxn) and the accumulated slip's (dsl), into ``out``."""
@@ -217,7 +217,7 @@ def _dmu_dq(p, cols, on, gb, ga, sg, xn, slip_tot, dth, dth2, dxn, dsl, out):
         out[j] = d
 
 
-@njit(cache=True)
+@kernel
 def stiff_series_sens(p, t, x, v, nfac, k, v_init, cols):
     """:func:`stiff_series` for the slip law with a state (no aging law), and the exact derivatives
     dF_i / d p[cols[j]] (friction's P_* and D_* columns, D_STIFF for k in N/µm).

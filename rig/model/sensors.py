@@ -24,7 +24,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from rig.jitstart import kernel
 
 
 def cutoff_tau_s(cutoff_hz: float) -> float:
@@ -39,7 +39,7 @@ def lowpass_uneven(t_s: np.ndarray, y: np.ndarray, tau_s: float) -> np.ndarray:
                            float(tau_s))
 
 
-@njit(cache=True)
+@kernel
 def _lowpass_uneven(t, y, tau):
     n = t.shape[0]
     out = np.empty(n)
@@ -65,7 +65,7 @@ def lowpass_coefficients(dt_s: float, tau_s: float) -> tuple[float, float]:
     return a, (1.0 - a) * tau_s / dt_s
 
 
-@njit(cache=True)
+@kernel
 def lowpass_tick(y, u_old, u_new, a, g):
     """tau dy/dt = u - y over one tick for u linear from u_old to u_new (as lowpass_uneven)."""
     return a * y + (1.0 - g) * u_new + (g - a) * u_old
@@ -81,7 +81,7 @@ def prefilter_noise_gain(dt_s: float, tau_s: float) -> float:
     return math.sqrt((1.0 + a) / (1.0 - a))
 
 
-@njit(cache=True)
+@kernel
 def quantize(x, q, lo, hi):
     """ADC reading: rounded to the step ``q`` (0 = none) and clipped to [lo, hi]."""
     if q > 0.0:
@@ -108,7 +108,7 @@ def noisy_filtered(t_s: np.ndarray, y: np.ndarray, tau_s: float, sigma: float, r
     return out
 
 
-@njit(cache=True)
+@kernel
 def _interp_delay(t, v, delay):
     n = t.shape[0]
     out = np.empty(n)

@@ -80,10 +80,14 @@ class Block:
 
     ``wall_ns``: the wall-clock time (ns since the epoch) at which the block's LAST sample was
     taken, when the backend knows it (the hardware loop's tick, a paced or a starting simulation);
-    the session anchors the log's clock on it (:meth:`rig.log.TrialLogWriter.anchor`)."""
+    the session anchors the log's clock on it (:meth:`rig.log.TrialLogWriter.anchor`).
+
+    ``frozen``: the backend never writes these arrays again (the simulation's, fresh for every chunk), so the
+    log's writer thread may encode them without a copy (:meth:`rig.log.TrialLogWriter.write_block`)."""
 
     data: dict
     wall_ns: int | None = None
+    frozen: bool = False
 
 
 @dataclass(slots=True)
@@ -592,7 +596,10 @@ class TrialSession:
         self._in_write = time.monotonic()
         if msg.wall_ns is not None and anchor is not None and len(msg.data["t_s"]):
             anchor(float(msg.data["t_s"][-1]), msg.wall_ns)
-        w.write_block(msg.data)
+        if msg.frozen:
+            w.write_block(msg.data, frozen=True)
+        else:
+            w.write_block(msg.data)
         self._in_write = None
         if self._logged is not None:
             self._logged()

@@ -34,7 +34,7 @@ class MemoryLog:
     def event(self, t_s: float, kind: str, **data) -> None:
         self.events.append({"t_s": float(t_s), "kind": kind, **data})
 
-    def write_block(self, block: dict) -> None:
+    def write_block(self, block: dict, *, frozen: bool = False) -> None:  # noqa: ARG002 - stored as given
         t = block["t_s"]
         if t.size == 0:
             return

@@ -148,7 +148,7 @@ class SimBackend:
             return None
         blk = next(self._blocks, None) if self._ref is None else self._next_paused_block()
         if self._out:  # the pause's events go before the block that holds them
-            self._out.append(Block(blk) if blk is not None else None)
+            self._out.append(Block(blk, frozen=True) if blk is not None else None)
             return self._out.pop(0)
         if blk is None:
             self._ended = True
@@ -162,7 +162,7 @@ class SimBackend:
         elif self._first and t.size:
             wall_ns = self._wall0_ns + int(round(float(t[-1]) * 1e9))  # unpaced: trial time 0 is the start
         self._first = False
-        return Block(blk, wall_ns)
+        return Block(blk, wall_ns, frozen=True)  # rig.sim.rig.Rig._blocks: fresh arrays for every chunk
 
     def request_stop(self, reason: str, insist: bool = False) -> None:
         self._stop = reason

@@ -42,13 +42,12 @@ from __future__ import annotations
 
 import math
 
-from numba import njit
+from rig.jitstart import kernel, preload_cython_blas
 
 from rig.model.friction import (P_A, P_MU0, P_STATE_ON, P_V0, P_VREG, S_THETA, S_THETA2, advance_state,
                                 mu_regularized, periodic_term, wear_term)
 from rig.model.sensors import lowpass_tick, quantize
 from rig.control import controller_step_v
-from rig.jitstart import preload_cython_blas
 
 preload_cython_blas()  # the simulation's first kernel call loads numba's target without scipy.linalg
 
@@ -134,7 +133,7 @@ Z_N2E = 22
 N_ZSTATE = 23
 
 
-@njit(cache=True)
+@kernel
 def normal_forces(q, x_t):
     """True normal forces (N) of riders 1 and 2 at LVDT-point position ``x_t``."""
     dx_mm = (x_t - q[Q_XORG]) * 1e-3
@@ -149,7 +148,7 @@ def normal_forces(q, x_t):
     return n1, n2
 
 
-@njit(cache=True)
+@kernel
 def friction_law(q, fp, fs, x_i, v_mag):
     """(base, a) of mu(v) = sign(v) R(|v|) with the interface at position ``x_i``.
 
@@ -170,7 +169,7 @@ def friction_law(q, fp, fs, x_i, v_mag):
     return fp[P_MU0] + extra + fp[P_A] * math.log(vd / fp[P_V0]), 0.0
 
 
-@njit(cache=True)
+@kernel
 def solve_slip_mass(p2, q2, ntot, base, vreg, mih, v_old):
     """Interface with mass m_i: solve m_i (v - v_old)/h = p2 + q2 v - ntot base s(v) for v,
     s(v) = v / sqrt(v^2 + v_reg^2) (backward Euler; the left side minus the right is
@@ -202,7 +201,7 @@ def solve_slip_mass(p2, q2, ntot, base, vreg, mih, v_old):
     return v, b * v / math.sqrt(v * v + vr2)
 
 
-@njit(cache=True)
+@kernel
 def _v_of_mu(mu, base, a, v0, vreg):
     """Inverse of R (mu >= 0): slip speed and d v / d mu."""
     if a > 0.0:
@@ -220,7 +219,7 @@ def _v_of_mu(mu, base, a, v0, vreg):
     return vreg * m / sr, vreg / b / (r * sr)
 
 
-@njit(cache=True)
+@kernel
 def solve_slip(p2, q2, ntot, base, a, v0, vreg):
     """Solve p2 + q2 v = ntot mu(v) for the slip velocity v (q2 < 0). Returns (v, mu).
 
@@ -272,7 +271,7 @@ def solve_slip(p2, q2, ntot, base, a, v0, vreg):
     return sgn * v, sgn * mu
 
 
-@njit(cache=True)
+@kernel
 def plant_advance(q, fp, fs, st, ring, u):
     """Advance the plant by one tick with valve command ``u`` held (zero-order hold)."""
     u = min(1.0, max(-1.0, u))
@@ -362,7 +361,7 @@ def plant_advance(q, fp, fs, st, ring, u):
     st[Z_TICK] += 1.0
 
 
-@njit(cache=True)
+@kernel
 def plant_sample(q, st, z0, z1, z2, z3):
     """Sensor readings at the current tick given four standard-normal draws.
 
@@ -388,7 +387,7 @@ BLOCK_KEYS = ("t_s", "position_ref_um", "position_um", "friction_N", "normal_1_N
 N_OUT = len(BLOCK_KEYS)
 
 
-@njit(cache=True, nogil=True)
+@kernel(nogil=True)
 def run_closed_loop(q, fp, fs, st, ring, c, cs, xref, ffref, i0, noise, j0, out, k0, count):
     """``count`` closed-loop ticks: sample sensors, controller (rig.control), advance plant.
 

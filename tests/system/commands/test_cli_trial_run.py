@@ -42,16 +42,43 @@ def short_steps(repo_root, tmp_path):
     return p
 
 
+_MODULES_AT_EXIT = ("import runpy, sys\nsys.argv = ['rig', *sys.argv[1:]]\ntry:\n"
+                    "    runpy.run_module('rig.cli', run_name='__main__')\nexcept SystemExit as e:\n    code = e.code\n"
+                    "print('scipy.linalg' in sys.modules, 'scipy.linalg.cython_blas' in sys.modules, "
+                    "'numba' in sys.modules)\n")
+
+
 def test_run_sim_never_imports_scipy_linalg(short_steps, tmp_path, repo_root):
-    """numba's first kernel call in `rig run --sim` finds scipy's cython_blas/cython_lapack preloaded
-    (rig.jitstart): the process runs its trial without the scipy.linalg package (0.1-0.25 s of start-up)."""
-    code = ("import runpy, sys\nsys.argv = ['rig', *sys.argv[1:]]\ntry:\n"
-            "    runpy.run_module('rig.cli', run_name='__main__')\nexcept SystemExit as e:\n    code = e.code\n"
-            "print('scipy.linalg' in sys.modules, 'scipy.linalg.cython_blas' in sys.modules)\n")
-    p = subprocess.run([sys.executable, "-c", code, "run", str(short_steps), "--sim", "-q", "--out",
-                        str(tmp_path / "t.mcap")], cwd=repo_root, capture_output=True, text=True, timeout=300)
+    """numba's first kernel call in `rig run --sim` (its JIT kernels: RIG_AOT=0) finds scipy's
+    cython_blas/cython_lapack preloaded (rig.jitstart): the process runs its trial without the scipy.linalg
+    package (0.1-0.25 s of start-up)."""
+    p = subprocess.run([sys.executable, "-c", _MODULES_AT_EXIT, "run", str(short_steps), "--sim", "-q", "--out",
+                        str(tmp_path / "t.mcap")], cwd=repo_root, capture_output=True, text=True, timeout=300,
+                       env={**os.environ, "RIG_AOT": "0"})
     assert p.returncode == 0 and (tmp_path / "t.mcap").exists(), p.stderr
-    assert p.stdout.splitlines()[-1] == "False True", p.stdout
+    assert p.stdout.splitlines()[-1] == "False True True", p.stdout
+
+
+def test_run_sim_with_the_aot_kernels_never_imports_numba(short_steps, tmp_path, repo_root):
+    """With the run's kernels built ahead of time (rig.jitstart.build_aot: built here when absent, as the first
+    `rig run --sim` starts it in the background), `rig run --sim` imports neither numba nor scipy.linalg, and
+    writes the log numba's JIT kernels write."""
+    from rig.jitstart import build_aot_once
+
+    build_aot_once()  # or waits for a build in the background
+    outs = {}
+    for aot in ("1", "0"):
+        out = outs[aot] = tmp_path / f"t{aot}.mcap"
+        p = subprocess.run([sys.executable, "-c", _MODULES_AT_EXIT, "run", str(short_steps), "--sim", "-q", "--out",
+                            str(out), "--seed", "5"], cwd=repo_root, capture_output=True, text=True, timeout=300,
+                           env={**os.environ, "RIG_AOT": aot})
+        assert p.returncode == 0 and out.exists(), p.stderr
+        assert p.stdout.splitlines()[-1] == ("False False False" if aot == "1" else "False True True"), p.stdout
+    for channel in ("raw", "25hz"):
+        a, b = read_trial(outs["1"], channel), read_trial(outs["0"], channel)
+        ca, cb = {**a.columns(), **a.extra}, {**b.columns(), **b.extra}
+        assert len(a) > 900 and set(ca) == set(cb)
+        assert all(np.array_equal(ca[k], cb[k], equal_nan=True) for k in ca), channel
 
 
 def test_run_sim_end_to_end(short_steps, tmp_path, repo_root):

@@ -179,3 +179,16 @@ def test_mcap_messages_say_what_the_file_is(tmp_path):
             assert res.exit_code == 2 and needle in res.output, (cmd, res.output)
             assert "RecordLengthLimitExceeded" not in res.output and "Traceback" not in res.output
     assert not (tmp_path / "x.csv").exists()
+
+
+def test_values_are_checked_as_typer_checks_them_without_its_adapters(tmp_path):
+    """rig.commands.common.quick_coercion passes plain values through (a default within its range, a str, a
+    path) and leaves the rest to typer: an out-of-range or malformed number is typer's usage error, exit 2."""
+    for args, words in ((["--seed", "-1"], "greater than or equal to 0"), (["--live-port", "70000"], "65535"),
+                        (["--seed", "x"], "integer")):
+        res = runner.invoke(app, ["run", str(SMOKE), "--sim", "--plan-only", *args], terminal_width=200)
+        assert res.exit_code == 2 and words in res.output, (args, res.output)
+    res = runner.invoke(app, ["info", str(tmp_path / "missing.mcap")])
+    assert res.exit_code == 2 and "missing.mcap" in res.output  # the path's own check (exists) still runs
+    res = runner.invoke(app, ["run", str(SMOKE), "--plan-only", "--seed", "3", "--live-port", "0"])
+    assert res.exit_code == 0, res.output

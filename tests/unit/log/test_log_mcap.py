@@ -4,6 +4,7 @@ corrupt chunks, flushing, truncation and recovery, epoch log_time, listeners."""
 from __future__ import annotations
 
 import json
+import re
 import struct
 import time
 import warnings
@@ -543,3 +544,32 @@ def test_compiled_block_means_are_numpys_to_the_bit(n):
         if got is not None:
             assert np.array_equal(got, want["m"], equal_nan=True)
     assert np.array_equal(mb.flush(), ref.flush()["m"], equal_nan=True)
+
+
+def test_the_writers_records_in_one_pass_are_the_mcap_writers_own(tmp_path, monkeypatch):
+    """The writer's one pass over a batch of messages (rig.log.writer._Sink._add_batch: no record object per
+    message) gives the bytes of the ``mcap`` Writer's own ``add_message``, message by message: chunks,
+    message indexes, chunk indexes and statistics; with chunks small enough that most blocks' 25 Hz messages
+    are split across two, and a block with non-finite values."""
+    from rig.log import writer as writer_mod
+
+    blocks = make_blocks(8, n=1000)  # 25 samples at 25 Hz per block
+    blocks[5]["friction_N"][3:70] = np.nan
+
+    def write(path):
+        w = TrialLogWriter(path, start_time_ns=T0_NS, metadata={"trial_uid": "u"}, flush_interval_s=1e9,
+                           threaded=False, compression="none", chunk_size=1_500)
+        for b in blocks:
+            w.write_block(b)
+        w.close()
+        with open(path, "rb") as fh:
+            summary = make_reader(fh).get_summary()
+        return re.sub(rb"\d{4}-\d\d-\d\dT[\d:.]+\+00:00", b"T", path.read_bytes()), summary  # but the end's time
+
+    ours, s_ours = write(tmp_path / "runs.mcap")
+    monkeypatch.setattr(writer_mod._Sink, "_fast", property(lambda self: False))
+    theirs, s_theirs = write(tmp_path / "mcap.mcap")
+    assert len(s_ours.chunk_indexes) > 20 and s_ours.statistics.channel_message_counts == \
+        s_theirs.statistics.channel_message_counts
+    assert ours == theirs and s_ours.chunk_indexes == s_theirs.chunk_indexes
+    assert s_ours.statistics == s_theirs.statistics
