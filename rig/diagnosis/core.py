@@ -1239,9 +1239,9 @@ def _final_models(d: Diagnosis, progress=None) -> None:
     and hold-out blocks), at the global optimum of the a-b-L valley (profile likelihood over ln L),
     with split-half errors where each half holds steps of its own. The split decides WHICH model
     (hold-out gains); with half of a few steps in the fit blocks, the direct effect A of a three-step
-    record moves by +-50 % with the split alone."""
-    grid, base, cur = reported_grid(d.grid, d.final), d.baseline, d.final
-    d.grid = grid
+    record moves by +-50 % with the split alone. On ``d.grid``, the reported models' grid
+    (:func:`reported_grid`, set by :func:`_diagnose` before this runs, perhaps in a forked helper)."""
+    grid, base, cur = d.grid, d.baseline, d.final
     d.baseline_fit = refit_all(grid, base)
     d.final_fit = d.baseline_fit if cur is base else refit_all(grid, cur)
     # the profile of a model with a spring only on small grids: each profile point is a spring fit

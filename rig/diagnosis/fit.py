@@ -418,18 +418,20 @@ def profile(grid: Grid, res: FitResult, name: str = "L_um", mask: np.ndarray | N
     rise = ss - ss.min()
     lv = np.log(vs)
     i0 = int(np.argmin(ss))
-
-    def edge(idx):
-        # sqrt(rise) is nearly linear in ln L near the minimum (the rise is quadratic): interpolated so,
-        # a coarse grid does not narrow the interval
-        q, q1 = np.sqrt(rise), math.sqrt(s2)
-        for a, b in zip(idx[:-1], idx[1:]):
-            if q[b] > q1 >= q[a]:
-                f = (q1 - q[a]) / (q[b] - q[a])
-                return float(math.exp(lv[a] + f * (lv[b] - lv[a])))
-        return None  # flat to the end of the profile: the interval is open on that side
-
-    lo_e = edge(list(range(i0, -1, -1)))
-    hi_e = edge(list(range(i0, vs.size)))
+    # sqrt(rise) is nearly linear in ln L near the minimum: interpolated so, a coarse grid does not narrow
+    # the interval; None: flat to the end of the profile, the interval is open on that side
+    lo_e, hi_e = (profile_crossing(lv, rise, s2, idx) for idx in (list(range(i0, -1, -1)), list(range(i0, vs.size))))
+    lo_e, hi_e = (None if e is None else float(math.exp(e)) for e in (lo_e, hi_e))
     return None, (lo_e if lo_e is not None else float(vs[0]), hi_e if hi_e is not None else float(vs[-1]),
                   lo_e is None, hi_e is None)
+
+
+def profile_crossing(xs: np.ndarray, rise: np.ndarray, thr: float, idx: list[int]) -> float | None:
+    """Where a profile's sqrt(rise) (its sum of squares above the lowest point) crosses sqrt(``thr``),
+    walking the indices ``idx`` out from the minimum: linear interpolation in ``xs`` (the rise is
+    quadratic near the minimum, so its root is nearly linear). None where it never does."""
+    q, q1 = np.sqrt(np.maximum(rise, 0.0)), math.sqrt(thr)
+    for a, b in zip(idx[:-1], idx[1:]):
+        if q[b] > q1 >= q[a]:
+            return float(xs[a] + (q1 - q[a]) / (q[b] - q[a]) * (xs[b] - xs[a]))
+    return None

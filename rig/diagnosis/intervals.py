@@ -20,7 +20,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from .fit import FitResult, _cov_internal, fit, param
+from .fit import FitResult, _cov_internal, fit, param, profile_crossing
 from .prep import Grid
 
 HELD_NFEV = 40  # evaluations per held point and start (the valley is flat: a few more than a local profile's)
@@ -62,13 +62,10 @@ def _held_sse(grid: Grid, res: FitResult, name: str, v: float, starts: list[dict
 
 
 def _edge(vs: np.ndarray, rise: np.ndarray, thr: float, idx: list[int]) -> float:
-    """Where sqrt(rise) crosses sqrt(thr) walking ``idx`` from the minimum (linear interpolation:
-    sqrt(rise) is nearly linear in the parameter near it); the last point where it never does."""
-    q, q1 = np.sqrt(np.maximum(rise, 0.0)), math.sqrt(thr)
-    for a, b in zip(idx[:-1], idx[1:]):
-        if q[b] > q1 >= q[a]:
-            return float(vs[a] + (q1 - q[a]) / (q[b] - q[a]) * (vs[b] - vs[a]))
-    return float(vs[idx[-1]])
+    """:func:`rig.diagnosis.fit.profile_crossing` in the parameter itself; the last point where the
+    profile never rises that far (open to the domain's edge)."""
+    e = profile_crossing(vs, rise, thr, idx)
+    return float(vs[idx[-1]]) if e is None else e
 
 
 def domain_interval(grid: Grid, res: FitResult, name: str, cap: float) -> tuple[float, float] | None:
