@@ -45,6 +45,11 @@ V_SLIDE_MIN_UM_S = 0.1
 STOP_GUARD_S = 3.0
 RISE_GUARD_S = 0.0
 RISE_DLNV = 0.1  # (0: off)
+# rest (the reported rigid models only: rig.diagnosis.core.reported_grid): the measured position's mean
+# over the REST_WINDOW_S after a cell differs from that over the REST_WINDOW_S before it by less than
+# REST_SIGMAS of its own noise (see _at_rest)
+REST_WINDOW_S = 1.0
+REST_SIGMAS = 4.0
 
 
 @njit(cache=True)
@@ -393,8 +398,10 @@ def _holdout_blocks(tk: np.ndarray, vs: np.ndarray, time_blk: np.ndarray, T: flo
 
 def prepare(trial: TrialData, n_blocks: int = 20, slip_window_um: float = 3.0,
             bin_dt_max_s: float = 1.0, bin_slip_um: float = 1.0, restart_guard_um: float = 0.0,
-            step_times_s: np.ndarray | None = None, align_to_steps: bool = True) -> Grid:
-    """Kinematic grid + adaptive fit bins + hold-out blocks from a trial (see module doc)."""
+            step_times_s: np.ndarray | None = None, align_to_steps: bool = True, rest: bool = False) -> Grid:
+    """Kinematic grid + adaptive fit bins + hold-out blocks from a trial (see module doc). ``rest``: the
+    velocity is zero where the measured position rests (:func:`_at_rest`; the reported rigid models'
+    grid only, rig.diagnosis.core.reported_grid: the decisions are made on the line fit's velocity)."""
     t_raw = np.asarray(trial.time_s, dtype=float)
     if t_raw.size < 20:
         raise ValueError(f"{trial.source or 'trial'}: too few samples ({t_raw.size}) to diagnose")
@@ -411,7 +418,7 @@ def prepare(trial: TrialData, n_blocks: int = 20, slip_window_um: float = 3.0,
             trial = trial.select(np.ones(len(trial), bool))
             trial.position_ref_um = -trial.position_ref_um
     k = _cells(trial, tr, F, x_raw)  # 1. kinematic grid cells
-    xs, vs, time_res = _kinematics(k, slip_window_um)  # 2./3. kinematics
+    xs, vs, time_res = _kinematics(k, slip_window_um, rest)  # 2./3. kinematics
     tk = k["t"]
     steps_k = None if step_times_s is None else np.asarray(step_times_s) - t0
     for aligned in ((True, False) if align_to_steps else (False,)):  # 4. blocks and bins
@@ -467,10 +474,11 @@ def _cells(trial: TrialData, tr: np.ndarray, F: np.ndarray, x_raw: np.ndarray) -
             "xr": cmean(np.asarray(trial.position_ref_um, dtype=float)) if use_ref else None}
 
 
-def _kinematics(k: dict, slip_window_um: float) -> tuple[np.ndarray, np.ndarray, float]:
+def _kinematics(k: dict, slip_window_um: float, rest: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
     """(position, velocity, time resolution (s)) of the cells: from the reference and the servo's
     lag when the record has a reference, else an edge-preserving line fit over a window of
-    ``slip_window_um`` of slip at the slower side of any nearby velocity change."""
+    ``slip_window_um`` of slip at the slower side of any nearby velocity change; with ``rest``, zero
+    where the measured position rests (:func:`_at_rest`)."""
     tk, xk = k["t"], k["x"]
     v_rough = np.gradient(xk, tk) if tk.size > 2 else np.zeros_like(tk)
     # rough speed over ~2 s for the window length
@@ -496,11 +504,46 @@ def _kinematics(k: dict, slip_window_um: float) -> tuple[np.ndarray, np.ndarray,
         vs = np.gradient(xm, tk) + ev
     else:
         xs, vs = edge_preserving_line(tk, xk, half)
+    if rest:
+        vs = np.where(_at_rest(tk, xk, vs), 0.0, vs)
     # without a reference, a line fit cannot resolve the actuator's rounded velocity change (the
     # paper's steps rise in up to 0.5 s): time constants below ~0.15 s are the estimator's own
     dtk0 = float(np.median(np.diff(tk))) if tk.size > 1 else KIN_DT_MIN_S
     time_res = max(3.0 * dtk0, 2.0 * servo_tau) if use_ref else max(3.0 * dtk0, 0.15)
     return xs, vs, time_res
+
+
+def _at_rest(tk: np.ndarray, xk: np.ndarray, vs: np.ndarray) -> np.ndarray:
+    """The cells where the interface is at rest: the measured position's mean over the REST_WINDOW_S
+    after the cell and over the REST_WINDOW_S before it differ by less than REST_SIGMAS standard
+    errors of that difference (from the position's own white noise). A line fitted over a window
+    that reaches into the motion on either side of a hold or a stick smears it into sliding (the
+    simulated rig's main job: -4 to +3 um/s through a 2 s hold, 1 um/s through the 2 s stick
+    before the break-away), and the state the model integrates through it is then not the
+    interface's (docs/validation.md, "Coverage": diagnose's L +4 % from it). None is at rest when the
+    record's forward sliding is slower than twice the threshold: its noise cannot tell rest from slip."""
+    rest = np.zeros(tk.size, dtype=bool)
+    if tk.size < 10:
+        return rest
+    c = np.concatenate([[0.0], np.cumsum(xk)])
+    lo = np.searchsorted(tk, tk - REST_WINDOW_S)
+    hi = np.searchsorted(tk, tk + REST_WINDOW_S, side="right")
+    i = np.arange(tk.size)
+    n_b, n_a = i - lo + 1, hi - i
+    # both windows at least half their length: near the record's ends the two means lie too close in
+    # time for a slide to move them apart by the threshold
+    span_b = tk - tk[lo]
+    span_a = tk[np.maximum(hi - 1, i)] - tk
+    ok = (n_b >= 3) & (n_a >= 3) & (span_b >= 0.5 * REST_WINDOW_S) & (span_a >= 0.5 * REST_WINDOW_S)
+    before = (c[i + 1] - c[lo]) / np.maximum(n_b, 1)
+    after = (c[hi] - c[i]) / np.maximum(n_a, 1)
+    sigma = _robust_noise(xk) * np.sqrt(1.0 / np.maximum(n_b, 1) + 1.0 / np.maximum(n_a, 1))
+    thr = REST_SIGMAS * sigma
+    fwd = vs[vs > V_SLIDE_MIN_UM_S]
+    # the threshold as a speed (the two means are REST_WINDOW_S apart in time, on average)
+    if fwd.size == 0 or float(np.median(thr)) / REST_WINDOW_S > 0.5 * float(np.median(fwd)):
+        return rest
+    return ok & (np.abs(after - before) < thr)
 
 
 def _bins(k: dict, xs: np.ndarray, vs: np.ndarray, blk_k: np.ndarray, time_blk_k: np.ndarray,
