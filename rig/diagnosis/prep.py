@@ -50,6 +50,7 @@ RISE_DLNV = 0.1  # (0: off)
 # REST_SIGMAS of its own noise (see _at_rest)
 REST_WINDOW_S = 1.0
 REST_SIGMAS = 4.0
+REST_SPREAD = 0.5
 
 
 @njit(cache=True)
@@ -543,7 +544,12 @@ def _at_rest(tk: np.ndarray, xk: np.ndarray, vs: np.ndarray) -> np.ndarray:
     # the threshold as a speed (the two means are REST_WINDOW_S apart in time, on average)
     if fwd.size == 0 or float(np.median(thr)) / REST_WINDOW_S > 0.5 * float(np.median(fwd)):
         return rest
-    return ok & (np.abs(after - before) < thr)
+    centre = ok & (np.abs(after - before) < thr)
+    # a centre's two windows rest with it: the whole of a hold as long as them, not only its middle
+    cc = np.concatenate([[0], np.cumsum(centre)])
+    a = np.searchsorted(tk, tk - REST_SPREAD * REST_WINDOW_S)
+    b = np.searchsorted(tk, tk + REST_SPREAD * REST_WINDOW_S, side="right")
+    return (cc[b] - cc[a]) > 0
 
 
 def _bins(k: dict, xs: np.ndarray, vs: np.ndarray, blk_k: np.ndarray, time_blk_k: np.ndarray,
