@@ -50,7 +50,7 @@ RISE_DLNV = 0.1  # (0: off)
 # REST_SIGMAS of its own noise (see _at_rest)
 REST_WINDOW_S = 1.0
 REST_SIGMAS = 4.0
-REST_SPREAD = 0.5
+REST_SPREAD = 0.5  # (of REST_WINDOW_S)
 
 
 @njit(cache=True)
@@ -517,12 +517,16 @@ def _kinematics(k: dict, slip_window_um: float, rest: bool = False) -> tuple[np.
 def _at_rest(tk: np.ndarray, xk: np.ndarray, vs: np.ndarray) -> np.ndarray:
     """The cells where the interface is at rest: the measured position's mean over the REST_WINDOW_S
     after the cell and over the REST_WINDOW_S before it differ by less than REST_SIGMAS standard
-    errors of that difference (from the position's own white noise). A line fitted over a window
-    that reaches into the motion on either side of a hold or a stick smears it into sliding (the
-    simulated rig's main job: -4 to +3 um/s through a 2 s hold, 1 um/s through the 2 s stick
-    before the break-away), and the state the model integrates through it is then not the
-    interface's (docs/validation.md, "Coverage": diagnose's L +4 % from it). None is at rest when the
-    record's forward sliding is slower than twice the threshold: its noise cannot tell rest from slip."""
+    errors of that difference (from the position's own white noise), and the cells of both windows
+    of such a centre within REST_SPREAD of a window (a 2 s hold rests whole, not only its middle). A
+    line fitted over a window that reaches into the motion on either side of a hold smears it into
+    sliding (the simulated rig's main job: -4 to +3 um/s through a 2 s hold), and the state the model
+    integrates through it is then not the interface's: the misfit after each restart tripled the
+    reported errors (docs/validation.md, "Coverage"). A stick whose LVDT moves with the fixture's
+    deflection (the re-loading at a restart or a return) is not seen. None is at rest when the
+    record's forward sliding is slower than twice the threshold: its noise cannot tell rest from slip.
+    Only for the reported rigid models (rig.diagnosis.core.reported_grid): on the decisions' grid it
+    named false second states on the paper protocol."""
     rest = np.zeros(tk.size, dtype=bool)
     if tk.size < 10:
         return rest
