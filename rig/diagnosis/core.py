@@ -834,11 +834,7 @@ def _search(trial: TrialData, baseline: str, prior: dict, steps: list, known: di
     candidates until none passes. ``warm``: per round of the loop, each candidate's fit on another
     split (``warm_coupling``: the coupling's); ``start``: whether the main split fitted the state
     the record starts in (None: decide, on the main split)."""
-    grid = prepare(trial, n_blocks=n_blocks, restart_guard_um=3.0 * prior["L_um"] if prior else 0.0,
-                   step_times_s=np.array([s.t_s for s in steps]) if steps else np.zeros(0), align_to_steps=align)
-    grid.known = dict(known)
-    if "stiffness_kN_per_m" not in known:
-        grid.stiffness_floor_kN_per_m = stiffness_floor_kN_per_m(grid)
+    grid = _grid(trial, prior, steps, known, n_blocks, align)
     if swap_aligned and grid.holdout_design.startswith("blocks aligned"):
         grid = _swapped(grid)
     if int(grid.sliding.sum()) < 10:
@@ -886,6 +882,17 @@ def _search(trial: TrialData, baseline: str, prior: dict, steps: list, known: di
         cur = best.result
         history.append(cur)
     return s
+
+
+def _grid(trial: TrialData, prior: dict, steps: list, known: dict, n_blocks: int = 20, align: bool = True) -> Grid:
+    """The record's grid as one split of the diagnosis sees it (:func:`prep.prepare`), with the values
+    the file states and the record's stiffness floor."""
+    grid = prepare(trial, n_blocks=n_blocks, restart_guard_um=3.0 * prior["L_um"] if prior else 0.0,
+                   step_times_s=np.array([s.t_s for s in steps]) if steps else np.zeros(0), align_to_steps=align)
+    grid.known = dict(known)
+    if "stiffness_kN_per_m" not in known:
+        grid.stiffness_floor_kN_per_m = stiffness_floor_kN_per_m(grid)
+    return grid
 
 
 def _round_jobs(grid: Grid, cur: FitResult, cands: list[str], info: dict, prior: dict, w: dict) -> list:
@@ -1131,9 +1138,12 @@ def _diagnose(trial: TrialData, baseline: str, progress, n_blocks: int, resplits
     if progress:
         progress("the final model and what it leaves")
     d.grid = reported_grid(grid, cur)  # the reported refits' grid; the residual's search keeps the decisions'
+    undetermined = main.coupled and kept >= 1 and bool(main.chosen[0][0].undetermined)  # (_undetermined_floor)
     # independent: side by side where the record is long (the final model's profile, the residual's profiles)
     d.unexplained, (d.baseline_fit, d.final_fit) = fork_map(
-        _run_job, [(find_unexplained, (grid, cur)), (_final_fits, (d,))], grid.t.size >= PARALLEL_MIN_BINS)
+        _run_job, [(find_unexplained, (grid, cur)),
+                   (_final_fits, (d, None if undetermined else (trial, prior, steps, known)))],
+        grid.t.size >= PARALLEL_MIN_BINS)
     d.baseline_all, d.final_all = d.baseline_fit.params, d.final_fit.params
     _kinematics_floor(d, lambda: floor_reference(trial, steps, prior))
     _undetermined_floor(d, main, kept)
@@ -1276,10 +1286,74 @@ def _final_models(d: Diagnosis, progress=None) -> None:
             split_sd(grid, cur, d.final_fit)
 
 
-def _final_fits(d: Diagnosis) -> tuple[FitResult, FitResult]:
-    """:func:`_final_models` of ``d``: (baseline, final model), refitted on all sliding data."""
+def _final_fits(d: Diagnosis, inputs: tuple | None = None) -> tuple[FitResult, FitResult]:
+    """:func:`_final_models` of ``d``: (baseline, final model), refitted on all sliding data; with
+    ``inputs`` (the record and what :func:`_grid` takes), the final model's :func:`copies_sd`."""
     _final_models(d)
+    if inputs is not None:
+        copies_sd(d, *inputs)
     return d.baseline_fit, d.final_fit
+
+
+# the crops of the copies' floor (copies_sd): the re-splits' (RESPLITS), a few per cent at either end
+CROPS = tuple(r["crop"] for r in RESPLITS if "crop" in r)
+
+
+def _copies(trial: TrialData, steps: list) -> list[TrialData]:
+    """The copies of the record whose refits set :func:`copies_sd`: each crop of :data:`CROPS`, and
+    the positions moved by half a sampling interval either way in time (a step's timing is known to
+    within the interval of the rows about it, :func:`step_timing_s`; from 1 kHz rows 0.5 ms, from
+    20 Hz rows 25 ms, at 300 um/s 7.5 um of slip)."""
+    t = np.asarray(trial.time_s, dtype=float)
+    span = t[-1] - t[0]
+    out = [trial.select((t >= t[0] + a * span) & (t <= t[-1] - b * span)) for a, b in CROPS]
+    half = 0.5 * step_timing_s(t, steps)
+    x = np.asarray(trial.position_um, dtype=float)
+    for lag in ((half, -half) if half > 0 else ()):
+        c = trial.select(np.ones(t.size, bool))
+        c.position_um = np.interp(t - lag, t, x)
+        out.append(c)
+    return out
+
+
+def step_timing_s(t: np.ndarray, steps: list) -> float:
+    """The longest interval between the rows about a velocity step of ``steps`` (s; 0 without one)."""
+    if not steps or t.size < 2:
+        return 0.0
+    i = np.clip(np.searchsorted(t, [float(st.t_s) for st in steps]), 1, t.size - 1)
+    return float(np.max(t[i] - t[i - 1]))
+
+
+def copies_sd(d: Diagnosis, trial: TrialData, prior: dict, steps: list, known: dict) -> dict:
+    """Errors never below what a copy of the record with no other physics does to the final model
+    (diagnosis.md, "The answer depends on the physics only"): a crop of a few per cent at either
+    end, and the positions moved in time by half the sampling interval about the steps
+    (:func:`_copies`). Each copy is prepared afresh (its velocity estimate, steps and hold-out
+    blocks its own, as such a file's would be) and the final model refitted on its sliding data from
+    the final values; each parameter's floor is its largest move (``res.extra["copies_sd"]``). The
+    noise of the 3 % a crop leaves out moves a value by about a fifth of its error; more is the
+    kinematics or the start's state, which the Jacobian does not see. Leeman's step (4.35 s before
+    it, rows every 10-630 ms): a 3 % crop at the start moves A from 0.0077 +- 0.0005 to 0.0024 (k
+    534 -> 192 kN/m), as `rig diagnose` gives on a file cropped so. Basalt velstep7 logged at 50 Hz
+    about its step (1 kHz in the file): k 1,190 +- 400 kN/m against 2,410 +- 520 from every row: the
+    rise lasts a few ms, and where in the 20 ms between two rows the step fell sets k."""
+    res = d.final_fit
+    if res is None or "jac" not in res.extra:
+        return {}
+    moves: dict[str, float] = {}
+    for c in _copies(trial, steps):
+        try:
+            g = dataclasses.replace(_grid(c, prior, steps, known), normals_in_model=d.grid.normals_in_model)
+            r = fit(g, res.baseline, res.extensions, res.params, max_nfev=200, mask=g.sliding)
+        except (ValueError, ZeroDivisionError, FloatingPointError, IndexError):
+            continue
+        if not all(np.isfinite(v) for v in r.params.values()) or at_bound(r.params, g):
+            continue  # a copy on which the model runs away says nothing about the spread
+        for k, v in res.params.items():
+            if k in r.params and k not in g.known:
+                moves[k] = max(moves.get(k, 0.0), abs(float(r.params[k]) - float(v)))
+    res.extra["copies_sd"] = moves
+    return moves
 
 
 def reported_grid(grid: Grid, final: FitResult) -> Grid:
@@ -1345,11 +1419,33 @@ def _undetermined_floor(d: Diagnosis, main: _Search, kept: int) -> None:
     the half-widths as their errors: honest about how little the record says (Leeman trimmed past
     its step: A on its floor, but anything up to the original's value explains the copy as well)."""
     res = d.final_fit
+    away = res.extra.pop("ran_away", None) if res is not None else None
+    if away is not None:
+        _ran_away_intervals(d, res, away)
+        return
     if res is None or not main.coupled or kept < 1 or not main.chosen[0][0].undetermined:
         return
     res.extra["undetermined"] = list(main.chosen[0][0].undetermined)
     if d.grid.t.size <= PROFILE_MAX_BINS_SPRING:
         res.extra["domain_intervals"] = undetermined_intervals(d.grid, res, list(CORE_BOUNDED), COEF_MAX_MU)
+
+
+def _ran_away_intervals(d: Diagnosis, res: FitResult, away: FitResult) -> None:
+    """The final model whose refit on all sliding data ran to a bound (:func:`refit_all` keeps the
+    split fit, ``res``; ``away`` is the refit on its bound): the whole record prefers a corner of the
+    domain the split did not, so the record does not determine the model, and a Jacobian at either
+    point would say it does. Reported as not determined, with the intervals a profile of the whole
+    record's likelihood over each of A, B, L and k's domain gives (:mod:`rig.diagnosis.intervals`,
+    from ``away``, the lowest point), each widened to hold the reported value. Basalt velstep7 logged
+    at 20 Hz, then 200 Hz from 70 % of the record: its step's rise falls between two rows; the split
+    fit gives k 12,300 kN/m, L 16.9 um, all rows k on its bound (rigid), L 38.8 um, against
+    k 2,400, L 11.8 +- 0.7 from every row at 1 kHz: without the profile, values without errors."""
+    res.extra["undetermined"] = [k for k, v in away.params.items() if at_bound({k: v}, d.grid)]
+    if d.grid.t.size > PROFILE_MAX_BINS_SPRING:
+        return
+    iv = undetermined_intervals(d.grid, away, [n for n in CORE_BOUNDED if n in res.params], COEF_MAX_MU)
+    res.extra["domain_intervals"] = {n: (min(lo, float(res.params[n])), max(hi, float(res.params[n])))
+                                     for n, (lo, hi) in iv.items()}
 
 
 def _as_final(f: Finding, d: Diagnosis) -> None:
@@ -1430,7 +1526,8 @@ def uncertainty(grid: Grid, res: FitResult, names: list[str] | None = None) -> d
     # never below the split-half spread (:func:`split_sd`): errors in the kinematics (a step's rise
     # as the line fit sees it) move A and B without showing in the residual
     spl, kin = res.extra.get("split_sd", {}), res.extra.get("kinematics_sd", {})
-    sd = np.array([max(sd_j[i], spl.get(n, 0.0), kin.get(n, 0.0)) for i, n in enumerate(nm)])
+    crop = res.extra.get("copies_sd", {})  # nor below the move of a copy with no other physics (:func:`copies_sd`)
+    sd = np.array([max(sd_j[i], spl.get(n, 0.0), kin.get(n, 0.0), crop.get(n, 0.0)) for i, n in enumerate(nm)])
     # the errors the kinematics floor sets (the summary says so: they are a disagreement, not a fit's)
     res.extra["kinematics_set"] = [n for i, n in enumerate(nm) if kin.get(n, 0.0) > max(sd_j[i], spl.get(n, 0.0))]
     want = nm if names is None else [n for n in names if n in nm]
@@ -1474,6 +1571,8 @@ def refit_all(grid: Grid, res: FitResult) -> FitResult:
     if (not np.all(np.isfinite(list(p.values()))) or at_bound(p, grid)
             or _coefs_too_large(p) or p.get("L2_um", 0.0) > grid.max_state_um
             or not _ext_params_plausible(res.extensions, p)):
+        if "jac" in r.extra and at_bound(p, grid) and np.all(np.isfinite(list(p.values()))):
+            keep.extra["ran_away"] = r  # the record does not determine the model (_undetermined_floor)
         return keep  # ran away on the joined data: keep the validated split fit
     if "second_state_variable" in res.extensions and "aging_law" not in res.extensions:
         L1 = r.params.get("L_um")
