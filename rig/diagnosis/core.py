@@ -1530,6 +1530,8 @@ def uncertainty(grid: Grid, res: FitResult, names: list[str] | None = None) -> d
     sd = np.array([max(sd_j[i], spl.get(n, 0.0), kin.get(n, 0.0), crop.get(n, 0.0)) for i, n in enumerate(nm)])
     # the errors the kinematics floor sets (the summary says so: they are a disagreement, not a fit's)
     res.extra["kinematics_set"] = [n for i, n in enumerate(nm) if kin.get(n, 0.0) > max(sd_j[i], spl.get(n, 0.0))]
+    res.extra["copies_set"] = [n for i, n in enumerate(nm) if crop.get(n, 0.0) > max(sd_j[i], spl.get(n, 0.0),
+                                                                                   kin.get(n, 0.0))]
     want = nm if names is None else [n for n in names if n in nm]
     out: dict = {"params_sd": {n: _r(sd[nm.index(n)]) for n in want}}
     iv = {}
