@@ -1423,33 +1423,11 @@ def _undetermined_floor(d: Diagnosis, main: _Search, kept: int) -> None:
     the half-widths as their errors: honest about how little the record says (Leeman trimmed past
     its step: A on its floor, but anything up to the original's value explains the copy as well)."""
     res = d.final_fit
-    away = res.extra.pop("ran_away", None) if res is not None else None
-    if away is not None:
-        _ran_away_intervals(d, res, away)
-        return
     if res is None or not main.coupled or kept < 1 or not main.chosen[0][0].undetermined:
         return
     res.extra["undetermined"] = list(main.chosen[0][0].undetermined)
     if d.grid.t.size <= PROFILE_MAX_BINS_SPRING:
         res.extra["domain_intervals"] = undetermined_intervals(d.grid, res, list(CORE_BOUNDED), COEF_MAX_MU)
-
-
-def _ran_away_intervals(d: Diagnosis, res: FitResult, away: FitResult) -> None:
-    """The final model whose refit on all sliding data ran to a bound (:func:`refit_all` keeps the
-    split fit, ``res``; ``away`` is the refit on its bound): the whole record prefers a corner of the
-    domain the split did not, so the record does not determine the model, and a Jacobian at either
-    point would say it does. Reported as not determined, with the intervals a profile of the whole
-    record's likelihood over each of A, B, L and k's domain gives (:mod:`rig.diagnosis.intervals`,
-    from ``away``, the lowest point), each widened to hold the reported value. Basalt velstep7 logged
-    at 20 Hz, then 200 Hz from 70 % of the record: its step's rise falls between two rows; the split
-    fit gives k 12,300 kN/m, L 16.9 um, all rows k on its bound (rigid), L 38.8 um, against
-    k 2,400, L 11.8 +- 0.7 from every row at 1 kHz: without the profile, values without errors."""
-    res.extra["undetermined"] = [k for k, v in away.params.items() if at_bound({k: v}, d.grid)]
-    if d.grid.t.size > PROFILE_MAX_BINS_SPRING:
-        return
-    iv = undetermined_intervals(d.grid, away, [n for n in CORE_BOUNDED if n in res.params], COEF_MAX_MU)
-    res.extra["domain_intervals"] = {n: (min(lo, float(res.params[n])), max(hi, float(res.params[n])))
-                                     for n, (lo, hi) in iv.items()}
 
 
 def _as_final(f: Finding, d: Diagnosis) -> None:
@@ -1577,8 +1555,6 @@ def refit_all(grid: Grid, res: FitResult) -> FitResult:
     if (not np.all(np.isfinite(list(p.values()))) or at_bound(p, grid)
             or _coefs_too_large(p) or p.get("L2_um", 0.0) > grid.max_state_um
             or not _ext_params_plausible(res.extensions, p)):
-        if "jac" in r.extra and at_bound(p, grid) and np.all(np.isfinite(list(p.values()))):
-            keep.extra["ran_away"] = r  # the record does not determine the model (_undetermined_floor)
         return keep  # ran away on the joined data: keep the validated split fit
     if "second_state_variable" in res.extensions and "aging_law" not in res.extensions:
         L1 = r.params.get("L_um")

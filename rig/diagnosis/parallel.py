@@ -105,10 +105,10 @@ def fork_map(fn: Callable, jobs: list, parallel: bool, progress=None, what=None,
                     if progress:
                         progress(what(j))
                     if stop is not None and stop(i, out[-1]):
+                        for g in futures[i + 1:]:
+                            g.cancel()
                         # the helpers still computing a job no one will read: ended, not waited for
-                        # (pure fits, no files or locks of this process); the jobs not begun end with
-                        # them. None is cancelled first: Python 3.11's pool then sets the broken pool's
-                        # error on a cancelled future and prints the InvalidStateError's traceback
+                        # (pure fits, no files or locks of this process)
                         for p in list((getattr(ex, "_processes", None) or {}).values()):
                             p.terminate()
                         break

@@ -1,6 +1,6 @@
 """Errors that hold what a copy of the record with no other physics does (core.copies_sd), and a final
 model whose refit on all rows runs to a bound reported with intervals, not bare values
-(core._ran_away_intervals): diagnosis.md, "The answer depends on the physics only"."""
+(core._undetermined_floor): diagnosis.md, "The answer depends on the physics only"."""
 
 from __future__ import annotations
 

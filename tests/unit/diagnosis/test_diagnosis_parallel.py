@@ -102,4 +102,3 @@ def test_start_beside_the_first_round_gives_the_same_report(monkeypatch, trimmed
     beside = diagnose(trial).report()
     assert calls and calls[0] is trimmed
     assert beside == plain
-
