@@ -78,7 +78,8 @@ def register(app: typer.Typer) -> None:
         rep = d.report()
         rep["data"] = str(data)
         rep["warnings"] = diagnosis_warnings(rep) + _calibration_warnings(trial, rep)  # issue 21
-        text = summary(dict(rep, _noise_N=d.grid.noise_N, _unnamed=d.unnamed, _kinematics=_kinematics_set(d)))
+        text = summary(dict(rep, _noise_N=d.grid.noise_N, _unnamed=d.unnamed, _kinematics=_floor_set(d, "kinematics_set"),
+                            _copies=_floor_set(d, "copies_set")))
         if json_to_stdout(json_out):
             err_console.print(text, markup=False)
         else:
@@ -147,9 +148,10 @@ def diagnosis_warnings(rep: dict) -> list[dict]:
     return out
 
 
-def _kinematics_set(d) -> list[str] | None:
-    """The final model's errors that its disagreement with identify's fit sets (core.uncertainty)."""
-    return d.final_fit.extra.get("kinematics_set") if d.final_fit is not None else None
+def _floor_set(d, key: str) -> list[str] | None:
+    """The final model's errors a floor sets (core.uncertainty): ``kinematics_set``, its disagreement
+    with identify's fit; ``copies_set``, what a copy with no other physics does to it (core.copies_sd)."""
+    return d.final_fit.extra.get(key) if d.final_fit is not None else None
 
 
 def _or(names: list[str]) -> str:
@@ -204,6 +206,10 @@ def summary(rep: dict) -> str:
         lines.append(f"  the errors of {', '.join(rep['_kinematics'])} are the final model's disagreement with identify's "
                      "whole-record fit of the same record (its segments' velocities, each run's start and the measured "
                      "normal forces), wider than the fit's own: the two kinematics differ (docs/validation.md, Coverage)")
+    if rep.get("_copies"):
+        lines.append(f"  the errors of {', '.join(rep['_copies'])} are how far a copy of this record with no other "
+                     "physics moves them (a 3 % crop at either end, or the steps' timing within a sampling interval), "
+                     "wider than the fit's own: the record's kinematics, not its noise, limit them")
     for w in rep.get("warnings", []):
         lines.append(f"  warning (!): {w['where']}: {w['message']}")
     return "\n".join(lines)

@@ -1142,9 +1142,12 @@ def _diagnose(trial: TrialData, baseline: str, progress, n_blocks: int, resplits
         progress("the final model and what it leaves")
     # the reported refits' grid; the residual's search keeps the decisions'
     d.grid = reported_grid(grid, cur, lambda: _prepared(trial, prior, steps, known, n_blocks, True, rest=True))
+    undetermined = main.coupled and kept >= 1 and bool(main.chosen[0][0].undetermined)  # (_undetermined_floor)
     # independent: side by side where the record is long (the final model's profile, the residual's profiles)
     d.unexplained, (d.baseline_fit, d.final_fit) = fork_map(
-        _run_job, [(find_unexplained, (grid, cur)), (_final_fits, (d,))], grid.t.size >= PARALLEL_MIN_BINS)
+        _run_job, [(find_unexplained, (grid, cur)),
+                   (_final_fits, (d, None if undetermined else (trial, prior, steps, known)))],
+        grid.t.size >= PARALLEL_MIN_BINS)
     d.baseline_all, d.final_all = d.baseline_fit.params, d.final_fit.params
     _kinematics_floor(d, lambda: floor_reference(trial, steps, prior))
     _undetermined_floor(d, main, kept)
@@ -1287,10 +1290,81 @@ def _final_models(d: Diagnosis, progress=None) -> None:
             split_sd(grid, cur, d.final_fit)
 
 
-def _final_fits(d: Diagnosis) -> tuple[FitResult, FitResult]:
-    """:func:`_final_models` of ``d``: (baseline, final model), refitted on all sliding data."""
+def _final_fits(d: Diagnosis, inputs: tuple | None = None) -> tuple[FitResult, FitResult]:
+    """:func:`_final_models` of ``d``: (baseline, final model), refitted on all sliding data; with
+    ``inputs`` (the record and what :func:`_grid` takes), the final model's :func:`copies_sd`."""
     _final_models(d)
+    if inputs is not None:
+        copies_sd(d, *inputs)
     return d.baseline_fit, d.final_fit
+
+
+# the crops of the copies' floor (copies_sd): the re-splits' (RESPLITS), a few per cent at either end
+CROPS = tuple(r["crop"] for r in RESPLITS if "crop" in r)
+COPIES_MAX_ROWS = 100_000  # a longer record's copies are made from every n-th row
+
+
+def _copies(trial: TrialData, steps: list) -> list[TrialData]:
+    """The copies of the record whose refits set :func:`copies_sd`: each crop of :data:`CROPS`, and
+    the positions moved by half a sampling interval either way in time (a step's timing is known to
+    within the interval of the rows about it, :func:`step_timing_s`; from 1 kHz rows 0.5 ms, from
+    20 Hz rows 25 ms, at 300 um/s 7.5 um of slip)."""
+    t = np.asarray(trial.time_s, dtype=float)
+    half = 0.5 * step_timing_s(t, steps)
+    if t.size > COPIES_MAX_ROWS:  # every n-th row (a decimation is harmless too): 4 s less per copy of 1 h at 1 kHz
+        trial = trial.select(np.arange(t.size) % -(-t.size // COPIES_MAX_ROWS) == 0)
+        t = np.asarray(trial.time_s, dtype=float)
+    span = t[-1] - t[0]
+    out = [trial.select((t >= t[0] + a * span) & (t <= t[-1] - b * span)) for a, b in CROPS]
+    x = np.asarray(trial.position_um, dtype=float)
+    for lag in ((half, -half) if half > 0 else ()):
+        c = trial.select(np.ones(t.size, bool))
+        c.position_um = np.interp(t - lag, t, x)
+        out.append(c)
+    return out
+
+
+def step_timing_s(t: np.ndarray, steps: list) -> float:
+    """The longest interval between the rows about a velocity step of ``steps`` (s; 0 without one)."""
+    if not steps or t.size < 2:
+        return 0.0
+    i = np.clip(np.searchsorted(t, [float(st.t_s) for st in steps]), 1, t.size - 1)
+    return float(np.max(t[i] - t[i - 1]))
+
+
+def copies_sd(d: Diagnosis, trial: TrialData, prior: dict, steps: list, known: dict) -> dict:
+    """Errors never below what a copy of the record with no other physics does to the final model
+    (diagnosis.md, "The answer depends on the physics only"): a crop of a few per cent at either
+    end, and the positions moved in time by half the sampling interval about the steps
+    (:func:`_copies`). Each copy is prepared afresh (its velocity estimate, steps and hold-out
+    blocks its own, as such a file's would be) and the final model refitted on its sliding data from
+    the final values; each parameter's floor is its largest move (``res.extra["copies_sd"]``). The
+    noise of the 3 % a crop leaves out moves a value by about a fifth of its error; more is the
+    kinematics or the start's state, which the Jacobian does not see. Leeman's step (4.35 s before
+    it, rows every 10-630 ms): a 3 % crop at the start moves A from 0.0077 +- 0.0005 to 0.0024 (k
+    534 -> 192 kN/m), as `rig diagnose` gives on a file cropped so. Basalt velstep7 logged at 50 Hz
+    about its step (1 kHz in the file): k 1,190 +- 400 kN/m against 2,410 +- 520 from every row: the
+    rise lasts a few ms, and where in the 20 ms between two rows the step fell sets k."""
+    res = d.final_fit
+    if res is None or "jac" not in res.extra:
+        return {}
+    moves: dict[str, float] = {}
+    for c in _copies(trial, steps):
+        try:
+            # prepared as the reported grid is (a rigid final model's: at rest where the position rests,
+            # the measured normals)
+            g = reported_grid(_prepared(c, prior, steps, known, 20, True), res,
+                              lambda: _prepared(c, prior, steps, known, 20, True, rest=True))
+            r = fit(g, res.baseline, res.extensions, res.params, max_nfev=200, mask=g.sliding)
+        except (ValueError, ZeroDivisionError, FloatingPointError, IndexError):
+            continue
+        if not all(np.isfinite(v) for v in r.params.values()) or at_bound(r.params, g):
+            continue  # a copy on which the model runs away says nothing about the spread
+        for k, v in res.params.items():
+            if k in r.params and k not in g.known:
+                moves[k] = max(moves.get(k, 0.0), abs(float(r.params[k]) - float(v)))
+    res.extra["copies_sd"] = moves
+    return moves
 
 
 def reported_grid(grid: Grid, final: FitResult, at_rest=None) -> Grid:
@@ -1465,9 +1539,12 @@ def uncertainty(grid: Grid, res: FitResult, names: list[str] | None = None) -> d
     # never below the split-half spread (:func:`split_sd`): errors in the kinematics (a step's rise
     # as the line fit sees it) move A and B without showing in the residual
     spl, kin = res.extra.get("split_sd", {}), res.extra.get("kinematics_sd", {})
-    sd = np.array([max(sd_j[i], spl.get(n, 0.0), kin.get(n, 0.0)) for i, n in enumerate(nm)])
+    crop = res.extra.get("copies_sd", {})  # nor below the move of a copy with no other physics (:func:`copies_sd`)
+    sd = np.array([max(sd_j[i], spl.get(n, 0.0), kin.get(n, 0.0), crop.get(n, 0.0)) for i, n in enumerate(nm)])
     # the errors the kinematics floor sets (the summary says so: they are a disagreement, not a fit's)
     res.extra["kinematics_set"] = [n for i, n in enumerate(nm) if kin.get(n, 0.0) > max(sd_j[i], spl.get(n, 0.0))]
+    res.extra["copies_set"] = [n for i, n in enumerate(nm) if crop.get(n, 0.0) > max(sd_j[i], spl.get(n, 0.0),
+                                                                                   kin.get(n, 0.0))]
     want = nm if names is None else [n for n in names if n in nm]
     out: dict = {"params_sd": {n: _r(sd[nm.index(n)]) for n in want}}
     iv = {}
