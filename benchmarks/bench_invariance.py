@@ -5,6 +5,9 @@ project has x every harmless transformation -> causes and parameters, with a ver
     python benchmarks/bench_invariance.py real       # the shared real records and tests/data's converted ones
     python benchmarks/bench_invariance.py synth      # every cause, two clean, the load-point step
     python benchmarks/bench_invariance.py real basalt   # only the records whose label contains "basalt"
+    python benchmarks/bench_invariance.py variants      # the real records x the same transformations with
+                                                        # other parameters (VARIANTS: where the rate switches,
+                                                        # which end is trimmed, other offsets, decimation by 3)
 
 The causes column gives each finding's `stability` (when under 1) and `alternatives` in brackets.
 Verdict per row (rig.diagnosis.transforms.differences, the spec's test): "same" when the causes are
@@ -26,7 +29,8 @@ from pathlib import Path
 import numpy as np
 
 from rig.diagnosis import diagnose
-from rig.diagnosis.transforms import TRANSFORMS, differences, not_determined, origin_moved_um
+from rig.diagnosis.transforms import (TRANSFORMS, decimate, differences, not_determined, origin_moved_um, shift,
+                                      switch_rate, trim)
 from rig.sim.synth import SynthSpec, make_record, random_effect
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -63,6 +67,42 @@ def synth_records():
     yield "synth load-point step k=300", trial, "rate_state"
 
 
+def _trim_start(trial, frac: float = 0.03):
+    t = np.asarray(trial.time_s, dtype=float)
+    return trial.select(t >= t[0] + frac * (t[-1] - t[0]))
+
+
+def _trim_end(trial, frac: float = 0.08):
+    t = np.asarray(trial.time_s, dtype=float)
+    return trial.select(t <= t[-1] - frac * (t[-1] - t[0]))
+
+
+def _switch_at_step(trial):
+    """10 Hz, then 100 Hz from half a second before the record's first velocity step (the issue's
+    example: slow before the step, fast after it)."""
+    from rig.diagnosis.core import _inputs
+    from rig.diagnosis.prep import canonical
+
+    steps = _inputs(canonical(trial))[1]
+    t = np.asarray(trial.time_s, dtype=float)
+    at = (float(steps[0].t_s) - 0.5) / (t[-1] - t[0]) if steps else 0.5
+    return TRANSFORMS["rate10to100"](trial) if not steps else switch_rate(trial, 10.0, 100.0, max(at, 0.0))
+
+
+# the spec's transformations with other parameters than TRANSFORMS': name -> (function, the verdict's kind)
+VARIANTS = {
+    "shift -50 s, -20 mm": (lambda tr: shift(tr, -50.0, -20000.0), "shift"),
+    "shift +1.7e6 s, +123 mm": (lambda tr: shift(tr, 1.7e6, 123456.0), "shift"),
+    "decimate3": (lambda tr: decimate(tr, 3), "decimate2"),
+    "10 -> 100 Hz at the step": (_switch_at_step, "rate10to100"),
+    "5 -> 50 Hz at 30 %": (lambda tr: switch_rate(tr, 5.0, 50.0, 0.3), "rate10to100"),
+    "20 -> 200 Hz at 70 %": (lambda tr: switch_rate(tr, 20.0, 200.0, 0.7), "rate10to100"),
+    "trim 3 % at the start": (_trim_start, "trim5"),
+    "trim 8 % at the end": (_trim_end, "trim5"),
+    "trim 2 % each end": (lambda tr: trim(tr, 0.02), "trim5"),
+}
+
+
 def _row(rep):
     causes = [f["cause"] for f in rep["findings"]]
     alts = {f["cause"]: ([f"stability {f['stability']:.1f}"] if f.get("stability") not in (None, 1.0) else [])
@@ -85,11 +125,13 @@ def main(which: str = "all") -> int:
     from rich.progress import Progress
 
     recs = []
-    if which in ("all", "real"):
+    if which in ("all", "real", "variants"):
         recs += list(real_records())
     if which in ("all", "synth"):
         recs += list(synth_records())
-    names = ["orig"] + list(TRANSFORMS)
+    # (name, transformation, the verdict's kind)
+    table = VARIANTS if which == "variants" else {n: (f, n) for n, f in TRANSFORMS.items()}
+    names = ["orig"] + list(table)
     t_start = time.perf_counter()
     lines = ["| record | transformation | causes (alternatives) | final model | verdict | time |",
              "|---|---|---|---|---|---|"]
@@ -102,7 +144,7 @@ def main(which: str = "all") -> int:
             ref = None
             for name in names:
                 bar.update(task, description=f"{label}: {name}")
-                t2 = trial if name == "orig" else TRANSFORMS[name](trial)
+                t2, kind = (trial, name) if name == "orig" else (table[name][0](trial), table[name][1])
                 t0 = time.perf_counter()
                 try:
                     rep = diagnose(t2, baseline=baseline).report()
@@ -113,7 +155,7 @@ def main(which: str = "all") -> int:
                 if ref is None:
                     ref, v = rep, "(reference)"
                 else:
-                    v = verdict(ref, rep, name, origin_moved_um(trial, t2, name))
+                    v = verdict(ref, rep, kind, 0.0 if kind == "shift" else origin_moved_um(trial, t2, kind))
                     n_all += 1
                     n_same += v == "same"
                 cz = ", ".join(c + (f" ({'/'.join(row[1][c])})" if row[1].get(c) else "") for c in row[0]) or "none"
@@ -130,11 +172,11 @@ def main(which: str = "all") -> int:
 
 if __name__ == "__main__":
     args = sys.argv[1:]
-    if len(args) == 2 and args[0] in ("all", "real", "synth"):
+    if len(args) == 2 and args[0] in ("all", "real", "synth", "variants"):
         ONLY = args.pop()
-    if len(args) > 1 or (args and args[0] not in ("all", "real", "synth")):
+    if len(args) > 1 or (args and args[0] not in ("all", "real", "synth", "variants")):
         print(__doc__ if args and args[0] in ("-h", "--help") else
-              f"usage: python benchmarks/bench_invariance.py [all|real|synth] (not {' '.join(args)!r})",
+              f"usage: python benchmarks/bench_invariance.py [all|real|synth|variants] (not {' '.join(args)!r})",
               file=sys.stdout if args and args[0] in ("-h", "--help") else sys.stderr)
         sys.exit(0 if args and args[0] in ("-h", "--help") else 2)
     sys.exit(main(args[0] if args else "all"))
