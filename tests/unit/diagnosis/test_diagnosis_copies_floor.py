@@ -41,15 +41,21 @@ def test_copies_are_the_crops_and_the_half_interval_lags():
     assert step_timing_s(t, []) == 0.0 and len(_copies(trial, [])) == 2
 
 
-def test_a_clean_record_s_copies_move_its_values_less_than_its_noise():
-    """On a generated record, the copies move A, B and L by less than the Jacobian's own error: the
-    floor adds nothing where the kinematics are clean."""
-    trial, _ = _steps_record()
+def test_a_clean_load_point_record_s_copies_move_its_values_less_than_its_noise():
+    """A generated load-point step through a spring: the copies move A, B and L by less than the
+    Jacobian's own error (the floor adds nothing where the kinematics are clean), and a rigid
+    final model has no copies' floor (its kinematics floor is identify's disagreement)."""
+    trial, _ = make_record(SynthSpec(protocol=[(30.0, 1.0), (30.0, 10.0)], duration_s=60.0, rate_hz=100.0,
+                                     effects={"finite_stiffness": {"stiffness_kN_per_m": 300.0}}, with_ref=False,
+                                     seed=7))
+    trial.metadata["position_source"] = "load_point"
     d = diagnose(trial, resplits=False)
     moves = d.final_fit.extra["copies_sd"]
     names, _, cov = covariance(d.grid, d.final_fit)
     for k in ("A_mu", "B_mu", "L_um"):
         assert moves[k] < np.sqrt(cov[names.index(k), names.index(k)]), (k, moves[k])
+    rigid, _ = _steps_record()
+    assert "copies_sd" not in diagnose(rigid, resplits=False).final_fit.extra
 
 
 def test_leeman_cropped_at_its_start_agrees_with_the_original(real_data_dir):
