@@ -78,7 +78,8 @@ def register(app: typer.Typer) -> None:
         rep = d.report()
         rep["data"] = str(data)
         rep["warnings"] = diagnosis_warnings(rep) + _calibration_warnings(trial, rep)  # issue 21
-        text = summary(dict(rep, _noise_N=d.grid.noise_N, _unnamed=d.unnamed, _kinematics=_kinematics_set(d)))
+        text = summary(dict(rep, _noise_N=d.grid.noise_N, _unnamed=d.unnamed, _kinematics=_kinematics_set(d),
+                            **_undetermined(d)))
         if json_to_stdout(json_out):
             err_console.print(text, markup=False)
         else:
@@ -152,6 +153,13 @@ def _kinematics_set(d) -> list[str] | None:
     return d.final_fit.extra.get("kinematics_set") if d.final_fit is not None else None
 
 
+def _undetermined(d) -> dict:
+    """The final model's profile intervals over each parameter's domain (rig.diagnosis.intervals), and
+    the parameters given their whole searched domain instead, for the summary."""
+    ex = d.final_fit.extra if d.final_fit is not None else {}
+    return {"_profiled": sorted(ex.get("domain_intervals", {})), "_domain_whole": ex.get("domain_whole", [])}
+
+
 def _or(names: list[str]) -> str:
     return names[0] if len(names) == 1 else ", ".join(names[:-1]) + " or " + names[-1]
 
@@ -200,6 +208,15 @@ def summary(rep: dict) -> str:
                  + ": " + ", ".join(f"{k}={v:.4g}" + (f" ± {sd[k]:.2g}" if sd.get(k) is not None else "")
                                     + (f" {MARK}" if k in fl else "") for k, v in m["params"].items())
                  + f"; hold-out RMS {rep['holdout_rms_N']:.4g} N")
+    whole = rep.get("_domain_whole") or []
+    if set(rep.get("_profiled") or []) - set(whole):
+        lines.append("  this record does not determine the final model at one point: its errors (±) are the half-widths "
+                     "of profile-likelihood intervals over each parameter's domain (`intervals` in the JSON)")
+    if whole:
+        iv = m.get("intervals", {})
+        lines.append("  not determined: " + "; ".join(f"{k} anywhere in the whole searched domain [{iv[k][0]:.4g}, "
+                                                    f"{iv[k][1]:.4g}]" for k in whole if k in iv)
+                     + " (the record is too long for its profile, or no profile fit ended)")
     if rep.get("_kinematics"):
         lines.append(f"  the errors of {', '.join(rep['_kinematics'])} are the final model's disagreement with identify's "
                      "whole-record fit of the same record (its segments' velocities, each run's start and the measured "
