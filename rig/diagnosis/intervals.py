@@ -5,12 +5,16 @@ When a load-point coupling's fit runs to a bound of its domain (``core._couple``
 floor, B on +-0.2, k on the record's stiffness floor), the final model's Jacobian describes one
 corner of a flat valley: on Leeman's record trimmed past its only step, A sits on its floor 1e-4
 with a Jacobian error of 1.7e-4, which says "A is 1e-4 +- 2e-4" where the record says "A is
-anything up to about the original's". Here each such parameter is held at points stepping away
-from the fit (geometric offsets, to the edge of its domain), every other parameter refitted
-(continued from the neighbouring point), and the interval is where the rise of the sum of
-squares stays under one residual variance (with the autocorrelation's inflation, as
-:func:`rig.diagnosis.fit.profile` and the reported errors use): Wilks' +-1 sd, open to the
+anything up to 0.0019"; where the final model's refit on all the data ran to a bound (velstep1
+trimmed), it has no Jacobian at all. Here each parameter is held at points stepping away from
+the fit (geometric offsets, to the edge of its domain), every other parameter refitted (the
+nuisances too: the offset, the start's state; continued from the neighbouring point), and the
+interval is the hull of the values where the rise of the sum of squares stays under one residual
+variance (with the autocorrelation's inflation, as :func:`rig.diagnosis.fit.profile` and the
+reported errors use): Wilks' +-1 sd set, a second valley within it included, open to the
 domain's edge where the profile stays flat. Its half-width is the parameter's ``params_sd``.
+Where no profile is computed (a grid too large for it) or none ends, the interval is the
+parameter's whole searched domain (:func:`whole_domain`), and the summary says so.
 """
 
 from __future__ import annotations
