@@ -216,7 +216,8 @@ def summary(rep: dict) -> str:
         iv = m.get("intervals", {})
         lines.append("  not determined: " + "; ".join(f"{k} anywhere in the whole searched domain [{iv[k][0]:.4g}, "
                                                     f"{iv[k][1]:.4g}]" for k in whole if k in iv)
-                     + " (the record is too long for its profile, or no profile fit ended)")
+                     + " (the record has no velocity step to tell them by, is too long for their profile, or no "
+                       "profile fit ended)")
     if rep.get("_kinematics"):
         lines.append(f"  the errors of {', '.join(rep['_kinematics'])} are the final model's disagreement with identify's "
                      "whole-record fit of the same record (its segments' velocities, each run's start and the measured "

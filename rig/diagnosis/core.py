@@ -51,7 +51,7 @@ from rig.analysis.report import rounded as _r  # the one rounding of the reports
 from rig.data import TrialData
 
 from .fit import FitResult, at_bound, delta_bic, evaluate, fit, multistart, param, profile
-from .intervals import undetermined_intervals
+from .intervals import undetermined_intervals, whole_domain
 from rig.kinematics import velocity_changes
 from rig.model.forward import as_model
 from rig.model.spec import EXT_PARAMS, PLAUSIBLE, model_params
@@ -1139,7 +1139,7 @@ def _diagnose(trial: TrialData, baseline: str, progress, n_blocks: int, resplits
         _run_job, [(find_unexplained, (grid, cur)), (_final_fits, (d,))], grid.t.size >= PARALLEL_MIN_BINS)
     d.baseline_all, d.final_all = d.baseline_fit.params, d.final_fit.params
     _kinematics_floor(d, lambda: floor_reference(trial, steps, prior))
-    _undetermined_floor(d, main, kept)
+    _undetermined_floor(d, main, kept, prior, bool(steps))
     for i, f in enumerate(findings):
         _as_final(f, d)
         if i < coupling and (d.final_fit.extra.get("undetermined") or not f.uncertainty.get("params_sd")):
@@ -1335,7 +1335,8 @@ def floor_reference(trial: TrialData, steps: list, prior: dict) -> dict:
         return prior
 
 
-def _undetermined_floor(d: Diagnosis, main: _Search, kept: int) -> None:
+def _undetermined_floor(d: Diagnosis, main: _Search, kept: int, prior: dict | None = None,
+                        has_steps: bool = True) -> None:
     """When the load point's coupling was found on a bound (:func:`_couple`: the record does not
     determine it), the final model's refit on all sliding data is a second valley of the same
     likelihood, and its Jacobian's errors describe that valley only. Sepiolite velstep2: the
@@ -1345,11 +1346,13 @@ def _undetermined_floor(d: Diagnosis, main: _Search, kept: int) -> None:
     bound or failed (:func:`refit_all` keeps the split fit: velstep1 trimmed) has no Jacobian at all.
 
     Either way the final model is marked undetermined (``extra["undetermined"]``), and each of its
-    parameters carries the interval a profile over its domain gives, started from the refit and from
-    the coupling's own fit (:mod:`rig.diagnosis.intervals`), the half-width as its error: honest
+    parameters carries the interval a profile over its domain gives, started from the refit, from
+    the coupling's own fit and from ``prior`` (identify's whole-record fit: the record's own other
+    estimate; :mod:`rig.diagnosis.intervals`), the half-width as its error: honest
     about how little the record says (Leeman trimmed past its step: A on its floor, but anything up
     to 0.0019 explains the copy as well). On grids over ``PROFILE_MAX_BINS_UNDETERMINED`` bins, or
-    where no profile ends, a parameter's interval is its whole searched domain
+    where no profile ends, a parameter's interval is its whole searched domain, and so are A, B, L
+    and k's where the record has no velocity step (``has_steps`` False)
     (``extra["domain_whole"]``; the summary says so)."""
     from .fit import covariance
 
@@ -1361,10 +1364,20 @@ def _undetermined_floor(d: Diagnosis, main: _Search, kept: int) -> None:
         return
     names = [k for k in model_params(res.baseline, res.extensions) if k in res.params and k not in d.grid.known]
     res.extra["undetermined"] = list(main.chosen[0][0].undetermined) if bound else names
-    # the coupling's own fit (on the fit blocks, on a bound) is another valley of the same likelihood
-    others = [p for p in ([main.chosen[0][0].result.params] if bound else []) if p != res.params]
-    res.extra["domain_intervals"], res.extra["domain_whole"] = undetermined_intervals(
-        d.grid, res, names, COEF_MAX_MU, others, PROFILE_MAX_BINS_UNDETERMINED, d.grid.t.size >= PARALLEL_MIN_BINS)
+    # other valleys of the same likelihood: the coupling's own fit (on the fit blocks, on a bound) and
+    # identify's whole-record fit of the record (the search's start), where it has the model's parameters
+    others = [main.chosen[0][0].result.params] if bound else []
+    if prior and all(k in prior for k in names):
+        others.append({**res.params, **{k: float(prior[k]) for k in names}})
+    others = [p for p in others if p != res.params]
+    # without a velocity change (identify finds no step: a copy trimmed past its only one) the decay
+    # the record holds is its start's, whose state the model holds to one number (steady at
+    # v_init_um_s) where a start in mid-transient has two: A, B, L and k are not told by a step
+    flat = [] if has_steps else [n for n in names if n in CORE_BOUNDED]
+    ivs, whole = undetermined_intervals(d.grid, res, [n for n in names if n not in flat], COEF_MAX_MU, others,
+                                        PROFILE_MAX_BINS_UNDETERMINED, d.grid.t.size >= PARALLEL_MIN_BINS)
+    ivs.update({n: whole_domain(d.grid, n, COEF_MAX_MU) for n in flat})
+    res.extra["domain_intervals"], res.extra["domain_whole"] = ivs, whole + flat
 
 
 def _as_final(f: Finding, d: Diagnosis) -> None:
