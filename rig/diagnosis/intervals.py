@@ -147,7 +147,12 @@ def whole_domain(grid: Grid, name: str, cap: float) -> tuple[float, float]:
 
 
 def _one(job) -> tuple[float, float] | None:
-    return domain_interval(*job)
+    """:func:`domain_interval` of one parameter; None (its whole domain) where a held fit cannot be
+    set up or fails (a parameter fitted through others, as a periodic term's amplitude and phase)."""
+    try:
+        return domain_interval(*job)
+    except (ValueError, KeyError, IndexError, ZeroDivisionError, FloatingPointError, np.linalg.LinAlgError):
+        return None
 
 
 def undetermined_intervals(grid: Grid, res: FitResult, names: list[str], cap: float, others: list[dict] = (),

@@ -68,3 +68,14 @@ def test_the_summary_says_the_errors_are_profiles_and_which_are_the_whole_domain
 def test_a_determined_model_says_neither():
     text = summary(_rep())
     assert "profile-likelihood" not in text and "whole searched domain" not in text
+
+
+def test_a_profile_that_cannot_be_set_up_gives_the_whole_domain(monkeypatch):
+    def broken(*a, **k):
+        raise KeyError("phase_rad")
+
+    monkeypatch.setattr(intervals, "domain_interval", broken)
+    g = _grid(5)
+    res = SimpleNamespace(params={"A_mu": 0.004})
+    ivs, whole = intervals.undetermined_intervals(g, res, ["A_mu"], 0.2)
+    assert whole == ["A_mu"] and ivs["A_mu"] == intervals.whole_domain(g, "A_mu", 0.2)
