@@ -811,7 +811,7 @@ CANDIDATES_PARALLEL_MIN_S = 1.0  # a baseline fit longer than this: a round's ca
 PARALLEL_MIN_BINS = 5000
 PROFILE_MAX_BINS_SPRING = 2000  # profile likelihood of a model with a spring only on grids this small
 # the profiles over the domain of an undetermined final model (intervals.py) on grids up to this many bins
-# (velstep2's 19,446: 4 profiles, ~10 s of CPU on two cores); above, each parameter's whole searched domain
+# (velstep2's 19,446: five profiles, 6-8 s of CPU on two cores); above, each parameter's whole searched domain
 PROFILE_MAX_BINS_UNDETERMINED = 40000
 
 
@@ -1139,7 +1139,7 @@ def _diagnose(trial: TrialData, baseline: str, progress, n_blocks: int, resplits
         _run_job, [(find_unexplained, (grid, cur)), (_final_fits, (d,))], grid.t.size >= PARALLEL_MIN_BINS)
     d.baseline_all, d.final_all = d.baseline_fit.params, d.final_fit.params
     _kinematics_floor(d, lambda: floor_reference(trial, steps, prior))
-    _undetermined_floor(d, main, kept, prior, bool(steps))
+    _undetermined_floor(d, main, kept, bool(steps))
     for i, f in enumerate(findings):
         _as_final(f, d)
         if i < coupling and (d.final_fit.extra.get("undetermined") or not f.uncertainty.get("params_sd")):
@@ -1335,8 +1335,7 @@ def floor_reference(trial: TrialData, steps: list, prior: dict) -> dict:
         return prior
 
 
-def _undetermined_floor(d: Diagnosis, main: _Search, kept: int, prior: dict | None = None,
-                        has_steps: bool = True) -> None:
+def _undetermined_floor(d: Diagnosis, main: _Search, kept: int, has_steps: bool = True) -> None:
     """When the load point's coupling was found on a bound (:func:`_couple`: the record does not
     determine it), the final model's refit on all sliding data is a second valley of the same
     likelihood, and its Jacobian's errors describe that valley only. Sepiolite velstep2: the
@@ -1346,9 +1345,8 @@ def _undetermined_floor(d: Diagnosis, main: _Search, kept: int, prior: dict | No
     bound or failed (:func:`refit_all` keeps the split fit: velstep1 trimmed) has no Jacobian at all.
 
     Either way the final model is marked undetermined (``extra["undetermined"]``), and each of its
-    parameters carries the interval a profile over its domain gives, started from the refit, from
-    the coupling's own fit and from ``prior`` (identify's whole-record fit: the record's own other
-    estimate; :mod:`rig.diagnosis.intervals`), the half-width as its error: honest
+    parameters carries the interval a profile over its domain gives, started from the refit and
+    from the coupling's own fit (:mod:`rig.diagnosis.intervals`), the half-width as its error: honest
     about how little the record says (Leeman trimmed past its step: A on its floor, but anything up
     to 0.0019 explains the copy as well). On grids over ``PROFILE_MAX_BINS_UNDETERMINED`` bins, or
     where no profile ends, a parameter's interval is its whole searched domain, and so are A, B, L
@@ -1364,12 +1362,9 @@ def _undetermined_floor(d: Diagnosis, main: _Search, kept: int, prior: dict | No
         return
     names = [k for k in model_params(res.baseline, res.extensions) if k in res.params and k not in d.grid.known]
     res.extra["undetermined"] = list(main.chosen[0][0].undetermined) if bound else names
-    # other valleys of the same likelihood: the coupling's own fit (on the fit blocks, on a bound) and
-    # identify's whole-record fit of the record (the search's start), where it has the model's parameters
-    others = [main.chosen[0][0].result.params] if bound else []
-    if prior and all(k in prior for k in names):
-        others.append({**res.params, **{k: float(prior[k]) for k in names}})
-    others = [p for p in others if p != res.params]
+    # another valley of the same likelihood: the coupling's own fit (on the fit blocks, on a bound);
+    # identify's whole-record fit as a third held point moved no interval of velstep2 (4 s more)
+    others = [p for p in ([main.chosen[0][0].result.params] if bound else []) if p != res.params]
     # without a velocity change (identify finds no step: a copy trimmed past its only one) the decay
     # the record holds is its start's, whose state the model holds to one number (steady at
     # v_init_um_s) where a start in mid-transient has two: A, B, L and k are not told by a step
