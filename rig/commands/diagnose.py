@@ -157,7 +157,7 @@ def _undetermined(d) -> dict:
     """The final model's profile intervals over each parameter's domain (rig.diagnosis.intervals), and
     the parameters given their whole searched domain instead, for the summary."""
     ex = d.final_fit.extra if d.final_fit is not None else {}
-    return {"_profiled": sorted(ex.get("domain_intervals", {})), "_domain_whole": ex.get("domain_whole", [])}
+    return {"_profiled": sorted(ex.get("domain_intervals", {})), "_domain_whole": ex.get("domain_whole", {})}
 
 
 def _or(names: list[str]) -> str:
@@ -208,16 +208,18 @@ def summary(rep: dict) -> str:
                  + ": " + ", ".join(f"{k}={v:.4g}" + (f" ± {sd[k]:.2g}" if sd.get(k) is not None else "")
                                     + (f" {MARK}" if k in fl else "") for k, v in m["params"].items())
                  + f"; hold-out RMS {rep['holdout_rms_N']:.4g} N")
-    whole = rep.get("_domain_whole") or []
-    if set(rep.get("_profiled") or []) - set(whole):
-        lines.append("  this record does not determine the final model at one point: its errors (±) are the half-widths "
-                     "of profile-likelihood intervals over each parameter's domain (`intervals` in the JSON)")
-    if whole:
-        iv = m.get("intervals", {})
-        lines.append("  not determined: " + "; ".join(f"{k} anywhere in the whole searched domain [{iv[k][0]:.4g}, "
-                                                    f"{iv[k][1]:.4g}]" for k in whole if k in iv)
-                     + " (the record has no velocity step to tell them by, is too long for their profile, or no "
-                       "profile fit ended)")
+    whole = rep.get("_domain_whole") or {}
+    prof = [k for k in rep.get("_profiled") or [] if k not in whole]
+    if prof:
+        lines.append("  this record does not determine the final model at one point: the errors (±) of "
+                     + (", ".join(prof) + " are the half-widths of their" if whole else "all its parameters are the "
+                        "half-widths of their") + " profile-likelihood intervals over their domain (`intervals` in the JSON)")
+    iv = m.get("intervals", {})
+    for why in dict.fromkeys(whole.values()):
+        ks = [k for k, w in whole.items() if w == why and k in iv]
+        if ks:
+            lines.append("  not determined (" + why + "): " + "; ".join(
+                f"{k} anywhere in the whole searched domain [{iv[k][0]:.4g}, {iv[k][1]:.4g}]" for k in ks))
     if rep.get("_kinematics"):
         lines.append(f"  the errors of {', '.join(rep['_kinematics'])} are the final model's disagreement with identify's "
                      "whole-record fit of the same record (its segments' velocities, each run's start and the measured "

@@ -1372,7 +1372,11 @@ def _undetermined_floor(d: Diagnosis, main: _Search, kept: int, has_steps: bool 
     ivs, whole = undetermined_intervals(d.grid, res, [n for n in names if n not in flat], COEF_MAX_MU, others,
                                         PROFILE_MAX_BINS_UNDETERMINED, d.grid.t.size >= PARALLEL_MIN_BINS)
     ivs.update({n: whole_domain(d.grid, n, COEF_MAX_MU) for n in flat})
-    res.extra["domain_intervals"], res.extra["domain_whole"] = ivs, whole + flat
+    res.extra["domain_intervals"] = ivs
+    # why each whole domain (the summary's sentence)
+    big = d.grid.t.size > PROFILE_MAX_BINS_UNDETERMINED
+    res.extra["domain_whole"] = {**{n: "the record is too long for its profile" if big else "no profile fit ended"
+                                    for n in whole}, **{n: "the record has no velocity step" for n in flat}}
 
 
 def _as_final(f: Finding, d: Diagnosis) -> None:

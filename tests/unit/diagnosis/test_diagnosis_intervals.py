@@ -58,11 +58,14 @@ def _rep(**extra):
 
 
 def test_the_summary_says_the_errors_are_profiles_and_which_are_the_whole_domain():
-    text = summary(_rep(_profiled=["A_mu", "B_mu", "L_um", "stiffness_kN_per_m"], _domain_whole=["stiffness_kN_per_m"]))
+    text = summary(_rep(_profiled=["A_mu", "B_mu", "L_um", "stiffness_kN_per_m"],
+                        _domain_whole={"stiffness_kN_per_m": "the record has no velocity step"}))
     prof = [ln for ln in text.splitlines() if "profile-likelihood intervals" in ln]
     whole = [ln for ln in text.splitlines() if "whole searched domain" in ln]
     assert len(prof) == 1 and len(whole) == 1
+    assert "A_mu, B_mu, L_um are" in prof[0] and "stiffness" not in prof[0]
     assert "stiffness_kN_per_m" in whole[0] and "[50, 1e+05]" in whole[0] and "A_mu" not in whole[0]
+    assert "no velocity step" in whole[0]
 
 
 def test_a_determined_model_says_neither():
