@@ -79,7 +79,7 @@ def register(app: typer.Typer) -> None:
         rep["data"] = str(data)
         rep["warnings"] = diagnosis_warnings(rep) + _calibration_warnings(trial, rep)  # issue 21
         text = summary(dict(rep, _noise_N=d.grid.noise_N, _unnamed=d.unnamed, _kinematics=_floor_set(d, "kinematics_set"),
-                            _copies=_floor_set(d, "copies_set")))
+                            _copies=_floor_set(d, "copies_set"), **_undetermined(d)))
         if json_to_stdout(json_out):
             err_console.print(text, markup=False)
         else:
@@ -154,6 +154,13 @@ def _floor_set(d, key: str) -> list[str] | None:
     return d.final_fit.extra.get(key) if d.final_fit is not None else None
 
 
+def _undetermined(d) -> dict:
+    """The final model's profile intervals over each parameter's domain (rig.diagnosis.intervals), and
+    the parameters given their whole searched domain instead, for the summary."""
+    ex = d.final_fit.extra if d.final_fit is not None else {}
+    return {"_profiled": sorted(ex.get("domain_intervals", {})), "_domain_whole": ex.get("domain_whole", {})}
+
+
 def _or(names: list[str]) -> str:
     return names[0] if len(names) == 1 else ", ".join(names[:-1]) + " or " + names[-1]
 
@@ -202,6 +209,18 @@ def summary(rep: dict) -> str:
                  + ": " + ", ".join(f"{k}={v:.4g}" + (f" ± {sd[k]:.2g}" if sd.get(k) is not None else "")
                                     + (f" {MARK}" if k in fl else "") for k, v in m["params"].items())
                  + f"; hold-out RMS {rep['holdout_rms_N']:.4g} N")
+    whole = rep.get("_domain_whole") or {}
+    prof = [k for k in rep.get("_profiled") or [] if k not in whole]
+    if prof:
+        lines.append("  this record does not determine the final model at one point: the errors (±) of "
+                     + (", ".join(prof) + " are the half-widths of their" if whole else "all its parameters are the "
+                        "half-widths of their") + " profile-likelihood intervals over their domain (`intervals` in the JSON)")
+    iv = m.get("intervals", {})
+    for why in dict.fromkeys(whole.values()):
+        ks = [k for k, w in whole.items() if w == why and k in iv]
+        if ks:
+            lines.append("  not determined (" + why + "): " + "; ".join(
+                f"{k} anywhere in the whole searched domain [{iv[k][0]:.4g}, {iv[k][1]:.4g}]" for k in ks))
     if rep.get("_kinematics"):
         lines.append(f"  the errors of {', '.join(rep['_kinematics'])} are the final model's disagreement with identify's "
                      "whole-record fit of the same record (its segments' velocities, each run's start and the measured "

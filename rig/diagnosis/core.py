@@ -51,7 +51,7 @@ from rig.analysis.report import rounded as _r  # the one rounding of the reports
 from rig.data import TrialData
 
 from .fit import FitResult, at_bound, delta_bic, evaluate, fit, multistart, param, profile
-from .intervals import undetermined_intervals
+from .intervals import undetermined_intervals, whole_domain
 from rig.kinematics import velocity_changes
 from rig.model.forward import as_model
 from rig.model.spec import EXT_PARAMS, PLAUSIBLE, model_params
@@ -810,6 +810,9 @@ CANDIDATES_PARALLEL_MIN_S = 1.0  # a baseline fit longer than this: a round's ca
 # and the final model beside the residual's search for unexplained structure
 PARALLEL_MIN_BINS = 5000
 PROFILE_MAX_BINS_SPRING = 2000  # profile likelihood of a model with a spring only on grids this small
+# the profiles over the domain of an undetermined final model (intervals.py) on grids up to this many bins
+# (velstep2's 19,446: five profiles, 6-8 s of CPU on two cores); above, each parameter's whole searched domain
+PROFILE_MAX_BINS_UNDETERMINED = 40000
 
 
 @dataclass
@@ -1151,15 +1154,16 @@ def _diagnose(trial: TrialData, baseline: str, progress, n_blocks: int, resplits
         grid.t.size >= PARALLEL_MIN_BINS)
     d.baseline_all, d.final_all = d.baseline_fit.params, d.final_fit.params
     _kinematics_floor(d, lambda: floor_reference(trial, steps, prior))
-    _undetermined_floor(d, main, kept)
+    _undetermined_floor(d, main, kept, bool(steps))
     for i, f in enumerate(findings):
         _as_final(f, d)
         if i < coupling and (d.final_fit.extra.get("undetermined") or not f.uncertainty.get("params_sd")):
-            # the coupling whose final model the record does not determine (no errors: its refit on all
-            # the data ran to a bound or failed) is named as physics, with "none" beside it, as on a
-            # bound (_untested_coupling): velstep1's trimmed copy, the only one of six without it
-            _none_beside(f, "the final model has no standard errors (its refit on all the data runs to a "
-                            "bound or fails): this record does not determine the spring")
+            # the coupling whose final model the record does not determine (its fit on a bound, or its
+            # refit on all the data ran to one or failed) is named as physics, with "none" beside it, as
+            # on a bound (_untested_coupling): velstep1's trimmed copy, the only one of six without it
+            _none_beside(f, "the final model is not determined by this record (its fit or its refit on all the "
+                            "data runs to a bound or fails; its errors are profile intervals over each "
+                            "parameter's domain): this record does not determine the spring")
     d.timings = {"prepare_s": t_prep, "fit_s": t_loop, "total_s": _time.perf_counter() - t0,
                  "n_samples": int(len(trial)), "n_bins": int(grid.t.size), "n_splits": 1 + len(split_causes)}
     return d
@@ -1447,25 +1451,48 @@ def floor_reference(trial: TrialData, steps: list, prior: dict) -> dict:
         return prior
 
 
-def _undetermined_floor(d: Diagnosis, main: _Search, kept: int) -> None:
+def _undetermined_floor(d: Diagnosis, main: _Search, kept: int, has_steps: bool = True) -> None:
     """When the load point's coupling was found on a bound (:func:`_couple`: the record does not
     determine it), the final model's refit on all sliding data is a second valley of the same
-    likelihood, and its Jacobian's errors describe that valley only: the final model is reported
-    without errors (``extra["undetermined"]``; every value "not determined", as the command's
-    warnings say). Sepiolite velstep2: the fit-block fit has A on its floor and k 1163 kN/m, the
-    refit A 0.0118 and k 483 +- 90; decimated, k 1221 and 210 +- 80; trimmed, B on its bound: the
-    Jacobian's errors called these three answers, where the record gives none.
+    likelihood, and its Jacobian's errors describe that valley only. Sepiolite velstep2: the
+    fit-block fit has A on its floor and k 1163 kN/m, the refit A 0.0118 and k 483 +- 90;
+    decimated, k 1221 and 210 +- 80; trimmed, B on its bound: the Jacobian's errors called these
+    three answers, where the record gives none. A final model whose refit on all the data ran to a
+    bound or failed (:func:`refit_all` keeps the split fit: velstep1 trimmed) has no Jacobian at all.
 
-    On grids small enough for a spring's profile (``PROFILE_MAX_BINS_SPRING``), A, B, L and k then
-    carry the intervals a profile over each one's domain gives (:mod:`rig.diagnosis.intervals`), and
-    the half-widths as their errors: honest about how little the record says (Leeman trimmed past
-    its step: A on its floor, but anything up to the original's value explains the copy as well)."""
+    Either way the final model is marked undetermined (``extra["undetermined"]``), and each of its
+    parameters carries the interval a profile over its domain gives, started from the refit and
+    from the coupling's own fit (:mod:`rig.diagnosis.intervals`), the half-width as its error: honest
+    about how little the record says (Leeman trimmed past its step: A on its floor, but anything up
+    to 0.0019 explains the copy as well). On grids over ``PROFILE_MAX_BINS_UNDETERMINED`` bins, or
+    where no profile ends, a parameter's interval is its whole searched domain, and so are A, B, L
+    and k's where the record has no velocity step (``has_steps`` False)
+    (``extra["domain_whole"]``; the summary says so)."""
+    from .fit import covariance
+
     res = d.final_fit
-    if res is None or not main.coupled or kept < 1 or not main.chosen[0][0].undetermined:
+    if res is None:
         return
-    res.extra["undetermined"] = list(main.chosen[0][0].undetermined)
-    if d.grid.t.size <= PROFILE_MAX_BINS_SPRING:
-        res.extra["domain_intervals"] = undetermined_intervals(d.grid, res, list(CORE_BOUNDED), COEF_MAX_MU)
+    bound = main.coupled and kept >= 1 and bool(main.chosen[0][0].undetermined)
+    if not bound and covariance(d.grid, res) is not None:
+        return
+    names = [k for k in model_params(res.baseline, res.extensions) if k in res.params and k not in d.grid.known]
+    res.extra["undetermined"] = list(main.chosen[0][0].undetermined) if bound else names
+    # another valley of the same likelihood: the coupling's own fit (on the fit blocks, on a bound);
+    # identify's whole-record fit as a third held point moved no interval of velstep2 (4 s more)
+    others = [p for p in ([main.chosen[0][0].result.params] if bound else []) if p != res.params]
+    # without a velocity change (identify finds no step: a copy trimmed past its only one) the decay
+    # the record holds is its start's, whose state the model holds to one number (steady at
+    # v_init_um_s) where a start in mid-transient has two: A, B, L and k are not told by a step
+    flat = [] if has_steps else [n for n in names if n in CORE_BOUNDED]
+    ivs, whole = undetermined_intervals(d.grid, res, [n for n in names if n not in flat], COEF_MAX_MU, others,
+                                        PROFILE_MAX_BINS_UNDETERMINED, d.grid.t.size >= PARALLEL_MIN_BINS)
+    ivs.update({n: whole_domain(d.grid, n, COEF_MAX_MU) for n in flat})
+    res.extra["domain_intervals"] = ivs
+    # why each whole domain (the summary's sentence)
+    big = d.grid.t.size > PROFILE_MAX_BINS_UNDETERMINED
+    res.extra["domain_whole"] = {**{n: "the record is too long for its profile" if big else "no profile fit ended"
+                                    for n in whole}, **{n: "the record has no velocity step" for n in flat}}
 
 
 def _as_final(f: Finding, d: Diagnosis) -> None:

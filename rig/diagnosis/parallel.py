@@ -83,6 +83,20 @@ def can_fork() -> bool:
             and mp.current_process().name == "MainProcess")
 
 
+def _end_helpers(ex) -> None:
+    """End the helpers of ``ex`` still computing or waiting for a job no one will read (pure fits, no
+    files or locks of this process), not waited for. Their futures are left to the broken pool, which
+    fails them (cancelled first, the pool's own thread raised on each: a traceback on the terminal),
+    and the queue's feeder thread is not joined at exit: it may be blocked writing a job (a grid of
+    megabytes) into a pipe no helper reads any more, and the process then never ended (velstep1
+    trimmed, where the start's fit changes the model: the report written, the command hung)."""
+    for p in list((getattr(ex, "_processes", None) or {}).values()):
+        p.terminate()
+    q = getattr(ex, "_call_queue", None)
+    if q is not None:
+        q.cancel_join_thread()
+
+
 def fork_map(fn: Callable, jobs: list, parallel: bool, progress=None, what=None, stop=None) -> list:
     """``[fn(j) for j in jobs]``, in order; on :func:`inner_workers` processes when ``parallel``
     (forked helpers: they start at once with the compiled kernels, where spawn would re-import
@@ -105,12 +119,7 @@ def fork_map(fn: Callable, jobs: list, parallel: bool, progress=None, what=None,
                     if progress:
                         progress(what(j))
                     if stop is not None and stop(i, out[-1]):
-                        for g in futures[i + 1:]:
-                            g.cancel()
-                        # the helpers still computing a job no one will read: ended, not waited for
-                        # (pure fits, no files or locks of this process)
-                        for p in list((getattr(ex, "_processes", None) or {}).values()):
-                            p.terminate()
+                        _end_helpers(ex)
                         break
                 return out
         except (OSError, AssertionError, cf.process.BrokenProcessPool):
