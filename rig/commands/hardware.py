@@ -137,7 +137,14 @@ def emulate(
     seconds: Optional[float] = typer.Option(None, "--seconds", min=0.0, help="Stop after this long (s; default: Ctrl-C)."),
 ):
     """Serve the emulated devices of PROFILE (Modbus, LVDT pty, CAN valve) until Ctrl-C."""
+    import signal
+
     from rig.hardware.emulated import EmulatorError, EmulatorService, control_socket_path, start_emulator_process
+
+    # Ctrl-C stops it whatever this process inherited: a parent that ignores SIGINT (a background job of a
+    # script, a test runner whose libraries set it to SIG_IGN) makes Python leave it ignored, and the
+    # emulators then served until --seconds ran out (the CI's test waited 60 s for a Ctrl-C, twice)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
     profile, hw = _load(profile_path)
     try:  # the profile's own channel and ports: `rig run` and `rig devices check` in other processes reach them

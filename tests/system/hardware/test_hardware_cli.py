@@ -51,8 +51,10 @@ def test_rig_emulate_serves_devices_check_and_run_in_other_processes(tmp_path, p
     # process that inherited its stdout (the emulator's own children) to close a pipe
     log = tmp_path / "emulate.log"
     with open(log, "w") as fh:
+        # started with SIGINT ignored, as a background job or a test runner may leave it: Ctrl-C still stops it
         p = subprocess.Popen([sys.executable, "-m", "rig.cli", "emulate", "--hardware", str(prof), "--seconds",
-                              "120"], cwd=REPO, stdout=fh, stderr=subprocess.STDOUT, text=True)
+                              "120"], cwd=REPO, stdout=fh, stderr=subprocess.STDOUT, text=True,
+                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
     try:
         t_end = time.monotonic() + 60
         while "emulators up" not in log.read_text() and p.poll() is None and time.monotonic() < t_end:
