@@ -58,6 +58,7 @@ from rig.model.spec import EXT_PARAMS, PLAUSIBLE, model_params
 from .causes import CAUSES, PERIODIC_SEARCH_CYCLES, rate_starts, slip_of, stiffness_floor_kN_per_m
 from .parallel import can_fork, fork_map, inner_workers, one_blas_thread
 from .prep import Grid, canonical, prepare
+from .transforms import crop
 
 # a finding must matter in practice, not only pass a significance test (docs/diagnosis.md):
 # a hold-out RMS gain of at least MIN_GAIN_PCT, and (per cause, _plausible) an effect above the
@@ -1086,10 +1087,8 @@ def _resplit_search(trial, baseline, prior, steps, known, load_point, spec, roun
                     start) -> list[str]:
     a, b = spec.get("crop", (0.0, 0.0))
     if a or b:
-        t = np.asarray(trial.time_s, dtype=float)
-        T = t[-1] - t[0]
         # not re-zeroed: the steps are on this clock (prepare measures everything from the first sample)
-        trial = trial.select((t >= t[0] + a * T) & (t <= t[-1] - b * T))
+        trial = crop(trial, a, b)
     try:
         s = _search(trial, baseline, prior, steps, known, load_point, n_blocks=spec.get("n_blocks", 20),
                     swap_aligned=spec.get("swap_aligned", False), max_rounds=rounds, align=spec.get("align", True),
@@ -1319,8 +1318,7 @@ def _copies(trial: TrialData, steps: list) -> list[TrialData]:
     if t.size > COPIES_MAX_ROWS:  # every n-th row (a decimation is harmless too): 4 s less per copy of 1 h at 1 kHz
         trial = trial.select(np.arange(t.size) % -(-t.size // COPIES_MAX_ROWS) == 0)
         t = np.asarray(trial.time_s, dtype=float)
-    span = t[-1] - t[0]
-    out = [trial.select((t >= t[0] + a * span) & (t <= t[-1] - b * span)) for a, b in CROPS]
+    out = [crop(trial, a, b) for a, b in CROPS]
     x = np.asarray(trial.position_um, dtype=float)
     for lag in ((half, -half) if half > 0 else ()):
         c = trial.select(np.ones(t.size, bool))

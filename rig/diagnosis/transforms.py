@@ -54,11 +54,17 @@ def switch_rate(trial: TrialData, slow_hz: float = 10.0, fast_hz: float = 100.0,
     return trial.select(keep)
 
 
-def trim(trial: TrialData, frac: float = 0.05) -> TrialData:
-    """``frac`` of the record's time cut off at each end."""
+def crop(trial: TrialData, start_frac: float, end_frac: float) -> TrialData:
+    """The record less ``start_frac`` of its time at the start and ``end_frac`` at the end (its clock
+    kept: not re-zeroed)."""
     t = np.asarray(trial.time_s, dtype=float)
     T = t[-1] - t[0]
-    return trial.select((t >= t[0] + frac * T) & (t <= t[-1] - frac * T))
+    return trial.select((t >= t[0] + start_frac * T) & (t <= t[-1] - end_frac * T))
+
+
+def trim(trial: TrialData, frac: float = 0.05) -> TrialData:
+    """``frac`` of the record's time cut off at each end."""
+    return crop(trial, frac, frac)
 
 
 def scale_forces(trial: TrialData, factor: float = 3.0) -> TrialData:
